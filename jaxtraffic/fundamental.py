@@ -1,0 +1,74 @@
+"""Fundamental diagram of the mixed ACC/manual ARZ model (MODEL.md section 2).
+
+Every function is pure and elementwise, so it broadcasts over grids and ``vmap``s over
+parameters. Units: density ``rho`` in veh/m, speed in m/s, time gaps in s.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import jax.numpy as jnp
+
+if TYPE_CHECKING:
+    from jaxtraffic.params import TrafficParams
+
+Array = jnp.ndarray
+
+
+def tau_mix(p: TrafficParams, alpha: Array | float | None = None) -> Array:
+    """Mixed relaxation time tau_mix = 1 / (alpha/tau_acc + (1-alpha)/tau_m), in s."""
+    a = p.alpha if alpha is None else alpha
+    return 1.0 / (a / p.tau_acc + (1.0 - a) / p.tau_m)
+
+
+def _c_b(p: TrafficParams, alpha: Array | float | None) -> tuple[Array, Array]:
+    a = p.alpha if alpha is None else alpha
+    ratio = p.tau_acc / p.tau_m
+    c = a + (1.0 - a) * ratio
+    b = (1.0 - a) * ratio / p.h_m
+    return c, b
+
+
+def h_mix(h: Array, p: TrafficParams, alpha: Array | float | None = None) -> Array:
+    """Mixed time gap h_mix(h) = c h / (alpha + b h) in s, for an ACC time gap ``h`` in s."""
+    a = p.alpha if alpha is None else alpha
+    c, b = _c_b(p, a)
+    return c * h / (a + b * h)
+
+
+def h_mix_prime(h: Array, p: TrafficParams, alpha: Array | float | None = None) -> Array:
+    """Derivative dh_mix/dh = c alpha / (alpha + b h)^2 (dimensionless)."""
+    a = p.alpha if alpha is None else alpha
+    c, b = _c_b(p, a)
+    return c * a / (a + b * h) ** 2
+
+
+def h_mix_inv(hm: Array, p: TrafficParams, alpha: Array | float | None = None) -> Array:
+    """Inverse of ``h_mix``: the ACC time gap (s) giving mixed gap ``hm`` (s); needs hm < c/b."""
+    a = p.alpha if alpha is None else alpha
+    c, b = _c_b(p, a)
+    return a * hm / (c - b * hm)
+
+
+def V(rho: Array, h: Array, p: TrafficParams, alpha: Array | float | None = None) -> Array:
+    """Equilibrium speed V(rho, h) = (1/rho - l) / h_mix(h), in m/s."""
+    return (1.0 / rho - p.l) / h_mix(h, p, alpha)
+
+
+def dV_drho(rho: Array, h: Array, p: TrafficParams, alpha: Array | float | None = None) -> Array:
+    """dV/drho = -1 / (rho^2 h_mix(h)), in m^2/(s veh)."""
+    return -1.0 / (rho**2 * h_mix(h, p, alpha))
+
+
+def dV_dh(rho: Array, h: Array, p: TrafficParams, alpha: Array | float | None = None) -> Array:
+    """dV/dh = -(1/rho - l) h_mix'(h) / h_mix(h)^2, in m/s^2."""
+    hm = h_mix(h, p, alpha)
+    return -(1.0 / rho - p.l) * h_mix_prime(h, p, alpha) / hm**2
+
+
+def characteristic_speeds(
+    rho: Array, v: Array, h: Array, p: TrafficParams, alpha: Array | float | None = None
+) -> tuple[Array, Array]:
+    """Characteristic speeds (lambda1, lambda2) = (v, v - 1/(rho h_mix)), in m/s."""
+    return v, v - 1.0 / (rho * h_mix(h, p, alpha))

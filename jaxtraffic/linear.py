@@ -1,0 +1,79 @@
+"""Linearisation of the ARZ model about its equilibrium (MODEL.md section 6).
+
+With tildes for deviations, U = h - h_bar, V_rho = dV/drho and V_h = dV/dh at equilibrium:
+
+    rho~_t + v_bar rho~_x + rho_bar v~_x = 0
+    v~_t  + lambda2 v~_x = (V_rho rho~ + V_h U - v~) / tau_mix
+    rho~(0) = -(rho_bar / v_bar) v~(0),   v~_t(L) = (V_rho rho~(L) + V_h U(L) - v~(L)) / tau_mix
+
+equivalently, with the Riemann variable w = v~ - V_rho rho~,
+w_t + lambda1 w_x = (-w + V_h U)/tau_mix and v~_t + lambda2 v~_x = (-w + V_h U)/tau_mix.
+``linear_step`` discretises it with the first-order upwind scheme of ``solver`` (the exact
+Jacobian of the nonlinear upwind step at the equilibrium, for lambda1 > 0 > lambda2).
+"""
+
+from __future__ import annotations
+
+import chex
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from jaxtraffic import fundamental as fd
+from jaxtraffic.params import TrafficParams, equilibrium
+
+Array = jax.Array
+
+
+@struct.dataclass
+class LinearModel:
+    """Equilibrium coefficients (all traced scalars).
+
+    rho_bar veh/m, v_bar m/s, h_bar s, V_rho m^2/(s veh), V_h m/s^2, tau s, lam1/lam2 m/s,
+    dx m, dt s.
+    """
+
+    rho_bar: Array
+    v_bar: Array
+    h_bar: Array
+    V_rho: Array
+    V_h: Array
+    tau: Array
+    lam1: Array
+    lam2: Array
+    dx: Array
+    dt: Array
+
+
+def linearize(p: TrafficParams) -> LinearModel:
+    """Coefficients of the linearised model at the equilibrium of ``p`` (nominal alpha)."""
+    rho_bar, v_bar = equilibrium(p)
+    V_rho = fd.dV_drho(rho_bar, p.h_bar, p)
+    lam1, lam2 = fd.characteristic_speeds(rho_bar, v_bar, p.h_bar, p)
+    as_arr = jnp.asarray
+    return LinearModel(
+        rho_bar=rho_bar, v_bar=v_bar, h_bar=as_arr(p.h_bar), V_rho=V_rho,
+        V_h=fd.dV_dh(rho_bar, p.h_bar, p), tau=as_arr(fd.tau_mix(p)), lam1=as_arr(lam1),
+        lam2=as_arr(lam2), dx=as_arr(p.dx), dt=as_arr(p.dt),
+    )
+
+
+def riemann_w(rho_t: Array, v_t: Array, lm: LinearModel) -> Array:
+    """Riemann variable w = v~ - V_rho rho~ (m/s)."""
+    return v_t - lm.V_rho * rho_t
+
+
+def linear_step(rho_t: Array, v_t: Array, U: Array, lm: LinearModel) -> tuple[Array, Array]:
+    """One upwind step of the linearised model for deviations (veh/m, m/s) under U = h - h_bar (s)."""
+    chex.assert_equal_shape([rho_t, v_t, U])
+    dx, dt = lm.dx, lm.dt
+    q = lm.v_bar * rho_t + lm.rho_bar * v_t  # linearised mass flux
+    rho_new = rho_t.at[1:].add(-dt / dx * (q[1:] - q[:-1]))
+    source = (lm.V_rho * rho_t + lm.V_h * U - v_t) / lm.tau
+    vx_fwd = (v_t[1:] - v_t[:-1]) / dx
+    vx_bwd = jnp.concatenate([vx_fwd[:1], vx_fwd[:-1]])
+    vx = jnp.where(lm.lam2 < 0, vx_fwd, vx_bwd)
+    adv = jnp.concatenate([lm.lam2 * vx, jnp.zeros((1,), v_t.dtype)])
+    v_new = v_t + dt * (source - adv)
+    rho_new = rho_new.at[0].set(-(lm.rho_bar / lm.v_bar) * v_new[0])
+    return rho_new, v_new

@@ -1,0 +1,182 @@
+"""Model parameters, numerical grid and the uniform equilibrium (MODEL.md sections 1-2, 4).
+
+``TrafficParams`` is a ``flax.struct`` pytree. Its float fields (physical constants, the plant's
+input delay, the time step) are *traced*: a batch of scenarios is a ``vmap`` over a batched
+``TrafficParams`` and changing them never recompiles. Its shape-setting fields (``n_points``,
+``max_delay_steps``) and the choice of ``scheme`` are *static* (part of the tree structure), so
+changing them compiles a new program, as it must.
+
+Validation runs whenever a ``TrafficParams`` is built from concrete numbers (never on tracers),
+so invalid input fails at construction with a clear message.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from jaxtraffic import fundamental as fd
+
+SCHEMES = ("upwind", "muscl")
+MODELS = ("arz", "linear")
+
+
+@struct.dataclass
+class TrafficParams:
+    """Plant and grid parameters; defaults are the paper's Table 1 and section 4.2 grid.
+
+    Attributes (units):
+        L: road length, m.              l: effective vehicle length, m.
+        q_in: inflow, veh/s (1200 veh/h = 1/3 veh/s).
+        alpha: ACC penetration rate in [0, 1].
+        tau_acc, tau_m: relaxation times of ACC and manual vehicles, s.
+        h_bar: nominal ACC time gap, s.  h_m: manual time gap, s.
+        delay: plant input delay D, s (a non-negative multiple of ``dt``).
+        dt: time step, s.
+        h_min, h_max: actuator bounds on the ACC time gap, s.
+        alpha_noise: std of Gaussian noise added to the plant's alpha, redrawn every step
+            (clipped to [0, 1]); 0 disables it.
+        n_points: number of grid points (static); dx = L / (n_points - 1).
+        max_delay_steps: capacity of the input-delay ring buffer in steps (static).
+        scheme: ``"upwind"`` (first order, the paper's method) or ``"muscl"`` (second order,
+            minmod-limited reconstruction with SSP-RK2 time stepping) (static).
+        model: plant model, ``"arz"`` (nonlinear, the default) or ``"linear"`` (the
+            linearisation of MODEL.md section 6 on the same grid, for tests and design) (static).
+    """
+
+    L: float = 1000.0
+    l: float = 5.0
+    q_in: float = 1.0 / 3.0
+    alpha: float = 0.15
+    tau_acc: float = 2.0
+    tau_m: float = 60.0
+    h_bar: float = 1.5
+    h_m: float = 1.0
+    delay: float = 0.0
+    dt: float = 0.1
+    h_min: float = 0.5
+    h_max: float = 3.0
+    alpha_noise: float = 0.0
+    n_points: int = struct.field(pytree_node=False, default=201)
+    max_delay_steps: int = struct.field(pytree_node=False, default=100)
+    scheme: str = struct.field(pytree_node=False, default="upwind")
+    model: str = struct.field(pytree_node=False, default="arz")
+
+    def __post_init__(self) -> None:
+        validate(self)
+
+    @property
+    def dx(self) -> jax.Array | float:
+        """Grid spacing, m."""
+        return self.L / (self.n_points - 1)
+
+    @property
+    def delay_steps(self) -> jax.Array:
+        """Plant delay in steps, d = round(D / dt), as an int32 (traced)."""
+        return jnp.round(jnp.asarray(self.delay) / self.dt).astype(jnp.int32)
+
+    def x(self) -> jax.Array:
+        """Grid point positions x_i = i dx, m, shape (n_points,)."""
+        return jnp.linspace(0.0, 1.0, self.n_points) * self.L
+
+
+def _concrete(value: object) -> np.ndarray | None:
+    """``value`` as a float numpy array, or None if it is a tracer or not numeric."""
+    if isinstance(value, jax.core.Tracer):
+        return None
+    try:
+        return np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        return None
+
+
+def validate(p: TrafficParams, cfl_max: float = 1.0) -> None:
+    """Raise ``ValueError`` with a clear message if concrete parameters are invalid.
+
+    Checks positivity of lengths and times, alpha in [0, 1], actuator bounds, that the inflow
+    admits an equilibrium, that the delay is a non-negative multiple of dt within the buffer's
+    capacity, and the CFL condition max|lambda| dt/dx <= ``cfl_max`` at the equilibrium.
+    Fields that are traced (inside ``jit``/``vmap``) are skipped: validate before tracing.
+    """
+    if not isinstance(p.n_points, int) or p.n_points < 3:
+        raise ValueError(f"n_points must be an int >= 3, got {p.n_points!r}")
+    if not isinstance(p.max_delay_steps, int) or p.max_delay_steps < 0:
+        raise ValueError(f"max_delay_steps must be an int >= 0, got {p.max_delay_steps!r}")
+    if p.scheme not in SCHEMES:
+        raise ValueError(f"scheme must be one of {SCHEMES}, got {p.scheme!r}")
+    if p.model not in MODELS:
+        raise ValueError(f"model must be one of {MODELS}, got {p.model!r}")
+    vals = {k: _concrete(getattr(p, k)) for k in (
+        "L", "l", "q_in", "alpha", "tau_acc", "tau_m", "h_bar", "h_m", "delay", "dt",
+        "h_min", "h_max", "alpha_noise")}
+    if any(v is None for v in vals.values()):
+        return  # traced or placeholder leaves: nothing concrete to check
+    for name in ("L", "l", "q_in", "tau_acc", "tau_m", "h_bar", "h_m", "dt", "h_min"):
+        if not np.all(vals[name] > 0):
+            raise ValueError(f"{name} must be > 0, got {vals[name]}")
+    if not np.all((vals["alpha"] >= 0) & (vals["alpha"] <= 1)):
+        raise ValueError(f"alpha must lie in [0, 1], got {vals['alpha']}")
+    if not np.all(vals["alpha_noise"] >= 0):
+        raise ValueError(f"alpha_noise must be >= 0, got {vals['alpha_noise']}")
+    if not np.all(vals["h_max"] > vals["h_min"]):
+        raise ValueError(f"need h_max > h_min, got {vals['h_min']}, {vals['h_max']}")
+    if not np.all((vals["h_bar"] >= vals["h_min"]) & (vals["h_bar"] <= vals["h_max"])):
+        raise ValueError(f"h_bar {vals['h_bar']} outside actuator bounds [{vals['h_min']}, {vals['h_max']}]")
+    hm_bar = fd.h_mix(vals["h_bar"], _np_view(vals), vals["alpha"])
+    if not np.all(1.0 / vals["q_in"] > hm_bar):
+        raise ValueError(
+            f"inflow q_in={vals['q_in']} veh/s has no equilibrium: need 1/q_in > h_mix(h_bar)"
+            f" = {hm_bar} s (q_in < {1.0 / hm_bar} veh/s)")
+    d = vals["delay"] / vals["dt"]
+    if not np.all(vals["delay"] >= 0) or not np.allclose(d, np.round(d), rtol=0, atol=1e-6):
+        raise ValueError(f"delay must be a non-negative multiple of dt={vals['dt']} s, got {vals['delay']}")
+    if not np.all(np.round(d) <= p.max_delay_steps):
+        raise ValueError(
+            f"delay {vals['delay']} s is {int(np.max(np.round(d)))} steps, above the buffer capacity"
+            f" max_delay_steps={p.max_delay_steps}; raise max_delay_steps")
+    rho_bar, v_bar = _equilibrium_np(vals)
+    lam2 = v_bar - 1.0 / (rho_bar * hm_bar)
+    dx = vals["L"] / (p.n_points - 1)
+    cfl = np.max(np.maximum(np.abs(v_bar), np.abs(lam2)) * vals["dt"] / dx)
+    if not cfl <= cfl_max:
+        raise ValueError(
+            f"CFL violated: max|lambda| dt/dx = {cfl:.3f} > {cfl_max} (dt={vals['dt']} s, dx={dx} m);"
+            " reduce dt or use fewer points")
+
+
+class _np_view:  # minimal attribute view so fundamental.* works on numpy dicts
+    def __init__(self, vals: dict[str, np.ndarray]):
+        self.__dict__.update(vals)
+
+
+def _equilibrium_np(vals: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    hm = fd.h_mix(vals["h_bar"], _np_view(vals), vals["alpha"])
+    v_bar = vals["l"] / (1.0 / vals["q_in"] - hm)
+    return 1.0 / (vals["l"] + hm * v_bar), v_bar
+
+
+def equilibrium(p: TrafficParams) -> tuple[jax.Array, jax.Array]:
+    """Uniform equilibrium (rho_bar in veh/m, v_bar in m/s) at inflow q_in and time gap h_bar.
+
+    v_bar = l / (1/q_in - h_mix(h_bar)),  rho_bar = 1 / (l + h_mix(h_bar) v_bar).
+    """
+    hm = fd.h_mix(p.h_bar, p)
+    v_bar = p.l / (1.0 / p.q_in - hm)
+    rho_bar = 1.0 / (p.l + hm * v_bar)
+    return jnp.asarray(rho_bar), jnp.asarray(v_bar)
+
+
+def cfl_number(p: TrafficParams) -> float:
+    """CFL number max|lambda| dt/dx at the equilibrium, for concrete parameters."""
+    rho_bar, v_bar = equilibrium(p)
+    lam1, lam2 = fd.characteristic_speeds(rho_bar, v_bar, p.h_bar, p)
+    return float(jnp.max(jnp.maximum(jnp.abs(lam1), jnp.abs(lam2)) * p.dt / p.dx))
+
+
+def steps_for(p: TrafficParams, seconds: float) -> int:
+    """Number of time steps covering ``seconds`` (concrete dt)."""
+    return int(math.ceil(round(seconds / float(p.dt), 6)))

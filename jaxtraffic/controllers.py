@@ -14,8 +14,9 @@ controllers. The rollout saturates every returned field to [h_min, h_max] (``sat
 Laws (MODEL.md sections 7-9; see docs/controllers.md for sources and differences):
     open_loop:     h = h_bar
     gain_law:      h = h_bar + h_bar (-eta1 h~_prev/h_bar - eta2 v~/v_bar + eta3 rho~/rho_bar)
-    lyapunov:      U = ((1 - k) v~ - V_rho rho~) / V_h
-    backstepping:  the Lyapunov law applied to the state predicted D_ctrl ahead
+    lyapunov:      h = h_bar + U,  U = ((1 - k) v~ - V_rho rho~) / V_h  (tildes: deviations)
+    backstepping:  the Lyapunov law applied to the state predicted D_ctrl ahead by the
+                   discrete linearised model (``predict``: D_ctrl/dt cheap linear steps)
 """
 
 from __future__ import annotations
@@ -104,6 +105,21 @@ def gain_law(gains: Array, obs: Observation, nominal: TrafficParams) -> Array:
     return h_bar + h_bar * dev
 
 
+def lyapunov_equivalent_gains(k: float | Array, nominal: TrafficParams) -> Array:
+    """Gains [eta1, eta2, eta3] for which ``gain_law`` is the Lyapunov law with gain ``k``.
+
+    Matching h_bar (-eta2 v~/v_bar + eta3 rho~/rho_bar) = ((1 - k) v~ - V_rho rho~)/V_h gives
+    eta1 = 0, eta2 = (k - 1) v_bar / (h_bar V_h), eta3 = -V_rho rho_bar / (h_bar V_h)
+    (all dimensionless). At the paper's defaults: eta2 = -1.283333 (k - 1), eta3 = -2.770561, so the
+    Lyapunov law is *not* inside the paper's sigmoid range (0, 1) of gains (MODEL.md section 9).
+    """
+    lm = linearize(nominal)
+    k = jnp.asarray(k, lm.V_h.dtype)
+    scale = lm.h_bar * lm.V_h
+    return jnp.stack([jnp.zeros_like(k), (k - 1.0) * lm.v_bar / scale,
+                      jnp.broadcast_to(-lm.V_rho * lm.rho_bar / scale, jnp.shape(k))], axis=-1)
+
+
 def _gain_act(settings, cstate, obs, nominal, key):
     return gain_law(settings, obs, nominal), cstate
 
@@ -120,14 +136,31 @@ class LyapunovSettings:
     k: Array  # decay gain of v~, dimensionless (> 0)
 
 
+def lyapunov_input(rho_t: Array, v_t: Array, k: Array, lm: LinearModel) -> Array:
+    """The Lyapunov law on deviations: U = (w - k v~)/V_h = ((1 - k) v~ - V_rho rho~)/V_h (s).
+
+    It turns the common source (-w + V_h U)/tau_mix of the linearised model into -k v~/tau_mix.
+    """
+    return (riemann_w(rho_t, v_t, lm) - k * v_t) / lm.V_h
+
+
 def lyapunov_law(rho: Array, v: Array, k: Array, lm: LinearModel) -> Array:
-    """U = (w - k v~)/V_h = ((1 - k) v~ - V_rho rho~)/V_h; returns h = h_bar + U (s)."""
-    rho_t, v_t = rho - lm.rho_bar, v - lm.v_bar
-    return lm.h_bar + (riemann_w(rho_t, v_t, lm) - k * v_t) / lm.V_h
+    """The Lyapunov law on the fields rho (veh/m), v (m/s): h = h_bar + U (s), unsaturated."""
+    return lm.h_bar + lyapunov_input(rho - lm.rho_bar, v - lm.v_bar, k, lm)
+
+
+def _lyapunov_h(rho_t: Array, v_t: Array, k: Array, lm: LinearModel) -> Array:
+    """h = h_bar + U from deviations. The optimisation barrier keeps XLA from fusing the law
+    with whatever produced the deviations and the coefficients, so that ``lyapunov`` and
+    ``backstepping(0)`` compile the law identically and agree bit for bit on CPU (without it
+    they differ by 1 ulp at a few nodes)."""
+    rho_t, v_t, k, lm = jax.lax.optimization_barrier((rho_t, v_t, k, lm))
+    return lm.h_bar + lyapunov_input(rho_t, v_t, k, lm)
 
 
 def _lyapunov_act(settings, cstate, obs, nominal, key):
-    return lyapunov_law(obs.rho, obs.v, settings.k, linearize(nominal)), cstate
+    lm = linearize(nominal)
+    return _lyapunov_h(obs.rho - lm.rho_bar, obs.v - lm.v_bar, settings.k, lm), cstate
 
 
 def _lyapunov_nonlinear_act(settings, cstate, obs, nominal, key):
@@ -142,9 +175,13 @@ def _lyapunov_nonlinear_act(settings, cstate, obs, nominal, key):
 
 
 def lyapunov(k: float | Array = 1.0, nonlinear: bool = False) -> Controller:
-    """Lyapunov in-domain feedback (MODEL.md section 7), gain ``k`` > 0.
+    """Lyapunov in-domain feedback (MODEL.md section 7), gain ``k`` > 0 (dimensionless).
 
-    ``nonlinear=True`` uses the speed-matching variant h = h_mix^{-1}((1/rho - l)/(v - k v~)).
+    h = h_bar + ((1 - k) v~ - V_rho rho~)/V_h with the nominal equilibrium coefficients; in the
+    linearised closed loop v~ decays at rate k/tau_mix (1/s) along its characteristic.
+    ``nonlinear=True`` uses the speed-matching variant h = h_mix^{-1}((1/rho - l)/(v - k v~))
+    (when v - k v~ <= 0 or the required h_mix exceeds its supremum c/b it asks for a very large
+    gap, which the actuator bound turns into h_max).
     """
     act = _lyapunov_nonlinear_act if nonlinear else _lyapunov_act
     return Controller(settings=LyapunovSettings(k=jnp.asarray(k, float)), act_fn=act,
@@ -160,10 +197,21 @@ class BacksteppingSettings:
 
 def predict(rho_t: Array, v_t: Array, sent: delay_buffer.DelayBuffer, d: Array,
             lm: LinearModel) -> tuple[Array, Array]:
-    """Deviation state predicted ``d`` steps ahead by the discrete linear model.
+    """Deviation state (veh/m, m/s) predicted ``d`` steps ahead by the discrete linear model.
 
-    Step j (j = 0..d-1) applies the input sent d - j steps before now, i.e. ``read(sent, d-1-j)``,
-    which is what the plant will apply if its delay is d. Costs d cheap linear steps.
+    At t_n the buffer holds h^{n-1} (``read(sent, 0)``), h^{n-2}, ...; a plant with delay d
+    applies h^{n-d+j} at step n+j, so step j = 0..d-1 of the prediction uses
+    ``read(sent, d-1-j)``. The result is x^{n+d} exactly (to rounding) when the plant is the
+    discrete linear model (``TrafficParams(model="linear")``) with delay d.
+
+    Cost: d sequential ``linear_step``s, each O(n_points) (about 20 flops per node), so
+    O(d n_points) per control step and no state carried between control steps. This is the
+    cheapest exact predictor for the discrete model: any exact one reads the d n_points pending
+    inputs, and the alternatives (a dense/banded d-step transition matrix: O(n_points^2) or
+    O(d n_points) flops plus O(d^2 n_points) for the input convolution; or a recursively updated
+    prediction: O(n_points) but it accumulates rounding through the open-loop-unstable model
+    and does not correct itself from the measurement) are not better. ``d`` is traced: under
+    ``vmap`` with different assumed delays the loop runs max(d) iterations, masked.
     """
     def body(j, carry):
         r, v = carry
@@ -173,20 +221,30 @@ def predict(rho_t: Array, v_t: Array, sent: delay_buffer.DelayBuffer, d: Array,
     return jax.lax.fori_loop(0, d, body, (rho_t, v_t))
 
 
+def assumed_delay_steps(delay: Array, sent: delay_buffer.DelayBuffer, nominal: TrafficParams) -> Array:
+    """The controller's assumed delay in steps: round(D_ctrl/dt), clipped to [0, capacity]
+    (``max_delay_steps`` of the plant's buffer, the oldest input still stored)."""
+    d = jnp.round(delay / nominal.dt).astype(jnp.int32)
+    return jnp.clip(d, 0, sent.size - 1)
+
+
 def _backstepping_act(settings, cstate, obs, nominal, key):
     lm = linearize(nominal)
-    d = jnp.round(settings.delay / nominal.dt).astype(jnp.int32)
-    d = jnp.clip(d, 0, obs.sent.size - 1)
+    d = assumed_delay_steps(settings.delay, obs.sent, nominal)
     r_hat, v_hat = predict(obs.rho - lm.rho_bar, obs.v - lm.v_bar, obs.sent, d, lm)
-    return lyapunov_law(r_hat + lm.rho_bar, v_hat + lm.v_bar, settings.k, lm), cstate
+    return _lyapunov_h(r_hat, v_hat, settings.k, lm), cstate
 
 
 def backstepping(delay: float | Array = 4.0, k: float | Array = 1.0) -> Controller:
     """Delay-compensated (predictor / backstepping) feedback, MODEL.md section 8.
 
-    Applies the Lyapunov law with gain ``k`` to the state predicted ``delay`` seconds ahead
-    (its own assumed delay, independent of the plant's) by the linearised model with nominal
-    parameters over the inputs already sent. With delay = 0 it equals ``lyapunov(k)``.
+    Applies the Lyapunov law with gain ``k`` to the state predicted ``delay`` seconds (D_ctrl)
+    ahead by the discrete linearised model with nominal parameters over the inputs already sent
+    (see ``predict``). D_ctrl is its own setting, independent of the plant's delay; it is
+    rounded to a whole number of steps and clipped to the buffer capacity (``max_delay_steps``).
+    With delay = 0 it equals ``lyapunov(k)`` exactly.
     """
+    if not isinstance(delay, jax.core.Tracer) and bool(jnp.any(jnp.asarray(delay) < 0)):
+        raise ValueError(f"assumed delay must be >= 0, got {delay}")
     settings = BacksteppingSettings(k=jnp.asarray(k, float), delay=jnp.asarray(delay, float))
     return Controller(settings=settings, act_fn=_backstepping_act, name="backstepping")

@@ -3,7 +3,8 @@
 Units: the J's use rho in veh/km, x in m, t in s (the paper's Table 2 magnitudes); speed in m/s,
 acceleration a = v_t + v v_x in m/s^2. Space integrals use the trapezoidal rule over the nodes;
 time integrals the left rectangle rule over the steps (sample at t_n, n = 0..n_steps-1), so a
-uniform state of density rho over T seconds gives J_TTT = 1000 rho L T exactly.
+uniform state of density rho over T seconds gives J_TTT = 1000 rho L T (to rounding). The time
+sums are kept per node during the rollout and integrated in space once at the end.
 The acceleration at t_n uses the forward difference (v^{n+1} - v^n)/dt; a_t at t_n is
 (a^n - a^{n-1})/dt with a^{-1} := a^0.
 """
@@ -49,45 +50,77 @@ def fuel_rate(v: Array, a: Array) -> Array:
 
 @struct.dataclass
 class MetricsAccumulator:
-    """Running sums of one rollout. All scalars except ``a_prev`` (shape (n,))."""
+    """Running sums of one rollout, kept *per grid node* (shape (n,)) so that the streaming
+    update is purely elementwise (it fuses with the solver step; no spatial reduction per step).
+    The spatial integrals are taken once, at the end (``totals``): by linearity,
+    sum_n dt trapz(f^n) = trapz(sum_n dt f^n).
+
+    J_TTT, J_fuel, J_comfort: time integrals of the integrands at each node (rho in veh/km).
+    effort_sq: sum over steps of (h_sent - h_bar)^2, s^2.
+    max_cfl: max over steps of the CFL number max(|lambda1|, |lambda2|) dt/dx at each node.
+    a_prev: the previous step's acceleration, m/s^2.
+    n_active (scalar): number of accumulated (healthy) steps.
+    last_bad_step (scalar): last step index whose reward was below REWARD_TARGET (-1: none).
+    """
 
     J_TTT: Array
     J_fuel: Array
     J_comfort: Array
-    effort_sq: Array  # sum over steps of mean_i (h_sent - h_bar)^2, s^2
-    n_active: Array  # number of accumulated (healthy) steps
-    last_bad_step: Array  # last step index whose reward was below REWARD_TARGET (-1: none)
+    effort_sq: Array
     max_cfl: Array
     a_prev: Array
+    n_active: Array
+    last_bad_step: Array
 
 
 def init_metrics(n_points: int, dtype=jnp.float32) -> MetricsAccumulator:
-    z = jnp.zeros((), dtype)
+    z = jnp.zeros((n_points,), dtype)
     return MetricsAccumulator(
-        J_TTT=z, J_fuel=z, J_comfort=z, effort_sq=z, n_active=jnp.zeros((), jnp.int32),
-        last_bad_step=jnp.full((), -1, jnp.int32), max_cfl=z, a_prev=jnp.full((n_points,), jnp.nan, dtype),
+        J_TTT=z, J_fuel=z, J_comfort=z, effort_sq=z, max_cfl=z, a_prev=z,
+        n_active=jnp.zeros((), jnp.int32), last_bad_step=jnp.full((), -1, jnp.int32),
     )
 
 
 def update_metrics(
     acc: MetricsAccumulator, *, step: Array, rho: Array, v: Array, v_next: Array, h_sent: Array,
     rho_bar: Array, v_bar: Array, h_bar: Array | float, dx: Array | float, dt: Array | float,
-    cfl: Array, active: Array,
+    cfl: Array | float, active: Array,
 ) -> MetricsAccumulator:
-    """Add the contribution of step ``step`` (state at t_n, speed at t_{n+1}) if ``active``."""
-    a = (v_next - v) / dt + v * spatial_gradient(v, dx)
-    a_prev = jnp.where(jnp.isnan(acc.a_prev), a, acc.a_prev)
-    a_t = (a - a_prev) / dt
-    rho_km = VEH_PER_KM * rho
-    w = jnp.where(active, dt, 0.0)
+    """Add the contribution of step ``step`` (state at t_n, speed at t_{n+1}) if ``active``.
+
+    ``cfl`` is the CFL number max(|lambda1|, |lambda2|) dt/dx of the step, per node (or a
+    scalar). Inactive steps add exactly zero (``where``, not a multiplication, so a non-finite
+    value never enters).
+    """
+    inv_dt = 1.0 / dt
+    a = (v_next - v) * inv_dt + v * spatial_gradient(v, dx)
+    a_prev = jnp.where(step == 0, a, acc.a_prev)
+    a_t = (a - a_prev) * inv_dt
+    w = (dt * VEH_PER_KM) * rho
     r = reward(rho, v, rho_bar, v_bar)
+
+    def add(total, inc):
+        return total + jnp.where(active, inc, 0.0)
+
     return MetricsAccumulator(
-        J_TTT=acc.J_TTT + w * trapezoid(rho_km, dx),
-        J_fuel=acc.J_fuel + w * trapezoid(fuel_rate(v, a) * rho_km, dx),
-        J_comfort=acc.J_comfort + w * trapezoid((a**2 + a_t**2) * rho_km, dx),
-        effort_sq=acc.effort_sq + jnp.where(active, jnp.mean((h_sent - h_bar) ** 2), 0.0),
-        n_active=acc.n_active + active.astype(jnp.int32),
-        last_bad_step=jnp.where(active & (r < REWARD_TARGET), step, acc.last_bad_step),
+        J_TTT=add(acc.J_TTT, w),
+        J_fuel=add(acc.J_fuel, fuel_rate(v, a) * w),
+        J_comfort=add(acc.J_comfort, (a * a + a_t * a_t) * w),
+        effort_sq=add(acc.effort_sq, (h_sent - h_bar) ** 2),
         max_cfl=jnp.where(active, jnp.maximum(acc.max_cfl, cfl), acc.max_cfl),
         a_prev=jnp.where(active, a, acc.a_prev),
+        n_active=acc.n_active + active.astype(jnp.int32),
+        last_bad_step=jnp.where(active & (r < REWARD_TARGET), step, acc.last_bad_step),
     )
+
+
+def totals(acc: MetricsAccumulator, dx: Array | float) -> dict[str, Array]:
+    """Scalar indices from the per-node sums: J_TTT, J_fuel, J_comfort (trapezoid in space),
+    control_effort (RMS of h_sent - h_bar over space and active steps, s) and max_cfl."""
+    return {
+        "J_TTT": trapezoid(acc.J_TTT, dx),
+        "J_fuel": trapezoid(acc.J_fuel, dx),
+        "J_comfort": trapezoid(acc.J_comfort, dx),
+        "control_effort": jnp.sqrt(jnp.mean(acc.effort_sq) / jnp.maximum(acc.n_active, 1)),
+        "max_cfl": jnp.max(acc.max_cfl),
+    }

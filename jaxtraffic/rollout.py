@@ -9,18 +9,21 @@ Order of one step n (t_n = n dt):
      saturated to [h_min, h_max];
   2. h^n is pushed into the plant's ring buffer; the plant applies the input sent d = D/dt steps
      ago (h_bar before t = D);
-  3. the plant advances with alpha_n = clip(alpha + alpha_noise N(0, 1), 0, 1);
+  3. the plant advances with alpha_n = clip(alpha + alpha_noise N(0, 1), 0, 1) (the N(0, 1)
+     of all steps are drawn at once, before the loop, from the plant's key);
   4. metrics accumulate; a state that leaves 0 < rho < 1/l, v >= 0 (or is not finite) is not
      accepted: the environment is flagged ``diverged`` and frozen at its last physical state.
 """
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import chex
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from jaxtraffic import delay as delay_buffer
@@ -28,7 +31,7 @@ from jaxtraffic import metrics as M
 from jaxtraffic.controllers import Controller, Observation, open_loop, saturate
 from jaxtraffic.linear import linear_step, linearize
 from jaxtraffic.params import TrafficParams, equilibrium
-from jaxtraffic.solver import arz_step, is_physical, max_cfl
+from jaxtraffic.solver import arz_step, is_physical, local_cfl
 
 Array = jax.Array
 
@@ -98,13 +101,18 @@ def equilibrium_state(p: TrafficParams, dtype: Any = jnp.float32) -> tuple[Array
 
 
 def initial_state(p: TrafficParams, rho0: Array, v0: Array) -> PlantState:
-    """Plant state at t = 0 with the buffer filled with h_bar (no input sent yet)."""
+    """Plant state at t = 0 with the buffer filled with h_bar (no input sent yet).
+
+    An initial state outside the physical region (see ``solver.is_physical``) is flagged as
+    diverged at step 0 and never advanced (``simulate`` rejects a concrete one with an error).
+    """
     chex.assert_shape([rho0, v0], (p.n_points,))
     h0 = jnp.full_like(rho0, p.h_bar)
+    bad = ~is_physical(rho0, v0, p)
     return PlantState(
         rho=rho0, v=v0, sent=delay_buffer.init_buffer(h0, p.max_delay_steps), h_prev=h0,
-        step=jnp.zeros((), jnp.int32), diverged=jnp.zeros((), bool),
-        diverged_step=jnp.full((), -1, jnp.int32),
+        step=jnp.zeros((), jnp.int32), diverged=bad,
+        diverged_step=jnp.where(bad, 0, -1).astype(jnp.int32),
     )
 
 
@@ -113,14 +121,26 @@ def plant_alpha(p: TrafficParams, key: Array) -> Array:
     return jnp.clip(p.alpha + p.alpha_noise * jax.random.normal(key), 0.0, 1.0)
 
 
+def plant_alpha_sequence(p: TrafficParams, key: Array, n_steps: int, dtype: Any = jnp.float32) -> Array:
+    """The plant penetration rates of ``n_steps`` steps, shape (n_steps,), drawn at once:
+    clip(alpha + alpha_noise N(0,1), 0, 1) (one vectorised draw instead of one per step)."""
+    z = jax.random.normal(key, (n_steps,), dtype)
+    return jnp.clip(p.alpha + p.alpha_noise * z, 0.0, 1.0).astype(dtype)
+
+
 def plant_step(state: PlantState, h_sent: Array, p: TrafficParams, key: Array) -> PlantState:
     """Send ``h_sent`` (already saturated), apply the delayed input and advance the plant.
 
-    A step that would leave the physical region is rejected: the state is frozen and flagged.
+    The step's plant alpha is ``plant_alpha(p, key)``. A step that would leave the physical
+    region is rejected: the state is frozen and flagged.
     """
+    return _plant_step(state, h_sent, p, plant_alpha(p, key))[0]
+
+
+def _plant_step(state: PlantState, h_sent: Array, p: TrafficParams, alpha: Array) -> tuple[PlantState, Array]:
+    """``plant_step`` with the plant alpha given; also returns the applied (delayed) input."""
     sent = delay_buffer.push(state.sent, h_sent)
     h_applied = delay_buffer.read(sent, p.delay_steps)
-    alpha = plant_alpha(p, key)
     if p.model == "linear":
         lm = linearize(p)
         r_t, v_t = linear_step(state.rho - lm.rho_bar, state.v - lm.v_bar, h_applied - lm.h_bar, lm)
@@ -129,39 +149,43 @@ def plant_step(state: PlantState, h_sent: Array, p: TrafficParams, key: Array) -
         rho, v, _, _ = arz_step(state.rho, state.v, h_applied, p, alpha)
     bad = ~is_physical(rho, v, p) & ~state.diverged
     frozen = state.diverged | bad
-    return PlantState(
+    new = PlantState(
         rho=jnp.where(frozen, state.rho, rho), v=jnp.where(frozen, state.v, v), sent=sent,
         h_prev=h_sent, step=state.step + 1, diverged=frozen,
         diverged_step=jnp.where(bad, state.step, state.diverged_step),
     )
+    return new, h_applied
 
 
 def finalize_metrics(acc: M.MetricsAccumulator, final: PlantState, target: TrafficParams,
-                     n_steps: int) -> dict:
-    """Scalar results of a rollout.
+                     n_steps: int, dx: Array | float | None = None) -> dict:
+    """Scalar results of a rollout (``dx``: the plant's grid spacing, default ``target.dx``).
 
     J_TTT, J_fuel, J_comfort (rho in veh/km; see ``metrics``), final_rho_L2 (veh/m),
     final_v_L2 (m/s), final_reward, time_to_reward_target_s (time after which the reward stays
     >= -0.1; inf if it never does), diverged, diverged_at_s (inf if never), control_effort
-    (RMS over space and time of h_sent - h_bar, s), max_cfl.
+    (RMS over space and time of h_sent - h_bar, s), max_cfl (largest CFL number of the steps
+    taken, with the applied input and the plant's alpha).
     """
+    dx = target.dx if dx is None else dx
     rho_bar, v_bar = equilibrium(target)
     dt = target.dt
     healthy_to_end = ~final.diverged
     r_final = M.reward(final.rho, final.v, rho_bar, v_bar)
     reached = healthy_to_end & (acc.last_bad_step < n_steps - 1) & (r_final >= M.REWARD_TARGET)
+    tot = M.totals(acc, dx)
     return {
-        "J_TTT": acc.J_TTT,
-        "J_fuel": acc.J_fuel,
-        "J_comfort": acc.J_comfort,
+        "J_TTT": tot["J_TTT"],
+        "J_fuel": tot["J_fuel"],
+        "J_comfort": tot["J_comfort"],
         "final_rho_L2": M.l2_deviation(final.rho, rho_bar),
         "final_v_L2": M.l2_deviation(final.v, v_bar),
         "final_reward": r_final,
         "time_to_reward_target_s": jnp.where(reached, (acc.last_bad_step + 1) * dt, jnp.inf),
         "diverged": final.diverged,
         "diverged_at_s": jnp.where(final.diverged, final.diverged_step * dt, jnp.inf),
-        "control_effort": jnp.sqrt(acc.effort_sq / jnp.maximum(acc.n_active, 1)),
-        "max_cfl": acc.max_cfl,
+        "control_effort": tot["control_effort"],
+        "max_cfl": tot["max_cfl"],
     }
 
 
@@ -179,15 +203,17 @@ def _simulate(params: TrafficParams, controller: Controller | None, rho0: Array 
     state = initial_state(p, rho0, v0)
     cstate = controller.init(state.observation(p), nominal)
     acc = M.init_metrics(p.n_points, rho0.dtype)
+    # the plant's alpha of every step, drawn at once (cheaper than a draw inside the loop)
+    alphas = plant_alpha_sequence(p, k_plant, n_steps, rho0.dtype)
 
-    def one_step(carry, _):
+    def one_step(carry, alpha_n):
         state, cstate, acc = carry
         n = state.step
         h, cstate = controller.act(cstate, state.observation(p), nominal, jax.random.fold_in(k_ctrl, n))
         h = saturate(h, p).astype(state.rho.dtype)
-        new = plant_step(state, h, p, jax.random.fold_in(k_plant, n))
+        new, h_applied = _plant_step(state, h, p, alpha_n)
         active = ~new.diverged
-        cfl = max_cfl(state.rho, state.v, h, p)
+        cfl = local_cfl(state.rho, state.v, h_applied, p, alpha_n)
         acc = M.update_metrics(acc, step=n, rho=state.rho, v=state.v, v_next=new.v, h_sent=h,
                                rho_bar=rho_bar, v_bar=v_bar, h_bar=nominal.h_bar, dx=p.dx, dt=p.dt,
                                cfl=cfl, active=active)
@@ -199,23 +225,41 @@ def _simulate(params: TrafficParams, controller: Controller | None, rho0: Array 
         if n_steps % record_every:
             raise ValueError(f"n_steps={n_steps} is not a multiple of record_every={record_every}")
 
-        def chunk(carry, _):
+        def chunk(carry, alpha_chunk):
             s = carry[0]
-            carry, hs = jax.lax.scan(one_step, carry, None, length=record_every)
+            carry, hs = jax.lax.scan(one_step, carry, alpha_chunk)
             rec = (s.step * p.dt, s.rho, s.v, hs[0], M.reward(s.rho, s.v, rho_bar, v_bar),
                    M.l2_deviation(s.rho, rho_bar), M.l2_deviation(s.v, v_bar))
             return carry, rec
 
-        carry, rec = jax.lax.scan(chunk, carry, None, length=n_steps // record_every)
+        carry, rec = jax.lax.scan(chunk, carry, alphas.reshape(n_steps // record_every, record_every))
         traj = Trajectory(*rec)
     else:
-        carry, _ = jax.lax.scan(lambda c, x: (one_step(c, x)[0], None), carry, None, length=n_steps)
+        carry, _ = jax.lax.scan(lambda c, x: (one_step(c, x)[0], None), carry, alphas)
     state, cstate, acc = carry
-    return SimResult(metrics=finalize_metrics(acc, state, nominal, n_steps), final=state,
+    return SimResult(metrics=finalize_metrics(acc, state, nominal, n_steps, p.dx), final=state,
                      controller_state=cstate, trajectory=traj)
 
 
 _simulate_jit = jax.jit(_simulate, static_argnames=("n_steps", "record_every"))
+
+
+def _check_initial_condition(params: TrafficParams, rho0: Array | None, v0: Array | None) -> None:
+    """Raise ``ValueError`` if a concrete initial state (single, or batched (B, n)) is not finite
+    or outside 0 < rho < 1/l, v >= 0. Traced inputs are not checked (the rollout then flags
+    such an environment as diverged at step 0)."""
+    if rho0 is None or any(isinstance(x, jax.core.Tracer) for x in (rho0, v0, params.l)):
+        return
+    r, v = np.asarray(rho0, np.float64), np.asarray(v0, np.float64)
+    if r.shape[-1] != params.n_points or v.shape[-1] != params.n_points:
+        raise ValueError(f"rho0 and v0 need {params.n_points} points, got shapes {r.shape}, {v.shape}")
+    l = np.asarray(params.l, np.float64)
+    if l.ndim == 1:  # batched parameters
+        l = l[:, None]
+    ok = np.all((r > 0) & (r < 1.0 / l) & (v >= 0) & np.isfinite(v), axis=-1)
+    if not np.all(ok):
+        which = "" if np.ndim(ok) == 0 else f" in environment(s) {np.flatnonzero(~ok).tolist()}"
+        raise ValueError("initial state outside the physical region (finite, 0 < rho < 1/l, v >= 0)" + which)
 
 
 def simulate(
@@ -240,6 +284,7 @@ def simulate(
         raise ValueError("give both rho0 and v0, or neither")
     if n_steps < 1:
         raise ValueError(f"n_steps must be >= 1, got {n_steps}")
+    _check_initial_condition(params, rho0, v0)
     return _simulate_jit(params, controller, rho0, v0, key, nominal, n_steps, record_every)
 
 
@@ -263,26 +308,37 @@ def simulate_batch(
         raise ValueError("simulate_batch: nothing is batched; use simulate")
     if (rho0 is None) != (v0 is None):
         raise ValueError("give both rho0 and v0, or neither")
+    if n_steps < 1:
+        raise ValueError(f"n_steps must be >= 1, got {n_steps}")
+    _check_initial_condition(params, rho0, v0)
+    return _simulate_batch_jit(params, controller, rho0, v0, keys, nominal, n_steps, record_every,
+                               (p_axis, c_axis, r_axis, r_axis, k_axis))
 
+
+@functools.partial(jax.jit, static_argnames=("n_steps", "record_every", "axes"))
+def _simulate_batch_jit(params, controller, rho0, v0, keys, nominal, n_steps: int, record_every: int,
+                        axes: tuple) -> SimResult:
     def one(p, c, r, v, k):
         return _simulate(p, c, r, v, k, nominal, n_steps, record_every)
 
-    fn = jax.vmap(one, in_axes=(p_axis, c_axis, r_axis, r_axis, k_axis))
-    return jax.jit(fn)(params, controller, rho0, v0, keys)
+    return jax.vmap(one, in_axes=axes)(params, controller, rho0, v0, keys)
 
 
 def stack_params(**fields: Any) -> TrafficParams:
-    """A batched ``TrafficParams``: each keyword is a sequence of per-environment values, the
-    others keep their defaults (broadcast). Static fields are passed as scalars."""
+    """A batched ``TrafficParams``: each keyword is a sequence of per-environment values (or a
+    scalar, shared by every environment); the others keep their defaults (broadcast). Static
+    fields are passed as scalars. At least one field must be a sequence."""
     static = {k: fields.pop(k) for k in ("n_points", "max_delay_steps", "scheme", "model") if k in fields}
     arrays = {k: jnp.asarray(v) for k, v in fields.items()}
-    sizes = {a.shape[0] for a in arrays.values()}
+    sizes = {a.shape[0] for a in arrays.values() if a.ndim == 1}
+    if any(a.ndim > 1 for a in arrays.values()):
+        raise ValueError("stack_params: each field must be a scalar or a 1-d sequence")
     if len(sizes) != 1:
-        raise ValueError(f"all batched fields need the same length, got {sizes}")
+        raise ValueError(f"all batched fields need the same length (and at least one is needed), got {sizes}")
     (b,) = sizes
+    arrays = {k: jnp.broadcast_to(a, (b,)) for k, a in arrays.items()}
     base = TrafficParams(**static)
     # validate every concrete environment before building the traced batch
-    import numpy as np
     for i in range(b):
         base.replace(**{k: np.asarray(a[i]).item() for k, a in arrays.items()})
     full = {f: jnp.broadcast_to(jnp.asarray(getattr(base, f), float), (b,))

@@ -118,12 +118,19 @@ def arz_step(
 
 
 def is_physical(rho: Array, v: Array, p: TrafficParams) -> Array:
-    """True when the state is finite and in the physical region 0 < rho < 1/l, v >= 0."""
-    ok = jnp.all(jnp.isfinite(rho)) & jnp.all(jnp.isfinite(v))
-    return ok & jnp.all(rho > 0) & jnp.all(rho < 1.0 / p.l) & jnp.all(v >= 0)
+    """True when the state is finite and in the physical region 0 < rho < 1/l, 0 <= v < inf.
+
+    One fused reduction: a NaN fails every comparison, an infinite rho fails rho < 1/l.
+    """
+    return jnp.all((rho > 0) & (rho < 1.0 / p.l) & (v >= 0) & (v < jnp.inf))
+
+
+def local_cfl(rho: Array, v: Array, h: Array, p: TrafficParams, alpha: Array | float | None = None) -> Array:
+    """CFL number max(|lambda1|, |lambda2|) dt/dx at every node for the current state."""
+    lam1, lam2 = fd.characteristic_speeds(rho, v, h, p, alpha)
+    return jnp.maximum(jnp.abs(lam1), jnp.abs(lam2)) * (p.dt / p.dx)
 
 
 def max_cfl(rho: Array, v: Array, h: Array, p: TrafficParams, alpha: Array | float | None = None) -> Array:
     """Largest CFL number max_i |lambda_k| dt/dx over the grid for the current state."""
-    lam1, lam2 = fd.characteristic_speeds(rho, v, h, p, alpha)
-    return jnp.max(jnp.maximum(jnp.abs(lam1), jnp.abs(lam2))) * p.dt / p.dx
+    return jnp.max(local_cfl(rho, v, h, p, alpha))

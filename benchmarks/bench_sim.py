@@ -1,0 +1,205 @@
+"""Simulator throughput at the paper's grid (201 points, dt = 0.1 s), float32.
+
+For each controller (open loop, Lyapunov) and batch size, one jit-compiled batched rollout
+(``jaxtraffic.simulate_batch``, streaming metrics, no trajectory) is compiled once (timed
+separately: trace + lower + compile) and then timed over ``--repeats`` calls (best and median).
+
+    env steps/s   = batch * steps / seconds
+    cell updates/s = env steps/s * 201
+
+Also measured: the compile time of a 3000-step single-environment rollout (``simulate``), and,
+in a fresh subprocess, the peak resident memory (ru_maxrss) of a batch of 4096 environments over
+300 s (3000 steps) without trajectories.
+
+``--devices N`` splits the host CPU into N XLA devices (``--xla_force_host_platform_device_count``)
+and shards the batch over them (each device runs its share on its own thread).
+
+Usage:
+    python benchmarks/bench_sim.py                 # table
+    python benchmarks/bench_sim.py --json          # machine-readable
+    python benchmarks/bench_sim.py --batch-sizes 1,64 --steps 300 --repeats 3 --no-memory
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import statistics
+import subprocess
+import sys
+import time
+
+N_POINTS = 201
+
+
+def _parse() -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--batch-sizes", default="1,64,1024,4096", help="comma-separated batch sizes")
+    ap.add_argument("--steps", type=int, default=600, help="steps per timed rollout (dt = 0.1 s)")
+    ap.add_argument("--repeats", type=int, default=3, help="timed calls per configuration")
+    ap.add_argument("--controllers", default="open_loop,lyapunov", help="open_loop and/or lyapunov")
+    ap.add_argument("--devices", type=int, default=1, help="XLA host devices to shard the batch over")
+    ap.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    ap.add_argument("--no-memory", action="store_true", help="skip the 4096-env memory measurement")
+    ap.add_argument("--memory-batch", type=int, default=4096)
+    ap.add_argument("--memory-steps", type=int, default=3000)
+    ap.add_argument("--_memory-child", action="store_true", help=argparse.SUPPRESS)
+    return ap.parse_args()
+
+
+ARGS = _parse()
+if ARGS.devices > 1:
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
+                               + f" --xla_force_host_platform_device_count={ARGS.devices}")
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
+
+import jaxtraffic  # noqa: E402
+from jaxtraffic import TrafficParams, paper_initial_condition, simulate, simulate_batch  # noqa: E402
+
+CONTROLLERS = {"open_loop": jaxtraffic.open_loop, "lyapunov": jaxtraffic.lyapunov}
+
+
+def _cpu_model() -> str:
+    try:
+        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
+        for line in out.splitlines():
+            if line.startswith("Model name:"):
+                return line.split(":", 1)[1].strip()
+    except (OSError, subprocess.CalledProcessError):
+        pass
+    return platform.processor() or "unknown"
+
+
+def _batch_inputs(batch: int, p: TrafficParams):
+    """Batched initial states (paper IC with amplitudes 5..15 veh/km) and keys."""
+    amps = jnp.linspace(0.005, 0.015, batch)
+    rho0, v0 = jax.vmap(lambda a: paper_initial_condition(p, amplitude=a))(amps)
+    keys = jax.random.split(jax.random.PRNGKey(0), batch)
+    if ARGS.devices > 1 and batch % ARGS.devices == 0:
+        sh = NamedSharding(Mesh(np.array(jax.devices()), ("b",)), PartitionSpec("b"))
+        rho0, v0, keys = (jax.device_put(x, sh) for x in (rho0, v0, keys))
+    return rho0, v0, keys
+
+
+def _timed(fn, *args, repeats: int) -> list[float]:
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - t0)
+    return times
+
+
+def bench_throughput(controller_name: str, batch: int, steps: int, repeats: int) -> dict:
+    p = TrafficParams()
+    ctrl = CONTROLLERS[controller_name]()
+    rho0, v0, keys = _batch_inputs(batch, p)
+
+    def run(rho0, v0, keys):
+        return simulate_batch(p, ctrl, n_steps=steps, rho0=rho0, v0=v0, keys=keys).metrics
+
+    t0 = time.perf_counter()
+    compiled = jax.jit(run).lower(rho0, v0, keys).compile()
+    compile_s = time.perf_counter() - t0
+    times = _timed(compiled, rho0, v0, keys, repeats=repeats)
+    best, med = min(times), statistics.median(times)
+    env_steps = batch * steps
+    return {
+        "controller": controller_name, "batch": batch, "steps": steps, "compile_s": compile_s,
+        "best_s": best, "median_s": med, "env_steps_per_s": env_steps / best,
+        "cell_updates_per_s": env_steps * N_POINTS / best,
+        "cell_updates_per_s_median": env_steps * N_POINTS / med,
+    }
+
+
+def bench_compile_3000() -> dict:
+    """Compile time of a single 3000-step rollout: first call minus a warm call."""
+    p = TrafficParams()
+    rho0, v0 = paper_initial_condition(p)
+    out = {}
+    for name in ("open_loop", "lyapunov"):
+        ctrl = CONTROLLERS[name]()
+        jax.clear_caches()
+        t0 = time.perf_counter()
+        jax.block_until_ready(simulate(p, ctrl, n_steps=3000, rho0=rho0, v0=v0).metrics)
+        first = time.perf_counter() - t0
+        warm = min(_timed(lambda: simulate(p, ctrl, n_steps=3000, rho0=rho0, v0=v0).metrics, repeats=3))
+        out[name] = {"first_call_s": first, "warm_call_s": warm, "compile_s": first - warm}
+    return out
+
+
+def memory_child(batch: int, steps: int) -> dict:
+    """Run once (in a fresh process) and report the peak resident set size."""
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    p = TrafficParams()
+    rho0, v0, keys = _batch_inputs(batch, p)
+    t0 = time.perf_counter()
+    m = simulate_batch(p, jaxtraffic.lyapunov(), n_steps=steps, rho0=rho0, v0=v0, keys=keys).metrics
+    jax.block_until_ready(m)
+    wall = time.perf_counter() - t0
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    return {"batch": batch, "steps": steps, "controller": "lyapunov", "peak_rss_MiB": peak,
+            "rss_before_MiB": rss0, "wall_incl_compile_s": wall,
+            "diverged": int(np.sum(np.asarray(m["diverged"])))}
+
+
+def bench_memory() -> dict:
+    cmd = [sys.executable, os.path.abspath(__file__), "--_memory-child", "--memory-batch",
+           str(ARGS.memory_batch), "--memory-steps", str(ARGS.memory_steps), "--devices", str(ARGS.devices)]
+    out = subprocess.run(cmd, capture_output=True, text=True, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    if ARGS._memory_child:
+        print(json.dumps(memory_child(ARGS.memory_batch, ARGS.memory_steps)))
+        return
+    info = {
+        "jax": jax.__version__, "jaxtraffic": jaxtraffic.__version__, "cpu": _cpu_model(),
+        "cpu_count": os.cpu_count(), "devices": len(jax.devices()), "backend": jax.default_backend(),
+        "dtype": "float32", "n_points": N_POINTS, "dt_s": 0.1,
+        "loadavg_at_start": os.getloadavg(),
+    }
+    rows = []
+    for name in ARGS.controllers.split(","):
+        for b in (int(x) for x in ARGS.batch_sizes.split(",")):
+            rows.append(bench_throughput(name, b, ARGS.steps, ARGS.repeats))
+            if not ARGS.json:
+                r = rows[-1]
+                print(f"  {name:9s} batch {b:5d}: {r['cell_updates_per_s']:.3g} cell updates/s", file=sys.stderr)
+    result = {"info": info, "throughput": rows, "compile_3000_steps": bench_compile_3000()}
+    if not ARGS.no_memory:
+        result["memory"] = bench_memory()
+    result["info"]["loadavg_at_end"] = os.getloadavg()
+    if ARGS.json:
+        print(json.dumps(result, indent=2))
+        return
+    print(f"jax {info['jax']} on {info['cpu']} ({info['cpu_count']} CPUs, {info['devices']} XLA device(s)),"
+          f" float32, {N_POINTS} points, dt 0.1 s, {ARGS.steps} steps per rollout, best of {ARGS.repeats}")
+    print(f"load average at start / end: {info['loadavg_at_start']} / {result['info']['loadavg_at_end']}")
+    print()
+    print("| controller | batch | env steps/s | cell updates/s (best) | cell updates/s (median) | compile s |")
+    print("|---|---:|---:|---:|---:|---:|")
+    for r in rows:
+        print(f"| {r['controller']} | {r['batch']} | {r['env_steps_per_s']:.3g} | {r['cell_updates_per_s']:.3g}"
+              f" | {r['cell_updates_per_s_median']:.3g} | {r['compile_s']:.2f} |")
+    print()
+    for name, c in result["compile_3000_steps"].items():
+        print(f"compile of a 3000-step rollout ({name}): {c['compile_s']:.2f} s"
+              f" (first call {c['first_call_s']:.2f} s, warm call {c['warm_call_s']:.3f} s)")
+    if "memory" in result:
+        m = result["memory"]
+        print(f"peak RSS, {m['batch']} envs x {m['steps']} steps ({m['controller']}, no trajectory):"
+              f" {m['peak_rss_MiB']:.0f} MiB (before the run {m['rss_before_MiB']:.0f} MiB)")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,161 @@
+"""Gymnax-style environment for learning the paper's three-gain policy (MODEL.md section 9).
+
+Pure functions ``reset(key, params) -> (obs, state)`` and
+``step(key, state, action, params) -> (obs, state, reward, done, info)`` over ``flax.struct``
+pytrees, so a batch of environments is a ``vmap`` and a batch of scenarios a ``vmap`` over params.
+
+* Observation: [rho/rho_bar - 1, v/v_bar - 1, h_prev/h_bar - 1] on the grid, shape (3 n,),
+  normalised by the nominal equilibrium (dimensionless).
+* Action: three unbounded reals ``a``; the gains are eta = gain_max * tanh(a), applied to
+  normalised deviations by ``controllers.gain_law`` (a bounded symmetric range, MODEL.md 9).
+* Reward: the paper's r = -sum_i [(rho~_i/rho_bar)^2 + (v~_i/v_bar)^2] of the state after the
+  step (dimensionless).
+* Episodes last ``horizon`` steps and end by *truncation* (``info["truncated"]``: bootstrap the
+  value of ``info["terminal_obs"]``). A plant that leaves the physical region *terminates* with
+  reward ``-diverge_penalty``. ``step`` resets finished environments itself.
+* Domain randomisation, drawn at each reset: initial amplitude (veh/m), integer wavenumber and
+  phase of the cosine perturbation; plant delay (a multiple of dt) and plant alpha (uniform
+  ranges); per-step alpha noise (``traffic.alpha_noise``). Metrics stay relative to the nominal
+  equilibrium of ``traffic`` (MODEL.md section 12).
+"""
+
+from __future__ import annotations
+
+import chex
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from jaxtraffic import metrics as M
+from jaxtraffic.controllers import Observation, gain_law, saturate
+from jaxtraffic.params import TrafficParams, equilibrium
+from jaxtraffic.rollout import PlantState, initial_state, paper_initial_condition, plant_step
+
+Array = jax.Array
+
+
+@struct.dataclass
+class EnvParams:
+    """Environment settings; ``traffic`` is the nominal plant (its delay is the training delay).
+
+    Ranges (lo, hi) are sampled uniformly at every reset; equal bounds disable randomisation.
+    """
+
+    traffic: TrafficParams = TrafficParams(delay=4.0)
+    horizon: int = 3000  # steps per episode (300 s)
+    gain_max: float = 5.0  # |eta_i| <= gain_max (dimensionless)
+    amp_min: float = 0.010  # veh/m
+    amp_max: float = 0.010
+    wavenumber_min: int = 4
+    wavenumber_max: int = 4
+    phase_max: float = 0.0  # rad; phase ~ U(0, phase_max)
+    delay_min: float = 4.0  # s
+    delay_max: float = 4.0
+    alpha_min: float = 0.15
+    alpha_max: float = 0.15
+    diverge_penalty: float = 100.0
+
+
+@struct.dataclass
+class EnvState:
+    plant: PlantState
+    plant_params: TrafficParams  # this episode's plant (randomised delay / alpha)
+    t: Array  # step within the episode
+
+
+def make_env_params(traffic: TrafficParams | None = None, **kwargs) -> EnvParams:
+    """EnvParams whose delay range defaults to the plant's delay and alpha range to its alpha."""
+    traffic = TrafficParams(delay=4.0) if traffic is None else traffic
+    kwargs.setdefault("delay_min", float(traffic.delay))
+    kwargs.setdefault("delay_max", float(traffic.delay))
+    kwargs.setdefault("alpha_min", float(traffic.alpha))
+    kwargs.setdefault("alpha_max", float(traffic.alpha))
+    ep = EnvParams(traffic=traffic, **kwargs)
+    for lo, hi in (("amp_min", "amp_max"), ("wavenumber_min", "wavenumber_max"),
+                   ("delay_min", "delay_max"), ("alpha_min", "alpha_max")):
+        if getattr(ep, lo) > getattr(ep, hi):
+            raise ValueError(f"{lo}={getattr(ep, lo)} > {hi}={getattr(ep, hi)}")
+    if ep.delay_max > traffic.max_delay_steps * traffic.dt + 1e-9:
+        raise ValueError(f"delay_max={ep.delay_max} s exceeds the buffer ({traffic.max_delay_steps} steps)")
+    if not 0.0 <= ep.alpha_min and ep.alpha_max <= 1.0:
+        raise ValueError("alpha range must lie in [0, 1]")
+    if ep.horizon < 1:
+        raise ValueError(f"horizon must be >= 1 step, got {ep.horizon}")
+    return ep
+
+
+def obs_size(params: EnvParams) -> int:
+    return 3 * params.traffic.n_points
+
+
+def obs_vector(rho: Array, v: Array, h_prev: Array, nominal: TrafficParams) -> Array:
+    """Normalised observation [rho/rho_bar - 1, v/v_bar - 1, h_prev/h_bar - 1], shape (3 n,)."""
+    rho_bar, v_bar = equilibrium(nominal)
+    return jnp.concatenate([rho / rho_bar - 1.0, v / v_bar - 1.0, h_prev / nominal.h_bar - 1.0])
+
+
+def observe(plant: PlantState, nominal: TrafficParams) -> Array:
+    """Normalised observation vector of a plant state, shape (3 n_points,)."""
+    return obs_vector(plant.rho, plant.v, plant.h_prev, nominal)
+
+
+def action_to_gains(action: Array, params: EnvParams) -> Array:
+    """Gains eta = gain_max * tanh(action), shape (3,)."""
+    return params.gain_max * jnp.tanh(action)
+
+
+def reset(key: Array, params: EnvParams) -> tuple[Array, EnvState]:
+    """Draw an episode (initial condition, plant delay and alpha) and return (obs, state)."""
+    k_amp, k_wn, k_ph, k_d, k_a = jax.random.split(key, 5)
+    tp = params.traffic
+    amp = jax.random.uniform(k_amp, minval=params.amp_min, maxval=params.amp_max)
+    wn = jax.random.randint(k_wn, (), params.wavenumber_min, params.wavenumber_max + 1)
+    phase = jax.random.uniform(k_ph, maxval=params.phase_max)
+    d_lo = jnp.round(params.delay_min / tp.dt).astype(jnp.int32)
+    d_hi = jnp.round(params.delay_max / tp.dt).astype(jnp.int32)
+    delay = jax.random.randint(k_d, (), d_lo, d_hi + 1) * tp.dt
+    alpha = jax.random.uniform(k_a, minval=params.alpha_min, maxval=params.alpha_max)
+    plant_params = tp.replace(delay=delay, alpha=alpha)
+    rho0, v0 = paper_initial_condition(tp, amp, wn.astype(jnp.float32), phase)
+    plant = initial_state(plant_params, rho0, v0)
+    state = EnvState(plant=plant, plant_params=plant_params, t=jnp.zeros((), jnp.int32))
+    return observe(plant, tp), state
+
+
+def step(key: Array, state: EnvState, action: Array, params: EnvParams):
+    """Apply the gains ``action`` for one dt; returns (obs, state, reward, done, info).
+
+    info: ``terminal_obs`` (observation before any reset), ``truncated`` and ``terminated``
+    (bool), ``gains`` (shape (3,)).
+    """
+    chex.assert_shape(action, (3,))
+    k_plant, k_reset = jax.random.split(key)
+    tp = params.traffic
+    rho_bar, v_bar = equilibrium(tp)
+    gains = action_to_gains(action, params)
+    p = state.plant
+    obs_struct = Observation(rho=p.rho, v=p.v, h_prev=p.h_prev, t=p.step * tp.dt, sent=p.sent)
+    h = saturate(gain_law(gains, obs_struct, tp), tp).astype(p.rho.dtype)
+    plant = plant_step(p, h, state.plant_params, k_plant)
+    terminated = plant.diverged
+    r = jnp.where(terminated, -params.diverge_penalty, M.reward(plant.rho, plant.v, rho_bar, v_bar))
+    t = state.t + 1
+    truncated = (t >= params.horizon) & ~terminated
+    done = terminated | truncated
+    terminal_obs = observe(plant, tp)
+    obs_reset, state_reset = reset(k_reset, params)
+    new_state = EnvState(plant=plant, plant_params=state.plant_params, t=t)
+    new_state = jax.tree.map(lambda a, b: jnp.where(done, a, b), state_reset, new_state)
+    obs = jnp.where(done, obs_reset, terminal_obs)
+    info = {"terminal_obs": terminal_obs, "truncated": truncated, "terminated": terminated, "gains": gains}
+    return obs, new_state, r, done, info
+
+
+class GainEnv:
+    """The traffic gain environment as an object with the gymnax-style interface that
+    ``ppo.make_train`` expects: ``reset``, ``step``, ``obs_size(params)``, ``action_size``."""
+
+    action_size = 3
+    reset = staticmethod(reset)
+    step = staticmethod(step)
+    obs_size = staticmethod(obs_size)

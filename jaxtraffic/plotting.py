@@ -1,0 +1,333 @@
+"""Figures of the paper's section 4 (MODEL.md section 11) from plain numpy arrays.
+
+Every function takes numpy arrays (no rollout objects), writes one PNG and returns its path, so
+it can be smoke-tested on synthetic data. Units on the axes: x in m, t in s, density in veh/km,
+speed in m/s, time gap in s. Space-time maps use a diverging colour map centred on the
+equilibrium value with symmetric, robust limits (the 99.5th percentile of |deviation| over all
+panels of a column), so the stop-and-go waves are visible and the controllers are comparable.
+
+Functions:
+    plot_learning_curve(csv_path, png_path)          -- paper fig. 3a (training reward)
+    plot_reward(png_path, t, series, ...)            -- paper fig. 3b (reward over time)
+    plot_spacetime(png_path, t, x, rows, ...)        -- paper figs. 4, 5, 7 (rho, v, h over x, t)
+    plot_l2_norms(png_path, t, series, ...)          -- paper figs. 6, 8 (L2 norms over time)
+    plot_l2_panels(png_path, t, panels, ...)         -- several L2 comparisons side by side
+    plot_robustness_map(png_path, delays, alphas, maps, ...) -- final density L2 heatmaps
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib import colors, ticker  # noqa: E402
+
+REWARD_TARGET = -0.1  # the paper's stop rule
+VEH_PER_KM = 1000.0
+DPI = 110
+
+# fixed colours so a controller looks the same in every figure
+CONTROLLER_STYLE = {
+    "open_loop": dict(color="0.35", ls="-"),
+    "lyapunov": dict(color="tab:orange", ls="-"),
+    "backstepping": dict(color="tab:blue", ls="-"),
+    "ppo": dict(color="tab:green", ls="-"),
+}
+LABELS = {"open_loop": "open loop", "lyapunov": "Lyapunov", "backstepping": "backstepping",
+          "ppo": "PPO"}
+
+
+def _style(label: str) -> dict:
+    for key, st in CONTROLLER_STYLE.items():
+        if label.startswith(key) or label.startswith(LABELS[key]):
+            return dict(st)
+    return {}
+
+
+def _finish(fig: plt.Figure, png_path: str | Path) -> Path:
+    png_path = Path(png_path)
+    png_path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(png_path, dpi=DPI, bbox_inches="tight")
+    plt.close(fig)
+    return png_path
+
+
+def _mean_band(y: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """(mean, min, max) over the leading axis of a (S, T) array; (y, None, None) for (T,)."""
+    y = np.asarray(y, float)
+    if y.ndim == 1:
+        return y, None, None
+    if y.shape[0] == 1:
+        return y[0], None, None
+    return np.mean(y, axis=0), np.min(y, axis=0), np.max(y, axis=0)
+
+
+# ----------------------------------------------------------------------------- learning curve
+def read_learning_curve(csv_path: str | Path) -> dict[str, np.ndarray]:
+    """Columns of a learning_curve.csv as float arrays (empty cells become NaN)."""
+    with open(csv_path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        raise ValueError(f"{csv_path}: no rows")
+    out = {}
+    for key in rows[0]:
+        vals = []
+        for r in rows:
+            try:
+                vals.append(float(r[key]))
+            except (TypeError, ValueError):
+                vals.append(math.nan)
+        out[key] = np.asarray(vals)
+    return out
+
+
+def _reward_axis(ax: plt.Axes, values: np.ndarray) -> None:
+    """Linear y axis, or symlog when the rewards span decades below the stop rule."""
+    finite = values[np.isfinite(values)]
+    if finite.size and np.min(finite) < 20 * REWARD_TARGET:
+        ax.set_yscale("symlog", linthresh=0.01)
+    ax.axhline(REWARD_TARGET, color="k", ls="--", lw=1, label="stop rule r = -0.1")
+    ax.grid(alpha=0.3, which="both")
+
+
+def plot_learning_curve(csv_path: str | Path, png_path: str | Path, title: str | None = None) -> Path:
+    """Paper fig. 3a: training reward against environment steps and against wall-clock seconds.
+
+    Reads ``csv_path`` (header ``update,env_steps,wall_s,mean_reward,eval_reward,...``) and plots
+    the mean training reward and the deterministic evaluation reward, with the -0.1 stop-rule line.
+    """
+    data = read_learning_curve(csv_path)
+    series = [(k, lab) for k, lab in (("mean_reward", "mean training reward (stochastic policy)"),
+                                      ("eval_reward", "evaluation reward (deterministic policy)"))
+              if k in data and np.isfinite(data[k]).any()]
+    if not series:
+        raise ValueError(f"{csv_path}: no mean_reward / eval_reward values")
+    xaxes = [(k, lab) for k, lab in (("env_steps", "environment steps"), ("wall_s", "wall-clock time (s)"))
+             if k in data and np.isfinite(data[k]).any()]
+    if not xaxes:
+        xaxes = [("update", "PPO update")]
+    fig, axes = plt.subplots(1, len(xaxes), figsize=(6.2 * len(xaxes), 4.2), squeeze=False,
+                             constrained_layout=True)
+    allv = np.concatenate([data[k] for k, _ in series])
+    for ax, (xk, xlab) in zip(axes[0], xaxes, strict=True):
+        for (yk, ylab), col in zip(series, ("tab:green", "tab:purple"), strict=False):
+            ok = np.isfinite(data[xk]) & np.isfinite(data[yk])
+            ax.plot(data[xk][ok], data[yk][ok], color=col, lw=1.5, marker="." if ok.sum() < 60 else None,
+                    label=ylab)
+        _reward_axis(ax, allv)
+        ax.set_xlabel(xlab)
+        ax.set_ylabel("reward r (dimensionless)")
+        ax.legend(fontsize=8, loc="lower right")
+    fig.suptitle(title or "PPO learning curve (paper fig. 3a)")
+    return _finish(fig, png_path)
+
+
+# ----------------------------------------------------------------------------- reward over time
+def plot_reward(png_path: str | Path, t: np.ndarray, series: Mapping[str, np.ndarray],
+                title: str = "Reward over time (paper fig. 3b)",
+                markers: Mapping[str, float] | None = None) -> Path:
+    """Reward r(t) of several controllers; plotted as -r on a log axis (r <= 0 always).
+
+    ``series``: label -> array (T,) or (S, T) (several seeds: mean with a min-max band).
+    ``markers``: label -> time (s) at which that run diverged (drawn as a cross).
+    """
+    fig, ax = plt.subplots(figsize=(8.5, 4.6), constrained_layout=True)
+    floor = 1e-8
+    for i, (label, y) in enumerate(series.items()):
+        m, lo, hi = _mean_band(-np.asarray(y, float))
+        st = _style(label) or dict(color=f"C{i}")
+        if "D = 0" in label or "D=0" in label:
+            st["ls"] = "--"
+        ax.plot(t, np.maximum(m, floor), lw=max(2.8 - 0.4 * i, 1.2), label=label, **st)
+        if lo is not None:
+            ax.fill_between(t, np.maximum(lo, floor), np.maximum(hi, floor), color=st.get("color"), alpha=0.2)
+        if markers and label in markers and markers[label] is not None:
+            td = markers[label]
+            k = int(np.clip(np.searchsorted(t, td), 0, len(t) - 1))
+            ax.plot([t[k]], [max(m[k], floor)], "x", ms=10, mew=2, color=st.get("color", "k"))
+    ax.axhline(-REWARD_TARGET, color="k", ls=":", lw=1.2, label="stop rule: r = -0.1")
+    ax.set_yscale("log")
+    ax.set_xlabel("time t (s)")
+    ax.set_ylabel("-r (log scale; lower is better)")
+    ax.set_xlim(t[0], t[-1])
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8, loc="best")
+    ax.set_title(title)
+    return _finish(fig, png_path)
+
+
+# ----------------------------------------------------------------------------- space-time maps
+def _sym_limit(values: Sequence[np.ndarray], center: float, q: float = 99.5) -> float:
+    dev = np.concatenate([np.abs(np.asarray(v, float) - center).ravel() for v in values])
+    dev = dev[np.isfinite(dev)]
+    lim = float(np.percentile(dev, q)) if dev.size else 0.0
+    return lim if lim > 0 else max(abs(center) * 1e-3, 1e-6)
+
+
+def plot_spacetime(
+    png_path: str | Path, t: np.ndarray, x: np.ndarray,
+    rows: Mapping[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
+    equilibrium: tuple[float, float, float], title: str,
+    diverged_at: Mapping[str, float | None] | None = None,
+) -> Path:
+    """Space-time maps of density, speed and time gap (paper figs. 4, 5, 7).
+
+    ``rows``: label -> (rho (T, N) in veh/m, v (T, N) in m/s, h (T, N) in s); one row per
+    controller, columns rho (shown in veh/km), v, h. ``equilibrium`` = (rho_bar veh/m, v_bar m/s,
+    h_bar s): each column uses a diverging colour map centred there, limits shared by the column.
+    ``diverged_at``: label -> time (s) after which that run was frozen (drawn as a dashed line).
+    """
+    rho_bar, v_bar, h_bar = equilibrium
+    cols = [("density rho (veh/km)", VEH_PER_KM, rho_bar * VEH_PER_KM, "RdBu_r"),
+            ("speed v (m/s)", 1.0, v_bar, "RdBu_r"),
+            ("ACC time gap h (s)", 1.0, h_bar, "PuOr_r")]
+    n = len(rows)
+    fig, axes = plt.subplots(n, 3, figsize=(15, 2.9 * n + 0.6), squeeze=False, constrained_layout=True)
+    labels = list(rows)
+    for j, (cname, scale, center, cmap) in enumerate(cols):
+        fields = [np.asarray(rows[lab][j], float) * scale for lab in labels]
+        lim = _sym_limit(fields, center)
+        norm = colors.Normalize(vmin=center - lim, vmax=center + lim)
+        for i, lab in enumerate(labels):
+            ax = axes[i, j]
+            f = fields[i]
+            mesh = ax.pcolormesh(t, x, f.T, cmap=cmap, norm=norm, shading="nearest", rasterized=True)
+            cb = fig.colorbar(mesh, ax=ax, pad=0.01, extend="both")
+            cb.set_label(cname, fontsize=8)
+            cb.ax.tick_params(labelsize=7)
+            ax.set_title(f"{lab}: {cname.split(' (')[0]}", fontsize=10)
+            ax.set_xlabel("time t (s)")
+            ax.set_ylabel("position x (m)")
+            if np.nanmax(np.abs(f - center)) < 1e-9 * max(abs(center), 1.0):
+                ax.text(0.5, 0.5, f"constant = {center:.3g} (no control action)", transform=ax.transAxes,
+                        ha="center", va="center", fontsize=9, bbox=dict(fc="white", alpha=0.8))
+            td = (diverged_at or {}).get(lab)
+            if td is not None and np.isfinite(td):
+                ax.axvline(td, color="k", ls="--", lw=1.2)
+                ax.text(td, x[-1], f" diverged at {td:.0f} s; frozen after", fontsize=7, va="top",
+                        ha="right" if td > 0.6 * t[-1] else "left")
+    fig.suptitle(title, fontsize=12)
+    return _finish(fig, png_path)
+
+
+# ----------------------------------------------------------------------------- L2 norms
+def _l2_axes(axes, t, series, styles_dash: Mapping[str, str] | None = None) -> None:
+    for i, (label, (r, v)) in enumerate(series.items()):
+        st = _style(label) or dict(color=f"C{i}")
+        if styles_dash and label in styles_dash:
+            st["ls"] = styles_dash[label]
+        for ax, y, scale in ((axes[0], r, VEH_PER_KM), (axes[1], v, 1.0)):
+            m, lo, hi = _mean_band(np.asarray(y, float) * scale)
+            ax.plot(t, np.maximum(m, 1e-12), lw=max(2.8 - 0.4 * i, 1.2), label=label, **st)
+            if lo is not None:
+                ax.fill_between(t, np.maximum(lo, 1e-12), np.maximum(hi, 1e-12), color=st.get("color"),
+                                alpha=0.2)
+    axes[0].set_ylabel("||rho - rho_bar||_L2 (veh/km)")
+    axes[1].set_ylabel("||v - v_bar||_L2 (m/s)")
+    for ax in axes:
+        ax.set_yscale("log")
+        ax.set_xlabel("time t (s)")
+        ax.set_xlim(t[0], t[-1])
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=8)
+
+
+def plot_l2_norms(png_path: str | Path, t: np.ndarray, series: Mapping[str, tuple[np.ndarray, np.ndarray]],
+                  title: str) -> Path:
+    """L2 norms of the density and speed deviations over time (paper figs. 6, 8).
+
+    ``series``: label -> (rho_L2 in veh/m, v_L2 in m/s), each (T,) or (S, T) (mean, min-max band).
+    """
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.2), constrained_layout=True)
+    _l2_axes(axes, t, series)
+    axes[0].set_title("density deviation")
+    axes[1].set_title("speed deviation")
+    fig.suptitle(title)
+    return _finish(fig, png_path)
+
+
+def plot_l2_panels(png_path: str | Path, t: np.ndarray,
+                   panels: Mapping[str, Mapping[str, tuple[np.ndarray, np.ndarray]]], title: str) -> Path:
+    """Several L2 comparisons (e.g. plant delay 3 s and 5 s, paper fig. 8): one column per panel,
+    rows density and speed. ``panels``: panel title -> series as in ``plot_l2_norms``."""
+    k = len(panels)
+    fig, axes = plt.subplots(2, k, figsize=(6.2 * k, 7.5), squeeze=False, constrained_layout=True)
+    for j, (ptitle, series) in enumerate(panels.items()):
+        _l2_axes([axes[0, j], axes[1, j]], t, series)
+        axes[0, j].set_title(f"{ptitle}: density deviation")
+        axes[1, j].set_title(f"{ptitle}: speed deviation")
+    fig.suptitle(title)
+    return _finish(fig, png_path)
+
+
+# ----------------------------------------------------------------------------- robustness map
+def plot_robustness_map(
+    png_path: str | Path, delays: np.ndarray, alphas: np.ndarray,
+    maps: Mapping[str, tuple[np.ndarray, np.ndarray]], title: str,
+    nominal: tuple[float, float] | None = (4.0, 0.15), initial_l2: float | None = None,
+    quantity: str = "final ||rho - rho_bar||_L2 (veh/km)",
+) -> Path:
+    """Heatmaps of a final density deviation (given in veh/m, shown in veh/km on a log colour
+    scale) over plant delay (rows of the arrays, s) x plant ACC rate alpha (columns), one panel
+    per controller.
+
+    ``maps``: label -> (value (ND, NA) in veh/m, diverged (ND, NA) bool). Diverged cells are
+    drawn grey with hatching. ``nominal`` marks the training point (D, alpha) with a red star;
+    ``initial_l2`` (veh/m), if given, is marked on the colour bar. ``quantity`` labels the bar.
+    """
+    delays, alphas = np.asarray(delays, float), np.asarray(alphas, float)
+    k = len(maps)
+    ncol = min(k, 2)
+    nrow = math.ceil(k / ncol)
+    vals = [np.asarray(m[0], float) * VEH_PER_KM for m in maps.values()]
+    good = np.concatenate([v[~np.asarray(m[1], bool) & np.isfinite(v)].ravel()
+                           for v, m in zip(vals, maps.values(), strict=True)])
+    vmin = max(float(np.min(good)) if good.size else 1e-3, 1e-4)
+    vmax = max(float(np.max(good)) if good.size else 1.0, vmin * 10)
+    norm = colors.LogNorm(vmin=vmin, vmax=vmax)
+
+    def edges(c):
+        if c.size == 1:
+            return np.array([c[0] - 0.5, c[0] + 0.5])
+        mid = 0.5 * (c[1:] + c[:-1])
+        return np.concatenate([[c[0] - (mid[0] - c[0])], mid, [c[-1] + (c[-1] - mid[-1])]])
+
+    ae, de = edges(alphas), edges(delays)
+    fig, axes = plt.subplots(nrow, ncol, figsize=(6.4 * ncol, 4.6 * nrow), squeeze=False,
+                             constrained_layout=True)
+    mesh = None
+    for ax, (label, (_, div)), v in zip(axes.flat, maps.items(), vals, strict=False):
+        div = np.asarray(div, bool) | ~np.isfinite(v)
+        mesh = ax.pcolormesh(ae, de, np.ma.masked_where(div, v), cmap="viridis", norm=norm)
+        if div.any():
+            ax.pcolor(ae, de, np.ma.masked_where(~div, np.ones_like(v)), cmap=colors.ListedColormap(["0.75"]),
+                      hatch="xx", edgecolor="0.4", lw=0)
+        if nominal is not None:
+            ax.plot([nominal[1]], [nominal[0]], marker="*", ms=14, color="red", mec="white", ls="none")
+        nd = int(div.sum())
+        ax.set_title(f"{label}  ({nd}/{div.size} diverged)", fontsize=10)
+        ax.set_xlabel("plant ACC penetration rate alpha")
+        ax.set_ylabel("plant input delay D (s)")
+    for ax in list(axes.flat)[k:]:
+        ax.remove()
+    if nominal is not None:
+        title = f"{title}\nred star: training / nominal point (D = {nominal[0]:g} s, alpha = {nominal[1]:g})"
+    if mesh is not None:
+        cb = fig.colorbar(mesh, ax=axes.ravel().tolist()[:k], shrink=0.8, extend="both")
+        cb.set_label(f"{quantity}, log scale; grey hatched = diverged")
+        cb.ax.yaxis.set_major_locator(ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
+        cb.ax.yaxis.set_major_formatter(ticker.FuncFormatter(lambda val, _: f"{val:g}"))
+        cb.ax.yaxis.set_minor_formatter(ticker.NullFormatter())
+        if initial_l2 is not None and vmin <= initial_l2 * VEH_PER_KM <= vmax:
+            cb.ax.axhline(initial_l2 * VEH_PER_KM, color="red", lw=2)
+            cb.ax.text(1.05, initial_l2 * VEH_PER_KM, " initial", color="red", fontsize=7,
+                       transform=cb.ax.get_yaxis_transform(), va="center")
+    fig.suptitle(title)
+    return _finish(fig, png_path)

@@ -1,0 +1,91 @@
+"""A trained gain policy as a ``Controller`` (shared interface with the baselines).
+
+``policy_controller`` wraps network parameters and observation statistics; ``load_policy``
+turns a run directory written by ``train.py`` into a controller (deterministic gains: the mean
+of the Gaussian, squashed by ``gain_max * tanh``).
+"""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from jaxtraffic.controllers import Controller, gain_law
+from jaxtraffic.env import obs_vector
+from jaxtraffic.networks import ActorCritic
+
+Array = jax.Array
+
+
+@struct.dataclass
+class PolicySettings:
+    """Traced settings of a policy controller: network parameters, observation mean/variance
+    (shape (3 n,)) and the gain bound (dimensionless)."""
+
+    params: Any
+    obs_mean: Array
+    obs_var: Array
+    gain_max: Array
+
+
+def policy_gains(settings: PolicySettings, x: Array, network: ActorCritic) -> tuple[Array, Array]:
+    """(mean gains, sigma of the pre-squash action) for a raw observation vector ``x``."""
+    xn = jnp.clip((x - settings.obs_mean) / jnp.sqrt(settings.obs_var + 1e-8), -10.0, 10.0)
+    mean, sigma, _ = network.apply(settings.params, xn)
+    return settings.gain_max * jnp.tanh(mean), sigma
+
+
+@functools.cache
+def _policy_act_fn(hidden: tuple, activation: str, init_sigma: float, stochastic: bool):
+    network = ActorCritic(hidden=hidden, activation=activation, init_sigma=init_sigma)
+
+    def act(settings: PolicySettings, cstate, obs, nominal, key):
+        x = obs_vector(obs.rho, obs.v, obs.h_prev, nominal)
+        if stochastic:
+            xn = jnp.clip((x - settings.obs_mean) / jnp.sqrt(settings.obs_var + 1e-8), -10.0, 10.0)
+            mean, sigma, _ = network.apply(settings.params, xn)
+            gains = settings.gain_max * jnp.tanh(mean + sigma * jax.random.normal(key, mean.shape))
+        else:
+            gains, _ = policy_gains(settings, x, network)
+        return gain_law(gains, obs, nominal), cstate
+
+    return act
+
+
+def policy_controller(params: Any, obs_mean: Array, obs_var: Array, gain_max: float, *,
+                      hidden: tuple, activation: str = "tanh", init_sigma: float = 0.5,
+                      stochastic: bool = False) -> Controller:
+    """Controller applying the policy's gains through the paper's three-gain law."""
+    settings = PolicySettings(params=params, obs_mean=jnp.asarray(obs_mean), obs_var=jnp.asarray(obs_var),
+                              gain_max=jnp.asarray(gain_max, float))
+    act = _policy_act_fn(tuple(hidden), activation, float(init_sigma), stochastic)
+    return Controller(settings=settings, act_fn=act, name="ppo")
+
+
+def load_policy(run_dir: str | Path, seed: int | None = None, stochastic: bool = False
+                ) -> tuple[Controller, dict]:
+    """Controller and config of a run directory written by ``train.py``.
+
+    ``seed`` selects one of the run's seeds (default: the best one by final evaluation reward,
+    as recorded in ``summary.json``, else 0).
+    """
+    from jaxtraffic.checkpoint import load_run  # local import: checkpoint imports ppo
+
+    run_dir = Path(run_dir)
+    config, saved, summary = load_run(run_dir)
+    if seed is None:
+        seed = int(summary.get("best_seed", 0)) if summary else 0
+    n_seeds = saved.obs_mean.shape[0]
+    if not 0 <= seed < n_seeds:
+        raise ValueError(f"seed {seed} not in run with {n_seeds} seeds")
+    ppo_cfg = config["ppo"]
+    controller = policy_controller(
+        jax.tree.map(lambda x: jnp.asarray(x[seed]), saved.params), saved.obs_mean[seed], saved.obs_var[seed],
+        config["env"]["gain_max"], hidden=tuple(ppo_cfg["hidden"]), activation=ppo_cfg["activation"],
+        init_sigma=ppo_cfg["init_sigma"], stochastic=stochastic)
+    return controller, config

@@ -1,0 +1,256 @@
+"""Training loop around ``ppo.make_train``: chunks, evaluation, stop rule, checkpoints, outputs.
+
+``train(settings)`` runs jit-compiled chunks of PPO updates. Between chunks it evaluates the
+deterministic policy of every seed on the paper's initial condition (``eval_horizon_s``, the
+training plant without randomisation), prints a progress line, rewrites ``learning_curve.csv``
+and the checkpoint atomically, and applies the paper's stop rule (evaluation reward, i.e. the
+reward at the end of the evaluation rollout, >= ``target_reward`` for every seed) unless
+``keep_going``. Ctrl-C saves the last completed chunk; ``resume`` continues from it exactly.
+
+Run directory: config.json, checkpoint.msgpack, learning_curve.csv, learning_curve.png,
+summary.json.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxtraffic import checkpoint as ckpt
+from jaxtraffic import env as E
+from jaxtraffic import ppo
+from jaxtraffic.controllers import Controller
+from jaxtraffic.networks import PAPER_HIDDEN, SMALL_HIDDEN
+from jaxtraffic.params import TrafficParams
+from jaxtraffic.policy import PolicySettings, _policy_act_fn
+from jaxtraffic.rollout import paper_initial_condition, simulate_batch
+
+CURVE_FIELDS = ["update", "env_steps", "wall_s", "mean_reward", "eval_reward", "eval_reward_min",
+                "eval_J_comfort", "eta1", "eta2", "eta3", "entropy", "approx_kl", "value_loss"]
+
+
+@dataclass
+class TrainSettings:
+    """Everything ``train.py`` exposes as a flag (defaults: the paper's D = 4 s policy)."""
+
+    out_dir: str = "runs/default"
+    seed: int = 0
+    seeds: int = 1
+    # plant and grid
+    delay: float = 4.0
+    alpha: float = 0.15
+    alpha_noise: float = 0.0
+    n_points: int = 201
+    dt: float = 0.1
+    max_delay_steps: int = 100
+    # domain randomisation (None: no randomisation)
+    delay_range: tuple[float, float] | None = None
+    alpha_range: tuple[float, float] | None = None
+    amp_range: tuple[float, float] = (0.010, 0.010)
+    wavenumber_range: tuple[int, int] = (4, 4)
+    phase_max: float = 0.0
+    horizon_s: float = 300.0
+    gain_max: float = 3.0
+    # PPO
+    num_envs: int = 64
+    num_steps: int = 100
+    total_steps: int = 2_000_000
+    update_epochs: int = 4
+    num_minibatches: int = 4
+    updates_per_chunk: int = 5
+    network: str = "small"
+    lr: float = 1e-3
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    clip_eps: float = 0.2
+    ent_coef: float = 0.0
+    vf_coef: float = 0.5
+    max_grad_norm: float = 0.5
+    reward_scale: float = 0.1
+    init_sigma: float = 0.3
+    # evaluation and stopping
+    eval_horizon_s: float = 300.0
+    target_reward: float = -0.1
+    keep_going: bool = False
+    max_wall_s: float = math.inf
+    resume: bool = False
+    quiet: bool = False
+    extra: dict = field(default_factory=dict)
+
+    def hidden(self) -> tuple[int, ...]:
+        return {"small": SMALL_HIDDEN, "paper": PAPER_HIDDEN}[self.network]
+
+
+def build(s: TrainSettings) -> tuple[ppo.PPOConfig, E.EnvParams]:
+    """PPO config and environment parameters from settings (validated)."""
+    traffic = TrafficParams(delay=s.delay, alpha=s.alpha, alpha_noise=s.alpha_noise, n_points=s.n_points,
+                            dt=s.dt, max_delay_steps=s.max_delay_steps)
+    d_lo, d_hi = s.delay_range or (s.delay, s.delay)
+    a_lo, a_hi = s.alpha_range or (s.alpha, s.alpha)
+    env_params = E.make_env_params(
+        traffic, horizon=max(1, round(s.horizon_s / s.dt)), gain_max=s.gain_max, amp_min=s.amp_range[0],
+        amp_max=s.amp_range[1], wavenumber_min=int(s.wavenumber_range[0]),
+        wavenumber_max=int(s.wavenumber_range[1]), phase_max=s.phase_max, delay_min=d_lo, delay_max=d_hi,
+        alpha_min=a_lo, alpha_max=a_hi)
+    cfg = ppo.PPOConfig(
+        num_envs=s.num_envs, num_steps=s.num_steps, update_epochs=s.update_epochs,
+        num_minibatches=s.num_minibatches, updates_per_chunk=s.updates_per_chunk, num_seeds=s.seeds,
+        hidden=s.hidden(), init_sigma=s.init_sigma, lr=s.lr, gamma=s.gamma, gae_lambda=s.gae_lambda,
+        clip_eps=s.clip_eps, ent_coef=s.ent_coef, vf_coef=s.vf_coef, max_grad_norm=s.max_grad_norm,
+        reward_scale=s.reward_scale)
+    return cfg, env_params
+
+
+def config_dict(s: TrainSettings, cfg: ppo.PPOConfig, env_params: E.EnvParams) -> dict:
+    """The run's config.json content."""
+    return {
+        "settings": dataclasses.asdict(s),
+        "delay": s.delay, "alpha": s.alpha, "n_points": s.n_points, "dt": s.dt,
+        "max_delay_steps": s.max_delay_steps,
+        "ppo": {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)},
+        "env": {"gain_max": s.gain_max, "horizon_steps": int(env_params.horizon)},
+        "devices": [str(d) for d in jax.devices()],
+        "jax_version": jax.__version__,
+    }
+
+
+def make_evaluator(cfg: ppo.PPOConfig, env_params: E.EnvParams, eval_steps: int):
+    """Deterministic evaluation of every seed's policy on the paper's initial condition.
+
+    Returns ``evaluate(runner) -> dict`` of per-seed metrics (final_reward, J's, ...).
+    """
+    plant = env_params.traffic.replace(alpha_noise=0.0)
+    rho0, v0 = paper_initial_condition(plant)
+    act = _policy_act_fn(tuple(cfg.hidden), cfg.activation, float(cfg.init_sigma), False)
+
+    def evaluate(runner: ppo.Runner) -> dict:
+        rep = ppo.replicated(runner)
+        settings = PolicySettings(params=rep.params, obs_mean=rep.stats.mean, obs_var=rep.stats.var,
+                                  gain_max=jnp.full((cfg.num_seeds,), env_params.gain_max, float))
+        ctrl = Controller(settings=settings, act_fn=act, name="ppo")
+        res = simulate_batch(plant, ctrl, n_steps=eval_steps, rho0=rho0, v0=v0, batch_controller=True)
+        return {k: np.asarray(v) for k, v in res.metrics.items()}
+
+    return evaluate
+
+
+def _write_curve(path: Path, rows: list[dict]) -> None:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=CURVE_FIELDS, extrasaction="ignore")
+    w.writeheader()
+    w.writerows(rows)
+    ckpt.atomic_write_text(path, buf.getvalue())
+
+
+def _plot_curve(run_dir: Path) -> None:
+    try:
+        from jaxtraffic.plotting import plot_learning_curve
+    except ImportError:  # plotting is optional for the trainer itself
+        return
+    plot_learning_curve(run_dir / "learning_curve.csv", run_dir / "learning_curve.png")
+
+
+def _fmt_time(sec: float) -> str:
+    if not math.isfinite(sec):
+        return "?"
+    m, s = divmod(int(sec), 60)
+    return f"{m}m{s:02d}s"
+
+
+def train(s: TrainSettings) -> Path:
+    """Train (or resume) and return the run directory."""
+    run_dir = Path(s.out_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    cfg, env_params = build(s)
+    eval_steps = max(1, round(s.eval_horizon_s / s.dt))
+    init, train_chunk = ppo.make_train(cfg, env_params)
+    evaluate = make_evaluator(cfg, env_params, eval_steps)
+    say = (lambda *a: None) if s.quiet else (lambda *a: print(*a, flush=True))
+
+    t_start = time.perf_counter()
+    runner = init(jax.random.PRNGKey(s.seed))
+    meta = {"env_steps": 0, "wall_s": 0.0, "rows": [], "seconds_to_stop_rule": None, "stopped": False}
+    if s.resume and (run_dir / ckpt.CHECKPOINT).exists():
+        state, meta = ckpt.load_checkpoint(run_dir)
+        runner = ckpt.restore_runner(runner, state)
+        runner = jax.device_put_sharded([jax.tree.map(lambda x, i=i: x[i], runner)
+                                         for i in range(len(jax.devices()))], jax.devices())
+        say(f"resumed {run_dir} at {meta['env_steps']} env steps ({meta['wall_s']:.1f} s)")
+    else:
+        ckpt.write_json(run_dir / ckpt.CONFIG, config_dict(s, cfg, env_params))
+    wall0 = float(meta["wall_s"])
+    steps_per_chunk = cfg.steps_per_update * cfg.updates_per_chunk
+    say(f"training PPO: {cfg.num_envs} envs x {cfg.num_steps} steps/update, {cfg.updates_per_chunk} updates/chunk,"
+        f" {s.seeds} seed(s), {len(jax.devices())} device(s), plant D = {s.delay:g} s, "
+        f"target eval reward >= {s.target_reward}")
+    interrupted = False
+    last_eval: dict = {}
+    try:
+        while meta["env_steps"] < s.total_steps and not meta["stopped"]:
+            runner, m = train_chunk(runner)
+            jax.block_until_ready(m)
+            last_eval = evaluate(runner)
+            meta["env_steps"] += steps_per_chunk
+            meta["wall_s"] = wall0 + time.perf_counter() - t_start
+            ev = last_eval["final_reward"]
+            row = {"update": int(np.asarray(ppo.replicated(runner).update).max()), "env_steps": meta["env_steps"],
+                   "wall_s": round(meta["wall_s"], 3), "mean_reward": float(m["mean_reward"][:, -1].mean()),
+                   "eval_reward": float(ev.mean()), "eval_reward_min": float(ev.min()),
+                   "eval_J_comfort": float(last_eval["J_comfort"].mean())}
+            row.update({k: float(m[k][:, -1].mean()) for k in ("eta1", "eta2", "eta3", "entropy", "approx_kl",
+                                                               "value_loss")})
+            meta["rows"].append(row)
+            reached = bool(np.all(ev >= s.target_reward)) and not bool(np.any(last_eval["diverged"]))
+            if reached and meta["seconds_to_stop_rule"] is None:
+                meta["seconds_to_stop_rule"] = meta["wall_s"]
+                meta["env_steps_to_stop_rule"] = meta["env_steps"]
+            if reached and not s.keep_going:
+                meta["stopped"] = True
+            rate = steps_per_chunk / max(1e-9, (meta["wall_s"] - (meta["rows"][-2]["wall_s"] if len(meta["rows"]) > 1
+                                                                  else wall0)))
+            eta = (s.total_steps - meta["env_steps"]) / max(rate, 1e-9)
+            say(f"[{meta['env_steps']:>9d} steps] {rate:8.0f} steps/s | reward {row['mean_reward']:9.3f} | "
+                f"eval {row['eval_reward']:9.4f} (min {row['eval_reward_min']:.4f}) | gains "
+                f"({row['eta1']:+.2f}, {row['eta2']:+.2f}, {row['eta3']:+.2f}) | {_fmt_time(meta['wall_s'])} | "
+                f"ETA {_fmt_time(eta)}" + (" | stop rule reached" if reached else ""))
+            ckpt.save_checkpoint(run_dir, runner, meta)
+            _write_curve(run_dir / "learning_curve.csv", meta["rows"])
+            if meta["wall_s"] > s.max_wall_s:
+                say(f"stopping: wall-clock budget {s.max_wall_s:g} s reached")
+                break
+    except KeyboardInterrupt:
+        interrupted = True
+        say("interrupted: last completed chunk is saved; continue with --resume")
+    if not meta["rows"]:
+        return run_dir
+    if not interrupted:
+        ckpt.save_checkpoint(run_dir, runner, meta)
+    _write_curve(run_dir / "learning_curve.csv", meta["rows"])
+    _plot_curve(run_dir)
+    if not last_eval:
+        last_eval = evaluate(runner)
+    ev = last_eval["final_reward"]
+    summary = {
+        "env_steps": meta["env_steps"], "wall_s": meta["wall_s"],
+        "seconds_to_stop_rule": meta["seconds_to_stop_rule"],
+        "env_steps_to_stop_rule": meta.get("env_steps_to_stop_rule"),
+        "stop_rule_reached": meta["seconds_to_stop_rule"] is not None,
+        "target_reward": s.target_reward, "interrupted": interrupted,
+        "best_seed": int(np.argmax(ev)),
+        "final_eval": {k: v for k, v in last_eval.items()},
+        "eval_horizon_s": s.eval_horizon_s,
+    }
+    ckpt.write_json(run_dir / ckpt.SUMMARY, summary)
+    say(f"done: {meta['env_steps']} env steps in {meta['wall_s']:.1f} s; eval reward per seed {np.round(ev, 4)};"
+        f" stop rule {'reached after ' + format(meta['seconds_to_stop_rule'], '.1f') + ' s' if summary['stop_rule_reached'] else 'not reached'}"
+        f"; outputs in {run_dir}")
+    return run_dir

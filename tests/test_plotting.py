@@ -1,0 +1,96 @@
+"""Smoke tests: every plotting function writes a non-empty PNG from small synthetic data."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from jaxtraffic import plotting as P
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+RHO_BAR, V_BAR, H_BAR = 0.10735931, 3.104839, 1.5
+
+
+def assert_png(path) -> None:
+    assert path.exists(), path
+    data = path.read_bytes()
+    assert data[:8] == PNG_MAGIC
+    assert len(data) > 5000  # a real picture, not an empty canvas
+
+
+@pytest.fixture
+def series():
+    t = np.linspace(0.0, 30.0, 31)
+    decay = np.exp(-t / 10.0)
+    grow = np.exp(t / 40.0)
+    return t, decay, grow
+
+
+def test_learning_curve(tmp_path):
+    csv = tmp_path / "learning_curve.csv"
+    lines = ["update,env_steps,wall_s,mean_reward,eval_reward,extra"]
+    for u in range(12):
+        ev = "" if u % 3 else f"{-50.0 * math.exp(-u / 2.0):.4f}"  # evaluation only every 3rd update
+        lines.append(f"{u},{(u + 1) * 1000},{1.5 * u:.2f},{-80.0 * math.exp(-u / 3.0):.4f},{ev},x")
+    csv.write_text("\n".join(lines) + "\n")
+    out = P.plot_learning_curve(csv, tmp_path / "lc.png")
+    assert_png(out)
+    data = P.read_learning_curve(csv)
+    assert np.isnan(data["eval_reward"][1]) and data["env_steps"][-1] == 12000
+
+
+def test_learning_curve_rejects_empty(tmp_path):
+    csv = tmp_path / "empty.csv"
+    csv.write_text("update,env_steps,wall_s,mean_reward,eval_reward\n")
+    with pytest.raises(ValueError):
+        P.plot_learning_curve(csv, tmp_path / "lc.png")
+
+
+def test_reward(tmp_path, series):
+    t, decay, grow = series
+    seeds = np.stack([-decay * (1 + 0.1 * k) for k in range(3)])
+    out = P.plot_reward(tmp_path / "reward.png", t,
+                        {"open loop (D = 4 s)": -grow, "PPO (D = 4 s)": seeds, "Lyapunov (D = 0)": -decay},
+                        markers={"open loop (D = 4 s)": 20.0})
+    assert_png(out)
+
+
+def test_spacetime(tmp_path, series):
+    t, decay, _ = series
+    x = np.linspace(0.0, 1000.0, 21)
+    wave = np.cos(8 * np.pi * (x[None, :] - 3.0 * t[:, None]) / 1000.0)
+    rho = RHO_BAR + 0.01 * wave * decay[:, None]
+    v = 0.3333 / rho
+    rows = {"open loop": (rho, v, np.full_like(rho, H_BAR)),  # constant h panel gets a note
+            "PPO": (RHO_BAR + 0.5 * (rho - RHO_BAR), v, H_BAR + 0.2 * wave)}
+    out = P.plot_spacetime(tmp_path / "st.png", t, x, rows, (RHO_BAR, V_BAR, H_BAR), "synthetic",
+                           diverged_at={"open loop": 25.0})
+    assert_png(out)
+
+
+def test_l2_norms_and_panels(tmp_path, series):
+    t, decay, grow = series
+    s = {"backstepping": (0.007 * decay, 0.2 * decay),
+         "PPO": (np.stack([0.007 * decay, 0.008 * decay]), np.stack([0.2 * decay, 0.3 * decay]))}
+    assert_png(P.plot_l2_norms(tmp_path / "l2.png", t, s, "synthetic L2"))
+    assert_png(P.plot_l2_panels(tmp_path / "l2p.png", t, {"D = 3 s": s, "D = 5 s": {"open loop": (
+        0.007 * grow, 0.2 * grow)}}, "synthetic panels"))
+
+
+def test_robustness_map(tmp_path):
+    delays = np.array([0.0, 2.0, 4.0, 6.0, 8.0])
+    alphas = np.array([0.05, 0.15, 0.3, 0.6])
+    base = 0.001 * (1 + delays[:, None]) * (1 + 10 * np.abs(alphas[None, :] - 0.15))
+    div = base > 0.02
+    maps = {"open loop": (base * 3, base * 3 > 0.02), "PPO": (base, div),
+            "all diverged": (base, np.ones_like(div)),
+            "none": (np.where(div, np.nan, base), np.zeros_like(div))}
+    out = P.plot_robustness_map(tmp_path / "robust.png", delays, alphas, maps, "synthetic robustness",
+                                initial_l2=0.007)
+    assert_png(out)
+    # a single controller, a single cell
+    out = P.plot_robustness_map(tmp_path / "one.png", delays[:1], alphas[:1],
+                                {"PPO": (base[:1, :1], div[:1, :1])}, "one cell", nominal=None)
+    assert_png(out)

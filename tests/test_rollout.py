@@ -1,0 +1,274 @@
+"""Batched rollouts (MODEL.md sections 3-5, 10): determinism, divergence containment, open-loop
+growth, metrics at equilibrium, one compile for many delays."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import SMALL, leaves_equal, take
+
+import jaxtraffic
+from jaxtraffic import (
+    Controller,
+    TrafficParams,
+    cfl_number,
+    equilibrium,
+    equilibrium_state,
+    lyapunov,
+    paper_initial_condition,
+    simulate,
+    simulate_batch,
+    stack_params,
+)
+from jaxtraffic import metrics as M
+
+SENTINELS = ("time_to_reward_target_s", "diverged_at_s")  # documented inf = "never"
+
+
+def _finite_except_sentinels(metrics: dict) -> None:
+    for k, x in metrics.items():
+        x = np.asarray(x)
+        if k in SENTINELS:
+            assert not np.any(np.isnan(x)), k
+            assert np.all(np.isfinite(x) | (x == np.inf)), k
+        else:
+            assert np.all(np.isfinite(x)), k
+
+
+def _all_finite(tree) -> bool:
+    return all(bool(np.all(np.isfinite(np.asarray(x)))) for x in jax.tree_util.tree_leaves(tree)
+               if np.issubdtype(np.asarray(x).dtype, np.floating))
+
+
+# ----------------------------------------------------------------------------- determinism
+def test_same_key_same_result_with_alpha_noise():
+    p = TrafficParams(**SMALL, alpha_noise=0.05)
+    k1, k2 = jax.random.PRNGKey(1), jax.random.PRNGKey(2)
+    a = simulate(p, n_steps=200, key=k1, record_every=10)
+    b = simulate(p, n_steps=200, key=k1, record_every=10)
+    c = simulate(p, n_steps=200, key=k2, record_every=10)
+    assert leaves_equal(a, b)
+    assert not np.array_equal(np.asarray(a.final.v), np.asarray(c.final.v))
+    assert float(a.metrics["J_TTT"]) != float(c.metrics["J_TTT"])
+    _finite_except_sentinels(a.metrics)
+
+
+def test_without_noise_the_key_does_not_matter():
+    p = TrafficParams(**SMALL)
+    a = simulate(p, n_steps=200, key=jax.random.PRNGKey(1), record_every=10)
+    b = simulate(p, n_steps=200, key=jax.random.PRNGKey(2), record_every=10)
+    assert leaves_equal(a.metrics, b.metrics) and leaves_equal(a.final, b.final)
+
+
+def test_batched_keys_are_reproducible_and_independent():
+    p = TrafficParams(**SMALL, alpha_noise=0.05)
+    keys = jax.random.split(jax.random.PRNGKey(7), 3)
+    a = simulate_batch(p, n_steps=200, keys=keys, record_every=10)
+    b = simulate_batch(p, n_steps=200, keys=keys, record_every=10)
+    assert leaves_equal(a, b)
+    v = np.asarray(a.final.v)
+    assert not np.array_equal(v[0], v[1]) and not np.array_equal(v[1], v[2])
+    # a batch member equals the single rollout with the same key (to rounding)
+    single = simulate(p, n_steps=200, key=keys[1], record_every=10)
+    np.testing.assert_allclose(v[1], single.final.v, rtol=1e-5)
+    np.testing.assert_allclose(a.metrics["J_comfort"][1], single.metrics["J_comfort"], rtol=1e-4)
+
+
+# ----------------------------------------------------------------------------- divergence
+def _ic_batch(p: TrafficParams, amplitudes):
+    return jax.vmap(lambda a: paper_initial_condition(p, amplitude=a))(jnp.asarray(amplitudes))
+
+
+@pytest.mark.parametrize("bad_amplitude", [0.03, 0.09])
+def test_divergence_is_contained(bad_amplitude):
+    """One diverging environment leaves the others bit-identical; it is flagged and frozen at a
+    finite, physical state; nothing non-finite appears anywhere but in the inf sentinels.
+    Amplitude 0.03 leaves the physical region after ~10 s, 0.09 in the very first step."""
+    p = TrafficParams(**SMALL)
+    n_steps = 200
+    healthy = [0.010, 0.005, 0.008]
+    sick = [0.010, bad_amplitude, 0.008]
+    ra, va = _ic_batch(p, healthy)
+    rb, vb = _ic_batch(p, sick)
+    A = simulate_batch(p, n_steps=n_steps, rho0=ra, v0=va, record_every=10)
+    B = simulate_batch(p, n_steps=n_steps, rho0=rb, v0=vb, record_every=10)
+    # the other environments: exactly the same results
+    for i in (0, 2):
+        assert leaves_equal(take(A, i), take(B, i)), f"env {i} changed"
+    # flags
+    assert not np.any(np.asarray(A.metrics["diverged"]))
+    np.testing.assert_array_equal(np.asarray(B.metrics["diverged"]), [False, True, False])
+    t_div = float(B.metrics["diverged_at_s"][1])
+    assert 0.0 <= t_div < n_steps * float(p.dt)
+    assert np.all(np.asarray(A.metrics["diverged_at_s"]) == np.inf)
+    assert float(B.metrics["time_to_reward_target_s"][1]) == np.inf
+    # finite everywhere (states, buffers, trajectories, metrics but the sentinels)
+    assert _all_finite(B.final) and _all_finite(B.trajectory) and _all_finite(B.controller_state)
+    _finite_except_sentinels(B.metrics)
+    # the diverged environment is frozen at a physical state from its divergence on
+    fin = take(B.final, 1)
+    assert bool(jaxtraffic.solver.is_physical(fin.rho, fin.v, p))
+    rec = np.asarray(B.trajectory.rho[1])  # every 10th step
+    k = int(np.ceil(t_div / (10 * float(p.dt)))) + 1
+    for j in range(k, rec.shape[0]):
+        np.testing.assert_array_equal(rec[j], np.asarray(fin.rho))
+    assert int(fin.step) == n_steps
+
+
+def test_divergence_by_extreme_parameter_is_contained():
+    """Same with a batch of parameters: one plant (no ACC, manual relaxation time 1 s instead
+    of 60 s) leaves the physical region after ~30 s."""
+    n_steps = 200
+    kw = {"n_points": SMALL["n_points"], "dt": [SMALL["dt"]] * 3}
+    ra, va = _ic_batch(TrafficParams(**SMALL), [0.01, 0.01, 0.008])
+    pa = stack_params(alpha=[0.15, 0.15, 0.15], **kw)
+    pb = stack_params(alpha=[0.15, 0.0, 0.15], tau_m=[60.0, 1.0, 60.0], **kw)
+    A = simulate_batch(pa, n_steps=n_steps, rho0=ra, v0=va)
+    B = simulate_batch(pb, n_steps=n_steps, rho0=ra, v0=va)
+    np.testing.assert_array_equal(np.asarray(B.metrics["diverged"]), [False, True, False])
+    for i in (0, 2):
+        assert leaves_equal(take(A, i), take(B, i))
+    assert _all_finite(B.final)
+    _finite_except_sentinels(B.metrics)
+
+
+def test_non_physical_initial_state_is_rejected_clearly():
+    p = TrafficParams(**SMALL)
+    rho, v = equilibrium_state(p)
+    with pytest.raises(ValueError, match="physical region"):
+        simulate(p, n_steps=10, rho0=rho.at[3].set(-0.01), v0=v)
+    with pytest.raises(ValueError, match=r"environment\(s\) \[1\]"):
+        simulate_batch(p, n_steps=10, rho0=jnp.stack([rho, rho.at[0].set(jnp.nan)]), v0=jnp.stack([v, v]))
+
+
+def test_traced_non_physical_initial_state_is_flagged_not_spread():
+    """Inside a user's jit the initial state cannot be checked: it is flagged at step 0, its
+    metrics stay finite and the other environments are untouched."""
+    p = TrafficParams(**SMALL)
+    rho, v = equilibrium_state(p)
+    r0 = jnp.stack([rho, rho.at[5].set(jnp.nan), rho])
+    v0 = jnp.stack([v, v, v.at[2].set(-1.0)])
+
+    @jax.jit
+    def go(r0, v0):
+        return simulate_batch(p, n_steps=200, rho0=r0, v0=v0, record_every=10)
+
+    res = go(r0, v0)
+    np.testing.assert_array_equal(np.asarray(res.metrics["diverged"]), [False, True, True])
+    np.testing.assert_array_equal(np.asarray(res.metrics["diverged_at_s"])[1:], [0.0, 0.0])
+    for k in ("J_TTT", "J_fuel", "J_comfort", "control_effort", "max_cfl"):
+        assert np.all(np.isfinite(np.asarray(res.metrics[k]))), k
+    np.testing.assert_array_equal(np.asarray(res.metrics["J_TTT"])[1:], [0.0, 0.0])
+
+
+# ----------------------------------------------------------------------------- open loop (paper grid)
+@pytest.fixture(scope="module")
+def paper_open_loop():
+    p = TrafficParams()
+    rho0, v0 = paper_initial_condition(p)
+    return simulate(p, n_steps=3000, rho0=rho0, v0=v0, record_every=10)
+
+
+def test_open_loop_from_paper_ic_grows(paper_open_loop):
+    res = paper_open_loop
+    t = np.asarray(res.trajectory.t)
+    l2 = np.asarray(res.trajectory.rho_L2)
+    assert t[0] == 0.0 and t[-1] == pytest.approx(299.0) and l2.shape == (300,)
+    # an initial transient decays first ...
+    i_min = int(np.argmin(l2[t <= 100.0]))
+    assert l2[i_min] < 0.8 * l2[0]
+    # ... then the density deviation grows through 300 s
+    late = l2[(t >= 100.0)]
+    assert late[-1] > 1.5 * l2[i_min] and late[-1] > l2[0]
+    assert np.corrcoef(t[t >= 100.0], late)[0, 1] > 0.9
+    assert float(res.metrics["J_TTT"]) > 3.2208e7
+    assert not bool(res.metrics["diverged"])
+    assert float(res.metrics["time_to_reward_target_s"]) == np.inf
+    _finite_except_sentinels(res.metrics)
+
+
+def test_metrics_at_equilibrium_paper_grid():
+    """MODEL.md section 10: J_TTT = 3.2208e7 and J_fuel = 8.077e5 over 300 s at equilibrium."""
+    p = TrafficParams()
+    rho0, v0 = equilibrium_state(p)
+    res = simulate(p, n_steps=3000, rho0=rho0, v0=v0, record_every=10)
+    m = res.metrics
+    rho_bar, v_bar = (float(x) for x in equilibrium(p))
+    assert float(m["J_TTT"]) == pytest.approx(3.2208e7, rel=5e-5)
+    # float32 streaming sums over 3000 steps: ~1e-5 relative rounding
+    assert float(m["J_TTT"]) == pytest.approx(1000.0 * rho_bar * 1000.0 * 300.0, rel=5e-5)
+    assert float(m["J_fuel"]) == pytest.approx(8.077e5, rel=1e-4)
+    xi = M.FUEL_B0 + M.FUEL_B1 * v_bar + M.FUEL_B3 * v_bar**3
+    assert float(m["J_fuel"]) == pytest.approx(xi * 1000.0 * rho_bar * 1000.0 * 300.0, rel=5e-5)
+    assert 0.0 <= float(m["J_comfort"]) < 1e-3
+    assert float(m["final_rho_L2"]) < 1e-6 and float(m["final_v_L2"]) < 1e-4
+    assert float(m["time_to_reward_target_s"]) == 0.0
+    assert float(m["control_effort"]) == 0.0
+    assert float(m["max_cfl"]) == pytest.approx(cfl_number(p), rel=1e-4)
+    assert not bool(m["diverged"]) and float(m["diverged_at_s"]) == np.inf
+
+
+def test_metrics_scale_with_horizon_and_match_trajectory():
+    """J_TTT over 30 s on a small grid is 1/10 of the 300 s value; the streamed J_TTT equals the
+    space-trapezoid / time-rectangle sum of the recorded density (record_every=1)."""
+    p = TrafficParams(**SMALL)
+    rho0, v0 = equilibrium_state(p)
+    res = simulate(p, n_steps=60, rho0=rho0, v0=v0, record_every=1)
+    assert float(res.metrics["J_TTT"]) == pytest.approx(3.2208e6, rel=5e-5)
+    rho_bar, v_bar = equilibrium(p)
+    rho, v = paper_initial_condition(p, amplitude=0.008)
+    res = simulate(p, n_steps=60, rho0=rho, v0=v, record_every=1)
+    tr = res.trajectory
+    rec = np.asarray(tr.rho, np.float64) * 1000.0
+    dx, dt = float(p.dx), float(p.dt)
+    j_ttt = dt * np.sum(dx * (rec.sum(axis=1) - 0.5 * (rec[:, 0] + rec[:, -1])))
+    assert float(res.metrics["J_TTT"]) == pytest.approx(j_ttt, rel=1e-5)
+    np.testing.assert_allclose(tr.reward, M.reward(tr.rho, tr.v, rho_bar, v_bar), rtol=1e-6)
+    np.testing.assert_allclose(tr.t, np.arange(60) * dt, rtol=1e-6)
+
+
+# ----------------------------------------------------------------------------- batches of delays
+_TRACES = {"n": 0}
+
+
+def _counting_lyapunov_act(settings, cstate, obs, nominal, key):
+    _TRACES["n"] += 1  # Python side effect: runs once per trace, not per step
+    return lyapunov().act_fn(settings, cstate, obs, nominal, key)
+
+
+def test_batch_of_delays_matches_separate_runs_with_one_compile():
+    base = TrafficParams(**SMALL)
+    ctrl = Controller(settings=lyapunov().settings, act_fn=_counting_lyapunov_act, name="counting")
+    rho0, v0 = paper_initial_condition(base)
+    n_steps = 200
+    delays = [0.0, 1.0, 2.5, 4.0]
+    res = simulate_batch(stack_params(delay=delays, **SMALL), ctrl, n_steps=n_steps, rho0=rho0, v0=v0)
+    traces = _TRACES["n"]
+    assert traces >= 1
+    # another batch of delays (same batch size): served by the same compiled program
+    res2 = simulate_batch(stack_params(delay=[0.5, 3.0, 0.0, 1.5], **SMALL), ctrl, n_steps=n_steps,
+                          rho0=rho0, v0=v0)
+    assert _TRACES["n"] == traces, "a new batch of delays recompiled the rollout"
+    np.testing.assert_array_equal(np.asarray(res2.metrics["J_TTT"])[2], np.asarray(res.metrics["J_TTT"])[0])
+    for i, d in enumerate(delays):
+        single = simulate(base.replace(delay=d), ctrl, n_steps=n_steps, rho0=rho0, v0=v0)
+        for k in ("J_TTT", "J_fuel", "J_comfort", "final_rho_L2", "final_v_L2", "control_effort"):
+            np.testing.assert_allclose(res.metrics[k][i], single.metrics[k], rtol=2e-5, err_msg=f"{k} D={d}")
+        np.testing.assert_allclose(res.final.rho[i], single.final.rho, rtol=1e-5)
+        np.testing.assert_allclose(res.final.v[i], single.final.v, rtol=1e-5)
+    # the delays really matter
+    effort = np.asarray(res.metrics["final_rho_L2"])
+    assert len(set(np.round(effort, 7).tolist())) == len(delays)
+
+
+def test_simulate_batch_input_checks():
+    p = TrafficParams(**SMALL)
+    with pytest.raises(ValueError, match="nothing is batched"):
+        simulate_batch(p, n_steps=10)
+    with pytest.raises(ValueError, match="multiple of record_every"):
+        simulate(p, n_steps=10, record_every=3)
+    rho, v = equilibrium_state(p)
+    with pytest.raises(ValueError, match="both rho0 and v0"):
+        simulate(p, n_steps=10, rho0=rho)

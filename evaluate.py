@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from jaxtraffic import experiments as E
+from jaxtraffic.policy import load_policy
 
 DEFAULT_RUN = Path("runs/default")
 
@@ -47,7 +48,7 @@ def _log(msg: str) -> None:
     print(msg, flush=True)
 
 
-def find_or_train_run(run: Path | None, n_points: int | None) -> Path | None:
+def find_or_train_run(run: Path | None, n_points: int | None) -> Path:
     """The run to evaluate: ``run``, else runs/default if complete, else a fresh default training."""
     if run is not None:
         if not (run / "config.json").exists():
@@ -56,40 +57,15 @@ def find_or_train_run(run: Path | None, n_points: int | None) -> Path | None:
     if (DEFAULT_RUN / "config.json").exists() and (DEFAULT_RUN / "checkpoint.msgpack").exists():
         _log(f"using the existing run {DEFAULT_RUN}")
         return DEFAULT_RUN
-    try:
-        import train
-    except ImportError:  # TEMPORARY (stand-in, see load_ppo): train.py does not exist yet
-        _log("WARNING: train.py not found; no PPO run available")
-        return None
+    import train
+
     _log(f"no trained run at {DEFAULT_RUN}: training one with train.py's defaults first")
     targv = ["--out-dir", str(DEFAULT_RUN)] + (["--n-points", str(n_points)] if n_points else [])
     return Path(train.main(targv))
 
 
-def load_ppo(run_dir: Path | None, cfg: E.EvalConfig):
-    """(controller, config dict) of a trained run.
-
-    TEMPORARY: while ``jaxtraffic.policy`` does not exist (or no run is available), falls back to
-    ``experiments.standin_ppo`` (constant gains mimicking the Lyapunov law). The lead removes the
-    ``except`` branch and the ``run_dir is None`` case once PPO is in.
-    """
-    try:
-        from jaxtraffic.policy import load_policy
-    except ImportError:
-        _log("WARNING: jaxtraffic.policy not found: using the TEMPORARY stand-in PPO (constant gains)")
-        return E.standin_ppo(cfg)
-    if run_dir is None:
-        return E.standin_ppo(cfg)
-    return load_policy(run_dir)
-
-
-def _describe(run_dir: Path | None, config: dict[str, Any]) -> dict[str, Any]:
-    if config.get("standin"):
-        gains = ", ".join(f"{g:.4g}" for g in config["gains"])
-        return {"run_dir": None if run_dir is None else str(run_dir), "standin": True,
-                "description": f"TEMPORARY stand-in: constant gains ({gains}) mimicking the Lyapunov law",
-                "config": config}
-    return {"run_dir": str(run_dir), "standin": False,
+def _describe(run_dir: Path, config: dict[str, Any]) -> dict[str, Any]:
+    return {"run_dir": str(run_dir),
             "description": f"PPO trained with D = {config.get('delay')} s, alpha = {config.get('alpha')}",
             "config": config}
 
@@ -105,14 +81,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         raise SystemExit("--seeds must be >= 1 and the --robust-grid sizes >= 0")
 
     run_dir = find_or_train_run(args.run, args.n_points)
-    base = E.EvalConfig(n_points=args.n_points or 201)
-    ppo, config = load_ppo(run_dir, base)
+    base = E.EvalConfig()
+    ppo, config = load_policy(run_dir)
     n_points, dt = int(config.get("n_points", base.n_points)), float(config.get("dt", base.dt))
     if args.n_points and args.n_points != n_points:
         _log(f"note: --n-points {args.n_points} ignored; the run was trained on {n_points} points")
     ppo0, desc0 = None, None
     if args.run_delay0 is not None:
-        ppo0, config0 = load_ppo(args.run_delay0, base)
+        ppo0, config0 = load_policy(args.run_delay0)
         if (int(config0.get("n_points", n_points)), float(config0.get("dt", dt))) != (n_points, dt):
             raise SystemExit(f"--run-delay0 {args.run_delay0}: grid differs from --run's ({n_points}, {dt})")
         desc0 = _describe(args.run_delay0, config0)
@@ -126,7 +102,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         n_points=n_points, dt=dt, horizon_s=args.horizon, seeds=tuple(range(args.seeds)),
         robust_delays=E.robust_axis(nd, 0.0, 8.0, dt), robust_alphas=E.robust_axis(na, 0.05, 0.6),
         robust_horizon_s=args.robust_horizon or 2.0 * args.horizon)
-    lc = run_dir / "learning_curve.csv" if run_dir is not None else None
+    lc = run_dir / "learning_curve.csv"
     meta = {"policy": policy, "policy_delay0": policy0,
             "argv": list(sys.argv[1:] if argv is None else argv)}
     metrics = E.evaluate_all({"ppo": ppo}, cfg, args.out, meta, ppo_delay0=ppo0, learning_curve_csv=lc,

@@ -30,7 +30,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     g = p.add_argument_group("run")
     g.add_argument("--out-dir", default=d.out_dir, help="run directory")
-    g.add_argument("--resume", action="store_true", help="continue from the run directory's checkpoint")
+    g.add_argument("--resume", action="store_true",
+                   help="continue from the run directory's checkpoint (its saved settings are used; only the "
+                   "run-control flags --total-steps/--max-wall-s/--keep-going/--stop-patience/--target-reward apply)")
     g.add_argument("--seed", type=int, default=d.seed, help="PRNG seed")
     g.add_argument("--seeds", type=int, default=d.seeds, help="independent seeds trained at once (vmap)")
     g.add_argument("--total-steps", type=int, default=d.total_steps, help="environment steps (all envs, per seed)")
@@ -38,6 +40,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--keep-going", action="store_true", help="ignore the stop rule")
     g.add_argument("--target-reward", type=float, default=d.target_reward,
                    help="stop rule: deterministic evaluation reward (end of the evaluation rollout) >= this")
+    g.add_argument("--stop-patience", type=int, default=d.stop_patience,
+                   help="consecutive evaluations that must meet the stop rule before stopping")
     g.add_argument("--eval-horizon-s", type=float, default=d.eval_horizon_s, help="evaluation rollout length, s")
     g.add_argument("--quiet", action="store_true", help="no progress lines")
     g = p.add_argument_group("plant and grid")
@@ -49,7 +53,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--max-delay-steps", type=int, default=d.max_delay_steps, help="delay buffer capacity, steps")
     g = p.add_argument_group("episodes and domain randomisation")
     g.add_argument("--horizon-s", type=float, default=d.horizon_s, help="episode length, s (truncation)")
-    g.add_argument("--delay-range", type=_pair(float), default=d.delay_range, help="plant delay range LO,HI s")
+    g.add_argument("--delay-spread", type=float, default=d.delay_spread,
+                   help="train on plant delays ~ U(D - spread, D + spread) s (clipped at 0); 0 disables")
+    g.add_argument("--delay-range", type=_pair(float), default=d.delay_range,
+                   help="plant delay range LO,HI s (overrides --delay-spread)")
     g.add_argument("--alpha-range", type=_pair(float), default=d.alpha_range, help="plant alpha range LO,HI")
     g.add_argument("--amp-range", type=_pair(float), default=d.amp_range, help="initial amplitude LO,HI veh/m")
     g.add_argument("--wavenumber-range", type=_pair(int), default=d.wavenumber_range,

@@ -41,7 +41,8 @@ def _parse() -> argparse.Namespace:
     ap.add_argument("--steps", type=int, default=600, help="steps per timed rollout (dt = 0.1 s)")
     ap.add_argument("--repeats", type=int, default=3, help="timed calls per configuration")
     ap.add_argument("--controllers", default="open_loop,lyapunov", help="open_loop and/or lyapunov")
-    ap.add_argument("--devices", type=int, default=1, help="XLA host devices to shard the batch over")
+    ap.add_argument("--devices", type=int, default=os.cpu_count() or 1,
+                    help="XLA host devices to shard the batch over (default: one per CPU core; 1: no sharding)")
     ap.add_argument("--json", action="store_true", help="print JSON instead of a table")
     ap.add_argument("--no-memory", action="store_true", help="skip the 4096-env memory measurement")
     ap.add_argument("--memory-batch", type=int, default=4096)

@@ -77,7 +77,7 @@ def make_env_params(traffic: TrafficParams | None = None, **kwargs) -> EnvParams
             raise ValueError(f"{lo}={getattr(ep, lo)} > {hi}={getattr(ep, hi)}")
     if ep.delay_max > traffic.max_delay_steps * traffic.dt + 1e-9:
         raise ValueError(f"delay_max={ep.delay_max} s exceeds the buffer ({traffic.max_delay_steps} steps)")
-    if not 0.0 <= ep.alpha_min and ep.alpha_max <= 1.0:
+    if not (0.0 <= ep.alpha_min and ep.alpha_max <= 1.0):
         raise ValueError("alpha range must lie in [0, 1]")
     if ep.horizon < 1:
         raise ValueError(f"horizon must be >= 1 step, got {ep.horizon}")

@@ -39,8 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxtraffic import metrics as M
-from jaxtraffic.controllers import Controller, backstepping, constant_gains, lyapunov, open_loop
-from jaxtraffic.linear import linearize
+from jaxtraffic.controllers import Controller, backstepping, lyapunov, open_loop
 from jaxtraffic.params import TrafficParams, equilibrium, steps_for
 from jaxtraffic.rollout import paper_initial_condition, simulate_batch
 
@@ -755,10 +754,6 @@ def write_report(path: Path, claims: list[dict[str, Any]], metrics: dict, meta: 
     ``sections``: further markdown lines (e.g. the robustness summary) before the other figures."""
     lines = ["# Reproduction report: PPO control of congested freeway traffic (paper section 4)", ""]
     pol = meta["policy"]
-    if pol.get("standin"):
-        lines += ["> **WARNING: the PPO rows use a TEMPORARY STAND-IN, not a trained policy** "
-                  f"({pol.get('description')}). Verdicts on PPO claims are meaningless until a real run is "
-                  "evaluated.", ""]
     lines += [f"- PPO policy: `{pol.get('run_dir')}` ({pol.get('description', '')})",
               f"- PPO in scenario delay0: {meta['policy_delay0']['description']}",
               f"- grid: {meta['grid']['n_points']} points (dx = {meta['grid']['dx_m']:g} m), dt = "
@@ -811,22 +806,6 @@ def write_report(path: Path, claims: list[dict[str, Any]], metrics: dict, meta: 
     path.write_text("\n".join(lines) + "\n")
 
 
-# ----------------------------------------------------------------------------- stand-in PPO
-def standin_ppo(cfg: EvalConfig) -> tuple[Controller, dict[str, Any]]:
-    """TEMPORARY stand-in for a trained PPO policy while ``jaxtraffic.policy`` does not exist.
-
-    Constant gains that reproduce the Lyapunov law with k = 1 on the gain law of MODEL.md section 9:
-    U = -V_rho rho~ / V_h, i.e. eta1 = eta2 = 0 and h~/h_bar = eta3 rho~/rho_bar with
-    eta3 = -(V_rho / V_h) rho_bar / h_bar. Remove once the real policy exists.
-    """
-    nom = cfg.nominal()
-    lm = linearize(nom)
-    eta3 = float(-(lm.V_rho / lm.V_h) * lm.rho_bar / lm.h_bar)
-    config = {"delay": CTRL_DELAY, "alpha": 0.15, "n_points": cfg.n_points, "dt": cfg.dt, "standin": True,
-              "gains": [0.0, 0.0, eta3]}
-    return constant_gains(0.0, 0.0, eta3), config
-
-
 # ----------------------------------------------------------------------------- figures
 def make_figures(results: dict[str, dict[str, Outcome]], robust: dict[str, dict[str, np.ndarray]],
                  cfg: EvalConfig, out_dir: Path, learning_curve_csv: Path | None,
@@ -863,7 +842,11 @@ def make_figures(results: dict[str, dict[str, Outcome]], robust: dict[str, dict[
         if o.metrics["diverged"][0]:
             markers[key] = float(o.metrics["diverged_at_s"][0])
     for c in ("lyapunov", "ppo"):
-        series[f"{lab[c]} (D = 0)"] = results["delay0"][c].reward[0]
+        o = results["delay0"][c]
+        key = f"{lab[c]} (D = 0)"
+        series[key] = o.reward[0]
+        if o.metrics["diverged"][0]:
+            markers[key] = float(o.metrics["diverged_at_s"][0])
     done(P.plot_reward(out_dir / "fig3b_reward.png", t, series, markers=markers,
                        title="Reward over time from the paper's initial condition (paper fig. 3b)"))
 

@@ -29,8 +29,9 @@ def trapezoid(f: Array, dx: Array | float) -> Array:
 
 def spatial_gradient(u: Array, dx: Array | float) -> Array:
     """du/dx: central differences inside, one-sided at the two ends (units of u per m)."""
-    inner = (u[2:] - u[:-2]) / (2.0 * dx)
-    return jnp.concatenate([(u[1:2] - u[:1]) / dx, inner, (u[-1:] - u[-2:-1]) / dx])
+    inv_dx = 1.0 / dx
+    inner = (u[2:] - u[:-2]) * (0.5 * inv_dx)
+    return jnp.concatenate([(u[1:2] - u[:1]) * inv_dx, inner, (u[-1:] - u[-2:-1]) * inv_dx])
 
 
 def l2_deviation(u: Array, u_bar: Array | float) -> Array:
@@ -40,7 +41,16 @@ def l2_deviation(u: Array, u_bar: Array | float) -> Array:
 
 def reward(rho: Array, v: Array, rho_bar: Array | float, v_bar: Array | float) -> Array:
     """Paper reward r = -sum_i [((rho_i - rho_bar)/rho_bar)^2 + ((v_i - v_bar)/v_bar)^2]."""
-    return -jnp.sum(((rho - rho_bar) / rho_bar) ** 2 + ((v - v_bar) / v_bar) ** 2, axis=-1)
+    return -jnp.sum(((rho - rho_bar) * (1.0 / rho_bar)) ** 2 + ((v - v_bar) * (1.0 / v_bar)) ** 2, axis=-1)
+
+
+def physical_reward(rho: Array, v: Array, rho_bar: Array | float, v_bar: Array | float,
+                    l: Array | float) -> Array:
+    """The reward of (rho, v), or NaN if any node is outside the physical region
+    (finite, 0 < rho < 1/l, v >= 0): one reduction serves both the divergence check and the reward."""
+    ok = (rho > 0) & (rho < 1.0 / l) & (v >= 0) & (v < jnp.inf)
+    terms = ((rho - rho_bar) * (1.0 / rho_bar)) ** 2 + ((v - v_bar) * (1.0 / v_bar)) ** 2
+    return -jnp.sum(jnp.where(ok, terms, jnp.nan), axis=-1)
 
 
 def fuel_rate(v: Array, a: Array) -> Array:
@@ -84,9 +94,13 @@ def init_metrics(n_points: int, dtype=jnp.float32) -> MetricsAccumulator:
 def update_metrics(
     acc: MetricsAccumulator, *, step: Array, rho: Array, v: Array, v_next: Array, h_sent: Array,
     rho_bar: Array, v_bar: Array, h_bar: Array | float, dx: Array | float, dt: Array | float,
-    cfl: Array | float, active: Array,
+    cfl: Array | float, active: Array, reward_next: Array | None = None,
 ) -> MetricsAccumulator:
     """Add the contribution of step ``step`` (state at t_n, speed at t_{n+1}) if ``active``.
+
+    ``last_bad_step`` follows the reward of the state at t_n (index ``step``), or, when
+    ``reward_next`` is given, the reward of the state at t_{n+1} (index ``step + 1``; the caller
+    then counts the initial state itself).
 
     ``cfl`` is the CFL number max(|lambda1|, |lambda2|) dt/dx of the step, per node (or a
     scalar). Inactive steps add exactly zero (``where``, not a multiplication, so a non-finite
@@ -97,7 +111,10 @@ def update_metrics(
     a_prev = jnp.where(step == 0, a, acc.a_prev)
     a_t = (a - a_prev) * inv_dt
     w = (dt * VEH_PER_KM) * rho
-    r = reward(rho, v, rho_bar, v_bar)
+    if reward_next is None:
+        r, r_step = reward(rho, v, rho_bar, v_bar), step
+    else:
+        r, r_step = reward_next, step + 1
 
     def add(total, inc):
         return total + jnp.where(active, inc, 0.0)
@@ -110,7 +127,7 @@ def update_metrics(
         max_cfl=jnp.where(active, jnp.maximum(acc.max_cfl, cfl), acc.max_cfl),
         a_prev=jnp.where(active, a, acc.a_prev),
         n_active=acc.n_active + active.astype(jnp.int32),
-        last_bad_step=jnp.where(active & (r < REWARD_TARGET), step, acc.last_bad_step),
+        last_bad_step=jnp.where(active & (r < REWARD_TARGET), r_step, acc.last_bad_step),
     )
 
 

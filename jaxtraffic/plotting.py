@@ -122,9 +122,12 @@ def plot_learning_curve(csv_path: str | Path, png_path: str | Path, title: str |
             ax.plot(data[xk][ok], data[yk][ok], color=col, lw=1.5, marker="." if ok.sum() < 60 else None,
                     label=ylab)
         _reward_axis(ax, allv)
+        if xk == "env_steps":
+            ax.xaxis.set_major_formatter(ticker.EngFormatter(sep=""))
         ax.set_xlabel(xlab)
         ax.set_ylabel("reward r (dimensionless)")
-        ax.legend(fontsize=8, loc="lower right")
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncol=3, fontsize=9)
     fig.suptitle(title or "PPO learning curve (paper fig. 3a)")
     return _finish(fig, png_path)
 

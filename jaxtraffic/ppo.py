@@ -261,6 +261,13 @@ def _chunk_seed(cfg, env, env_params, runner, axis_name):
                         length=cfg.updates_per_chunk)
 
 
+def _strong(tree):
+    """The runner with strongly typed leaves. Leaves copied from Python-float parameters are weakly
+    typed, while a runner restored from a checkpoint is not; without this, the first chunk after
+    ``init`` and after a resume would each compile a second program."""
+    return jax.tree.map(lambda x: jax.lax.convert_element_type(x, x.dtype), tree)
+
+
 def make_train(cfg: PPOConfig, env_params: Any, devices: list | None = None, env: Any = E.GainEnv):
     """Build ``(init, train_chunk)`` for ``cfg`` and ``env_params`` over ``devices``.
 
@@ -282,10 +289,11 @@ def make_train(cfg: PPOConfig, env_params: Any, devices: list | None = None, env
         raise ValueError("num_envs/devices * num_steps must be divisible by num_minibatches")
 
     def _init(cfg, env_params, keys, dev):
-        return jax.vmap(lambda k: _init_seed(cfg, env, env_params, local_envs, k, dev))(keys)
+        return _strong(jax.vmap(lambda k: _init_seed(cfg, env, env_params, local_envs, k, dev))(keys))
 
     def _chunk(cfg, env_params, runner):
-        return jax.vmap(functools.partial(_chunk_seed, cfg, env, env_params, axis_name=AXIS))(runner)
+        runner, metrics = jax.vmap(functools.partial(_chunk_seed, cfg, env, env_params, axis_name=AXIS))(runner)
+        return _strong(runner), metrics
 
     p_init = jax.pmap(_init, axis_name=AXIS, in_axes=(None, None, None, 0), devices=devices)
     p_chunk = jax.pmap(_chunk, axis_name=AXIS, in_axes=(None, None, 0), devices=devices)

@@ -137,8 +137,14 @@ def plant_step(state: PlantState, h_sent: Array, p: TrafficParams, key: Array) -
     return _plant_step(state, h_sent, p, plant_alpha(p, key))[0]
 
 
-def _plant_step(state: PlantState, h_sent: Array, p: TrafficParams, alpha: Array) -> tuple[PlantState, Array]:
-    """``plant_step`` with the plant alpha given; also returns the applied (delayed) input."""
+def _plant_step(state: PlantState, h_sent: Array, p: TrafficParams, alpha: Array,
+                target: tuple[Array, Array] | None = None) -> tuple[PlantState, Array, Array | None]:
+    """``plant_step`` with the plant alpha given. Returns (new state, applied (delayed) input,
+    reward of the new state against ``target`` = (rho_bar, v_bar), or None without a target).
+
+    With a target, the physicality check and the reward share one spatial reduction
+    (``metrics.physical_reward``; NaN when the step left the physical region).
+    """
     sent = delay_buffer.push(state.sent, h_sent)
     h_applied = delay_buffer.read(sent, p.delay_steps)
     if p.model == "linear":
@@ -147,14 +153,19 @@ def _plant_step(state: PlantState, h_sent: Array, p: TrafficParams, alpha: Array
         rho, v = r_t + lm.rho_bar, v_t + lm.v_bar
     else:
         rho, v, _, _ = arz_step(state.rho, state.v, h_applied, p, alpha)
-    bad = ~is_physical(rho, v, p) & ~state.diverged
+    if target is None:
+        r_new, ok = None, is_physical(rho, v, p)
+    else:
+        r_new = M.physical_reward(rho, v, target[0], target[1], p.l)
+        ok = ~jnp.isnan(r_new)
+    bad = ~ok & ~state.diverged
     frozen = state.diverged | bad
     new = PlantState(
         rho=jnp.where(frozen, state.rho, rho), v=jnp.where(frozen, state.v, v), sent=sent,
         h_prev=h_sent, step=state.step + 1, diverged=frozen,
         diverged_step=jnp.where(bad, state.step, state.diverged_step),
     )
-    return new, h_applied
+    return new, h_applied, r_new
 
 
 def finalize_metrics(acc: M.MetricsAccumulator, final: PlantState, target: TrafficParams,
@@ -203,6 +214,10 @@ def _simulate(params: TrafficParams, controller: Controller | None, rho0: Array 
     state = initial_state(p, rho0, v0)
     cstate = controller.init(state.observation(p), nominal)
     acc = M.init_metrics(p.n_points, rho0.dtype)
+    # rewards are tracked for the state after each step (sharing the physicality reduction);
+    # the initial state's is counted here
+    r0 = M.reward(rho0, v0, rho_bar, v_bar)
+    acc = acc.replace(last_bad_step=jnp.where(r0 < M.REWARD_TARGET, 0, -1).astype(jnp.int32))
     # the plant's alpha of every step, drawn at once (cheaper than a draw inside the loop)
     alphas = plant_alpha_sequence(p, k_plant, n_steps, rho0.dtype)
 
@@ -211,12 +226,12 @@ def _simulate(params: TrafficParams, controller: Controller | None, rho0: Array 
         n = state.step
         h, cstate = controller.act(cstate, state.observation(p), nominal, jax.random.fold_in(k_ctrl, n))
         h = saturate(h, p).astype(state.rho.dtype)
-        new, h_applied = _plant_step(state, h, p, alpha_n)
+        new, h_applied, r_next = _plant_step(state, h, p, alpha_n, (rho_bar, v_bar))
         active = ~new.diverged
         cfl = local_cfl(state.rho, state.v, h_applied, p, alpha_n)
         acc = M.update_metrics(acc, step=n, rho=state.rho, v=state.v, v_next=new.v, h_sent=h,
                                rho_bar=rho_bar, v_bar=v_bar, h_bar=nominal.h_bar, dx=p.dx, dt=p.dt,
-                               cfl=cfl, active=active)
+                               cfl=cfl, active=active, reward_next=r_next)
         return (new, cstate, acc), h
 
     carry = (state, cstate, acc)
@@ -292,6 +307,7 @@ def simulate_batch(
     params: TrafficParams, controller: Controller | None = None, *, n_steps: int,
     rho0: Array | None = None, v0: Array | None = None, keys: Array | None = None,
     nominal: TrafficParams | None = None, record_every: int = 0, batch_controller: bool = False,
+    chunk_size: int | None = 64,
 ) -> SimResult:
     """``simulate`` vmapped over a batch; every returned leaf gets a leading batch axis.
 
@@ -299,6 +315,12 @@ def simulate_batch(
     them with ``stack_params``), ``rho0``/``v0`` of shape (B, n_points), ``keys`` of shape (B, 2).
     The controller is batched only when ``batch_controller`` is set (its settings then carry
     a leading batch axis). ``nominal`` is shared (not batched). At least one input must be batched.
+
+    ``chunk_size`` (static): a batch larger than this runs as a sequential loop over chunks of
+    ``chunk_size`` environments, each chunk vmapped over the whole rollout, so that the working
+    set of a chunk stays in cache (on a CPU this is 1.5-3x faster for large batches than one
+    vmap over everything). ``None`` or 0: a single vmap. Results do not depend on it beyond
+    rounding, and every environment stays independent of the others.
     """
     p_axis = 0 if jnp.ndim(jax.tree_util.tree_leaves(params)[0]) == 1 else None
     r_axis = 0 if rho0 is not None and jnp.ndim(rho0) == 2 else None
@@ -312,16 +334,52 @@ def simulate_batch(
         raise ValueError(f"n_steps must be >= 1, got {n_steps}")
     _check_initial_condition(params, rho0, v0)
     return _simulate_batch_jit(params, controller, rho0, v0, keys, nominal, n_steps, record_every,
-                               (p_axis, c_axis, r_axis, r_axis, k_axis))
+                               (p_axis, c_axis, r_axis, r_axis, k_axis), chunk_size or 0)
 
 
-@functools.partial(jax.jit, static_argnames=("n_steps", "record_every", "axes"))
+@functools.partial(jax.jit, static_argnames=("n_steps", "record_every", "axes", "chunk_size"))
 def _simulate_batch_jit(params, controller, rho0, v0, keys, nominal, n_steps: int, record_every: int,
-                        axes: tuple) -> SimResult:
+                        axes: tuple, chunk_size: int = 0) -> SimResult:
     def one(p, c, r, v, k):
         return _simulate(p, c, r, v, k, nominal, n_steps, record_every)
 
-    return jax.vmap(one, in_axes=axes)(params, controller, rho0, v0, keys)
+    return chunked_vmap(one, (params, controller, rho0, v0, keys), axes, chunk_size)
+
+
+def chunked_vmap(fn, args: tuple, axes: tuple, chunk_size: int) -> Any:
+    """``jax.vmap(fn, in_axes=axes)(*args)`` computed as a sequential ``lax.map`` over chunks of
+    ``chunk_size`` batch entries (``axes`` entries are 0 or None; outputs get a leading batch axis).
+
+    Chunk j holds the entries j, j + n_chunks, j + 2 n_chunks, ... (a strided split), so that a
+    batch sharded in contiguous blocks over several devices gives every device its share of
+    every chunk. A batch that is not a multiple of ``chunk_size`` is padded with copies of its
+    last entry, whose results are dropped. ``chunk_size`` <= 0 or >= the batch: a plain vmap.
+    """
+    idx = [i for i, ax in enumerate(axes) if ax is not None]
+    batched = [args[i] for i in idx]
+    size = jax.tree_util.tree_leaves(batched)[0].shape[0]
+    if chunk_size <= 0 or size <= chunk_size:
+        return jax.vmap(fn, in_axes=axes)(*args)
+    n_chunks = -(-size // chunk_size)
+    pad = n_chunks * chunk_size - size
+
+    def split(x):
+        if pad:
+            x = jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)])
+        return jnp.swapaxes(x.reshape((chunk_size, n_chunks) + x.shape[1:]), 0, 1)
+
+    def run_chunk(chunk):
+        full = list(args)
+        for i, a in zip(idx, chunk, strict=True):
+            full[i] = a
+        return jax.vmap(fn, in_axes=axes)(*full)
+
+    out = jax.lax.map(run_chunk, jax.tree.map(split, batched))
+
+    def merge(y):
+        return jnp.swapaxes(y, 0, 1).reshape((n_chunks * chunk_size,) + y.shape[2:])[:size]
+
+    return jax.tree.map(merge, out)
 
 
 def stack_params(**fields: Any) -> TrafficParams:
@@ -329,19 +387,19 @@ def stack_params(**fields: Any) -> TrafficParams:
     scalar, shared by every environment); the others keep their defaults (broadcast). Static
     fields are passed as scalars. At least one field must be a sequence."""
     static = {k: fields.pop(k) for k in ("n_points", "max_delay_steps", "scheme", "model") if k in fields}
-    arrays = {k: jnp.asarray(v) for k, v in fields.items()}
+    arrays = {k: np.asarray(v, np.float64) for k, v in fields.items()}
     sizes = {a.shape[0] for a in arrays.values() if a.ndim == 1}
     if any(a.ndim > 1 for a in arrays.values()):
         raise ValueError("stack_params: each field must be a scalar or a 1-d sequence")
     if len(sizes) != 1:
         raise ValueError(f"all batched fields need the same length (and at least one is needed), got {sizes}")
     (b,) = sizes
-    arrays = {k: jnp.broadcast_to(a, (b,)) for k, a in arrays.items()}
+    arrays = {k: np.broadcast_to(a, (b,)) for k, a in arrays.items()}
     base = TrafficParams(**static)
     # validate every concrete environment before building the traced batch
     for i in range(b):
         base.replace(**{k: np.asarray(a[i]).item() for k, a in arrays.items()})
     full = {f: jnp.broadcast_to(jnp.asarray(getattr(base, f), float), (b,))
             for f in base.__dataclass_fields__ if f not in ("n_points", "max_delay_steps", "scheme", "model")}
-    full.update({k: a.astype(float) for k, a in arrays.items()})
+    full.update({k: jnp.asarray(a, float) for k, a in arrays.items()})
     return base.replace(**full)

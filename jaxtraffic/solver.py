@@ -24,7 +24,6 @@ import chex
 import jax
 import jax.numpy as jnp
 
-from jaxtraffic import fundamental as fd
 from jaxtraffic.params import TrafficParams
 
 Array = jax.Array
@@ -43,13 +42,30 @@ def _limited_slopes(u: Array) -> Array:
     return jnp.concatenate([z, inner, z])
 
 
+def _speeds_and_source(rho: Array, v: Array, h: Array, alpha: Array, p: TrafficParams):
+    """(lambda2, (V(rho, h) - v) / tau_mix) at every node, with two divisions per node.
+
+    Same quantities as ``fundamental.characteristic_speeds`` / ``fundamental.V`` (equal up to
+    rounding): 1/h_mix(h) = (alpha + b h) / (c h) and 1/tau_mix = alpha/tau_acc + (1-alpha)/tau_m.
+    """
+    ratio = p.tau_acc / p.tau_m
+    c = alpha + (1.0 - alpha) * ratio
+    b = (1.0 - alpha) * ratio / p.h_m
+    inv_tau = alpha / p.tau_acc + (1.0 - alpha) / p.tau_m
+    inv_rho = 1.0 / rho
+    inv_hm = (alpha + b * h) / (c * h)
+    lam2 = v - inv_rho * inv_hm
+    source = ((inv_rho - p.l) * inv_hm - v) * inv_tau
+    return lam2, source
+
+
 def _rhs(rho: Array, v: Array, h: Array, alpha: Array, p: TrafficParams, second_order: bool):
     """Semi-discrete right-hand side.
 
     Returns (drho_dt, dv_dt, F_in, F_out) with drho_dt zero at the inlet node (set by the
     boundary condition) and F_in / F_out the mass fluxes (veh/s) through x = 0 and x = L.
     """
-    dx = p.dx
+    inv_dx = 1.0 / p.dx
     q = rho * v
     if second_order:
         sq = _limited_slopes(q)
@@ -58,19 +74,17 @@ def _rhs(rho: Array, v: Array, h: Array, alpha: Array, p: TrafficParams, second_
         face = q[1:-1]
     f_in, f_out = q[0], q[-1]
     flux = jnp.concatenate([f_in[None], face, f_out[None]])  # F_{1/2} .. F_{N+1/2}
-    drho = jnp.concatenate([jnp.zeros((1,), rho.dtype), -(flux[1:] - flux[:-1]) / dx])
+    drho = jnp.concatenate([jnp.zeros((1,), rho.dtype), (flux[:-1] - flux[1:]) * inv_dx])
 
-    hm = fd.h_mix(h, p, alpha)
-    lam2 = v - 1.0 / (rho * hm)
-    source = (fd.V(rho, h, p, alpha) - v) / fd.tau_mix(p, alpha)
+    lam2, source = _speeds_and_source(rho, v, h, alpha, p)
     if second_order:
         s = _limited_slopes(v)
         right = v - 0.5 * s  # value at face i-1/2 seen from node i
         left = v + 0.5 * s  # value at face i+1/2 seen from node i
-        vx_fwd = (right[1:] - right[:-1]) / dx  # information from the right, nodes 0..N-1
-        vx_bwd = (left[1:] - left[:-1]) / dx  # information from the left, nodes 1..N
+        vx_fwd = (right[1:] - right[:-1]) * inv_dx  # information from the right, nodes 0..N-1
+        vx_bwd = (left[1:] - left[:-1]) * inv_dx  # information from the left, nodes 1..N
     else:
-        vx_fwd = (v[1:] - v[:-1]) / dx
+        vx_fwd = (v[1:] - v[:-1]) * inv_dx
         vx_bwd = vx_fwd
     # node 0 has no left neighbour: forward difference there; node N follows the outlet ODE
     vx_b = jnp.concatenate([vx_fwd[:1], vx_bwd[:-1]])  # backward differences at nodes 0..N-1
@@ -127,8 +141,8 @@ def is_physical(rho: Array, v: Array, p: TrafficParams) -> Array:
 
 def local_cfl(rho: Array, v: Array, h: Array, p: TrafficParams, alpha: Array | float | None = None) -> Array:
     """CFL number max(|lambda1|, |lambda2|) dt/dx at every node for the current state."""
-    lam1, lam2 = fd.characteristic_speeds(rho, v, h, p, alpha)
-    return jnp.maximum(jnp.abs(lam1), jnp.abs(lam2)) * (p.dt / p.dx)
+    lam2, _ = _speeds_and_source(rho, v, h, p.alpha if alpha is None else alpha, p)
+    return jnp.maximum(jnp.abs(v), jnp.abs(lam2)) * (p.dt / p.dx)
 
 
 def max_cfl(rho: Array, v: Array, h: Array, p: TrafficParams, alpha: Array | float | None = None) -> Array:

@@ -5,7 +5,10 @@ deterministic policy of every seed on the paper's initial condition (``eval_hori
 training plant without randomisation), prints a progress line, rewrites ``learning_curve.csv``
 and the checkpoint atomically, and applies the paper's stop rule (evaluation reward, i.e. the
 reward at the end of the evaluation rollout, >= ``target_reward`` for every seed) unless
-``keep_going``. Ctrl-C saves the last completed chunk; ``resume`` continues from it exactly.
+``keep_going``. The rule must hold at ``stop_patience`` consecutive evaluations (default 2: the
+deterministic evaluation is noisy early on, and a single lucky evaluation gave fragile
+policies); ``seconds_to_stop_rule`` records the first time it held. Ctrl-C saves the last
+completed chunk; ``resume`` continues from it exactly.
 
 Run directory: config.json, checkpoint.msgpack, learning_curve.csv, learning_curve.png,
 summary.json.
@@ -52,34 +55,37 @@ class TrainSettings:
     n_points: int = 201
     dt: float = 0.1
     max_delay_steps: int = 100
-    # domain randomisation (None: no randomisation)
+    # domain randomisation: plant delay ~ U(delay - delay_spread, delay + delay_spread) (clipped at 0, whole
+    # steps) unless delay_range is given; None / 0 disable it
+    delay_spread: float = 1.0
     delay_range: tuple[float, float] | None = None
     alpha_range: tuple[float, float] | None = None
     amp_range: tuple[float, float] = (0.010, 0.010)
     wavenumber_range: tuple[int, int] = (4, 4)
     phase_max: float = 0.0
-    horizon_s: float = 300.0
+    horizon_s: float = 100.0
     gain_max: float = 3.0
     # PPO
-    num_envs: int = 64
+    num_envs: int = 256
     num_steps: int = 100
-    total_steps: int = 2_000_000
+    total_steps: int = 10_000_000
     update_epochs: int = 4
     num_minibatches: int = 4
-    updates_per_chunk: int = 5
+    updates_per_chunk: int = 3
     network: str = "small"
     lr: float = 1e-3
-    gamma: float = 0.99
+    gamma: float = 0.995
     gae_lambda: float = 0.95
     clip_eps: float = 0.2
     ent_coef: float = 0.0
     vf_coef: float = 0.5
     max_grad_norm: float = 0.5
-    reward_scale: float = 0.1
+    reward_scale: float = 0.01
     init_sigma: float = 0.3
     # evaluation and stopping
     eval_horizon_s: float = 300.0
     target_reward: float = -0.1
+    stop_patience: int = 2
     keep_going: bool = False
     max_wall_s: float = math.inf
     resume: bool = False
@@ -94,7 +100,8 @@ def build(s: TrainSettings) -> tuple[ppo.PPOConfig, E.EnvParams]:
     """PPO config and environment parameters from settings (validated)."""
     traffic = TrafficParams(delay=s.delay, alpha=s.alpha, alpha_noise=s.alpha_noise, n_points=s.n_points,
                             dt=s.dt, max_delay_steps=s.max_delay_steps)
-    d_lo, d_hi = s.delay_range or (s.delay, s.delay)
+    d_lo, d_hi = s.delay_range or (max(0.0, s.delay - s.delay_spread), s.delay + s.delay_spread)
+    d_lo, d_hi = (round(d / s.dt) * s.dt for d in (d_lo, d_hi))
     a_lo, a_hi = s.alpha_range or (s.alpha, s.alpha)
     env_params = E.make_env_params(
         traffic, horizon=max(1, round(s.horizon_s / s.dt)), gain_max=s.gain_max, amp_min=s.amp_range[0],
@@ -166,11 +173,28 @@ def _fmt_time(sec: float) -> str:
     return f"{m}m{s:02d}s"
 
 
+RUN_CONTROL = ("out_dir", "total_steps", "max_wall_s", "keep_going", "resume", "quiet", "stop_patience",
+               "target_reward")
+
+
+def _settings_for_resume(s: TrainSettings, run_dir: Path) -> TrainSettings:
+    """The run's saved settings, with only the run-control fields (RUN_CONTROL) taken from ``s``."""
+    import json
+
+    saved = json.loads((run_dir / ckpt.CONFIG).read_text())["settings"]
+    fields = {f.name: f for f in dataclasses.fields(TrainSettings)}
+    merged = {k: (tuple(v) if isinstance(v, list) else v) for k, v in saved.items() if k in fields}
+    merged.update({k: getattr(s, k) for k in RUN_CONTROL})
+    return TrainSettings(**merged)
+
+
 def train(s: TrainSettings) -> Path:
     """Train (or resume) and return the run directory."""
     run_dir = Path(s.out_dir)
+    if s.resume and (run_dir / ckpt.CONFIG).exists():
+        s = _settings_for_resume(s, run_dir)
+    cfg, env_params = build(s)  # validates: fail before creating the run directory
     run_dir.mkdir(parents=True, exist_ok=True)
-    cfg, env_params = build(s)
     eval_steps = max(1, round(s.eval_horizon_s / s.dt))
     init, train_chunk = ppo.make_train(cfg, env_params)
     evaluate = make_evaluator(cfg, env_params, eval_steps)
@@ -181,9 +205,10 @@ def train(s: TrainSettings) -> Path:
     meta = {"env_steps": 0, "wall_s": 0.0, "rows": [], "seconds_to_stop_rule": None, "stopped": False}
     if s.resume and (run_dir / ckpt.CHECKPOINT).exists():
         state, meta = ckpt.load_checkpoint(run_dir)
-        runner = ckpt.restore_runner(runner, state)
-        runner = jax.device_put_sharded([jax.tree.map(lambda x, i=i: x[i], runner)
-                                         for i in range(len(jax.devices()))], jax.devices())
+        # place every leaf like the fresh runner's (pmap-sharded): uncommitted arrays would recompile
+        runner = jax.tree.map(lambda t, x: jax.device_put(x, t.sharding), runner, ckpt.restore_runner(runner, state))
+        if s.keep_going:
+            meta["stopped"] = False
         say(f"resumed {run_dir} at {meta['env_steps']} env steps ({meta['wall_s']:.1f} s)")
     else:
         ckpt.write_json(run_dir / ckpt.CONFIG, config_dict(s, cfg, env_params))
@@ -213,7 +238,8 @@ def train(s: TrainSettings) -> Path:
             if reached and meta["seconds_to_stop_rule"] is None:
                 meta["seconds_to_stop_rule"] = meta["wall_s"]
                 meta["env_steps_to_stop_rule"] = meta["env_steps"]
-            if reached and not s.keep_going:
+            meta["streak"] = meta.get("streak", 0) + 1 if reached else 0
+            if meta["streak"] >= s.stop_patience and not s.keep_going:
                 meta["stopped"] = True
             rate = steps_per_chunk / max(1e-9, (meta["wall_s"] - (meta["rows"][-2]["wall_s"] if len(meta["rows"]) > 1
                                                                   else wall0)))
@@ -250,7 +276,8 @@ def train(s: TrainSettings) -> Path:
         "eval_horizon_s": s.eval_horizon_s,
     }
     ckpt.write_json(run_dir / ckpt.SUMMARY, summary)
+    rule = (f"first reached after {meta['seconds_to_stop_rule']:.1f} s" if summary["stop_rule_reached"]
+            else "not reached")
     say(f"done: {meta['env_steps']} env steps in {meta['wall_s']:.1f} s; eval reward per seed {np.round(ev, 4)};"
-        f" stop rule {'reached after ' + format(meta['seconds_to_stop_rule'], '.1f') + ' s' if summary['stop_rule_reached'] else 'not reached'}"
-        f"; outputs in {run_dir}")
+        f" stop rule {rule}; outputs in {run_dir}")
     return run_dir

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from conftest import SMALL, bump_state, run_solver
 
-from jaxtraffic import TrafficParams, equilibrium, equilibrium_state, paper_initial_condition
+from jaxtraffic import TrafficParams, equilibrium, equilibrium_state
 from jaxtraffic.solver import arz_step, is_physical, max_cfl, minmod
 
 SCHEMES = ("upwind", "muscl")

@@ -1,0 +1,159 @@
+"""The gymnax-style gain environment (jaxtraffic/env.py) on a tiny grid (21 nodes, dt = 0.1 s)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxtraffic import env as E
+from jaxtraffic.metrics import reward as paper_reward
+from jaxtraffic.params import TrafficParams, equilibrium
+from jaxtraffic.rollout import equilibrium_state, initial_state
+
+N = 21
+TP = TrafficParams(n_points=N, delay=0.5)
+
+step_jit = jax.jit(E.step)
+reset_jit = jax.jit(E.reset)
+reset_batch = jax.jit(jax.vmap(E.reset, (0, None)))
+KEYS = jax.random.split(jax.random.PRNGKey(7), 400)
+
+
+def _params(**kw) -> E.EnvParams:
+    kw.setdefault("horizon", 20)
+    return E.make_env_params(TP, **kw)
+
+
+def test_reset_step_shapes_and_reward():
+    ep = _params()
+    obs, st = reset_jit(jax.random.PRNGKey(0), ep)
+    assert obs.shape == (3 * N,) == (E.obs_size(ep),)
+    assert E.GainEnv.action_size == 3
+    assert int(st.t) == 0 and st.plant.rho.shape == (N,)
+    obs2, st2, r, done, info = step_jit(jax.random.PRNGKey(1), st, jnp.array([0.3, -0.2, 0.1]), ep)
+    assert obs2.shape == (3 * N,) and r.shape == () and done.shape == () and done.dtype == jnp.bool_
+    assert info["terminal_obs"].shape == (3 * N,) and info["gains"].shape == (3,)
+    assert info["truncated"].dtype == jnp.bool_ and info["terminated"].dtype == jnp.bool_
+    assert int(st2.t) == 1 and not bool(done)
+    # no reset: obs is the new state's (equal up to XLA fusion rounding)
+    np.testing.assert_allclose(obs2, info["terminal_obs"], rtol=0, atol=1e-6)
+    # reward: the paper's r of the state after the step = -sum(rho~^2 + v~^2) of the normalised obs
+    rho_bar, v_bar = equilibrium(TP)
+    np.testing.assert_allclose(r, paper_reward(st2.plant.rho, st2.plant.v, rho_bar, v_bar), rtol=1e-6)
+    np.testing.assert_allclose(r, -np.sum(np.asarray(obs2[: 2 * N]) ** 2), rtol=1e-4)
+    assert float(r) < 0.0
+
+
+def test_equilibrium_gives_zero_observation_and_stays():
+    rho, v = equilibrium_state(TP)
+    plant = initial_state(TP, rho, v)
+    np.testing.assert_allclose(E.observe(plant, TP), np.zeros(3 * N), atol=1e-6)
+    # zero amplitude: reset is the equilibrium; zero gains keep it there with reward ~ 0
+    ep = _params(amp_min=0.0, amp_max=0.0)
+    obs, st = reset_jit(jax.random.PRNGKey(3), ep)
+    np.testing.assert_allclose(obs, 0.0, atol=1e-6)
+    obs2, _, r, done, _ = step_jit(jax.random.PRNGKey(4), st, jnp.zeros(3), ep)
+    np.testing.assert_allclose(obs2, 0.0, atol=1e-5)
+    assert abs(float(r)) < 1e-8 and not bool(done)
+    # a perturbed state is not zero (normalisation by rho_bar: rho~/rho_bar)
+    obs_p, st_p = reset_jit(jax.random.PRNGKey(3), _params())
+    rho_bar, _ = equilibrium(TP)
+    np.testing.assert_allclose(obs_p[:N], st_p.plant.rho / rho_bar - 1.0, rtol=1e-6, atol=1e-7)
+    assert float(jnp.max(jnp.abs(obs_p[:N]))) > 0.05
+
+
+def test_auto_reset_on_truncation():
+    horizon = 3
+    ep = _params(horizon=horizon)
+    obs, st = reset_jit(jax.random.PRNGKey(0), ep)
+    a = jnp.array([0.5, 0.5, -0.5])
+    for i in range(1, horizon + 1):
+        k = jax.random.PRNGKey(100 + i)
+        obs, new, r, done, info = step_jit(k, st, a, ep)
+        if i < horizon:
+            assert not bool(done) and not bool(info["truncated"]) and int(new.t) == i
+            np.testing.assert_allclose(obs, info["terminal_obs"], rtol=0, atol=1e-6)
+        else:
+            assert bool(done) and bool(info["truncated"]) and not bool(info["terminated"])
+            assert int(new.t) == 0 and int(new.plant.step) == 0
+            # the returned obs is a fresh episode's; terminal_obs is the last state of the old one
+            obs_reset, st_reset = reset_jit(jax.random.split(k)[1], ep)
+            np.testing.assert_allclose(obs, obs_reset, rtol=0, atol=1e-6)
+            np.testing.assert_allclose(new.plant.rho, st_reset.plant.rho, rtol=1e-6)
+            plant_before = st.plant
+            assert not np.allclose(info["terminal_obs"], obs)
+            assert int(plant_before.step) == horizon - 1
+            assert np.isfinite(float(r)) and float(r) > -ep.diverge_penalty
+        st = new
+
+
+def test_diverged_env_terminates_with_penalty_and_resets():
+    ep = _params(horizon=50)
+    _, st = reset_jit(jax.random.PRNGKey(0), ep)
+    bad = st.replace(plant=st.plant.replace(v=st.plant.v.at[N // 2].set(5000.0)))  # CFL >> 1: blows up
+    obs, new, r, done, info = step_jit(jax.random.PRNGKey(1), bad, jnp.zeros(3), ep)
+    assert bool(info["terminated"]) and not bool(info["truncated"]) and bool(done)
+    assert float(r) == -ep.diverge_penalty
+    assert int(new.t) == 0 and not bool(new.plant.diverged)  # reset to a fresh, physical episode
+    assert np.all(np.isfinite(np.asarray(obs)))
+    # truncation is never reported on the diverging step, even at the horizon
+    at_horizon = bad.replace(t=jnp.asarray(ep.horizon - 1, bad.t.dtype))
+    _, _, r2, _, info2 = step_jit(jax.random.PRNGKey(1), at_horizon, jnp.zeros(3), ep)
+    assert bool(info2["terminated"]) and not bool(info2["truncated"]) and float(r2) == -ep.diverge_penalty
+
+
+def test_domain_randomisation_ranges():
+    ep = _params(delay_min=1.0, delay_max=3.0, alpha_min=0.1, alpha_max=0.3, amp_min=0.004, amp_max=0.012,
+                 wavenumber_min=1, wavenumber_max=3, phase_max=2.0)
+    obs, st = reset_batch(KEYS, ep)
+    delay = np.asarray(st.plant_params.delay, np.float64)
+    steps = delay / TP.dt
+    np.testing.assert_allclose(steps, np.round(steps), atol=1e-4)  # a multiple of dt
+    assert delay.min() >= 1.0 - 1e-6 and delay.max() <= 3.0 + 1e-6
+    assert len(np.unique(np.round(steps))) == 21  # every step count in [10, 30] is drawn
+    alpha = np.asarray(st.plant_params.alpha)
+    assert alpha.min() >= 0.1 and alpha.max() <= 0.3 and alpha.std() > 0.03
+    # the plant's delay buffer uses the drawn delay
+    np.testing.assert_array_equal(np.asarray(st.plant_params.delay_steps), np.round(steps).astype(int))
+    # amplitude of the initial cosine in [amp_min, amp_max] (max over a grid <= the amplitude)
+    rho_bar, _ = equilibrium(TP)
+    amp = np.max(np.abs(np.asarray(obs[:, :N])), axis=1) * float(rho_bar)
+    assert amp.max() <= 0.012 * (1 + 1e-4) and amp.min() > 0.0
+    assert amp.max() > 0.011 and np.median(amp) < 0.010
+    # nominal traffic params (the observation's normalisation) are unchanged
+    assert float(ep.traffic.delay) == 0.5 and float(ep.traffic.alpha) == pytest.approx(0.15)
+
+
+def test_no_randomisation_by_default():
+    ep = _params()
+    obs, st = reset_batch(KEYS, ep)
+    np.testing.assert_allclose(st.plant_params.delay, 0.5)
+    np.testing.assert_allclose(st.plant_params.alpha, 0.15)
+    np.testing.assert_allclose(obs, np.broadcast_to(obs[0], obs.shape), atol=1e-7)  # the paper IC every time
+
+
+def test_action_to_gains_bounded():
+    ep = _params(gain_max=2.5)
+    a = jnp.array([-1e6, -3.0, 0.0, 0.7, 40.0, 1e6])
+    g = E.action_to_gains(a, ep)
+    assert float(jnp.max(jnp.abs(g))) <= 2.5
+    np.testing.assert_allclose(g, 2.5 * np.tanh(np.asarray(a)), rtol=1e-6)
+    assert float(g[0]) == -2.5 and float(g[-1]) == 2.5 and float(g[2]) == 0.0
+    _, st = reset_jit(jax.random.PRNGKey(0), ep)
+    _, _, _, _, info = step_jit(jax.random.PRNGKey(1), st, jnp.array([100.0, -100.0, 0.3]), ep)
+    np.testing.assert_allclose(info["gains"], [2.5, -2.5, 2.5 * np.tanh(0.3)], rtol=1e-6)
+
+
+@pytest.mark.parametrize("kw, match", [
+    ({"alpha_min": 0.1, "alpha_max": 1.5}, "alpha"),
+    ({"alpha_min": -0.1, "alpha_max": 0.5}, "alpha"),
+    ({"alpha_min": -0.1, "alpha_max": 1.5}, "alpha"),
+    ({"delay_min": 3.0, "delay_max": 2.0}, "delay_min"),
+    ({"delay_min": 1.0, "delay_max": 20.0}, "buffer"),
+    ({"horizon": 0}, "horizon"),
+])
+def test_make_env_params_rejects_bad_ranges(kw, match):
+    with pytest.raises(ValueError, match=match):
+        E.make_env_params(TP, **kw)

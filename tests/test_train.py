@@ -1,0 +1,326 @@
+"""The training loop and CLI (train.py, jaxtraffic/trainer.py), checkpoints and policy loading,
+on a tiny problem (21 nodes, 4 environments x 8 steps, 2 updates per chunk).
+
+All the in-process runs have the same PPO config and environment, so they share one compiled
+program: ``ppo.make_train`` is memoised for this module (``shared_make_train``). The trainer's own
+code (init, chunks, evaluation, checkpoints, resume) runs unchanged; only the recompilation of an
+identical program per ``train()`` call is saved (CPU execution is deterministic either way).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import train as train_cli
+from jaxtraffic import checkpoint as ckpt
+from jaxtraffic import env as E
+from jaxtraffic import ppo
+from jaxtraffic.controllers import Observation
+from jaxtraffic.policy import load_policy, policy_controller
+from jaxtraffic.rollout import initial_state, paper_initial_condition
+from jaxtraffic.trainer import CURVE_FIELDS, TrainSettings, build
+
+REPO = Path(__file__).resolve().parents[1]
+TINY = ["--n-points", "21", "--delay", "0.5", "--max-delay-steps", "20", "--num-envs", "4", "--num-steps", "8",
+        "--updates-per-chunk", "2", "--update-epochs", "2", "--num-minibatches", "2", "--horizon-s", "3",
+        "--eval-horizon-s", "2", "--quiet"]
+CHUNK = 4 * 8 * 2  # env steps per chunk
+SUMMARY_KEYS = {"env_steps", "wall_s", "seconds_to_stop_rule", "env_steps_to_stop_rule", "stop_rule_reached",
+                "target_reward", "interrupted", "best_seed", "final_eval", "eval_horizon_s"}
+
+
+class SharedCompile:
+    """Memoised ``make_train`` (by config, env params, devices, env); records the last runner a
+    chunk returned and can raise KeyboardInterrupt at a given chunk call (a simulated Ctrl-C)."""
+
+    def __init__(self, orig):
+        self.orig, self.cache, self.last_runner, self.interrupt_at, self.calls = orig, {}, None, None, 0
+
+    def __call__(self, cfg, env_params, devices=None, env=E.GainEnv):
+        key = (cfg, env_params, None if devices is None else tuple(devices), env)
+        if key not in self.cache:
+            self.cache[key] = self.orig(cfg, env_params, devices, env)
+        init, chunk = self.cache[key]
+
+        def train_chunk(runner):
+            self.calls += 1
+            if self.interrupt_at is not None and self.calls == self.interrupt_at:
+                raise KeyboardInterrupt
+            runner, metrics = chunk(runner)
+            self.last_runner = runner
+            return runner, metrics
+
+        return init, train_chunk
+
+
+def _cli(out: Path, *extra: str) -> Path:
+    return train_cli.main(TINY + ["--out-dir", str(out), *extra])
+
+
+def _rows(run: Path) -> list[dict]:
+    with open(run / "learning_curve.csv", newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _no_wall(rows: list[dict]) -> list[dict]:
+    return [{k: v for k, v in r.items() if k != "wall_s"} for r in rows]
+
+
+def _leaves_equal(a, b) -> bool:
+    la, lb = jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)
+    return len(la) == len(lb) and all(np.array_equal(np.asarray(x), np.asarray(y), equal_nan=True)
+                                      for x, y in zip(la, lb, strict=True))
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory, two_device_proc):
+    """The module's training runs (4 chunks = 256 env steps unless noted):
+    A: one go; B: 2 chunks, then --resume to 4; I: Ctrl-C before chunk 3, then --resume;
+    C: seed 1, 1 chunk; S: stop rule always met (target -1e9), patience 2, no --keep-going."""
+    root = tmp_path_factory.mktemp("runs")
+    out = {}
+    with pytest.MonkeyPatch.context() as mp:
+        shared = SharedCompile(ppo.make_train)
+        mp.setattr(ppo, "make_train", shared)
+        out["A"] = _cli(root / "A", "--total-steps", str(4 * CHUNK), "--keep-going")
+        out["A_runner"] = jax.device_get(shared.last_runner)
+        out["B"] = _cli(root / "B", "--total-steps", str(2 * CHUNK), "--keep-going")
+        out["B_first_rows"] = _rows(out["B"])
+        out["B_first_summary"] = json.loads((out["B"] / "summary.json").read_text())
+        train_cli.main(["--out-dir", str(out["B"]), "--resume", "--total-steps", str(4 * CHUNK), "--keep-going",
+                        "--quiet"])
+        shared.calls, shared.interrupt_at = 0, 3
+        out["I"] = _cli(root / "I", "--total-steps", str(4 * CHUNK), "--keep-going")
+        shared.interrupt_at = None
+        out["I_first_rows"] = _rows(out["I"])
+        out["I_first_summary"] = json.loads((out["I"] / "summary.json").read_text())
+        train_cli.main(["--out-dir", str(out["I"]), "--resume", "--total-steps", str(4 * CHUNK), "--keep-going",
+                        "--quiet"])
+        out["C"] = _cli(root / "C", "--seed", "1", "--total-steps", str(CHUNK), "--keep-going")
+        out["S"] = _cli(root / "S", "--total-steps", str(6 * CHUNK), "--target-reward=-1e9")
+        out["compiled_programs"] = len(shared.cache)
+    return out
+
+
+def test_run_directory_contents(runs):
+    run = runs["A"]
+    for name in ("config.json", "checkpoint.msgpack", "learning_curve.csv", "summary.json"):
+        assert (run / name).is_file(), name
+    cfg = json.loads((run / "config.json").read_text())
+    assert cfg["settings"]["n_points"] == 21 and cfg["delay"] == 0.5 and cfg["ppo"]["num_envs"] == 4
+    assert cfg["jax_version"] == jax.__version__ and cfg["env"]["horizon_steps"] == 30
+    rows = _rows(run)
+    assert list(rows[0]) == CURVE_FIELDS
+    assert [int(r["env_steps"]) for r in rows] == [CHUNK, 2 * CHUNK, 3 * CHUNK, 4 * CHUNK]
+    assert [int(r["update"]) for r in rows] == [2, 4, 6, 8]
+    assert all(np.isfinite(float(r[k])) for r in rows for k in CURVE_FIELDS)
+    summary = json.loads((run / "summary.json").read_text())
+    assert SUMMARY_KEYS <= set(summary)
+    assert summary["env_steps"] == 4 * CHUNK and summary["wall_s"] > 0 and summary["interrupted"] is False
+    assert summary["eval_horizon_s"] == 2.0 and summary["target_reward"] == -0.1
+    fe = summary["final_eval"]
+    for k in ("final_reward", "J_comfort", "final_rho_L2", "final_v_L2", "J_TTT", "J_fuel"):
+        assert len(fe[k]) == 1 and np.isfinite(fe[k][0]), k
+    assert fe["final_reward"][0] == pytest.approx(float(rows[-1]["eval_reward"]))
+    if summary["stop_rule_reached"]:
+        assert summary["seconds_to_stop_rule"] > 0
+    else:
+        assert summary["seconds_to_stop_rule"] is None
+    try:
+        from jaxtraffic.plotting import plot_learning_curve  # noqa: F401
+    except ImportError:
+        pytest.skip("jaxtraffic.plotting.plot_learning_curve not available yet: learning_curve.png not checked")
+    png = run / "learning_curve.png"
+    assert png.is_file() and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_shared_program(runs):
+    assert runs["compiled_programs"] == 1  # every run above had the same config (sanity of this module)
+
+
+def test_resume_is_bit_identical(runs):
+    a, b = runs["A"], runs["B"]
+    assert len(runs["B_first_rows"]) == 2 and runs["B_first_summary"]["env_steps"] == 2 * CHUNK
+    assert _no_wall(_rows(b)) == _no_wall(_rows(a))
+    state_a, meta_a = ckpt.load_checkpoint(a)
+    state_b, meta_b = ckpt.load_checkpoint(b)
+    assert _leaves_equal(state_a, state_b)  # params, Adam state, environments, obs statistics, keys
+    assert meta_a["env_steps"] == meta_b["env_steps"] == 4 * CHUNK
+    sa, sb = (json.loads((r / "summary.json").read_text()) for r in (a, b))
+    assert sa["final_eval"] == sb["final_eval"] and sa["env_steps"] == sb["env_steps"]
+
+
+def test_ctrl_c_saves_and_resume_loses_nothing(runs):
+    a, i = runs["A"], runs["I"]
+    first = runs["I_first_summary"]
+    assert first["interrupted"] is True and first["env_steps"] == 2 * CHUNK
+    assert _no_wall(runs["I_first_rows"]) == _no_wall(_rows(a))[:2]
+    assert _no_wall(_rows(i)) == _no_wall(_rows(a))
+    assert _leaves_equal(ckpt.load_checkpoint(a)[0], ckpt.load_checkpoint(i)[0])
+
+
+def test_same_seed_same_curve_different_seed_differs(runs):
+    a_rows = _no_wall(_rows(runs["A"]))
+    assert _no_wall(runs["B_first_rows"]) == a_rows[:2]  # a fresh run with the same seed
+    c_rows = _no_wall(_rows(runs["C"]))
+    assert len(c_rows) == 1
+    for k in ("mean_reward", "eval_reward", "eta1", "value_loss"):
+        assert c_rows[0][k] != a_rows[0][k], k
+    pa = ckpt.load_checkpoint(runs["A"])[0]["params"]
+    pc = ckpt.load_checkpoint(runs["C"])[0]["params"]
+    assert not any(np.array_equal(x, y) for x, y in zip(jax.tree_util.tree_leaves(pa), jax.tree_util.tree_leaves(pc),
+                                                         strict=True) if np.size(x) > 3)
+
+
+def test_stop_rule_with_patience(runs):
+    rows = _rows(runs["S"])
+    summary = json.loads((runs["S"] / "summary.json").read_text())
+    assert len(rows) == 2  # met at every evaluation; patience 2 -> stops after the second chunk
+    assert summary["stop_rule_reached"] is True and summary["env_steps_to_stop_rule"] == CHUNK
+    assert summary["seconds_to_stop_rule"] == pytest.approx(float(rows[0]["wall_s"]), abs=1e-3)
+
+
+def test_checkpoint_round_trip_gives_identical_actions(runs):
+    run = runs["A"]
+    ctrl, config = load_policy(run)
+    rep = jax.tree.map(lambda x: x[0, 0], runs["A_runner"])  # device 0, seed 0 of the in-memory runner
+    assert float(np.abs(rep.stats.mean).max()) > 0.0 and not np.allclose(rep.stats.var, 1.0)
+    mem = policy_controller(rep.params, rep.stats.mean, rep.stats.var, config["env"]["gain_max"],
+                            hidden=tuple(config["ppo"]["hidden"]), activation=config["ppo"]["activation"],
+                            init_sigma=config["ppo"]["init_sigma"])
+    tp = build(TrainSettings(n_points=21, delay=0.5, max_delay_steps=20))[1].traffic  # the run's nominal plant
+    hs = {}
+    for amp in (0.004, 0.012):
+        rho, v = paper_initial_condition(tp, amplitude=amp)
+        plant = initial_state(tp, rho, v)
+        obs = Observation(rho=plant.rho, v=plant.v, h_prev=plant.h_prev * 1.01, t=jnp.asarray(0.0), sent=plant.sent)
+        key = jax.random.PRNGKey(0)
+        h_loaded, _ = ctrl.act(ctrl.init(obs, tp), obs, tp, key)
+        h_mem, _ = mem.act(mem.init(obs, tp), obs, tp, key)
+        np.testing.assert_array_equal(np.asarray(h_loaded), np.asarray(h_mem))
+        hs[amp] = np.asarray(h_loaded)
+    assert not np.allclose(hs[0.004], hs[0.012])  # the actions depend on the state (not trivially equal)
+    with pytest.raises(ValueError, match="seed"):
+        load_policy(run, seed=3)
+
+
+def test_cli_help_documents_every_flag(capsys):
+    with pytest.raises(SystemExit) as exc:
+        train_cli.main(["--help"])
+    assert exc.value.code == 0
+    text = capsys.readouterr().out
+    parser = train_cli.build_parser()
+    for action in parser._actions:
+        if action.dest == "help":
+            continue
+        assert action.help, f"{action.option_strings} has no help"
+        assert action.option_strings[0] in text
+    for flag in ("--delay", "--alpha", "--alpha-noise", "--num-envs", "--total-steps", "--seeds", "--network",
+                 "--lr", "--clip-eps", "--n-points", "--out-dir", "--resume", "--max-wall-s", "--delay-range"):
+        assert flag in text
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["--delay", "0.05", "--dt", "0.1"], "multiple of dt"),
+    (["--alpha", "1.5"], "alpha"),
+    (["--alpha-range", "0.1,1.5"], "alpha range"),
+    (["--delay-range", "3,2"], "delay_min"),
+    (["--n-points", "2"], "n_points"),
+    (["--network", "huge"], "invalid choice"),
+    (["--delay-range", "1"], "LO,HI"),
+])
+def test_cli_invalid_values_exit_2(argv, match, tmp_path, capsys):
+    out = tmp_path / "run"
+    with pytest.raises(SystemExit) as exc:
+        train_cli.main(argv + ["--out-dir", str(out), "--quiet"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert match in err and "Traceback" not in err
+    assert not out.exists()  # rejected before anything is written
+
+
+def test_cli_invalid_value_from_the_shell(tmp_path):
+    out = tmp_path / "run"
+    proc = subprocess.run([sys.executable, str(REPO / "train.py"), "--delay", "0.05", "--out-dir", str(out)],
+                          cwd=REPO, capture_output=True, text=True, timeout=120,
+                          env={**os.environ, "JAX_PLATFORMS": "cpu"})
+    assert proc.returncode == 2, proc.stderr
+    assert "train.py: error:" in proc.stderr and "delay" in proc.stderr and "Traceback" not in proc.stderr
+    assert not out.exists()
+
+
+TWO_DEVICES = r"""
+import json, sys, tempfile
+import jax, numpy as np
+sys.path.insert(0, ".")
+import train
+from jaxtraffic import checkpoint as ckpt, ppo
+
+orig, cache = ppo.make_train, {}
+def shared(cfg, env_params, devices=None, env=ppo.E.GainEnv):  # resume reuses the compiled program
+    key = (cfg, env_params, env)
+    cache[key] = cache.get(key) or orig(cfg, env_params, devices, env)
+    return cache[key]
+ppo.make_train = shared
+
+out = tempfile.mkdtemp()
+argv = json.loads(sys.argv[1]) + ["--out-dir", out, "--keep-going"]
+train.main(argv + ["--total-steps", "128"])
+run = train.main(argv + ["--total-steps", "192", "--resume"])
+r, meta = ckpt.load_checkpoint(run)
+leaves = jax.tree_util.tree_leaves(r["params"]) + jax.tree_util.tree_leaves(r["opt_state"])
+rows = open(f"{run}/learning_curve.csv").read().splitlines()
+summary = json.load(open(f"{run}/summary.json"))
+print("RESULT " + json.dumps({
+    "device_count": jax.device_count(),
+    "leading_axis": [int(np.shape(x)[0]) for x in leaves][:3],
+    "params_replicated": all(np.array_equal(x[0], x[1]) for x in leaves),
+    "stats_replicated": bool(np.array_equal(r["stats"]["mean"][0], r["stats"]["mean"][1])),
+    "envs_differ": not np.array_equal(r["obs"][0], r["obs"][1]),
+    "env_steps": meta["env_steps"], "n_rows": len(rows) - 1,
+    "finite": bool(np.all(np.isfinite([float(x) for row in rows[1:] for x in row.split(",")]))),
+    "final_reward": summary["final_eval"]["final_reward"],
+}))
+"""
+
+
+@pytest.fixture(scope="module")
+def two_device_proc():
+    """The two-device training, started in a subprocess before the in-process runs (it overlaps them)."""
+    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2", "JAX_PLATFORMS": "cpu"}
+    argv = TINY[:]
+    argv[argv.index("--num-envs") + 1] = "4"  # 2 environments per device
+    proc = subprocess.Popen([sys.executable, "-c", TWO_DEVICES, json.dumps(argv)], cwd=REPO, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    yield proc
+    if proc.poll() is None:
+        proc.kill()
+        proc.communicate()
+
+
+def test_two_cpu_devices(two_device_proc):
+    try:
+        stdout, stderr = two_device_proc.communicate(timeout=300)
+    except subprocess.TimeoutExpired:
+        two_device_proc.kill()
+        raise
+    assert two_device_proc.returncode == 0, stderr[-3000:]
+    line = [x for x in stdout.splitlines() if x.startswith("RESULT ")]
+    assert line, stdout[-2000:]
+    res = json.loads(line[0][len("RESULT "):])
+    assert res["device_count"] == 2
+    assert res["leading_axis"] == [2, 2, 2]
+    assert res["params_replicated"] and res["stats_replicated"]  # lax.pmean keeps the devices in step
+    assert res["envs_differ"]  # each device runs its own environments
+    assert res["env_steps"] == 3 * CHUNK and res["n_rows"] == 3 and res["finite"]
+    assert np.isfinite(res["final_reward"][0])

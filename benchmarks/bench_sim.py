@@ -8,8 +8,8 @@ separately: trace + lower + compile) and then timed over ``--repeats`` calls (be
     cell updates/s = env steps/s * 201
 
 Also measured: the compile time of a 3000-step single-environment rollout (``simulate``), and,
-in a fresh subprocess, the peak resident memory (ru_maxrss) of a batch of 4096 environments over
-300 s (3000 steps) without trajectories.
+in a fresh subprocess, the peak resident memory (VmHWM) of a batch of 4096 environments over
+300 s (3000 steps) with the Lyapunov controller, without trajectories.
 
 ``--devices N`` splits the host CPU into N XLA devices (``--xla_force_host_platform_device_count``)
 and shards the batch over them (each device runs its share on its own thread).
@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import resource
 import statistics
 import subprocess
@@ -43,6 +42,8 @@ def _parse() -> argparse.Namespace:
     ap.add_argument("--controllers", default="open_loop,lyapunov", help="open_loop and/or lyapunov")
     ap.add_argument("--devices", type=int, default=os.cpu_count() or 1,
                     help="XLA host devices to shard the batch over (default: one per CPU core; 1: no sharding)")
+    ap.add_argument("--chunk-size", type=int, default=64,
+                    help="simulate_batch chunk_size (environments per sequential chunk; 0: one vmap)")
     ap.add_argument("--json", action="store_true", help="print JSON instead of a table")
     ap.add_argument("--no-memory", action="store_true", help="skip the 4096-env memory measurement")
     ap.add_argument("--memory-batch", type=int, default=4096)
@@ -61,22 +62,12 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
+from machine import cpu_model  # noqa: E402  (benchmarks/machine.py)
 
 import jaxtraffic  # noqa: E402
 from jaxtraffic import TrafficParams, paper_initial_condition, simulate, simulate_batch  # noqa: E402
 
 CONTROLLERS = {"open_loop": jaxtraffic.open_loop, "lyapunov": jaxtraffic.lyapunov}
-
-
-def _cpu_model() -> str:
-    try:
-        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
-        for line in out.splitlines():
-            if line.startswith("Model name:"):
-                return line.split(":", 1)[1].strip()
-    except (OSError, subprocess.CalledProcessError):
-        pass
-    return platform.processor() or "unknown"
 
 
 def _batch_inputs(batch: int, p: TrafficParams):
@@ -90,13 +81,15 @@ def _batch_inputs(batch: int, p: TrafficParams):
     return rho0, v0, keys
 
 
-def _timed(fn, *args, repeats: int) -> list[float]:
-    times = []
+def _timed(fn, *args, repeats: int) -> tuple[list[float], list[float]]:
+    """Wall-clock and process CPU seconds (all threads) of ``repeats`` calls."""
+    times, cpu = [], []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         jax.block_until_ready(fn(*args))
         times.append(time.perf_counter() - t0)
-    return times
+        cpu.append(time.process_time() - c0)
+    return times, cpu
 
 
 def bench_throughput(controller_name: str, batch: int, steps: int, repeats: int) -> dict:
@@ -105,12 +98,13 @@ def bench_throughput(controller_name: str, batch: int, steps: int, repeats: int)
     rho0, v0, keys = _batch_inputs(batch, p)
 
     def run(rho0, v0, keys):
-        return simulate_batch(p, ctrl, n_steps=steps, rho0=rho0, v0=v0, keys=keys).metrics
+        return simulate_batch(p, ctrl, n_steps=steps, rho0=rho0, v0=v0, keys=keys,
+                              chunk_size=ARGS.chunk_size).metrics
 
     t0 = time.perf_counter()
     compiled = jax.jit(run).lower(rho0, v0, keys).compile()
     compile_s = time.perf_counter() - t0
-    times = _timed(compiled, rho0, v0, keys, repeats=repeats)
+    times, cpu = _timed(compiled, rho0, v0, keys, repeats=repeats)
     best, med = min(times), statistics.median(times)
     env_steps = batch * steps
     return {
@@ -118,6 +112,9 @@ def bench_throughput(controller_name: str, batch: int, steps: int, repeats: int)
         "best_s": best, "median_s": med, "env_steps_per_s": env_steps / best,
         "cell_updates_per_s": env_steps * N_POINTS / best,
         "cell_updates_per_s_median": env_steps * N_POINTS / med,
+        # efficiency per core: cell updates per second of process CPU time (insensitive to other
+        # processes taking turns on the cores; wall-clock figures above are what a user sees)
+        "cell_updates_per_cpu_s": env_steps * N_POINTS / min(cpu),
     }
 
 
@@ -132,21 +129,35 @@ def bench_compile_3000() -> dict:
         t0 = time.perf_counter()
         jax.block_until_ready(simulate(p, ctrl, n_steps=3000, rho0=rho0, v0=v0).metrics)
         first = time.perf_counter() - t0
-        warm = min(_timed(lambda: simulate(p, ctrl, n_steps=3000, rho0=rho0, v0=v0).metrics, repeats=3))
+        warm = min(_timed(lambda c=ctrl: simulate(p, c, n_steps=3000, rho0=rho0, v0=v0).metrics, repeats=3)[0])
         out[name] = {"first_call_s": first, "warm_call_s": warm, "compile_s": first - warm}
     return out
 
 
+def _peak_rss_mib() -> float:
+    """Peak resident set size of this process in MiB: VmHWM (reset by exec, unlike ru_maxrss,
+    which a child started by a large parent inherits), else ru_maxrss."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return float(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
 def memory_child(batch: int, steps: int) -> dict:
     """Run once (in a fresh process) and report the peak resident set size."""
-    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    rss0 = _peak_rss_mib()
     p = TrafficParams()
     rho0, v0, keys = _batch_inputs(batch, p)
     t0 = time.perf_counter()
-    m = simulate_batch(p, jaxtraffic.lyapunov(), n_steps=steps, rho0=rho0, v0=v0, keys=keys).metrics
+    m = simulate_batch(p, jaxtraffic.lyapunov(), n_steps=steps, rho0=rho0, v0=v0, keys=keys,
+                       chunk_size=ARGS.chunk_size).metrics
     jax.block_until_ready(m)
     wall = time.perf_counter() - t0
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    peak = _peak_rss_mib()
     return {"batch": batch, "steps": steps, "controller": "lyapunov", "peak_rss_MiB": peak,
             "rss_before_MiB": rss0, "wall_incl_compile_s": wall,
             "diverged": int(np.sum(np.asarray(m["diverged"])))}
@@ -154,7 +165,8 @@ def memory_child(batch: int, steps: int) -> dict:
 
 def bench_memory() -> dict:
     cmd = [sys.executable, os.path.abspath(__file__), "--_memory-child", "--memory-batch",
-           str(ARGS.memory_batch), "--memory-steps", str(ARGS.memory_steps), "--devices", str(ARGS.devices)]
+           str(ARGS.memory_batch), "--memory-steps", str(ARGS.memory_steps), "--devices", str(ARGS.devices),
+           "--chunk-size", str(ARGS.chunk_size)]
     out = subprocess.run(cmd, capture_output=True, text=True, check=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -164,11 +176,12 @@ def main() -> None:
         print(json.dumps(memory_child(ARGS.memory_batch, ARGS.memory_steps)))
         return
     info = {
-        "jax": jax.__version__, "jaxtraffic": jaxtraffic.__version__, "cpu": _cpu_model(),
+        "jax": jax.__version__, "jaxtraffic": jaxtraffic.__version__, "cpu": cpu_model(),
         "cpu_count": os.cpu_count(), "devices": len(jax.devices()), "backend": jax.default_backend(),
-        "dtype": "float32", "n_points": N_POINTS, "dt_s": 0.1,
-        "loadavg_at_start": os.getloadavg(),
+        "dtype": "float32", "n_points": N_POINTS, "dt_s": 0.1, "chunk_size": ARGS.chunk_size,
+        "loadavg_at_start": os.getloadavg(), "nice": os.nice(0),
     }
+    memory = None if ARGS.no_memory else bench_memory()  # first, while this process is small
     rows = []
     for name in ARGS.controllers.split(","):
         for b in (int(x) for x in ARGS.batch_sizes.split(",")):
@@ -177,21 +190,24 @@ def main() -> None:
                 r = rows[-1]
                 print(f"  {name:9s} batch {b:5d}: {r['cell_updates_per_s']:.3g} cell updates/s", file=sys.stderr)
     result = {"info": info, "throughput": rows, "compile_3000_steps": bench_compile_3000()}
-    if not ARGS.no_memory:
-        result["memory"] = bench_memory()
+    if memory is not None:
+        result["memory"] = memory
     result["info"]["loadavg_at_end"] = os.getloadavg()
     if ARGS.json:
         print(json.dumps(result, indent=2))
         return
     print(f"jax {info['jax']} on {info['cpu']} ({info['cpu_count']} CPUs, {info['devices']} XLA device(s)),"
-          f" float32, {N_POINTS} points, dt 0.1 s, {ARGS.steps} steps per rollout, best of {ARGS.repeats}")
+          f" float32, {N_POINTS} points, dt 0.1 s, {ARGS.steps} steps per rollout, best of {ARGS.repeats},"
+          f" chunk_size {ARGS.chunk_size}")
     print(f"load average at start / end: {info['loadavg_at_start']} / {result['info']['loadavg_at_end']}")
     print()
-    print("| controller | batch | env steps/s | cell updates/s (best) | cell updates/s (median) | compile s |")
-    print("|---|---:|---:|---:|---:|---:|")
+    print("| controller | batch | env steps/s | cell updates/s (best) | cell updates/s (median)"
+          " | cell updates per CPU-s | compile s |")
+    print("|---|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         print(f"| {r['controller']} | {r['batch']} | {r['env_steps_per_s']:.3g} | {r['cell_updates_per_s']:.3g}"
-              f" | {r['cell_updates_per_s_median']:.3g} | {r['compile_s']:.2f} |")
+              f" | {r['cell_updates_per_s_median']:.3g} | {r['cell_updates_per_cpu_s']:.3g}"
+              f" | {r['compile_s']:.2f} |")
     print()
     for name, c in result["compile_3000_steps"].items():
         print(f"compile of a 3000-step rollout ({name}): {c['compile_s']:.2f} s"

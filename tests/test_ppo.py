@@ -108,7 +108,6 @@ def test_running_stats_match_numpy():
     rng = np.random.default_rng(2)
     batches = [rng.normal(loc=3.0, scale=2.0, size=(n, 4)) for n in (50, 70, 30)]
     s = ppo.RunningStats.create(4)
-    assert s.count.dtype == s.mean.dtype and not s.count.weak_type  # no recompile after the first update
     for b in batches:
         s = s.update(jnp.asarray(b.mean(0)), jnp.asarray(b.var(0)), jnp.asarray(float(len(b))))
     allx = np.concatenate(batches)

@@ -1,10 +1,13 @@
 """The training loop and CLI (train.py, jaxtraffic/trainer.py), checkpoints and policy loading,
 on a tiny problem (21 nodes, 4 environments x 8 steps, 2 updates per chunk).
 
-All the in-process runs have the same PPO config and environment, so they share one compiled
-program: ``ppo.make_train`` is memoised for this module (``shared_make_train``). The trainer's own
-code (init, chunks, evaluation, checkpoints, resume) runs unchanged; only the recompilation of an
-identical program per ``train()`` call is saved (CPU execution is deterministic either way).
+The training runs execute in two subprocesses started together (they overlap on the 2 cores):
+``_train_runs`` (one CPU device) and ``TWO_DEVICES`` (two forced host devices). Both compile with
+``--xla_backend_optimization_level=0`` (about half the compile time; every comparison below is
+between runs of the same process). In ``_train_runs`` every run has the same PPO config and
+environment, so ``ppo.make_train`` is memoised (``SharedCompile``): the trainer's own code (init,
+chunks, evaluation, checkpoints, resume) runs unchanged, only the recompilation of an identical
+program per ``train()`` call is saved. The tests then read the run directories.
 """
 
 from __future__ import annotations
@@ -12,6 +15,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -82,33 +86,94 @@ def _leaves_equal(a, b) -> bool:
                                       for x, y in zip(la, lb, strict=True))
 
 
+def _train_runs(root: Path) -> None:
+    """All the single-device runs (4 chunks = 256 env steps unless noted), in a subprocess:
+    A: one go; B: 2 chunks, then --resume to 4; I: Ctrl-C before chunk 3, then --resume;
+    C: seed 1, 1 chunk; S: stop rule always met (target -1e9), patience 2, no --keep-going.
+    Also compares, right after A, the in-memory policy with ``load_policy(A)``."""
+    shared = SharedCompile(ppo.make_train)
+    ppo.make_train = shared
+    a = _cli(root / "A", "--total-steps", str(4 * CHUNK), "--keep-going")
+    _write_json(root / "roundtrip.json", _round_trip(a, jax.device_get(shared.last_runner)))
+    b = _cli(root / "B", "--total-steps", str(2 * CHUNK), "--keep-going")
+    shutil.copytree(b, root / "B_first")
+    train_cli.main(["--out-dir", str(b), "--resume", "--total-steps", str(4 * CHUNK), "--keep-going", "--quiet"])
+    shared.calls, shared.interrupt_at = 0, 3
+    i = _cli(root / "I", "--total-steps", str(4 * CHUNK), "--keep-going")
+    shared.interrupt_at = None
+    shutil.copytree(i, root / "I_first")
+    train_cli.main(["--out-dir", str(i), "--resume", "--total-steps", str(4 * CHUNK), "--keep-going", "--quiet"])
+    _cli(root / "C", "--seed", "1", "--total-steps", str(CHUNK), "--keep-going")
+    _cli(root / "S", "--total-steps", str(6 * CHUNK), "--target-reward=-1e9")
+    _write_json(root / "done.json", {"compiled_programs": len(shared.cache)})
+
+
+def _write_json(path: Path, obj) -> None:
+    path.write_text(json.dumps(obj))
+
+
+def _round_trip(run: Path, runner) -> dict:
+    """Actions of ``load_policy(run)`` vs the in-memory policy (seed 0 of ``runner``) on two states."""
+    ctrl, config = load_policy(run)
+    rep = jax.tree.map(lambda x: x[0, 0], runner)  # device 0, seed 0
+    mem = policy_controller(rep.params, rep.stats.mean, rep.stats.var, config["env"]["gain_max"],
+                            hidden=tuple(config["ppo"]["hidden"]), activation=config["ppo"]["activation"],
+                            init_sigma=config["ppo"]["init_sigma"])
+    tp = build(TrainSettings(n_points=21, delay=0.5, max_delay_steps=20))[1].traffic  # the run's nominal plant
+    out = {"identical": [], "h": [], "stats_trained": bool(np.abs(rep.stats.mean).max() > 0
+                                                           and not np.allclose(rep.stats.var, 1.0))}
+    for amp in (0.004, 0.012):
+        rho, v = paper_initial_condition(tp, amplitude=amp)
+        plant = initial_state(tp, rho, v)
+        obs = Observation(rho=plant.rho, v=plant.v, h_prev=plant.h_prev * 1.01, t=jnp.asarray(0.0), sent=plant.sent)
+        key = jax.random.PRNGKey(0)
+        h_loaded = np.asarray(ctrl.act(ctrl.init(obs, tp), obs, tp, key)[0])
+        h_mem = np.asarray(mem.act(mem.init(obs, tp), obs, tp, key)[0])
+        out["identical"].append(bool(np.array_equal(h_loaded, h_mem)))
+        out["h"].append(h_loaded.tolist())
+    try:
+        load_policy(run, seed=3)
+        out["bad_seed_rejected"] = False
+    except ValueError:
+        out["bad_seed_rejected"] = True
+    return out
+
+
+def _xla_env(**extra) -> dict:
+    flags = " ".join(filter(None, [os.environ.get("XLA_FLAGS", ""), "--xla_backend_optimization_level=0",
+                                   *extra.pop("flags", [])]))
+    return {**os.environ, "XLA_FLAGS": flags, "JAX_PLATFORMS": "cpu", **extra}
+
+
+@pytest.fixture(scope="module")
+def two_device_proc():
+    """The two-device training, started in a subprocess (see ``TWO_DEVICES``)."""
+    argv = TINY[:]
+    argv[argv.index("--num-envs") + 1] = "4"  # 2 environments per device
+    proc = subprocess.Popen([sys.executable, "-c", TWO_DEVICES, json.dumps(argv)], cwd=REPO,
+                            env=_xla_env(flags=["--xla_force_host_platform_device_count=2"]),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    yield proc
+    if proc.poll() is None:
+        proc.kill()
+        proc.communicate()
+
+
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory, two_device_proc):
-    """The module's training runs (4 chunks = 256 env steps unless noted):
-    A: one go; B: 2 chunks, then --resume to 4; I: Ctrl-C before chunk 3, then --resume;
-    C: seed 1, 1 chunk; S: stop rule always met (target -1e9), patience 2, no --keep-going."""
     root = tmp_path_factory.mktemp("runs")
-    out = {}
-    with pytest.MonkeyPatch.context() as mp:
-        shared = SharedCompile(ppo.make_train)
-        mp.setattr(ppo, "make_train", shared)
-        out["A"] = _cli(root / "A", "--total-steps", str(4 * CHUNK), "--keep-going")
-        out["A_runner"] = jax.device_get(shared.last_runner)
-        out["B"] = _cli(root / "B", "--total-steps", str(2 * CHUNK), "--keep-going")
-        out["B_first_rows"] = _rows(out["B"])
-        out["B_first_summary"] = json.loads((out["B"] / "summary.json").read_text())
-        train_cli.main(["--out-dir", str(out["B"]), "--resume", "--total-steps", str(4 * CHUNK), "--keep-going",
-                        "--quiet"])
-        shared.calls, shared.interrupt_at = 0, 3
-        out["I"] = _cli(root / "I", "--total-steps", str(4 * CHUNK), "--keep-going")
-        shared.interrupt_at = None
-        out["I_first_rows"] = _rows(out["I"])
-        out["I_first_summary"] = json.loads((out["I"] / "summary.json").read_text())
-        train_cli.main(["--out-dir", str(out["I"]), "--resume", "--total-steps", str(4 * CHUNK), "--keep-going",
-                        "--quiet"])
-        out["C"] = _cli(root / "C", "--seed", "1", "--total-steps", str(CHUNK), "--keep-going")
-        out["S"] = _cli(root / "S", "--total-steps", str(6 * CHUNK), "--target-reward=-1e9")
-        out["compiled_programs"] = len(shared.cache)
+    code = "import sys; from pathlib import Path; sys.path[:0] = ['.', 'tests']; import test_train; " \
+           "test_train._train_runs(Path(sys.argv[1]))"
+    proc = subprocess.run([sys.executable, "-c", code, str(root)], cwd=REPO, env=_xla_env(), capture_output=True,
+                          text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    out = {k: root / k for k in ("A", "B", "I", "C", "S")}
+    out["B_first_rows"] = _rows(root / "B_first")
+    out["B_first_summary"] = json.loads((root / "B_first" / "summary.json").read_text())
+    out["I_first_rows"] = _rows(root / "I_first")
+    out["I_first_summary"] = json.loads((root / "I_first" / "summary.json").read_text())
+    out["roundtrip"] = json.loads((root / "roundtrip.json").read_text())
+    out["compiled_programs"] = json.loads((root / "done.json").read_text())["compiled_programs"]
     return out
 
 
@@ -191,27 +256,11 @@ def test_stop_rule_with_patience(runs):
 
 
 def test_checkpoint_round_trip_gives_identical_actions(runs):
-    run = runs["A"]
-    ctrl, config = load_policy(run)
-    rep = jax.tree.map(lambda x: x[0, 0], runs["A_runner"])  # device 0, seed 0 of the in-memory runner
-    assert float(np.abs(rep.stats.mean).max()) > 0.0 and not np.allclose(rep.stats.var, 1.0)
-    mem = policy_controller(rep.params, rep.stats.mean, rep.stats.var, config["env"]["gain_max"],
-                            hidden=tuple(config["ppo"]["hidden"]), activation=config["ppo"]["activation"],
-                            init_sigma=config["ppo"]["init_sigma"])
-    tp = build(TrainSettings(n_points=21, delay=0.5, max_delay_steps=20))[1].traffic  # the run's nominal plant
-    hs = {}
-    for amp in (0.004, 0.012):
-        rho, v = paper_initial_condition(tp, amplitude=amp)
-        plant = initial_state(tp, rho, v)
-        obs = Observation(rho=plant.rho, v=plant.v, h_prev=plant.h_prev * 1.01, t=jnp.asarray(0.0), sent=plant.sent)
-        key = jax.random.PRNGKey(0)
-        h_loaded, _ = ctrl.act(ctrl.init(obs, tp), obs, tp, key)
-        h_mem, _ = mem.act(mem.init(obs, tp), obs, tp, key)
-        np.testing.assert_array_equal(np.asarray(h_loaded), np.asarray(h_mem))
-        hs[amp] = np.asarray(h_loaded)
-    assert not np.allclose(hs[0.004], hs[0.012])  # the actions depend on the state (not trivially equal)
-    with pytest.raises(ValueError, match="seed"):
-        load_policy(run, seed=3)
+    rt = runs["roundtrip"]
+    assert rt["identical"] == [True, True]  # load_policy(run) == in-memory policy, bit for bit
+    assert rt["stats_trained"]  # the observation statistics were part of the round trip, not defaults
+    assert not np.allclose(rt["h"][0], rt["h"][1])  # the actions depend on the state
+    assert rt["bad_seed_rejected"]
 
 
 def test_cli_help_documents_every_flag(capsys):
@@ -292,20 +341,6 @@ print("RESULT " + json.dumps({
     "final_reward": summary["final_eval"]["final_reward"],
 }))
 """
-
-
-@pytest.fixture(scope="module")
-def two_device_proc():
-    """The two-device training, started in a subprocess before the in-process runs (it overlaps them)."""
-    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2", "JAX_PLATFORMS": "cpu"}
-    argv = TINY[:]
-    argv[argv.index("--num-envs") + 1] = "4"  # 2 environments per device
-    proc = subprocess.Popen([sys.executable, "-c", TWO_DEVICES, json.dumps(argv)], cwd=REPO, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    yield proc
-    if proc.poll() is None:
-        proc.kill()
-        proc.communicate()
 
 
 def test_two_cpu_devices(two_device_proc):

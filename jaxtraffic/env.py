@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from jaxtraffic import delay as delay_buffer
 from jaxtraffic import metrics as M
 from jaxtraffic.controllers import Observation, gain_law, saturate
 from jaxtraffic.params import TrafficParams, equilibrium
@@ -106,6 +107,12 @@ def action_to_gains(action: Array, params: EnvParams) -> Array:
 
 def reset(key: Array, params: EnvParams) -> tuple[Array, EnvState]:
     """Draw an episode (initial condition, plant delay and alpha) and return (obs, state)."""
+    return _reset(key, params, None)
+
+
+def _reset(key: Array, params: EnvParams, sent: delay_buffer.DelayBuffer | None) -> tuple[Array, EnvState]:
+    """``reset``; with ``sent`` given, its storage is reused (restarted in O(n)) instead of a new
+    (capacity x n) buffer being filled, which keeps the auto-reset inside ``step`` cheap."""
     k_amp, k_wn, k_ph, k_d, k_a = jax.random.split(key, 5)
     tp = params.traffic
     amp = jax.random.uniform(k_amp, minval=params.amp_min, maxval=params.amp_max)
@@ -117,7 +124,10 @@ def reset(key: Array, params: EnvParams) -> tuple[Array, EnvState]:
     alpha = jax.random.uniform(k_a, minval=params.alpha_min, maxval=params.alpha_max)
     plant_params = tp.replace(delay=delay, alpha=alpha)
     rho0, v0 = paper_initial_condition(tp, amp, wn.astype(jnp.float32), phase)
-    plant = initial_state(plant_params, rho0, v0)
+    plant = initial_state(plant_params, rho0, v0) if sent is None else PlantState(
+        rho=rho0, v=v0, sent=delay_buffer.restart(sent, jnp.full_like(rho0, tp.h_bar)),
+        h_prev=jnp.full_like(rho0, tp.h_bar), step=jnp.zeros((), jnp.int32), diverged=jnp.zeros((), bool),
+        diverged_step=jnp.full((), -1, jnp.int32))
     state = EnvState(plant=plant, plant_params=plant_params, t=jnp.zeros((), jnp.int32))
     return observe(plant, tp), state
 
@@ -143,9 +153,12 @@ def step(key: Array, state: EnvState, action: Array, params: EnvParams):
     truncated = (t >= params.horizon) & ~terminated
     done = terminated | truncated
     terminal_obs = observe(plant, tp)
-    obs_reset, state_reset = reset(k_reset, params)
+    obs_reset, state_reset = _reset(k_reset, params, plant.sent)
     new_state = EnvState(plant=plant, plant_params=state.plant_params, t=t)
     new_state = jax.tree.map(lambda a, b: jnp.where(done, a, b), state_reset, new_state)
+    # both branches share the buffer storage: select only its O(n) bookkeeping, never the data
+    new_state = new_state.replace(plant=new_state.plant.replace(
+        sent=new_state.plant.sent.replace(data=plant.sent.data)))
     obs = jnp.where(done, obs_reset, terminal_obs)
     info = {"terminal_obs": terminal_obs, "truncated": truncated, "terminated": terminated, "gains": gains}
     return obs, new_state, r, done, info

@@ -157,3 +157,31 @@ def test_action_to_gains_bounded():
 def test_make_env_params_rejects_bad_ranges(kw, match):
     with pytest.raises(ValueError, match=match):
         E.make_env_params(TP, **kw)
+
+
+def test_auto_reset_forgets_the_previous_episodes_inputs():
+    """After an auto-reset the plant must receive h_bar for its first d steps, not the inputs the
+    previous episode still had in flight (the reset restarts the buffer without rewriting it)."""
+    from jaxtraffic import delay as delay_buffer
+
+    tp = TrafficParams(n_points=21, L=500.0, delay=1.0, max_delay_steps=20)
+    ep = E.make_env_params(tp, horizon=15)
+    d = int(round(1.0 / tp.dt))
+    _, state = E.reset(jax.random.PRNGKey(0), ep)
+    step = jax.jit(E.step)
+    big = jnp.array([0.0, 0.0, 3.0])  # strong density feedback: sent h differs from h_bar
+    for i in range(15):
+        _, state, _, done, _ = step(jax.random.PRNGKey(i), state, big, ep)
+    assert bool(done) and int(state.t) == 0
+    sent = state.plant.sent
+    # the old storage still holds the previous episode's (non-nominal) inputs ...
+    assert float(jnp.max(jnp.abs(sent.data - tp.h_bar))) > 1e-3
+    # ... but every delayed read of the new episode returns h_bar until d inputs have been sent
+    for k in range(d + 1):
+        np.testing.assert_array_equal(np.asarray(delay_buffer.read(sent, k)), np.full(21, tp.h_bar, np.float32))
+    for i in range(d - 1):
+        _, state, _, _, _ = step(jax.random.PRNGKey(100 + i), state, big, ep)
+        np.testing.assert_array_equal(np.asarray(delay_buffer.read(state.plant.sent, d)),
+                                      np.full(21, tp.h_bar, np.float32))
+    # the newest entry is this episode's own input, not a stale one
+    assert float(jnp.max(jnp.abs(delay_buffer.read(state.plant.sent, 0) - state.plant.h_prev))) == 0.0

@@ -31,10 +31,9 @@ import numpy as np
 from jaxtraffic import checkpoint as ckpt
 from jaxtraffic import env as E
 from jaxtraffic import ppo
-from jaxtraffic.controllers import Controller
 from jaxtraffic.networks import PAPER_HIDDEN, SMALL_HIDDEN
 from jaxtraffic.params import TrafficParams
-from jaxtraffic.policy import PolicySettings, _policy_act_fn
+from jaxtraffic.policy import policy_controller
 from jaxtraffic.rollout import paper_initial_condition, simulate_batch
 
 CURVE_FIELDS = ["update", "env_steps", "wall_s", "mean_reward", "eval_reward", "eval_reward_min",
@@ -137,13 +136,12 @@ def make_evaluator(cfg: ppo.PPOConfig, env_params: E.EnvParams, eval_steps: int)
     """
     plant = env_params.traffic.replace(alpha_noise=0.0)
     rho0, v0 = paper_initial_condition(plant)
-    act = _policy_act_fn(tuple(cfg.hidden), cfg.activation, float(cfg.init_sigma), False)
 
     def evaluate(runner: ppo.Runner) -> dict:
-        rep = ppo.replicated(runner)
-        settings = PolicySettings(params=rep.params, obs_mean=rep.stats.mean, obs_var=rep.stats.var,
-                                  gain_max=jnp.full((cfg.num_seeds,), env_params.gain_max, float))
-        ctrl = Controller(settings=settings, act_fn=act, name="ppo")
+        rep = ppo.replicated(runner)  # settings with a leading seed axis: one batched rollout
+        ctrl = policy_controller(rep.params, rep.stats.mean, rep.stats.var,
+                                 jnp.full((cfg.num_seeds,), env_params.gain_max), hidden=tuple(cfg.hidden),
+                                 activation=cfg.activation, init_sigma=cfg.init_sigma)
         res = simulate_batch(plant, ctrl, n_steps=eval_steps, rho0=rho0, v0=v0, batch_controller=True)
         return {k: np.asarray(v) for k, v in res.metrics.items()}
 

@@ -63,6 +63,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="initial wavenumber LO,HI (integers)")
     g.add_argument("--phase-max", type=float, default=d.phase_max, help="initial phase ~ U(0, phase_max) rad")
     g.add_argument("--gain-max", type=float, default=d.gain_max, help="|eta_i| bound (normalised gains)")
+    g.add_argument("--gain-filter", type=float, default=d.gain_filter,
+                   help="applied gains move this fraction of the way to the policy's gains each step "
+                   "(first-order filter, time constant ~ dt/k); 1: applied directly (the paper)")
+    g.add_argument("--accel-weight", type=float, default=d.accel_weight,
+                   help="training reward = paper reward - w * sum_i (rho_i/rho_bar) a_i^2 (a: material "
+                   "acceleration, m/s^2; the acceleration part of J_comfort), w in s^4/m^2; 0: the paper's reward")
     g = p.add_argument_group("PPO")
     g.add_argument("--num-envs", type=int, default=d.num_envs, help="parallel environments per seed")
     g.add_argument("--num-steps", type=int, default=d.num_steps, help="rollout steps per update (100 = 10 s)")

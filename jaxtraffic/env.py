@@ -4,12 +4,17 @@ Pure functions ``reset(key, params) -> (obs, state)`` and
 ``step(key, state, action, params) -> (obs, state, reward, done, info)`` over ``flax.struct``
 pytrees, so a batch of environments is a ``vmap`` and a batch of scenarios a ``vmap`` over params.
 
-* Observation: [rho/rho_bar - 1, v/v_bar - 1, h_prev/h_bar - 1] on the grid, shape (3 n,),
-  normalised by the nominal equilibrium (dimensionless).
-* Action: three unbounded reals ``a``; the gains are eta = gain_max * tanh(a), applied to
-  normalised deviations by ``controllers.gain_law`` (a bounded symmetric range, MODEL.md 9).
+* Observation: [rho/rho_bar - 1, v/v_bar - 1, h_prev/h_bar - 1] on the grid, normalised by the
+  nominal equilibrium (dimensionless), then the gains applied at the previous step / gain_max:
+  shape (3 n + 3,).
+* Action: three unbounded reals ``a``; the policy's gains are gain_max * tanh(a) (a bounded
+  symmetric range, MODEL.md 9). The gains applied move a fraction ``gain_filter`` of the way from
+  the previous step's gains to them (``filter_gains``; 1: applied directly, as in the paper; the
+  gains start at 0, i.e. h = h_bar) and act on normalised deviations through
+  ``controllers.gain_law``.
 * Reward: the paper's r = -sum_i [(rho~_i/rho_bar)^2 + (v~_i/v_bar)^2] of the state after the
-  step (dimensionless).
+  step (dimensionless), minus ``accel_weight`` times the step's ``acceleration_cost`` (the
+  acceleration part of the J_comfort integrand; 0 by default here, i.e. the paper's reward).
 * Episodes last ``horizon`` steps and end by *truncation* (``info["truncated"]``: bootstrap the
   value of ``info["terminal_obs"]``). A plant that leaves the physical region *terminates* with
   reward ``-diverge_penalty``. ``step`` resets finished environments itself.
@@ -55,6 +60,8 @@ class EnvParams:
     alpha_min: float = 0.15
     alpha_max: float = 0.15
     diverge_penalty: float = 100.0
+    accel_weight: float = 0.0  # s^4/m^2; 0: the paper's reward
+    gain_filter: float = 1.0  # in (0, 1]; 1: the policy's gains are applied directly
 
 
 @struct.dataclass
@@ -62,6 +69,7 @@ class EnvState:
     plant: PlantState
     plant_params: TrafficParams  # this episode's plant (randomised delay / alpha)
     t: Array  # step within the episode
+    gains: Array  # gains applied at the previous step, shape (3,) (dimensionless)
 
 
 def make_env_params(traffic: TrafficParams | None = None, **kwargs) -> EnvParams:
@@ -80,13 +88,15 @@ def make_env_params(traffic: TrafficParams | None = None, **kwargs) -> EnvParams
         raise ValueError(f"delay_max={ep.delay_max} s exceeds the buffer ({traffic.max_delay_steps} steps)")
     if not (0.0 <= ep.alpha_min and ep.alpha_max <= 1.0):
         raise ValueError("alpha range must lie in [0, 1]")
+    if not 0.0 < ep.gain_filter <= 1.0:
+        raise ValueError(f"gain_filter must lie in (0, 1], got {ep.gain_filter}")
     if ep.horizon < 1:
         raise ValueError(f"horizon must be >= 1 step, got {ep.horizon}")
     return ep
 
 
 def obs_size(params: EnvParams) -> int:
-    return 3 * params.traffic.n_points
+    return 3 * params.traffic.n_points + 3
 
 
 def obs_vector(rho: Array, v: Array, h_prev: Array, nominal: TrafficParams) -> Array:
@@ -95,14 +105,27 @@ def obs_vector(rho: Array, v: Array, h_prev: Array, nominal: TrafficParams) -> A
     return jnp.concatenate([rho / rho_bar - 1.0, v / v_bar - 1.0, h_prev / nominal.h_bar - 1.0])
 
 
-def observe(plant: PlantState, nominal: TrafficParams) -> Array:
-    """Normalised observation vector of a plant state, shape (3 n_points,)."""
-    return obs_vector(plant.rho, plant.v, plant.h_prev, nominal)
+def policy_input(rho: Array, v: Array, h_prev: Array, gains_prev: Array, nominal: TrafficParams,
+                 gain_max: Array | float) -> Array:
+    """The policy's observation: ``obs_vector`` followed by gains_prev / gain_max, shape (3 n + 3,)."""
+    chex.assert_shape(gains_prev, (3,))
+    return jnp.concatenate([obs_vector(rho, v, h_prev, nominal), gains_prev / gain_max])
+
+
+def observe(plant: PlantState, gains_prev: Array, params: EnvParams) -> Array:
+    """Observation of a plant state whose last applied gains were ``gains_prev``, shape (3 n + 3,)."""
+    return policy_input(plant.rho, plant.v, plant.h_prev, gains_prev, params.traffic, params.gain_max)
 
 
 def action_to_gains(action: Array, params: EnvParams) -> Array:
-    """Gains eta = gain_max * tanh(action), shape (3,)."""
+    """The policy's gains eta = gain_max * tanh(action), shape (3,)."""
     return params.gain_max * jnp.tanh(action)
+
+
+def filter_gains(gains_prev: Array, target: Array, gain_filter: Array | float) -> Array:
+    """First-order filter: gains_prev + gain_filter (target - gains_prev). With gain_filter = k the
+    applied gains follow the policy's with a time constant of about dt / k."""
+    return gains_prev + gain_filter * (target - gains_prev)
 
 
 def reset(key: Array, params: EnvParams) -> tuple[Array, EnvState]:
@@ -128,33 +151,48 @@ def _reset(key: Array, params: EnvParams, sent: delay_buffer.DelayBuffer | None)
         rho=rho0, v=v0, sent=delay_buffer.restart(sent, jnp.full_like(rho0, tp.h_bar)),
         h_prev=jnp.full_like(rho0, tp.h_bar), step=jnp.zeros((), jnp.int32), diverged=jnp.zeros((), bool),
         diverged_step=jnp.full((), -1, jnp.int32))
-    state = EnvState(plant=plant, plant_params=plant_params, t=jnp.zeros((), jnp.int32))
-    return observe(plant, tp), state
+    gains = jnp.zeros((3,), rho0.dtype)
+    state = EnvState(plant=plant, plant_params=plant_params, t=jnp.zeros((), jnp.int32), gains=gains)
+    return observe(plant, gains, params), state
+
+
+def acceleration_cost(before: PlantState, after: PlantState, nominal: TrafficParams) -> Array:
+    """sum_i (rho_i / rho_bar) a_i^2 over one step, m^2/s^4: the acceleration part of the J_comfort
+    integrand (MODEL.md section 10), with a = v_t + v v_x as in ``metrics.update_metrics``.
+
+    The jerk part (a_t^2) is left out on purpose: under the Gaussian exploration noise of training
+    the gains change every step, and the jerk of that noise dwarfs everything else in the reward.
+    """
+    rho_bar, _ = equilibrium(nominal)
+    v = before.v
+    a = (after.v - v) / nominal.dt + v * M.spatial_gradient(v, nominal.dx)
+    return jnp.sum(before.rho / rho_bar * a * a, axis=-1)
 
 
 def step(key: Array, state: EnvState, action: Array, params: EnvParams):
     """Apply the gains ``action`` for one dt; returns (obs, state, reward, done, info).
 
     info: ``terminal_obs`` (observation before any reset), ``truncated`` and ``terminated``
-    (bool), ``gains`` (shape (3,)).
+    (bool), ``gains`` (applied, shape (3,)).
     """
     chex.assert_shape(action, (3,))
     k_plant, k_reset = jax.random.split(key)
     tp = params.traffic
     rho_bar, v_bar = equilibrium(tp)
-    gains = action_to_gains(action, params)
+    gains = filter_gains(state.gains, action_to_gains(action, params), params.gain_filter)
     p = state.plant
     obs_struct = Observation(rho=p.rho, v=p.v, h_prev=p.h_prev, t=p.step * tp.dt, sent=p.sent)
     h = saturate(gain_law(gains, obs_struct, tp), tp).astype(p.rho.dtype)
     plant = plant_step(p, h, state.plant_params, k_plant)
     terminated = plant.diverged
-    r = jnp.where(terminated, -params.diverge_penalty, M.reward(plant.rho, plant.v, rho_bar, v_bar))
+    r = M.reward(plant.rho, plant.v, rho_bar, v_bar) - params.accel_weight * acceleration_cost(p, plant, tp)
+    r = jnp.where(terminated, -params.diverge_penalty, r)
     t = state.t + 1
     truncated = (t >= params.horizon) & ~terminated
     done = terminated | truncated
-    terminal_obs = observe(plant, tp)
+    terminal_obs = observe(plant, gains, params)
     obs_reset, state_reset = _reset(k_reset, params, plant.sent)
-    new_state = EnvState(plant=plant, plant_params=state.plant_params, t=t)
+    new_state = EnvState(plant=plant, plant_params=state.plant_params, t=t, gains=gains)
     new_state = jax.tree.map(lambda a, b: jnp.where(done, a, b), state_reset, new_state)
     # both branches share the buffer storage: select only its O(n) bookkeeping, never the data
     new_state = new_state.replace(plant=new_state.plant.replace(

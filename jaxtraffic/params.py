@@ -85,8 +85,11 @@ class TrafficParams:
 
 
 def _concrete(value: object) -> np.ndarray | None:
-    """``value`` as a float numpy array, or None if it is a tracer or not numeric."""
-    if isinstance(value, jax.core.Tracer):
+    """``value`` as a float numpy array, or None if it is a JAX array (a tracer, or a device array
+    that JAX itself rebuilds the struct around, e.g. when dispatching ``pmap``: reading it back
+    would synchronise with the device there, and can deadlock) or not numeric. Python numbers and
+    numpy arrays, what users pass, are validated; ``stack_params`` validates before converting."""
+    if isinstance(value, jax.Array):
         return None
     try:
         return np.asarray(value, dtype=np.float64)

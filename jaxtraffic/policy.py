@@ -2,7 +2,8 @@
 
 ``policy_controller`` wraps network parameters and observation statistics; ``load_policy``
 turns a run directory written by ``train.py`` into a controller (deterministic gains: the mean
-of the Gaussian, squashed by ``gain_max * tanh``).
+of the Gaussian, squashed by ``gain_max * tanh``, then filtered like in the environment, with the
+applied gains as the controller state).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from jaxtraffic.controllers import Controller, gain_law
-from jaxtraffic.env import obs_vector
+from jaxtraffic.env import filter_gains, policy_input
 from jaxtraffic.networks import ActorCritic
 
 Array = jax.Array
@@ -25,12 +26,13 @@ Array = jax.Array
 @struct.dataclass
 class PolicySettings:
     """Traced settings of a policy controller: network parameters, observation mean/variance
-    (shape (3 n,)) and the gain bound (dimensionless)."""
+    (shape (3 n + 3,)), the gain bound and the gain filter (dimensionless, ``env.filter_gains``)."""
 
     params: Any
     obs_mean: Array
     obs_var: Array
     gain_max: Array
+    gain_filter: Array
 
 
 def policy_gains(settings: PolicySettings, x: Array, network: ActorCritic) -> tuple[Array, Array]:
@@ -44,27 +46,34 @@ def policy_gains(settings: PolicySettings, x: Array, network: ActorCritic) -> tu
 def _policy_act_fn(hidden: tuple, activation: str, init_sigma: float, stochastic: bool):
     network = ActorCritic(hidden=hidden, activation=activation, init_sigma=init_sigma)
 
-    def act(settings: PolicySettings, cstate, obs, nominal, key):
-        x = obs_vector(obs.rho, obs.v, obs.h_prev, nominal)
+    def act(settings: PolicySettings, gains_prev, obs, nominal, key):
+        x = policy_input(obs.rho, obs.v, obs.h_prev, gains_prev, nominal, settings.gain_max)
         if stochastic:
             xn = jnp.clip((x - settings.obs_mean) / jnp.sqrt(settings.obs_var + 1e-8), -10.0, 10.0)
             mean, sigma, _ = network.apply(settings.params, xn)
-            gains = settings.gain_max * jnp.tanh(mean + sigma * jax.random.normal(key, mean.shape))
+            target = settings.gain_max * jnp.tanh(mean + sigma * jax.random.normal(key, mean.shape))
         else:
-            gains, _ = policy_gains(settings, x, network)
-        return gain_law(gains, obs, nominal), cstate
+            target, _ = policy_gains(settings, x, network)
+        gains = filter_gains(gains_prev, target, settings.gain_filter)
+        return gain_law(gains, obs, nominal), gains
 
     return act
 
 
+def _zero_gains(settings: PolicySettings, obs, nominal) -> Array:
+    return jnp.zeros((3,), obs.rho.dtype)
+
+
 def policy_controller(params: Any, obs_mean: Array, obs_var: Array, gain_max: float, *,
                       hidden: tuple, activation: str = "tanh", init_sigma: float = 0.5,
-                      stochastic: bool = False) -> Controller:
-    """Controller applying the policy's gains through the paper's three-gain law."""
+                      stochastic: bool = False, gain_filter: float | Array = 1.0) -> Controller:
+    """Controller applying the policy's (filtered) gains through the paper's three-gain law;
+    its state is the gains applied at the previous step (zero at the start)."""
     settings = PolicySettings(params=params, obs_mean=jnp.asarray(obs_mean), obs_var=jnp.asarray(obs_var),
-                              gain_max=jnp.asarray(gain_max, float))
+                              gain_max=jnp.asarray(gain_max, float),
+                              gain_filter=jnp.broadcast_to(jnp.asarray(gain_filter, float), jnp.shape(gain_max)))
     act = _policy_act_fn(tuple(hidden), activation, float(init_sigma), stochastic)
-    return Controller(settings=settings, act_fn=act, name="ppo")
+    return Controller(settings=settings, act_fn=act, init_fn=_zero_gains, name="ppo")
 
 
 def load_policy(run_dir: str | Path, seed: int | None = None, stochastic: bool = False
@@ -87,5 +96,5 @@ def load_policy(run_dir: str | Path, seed: int | None = None, stochastic: bool =
     controller = policy_controller(
         jax.tree.map(lambda x: jnp.asarray(x[seed]), saved.params), saved.obs_mean[seed], saved.obs_var[seed],
         config["env"]["gain_max"], hidden=tuple(ppo_cfg["hidden"]), activation=ppo_cfg["activation"],
-        init_sigma=ppo_cfg["init_sigma"], stochastic=stochastic)
+        init_sigma=ppo_cfg["init_sigma"], stochastic=stochastic, gain_filter=config["env"].get("gain_filter", 1.0))
     return controller, config

@@ -64,6 +64,8 @@ class TrainSettings:
     phase_max: float = 0.0
     horizon_s: float = 100.0
     gain_max: float = 3.0
+    accel_weight: float = 0.0
+    gain_filter: float = 0.2
     # PPO
     num_envs: int = 256
     num_steps: int = 100
@@ -106,7 +108,8 @@ def build(s: TrainSettings) -> tuple[ppo.PPOConfig, E.EnvParams]:
         traffic, horizon=max(1, round(s.horizon_s / s.dt)), gain_max=s.gain_max, amp_min=s.amp_range[0],
         amp_max=s.amp_range[1], wavenumber_min=int(s.wavenumber_range[0]),
         wavenumber_max=int(s.wavenumber_range[1]), phase_max=s.phase_max, delay_min=d_lo, delay_max=d_hi,
-        alpha_min=a_lo, alpha_max=a_hi)
+        alpha_min=a_lo, alpha_max=a_hi, accel_weight=s.accel_weight,
+        gain_filter=s.gain_filter)
     cfg = ppo.PPOConfig(
         num_envs=s.num_envs, num_steps=s.num_steps, update_epochs=s.update_epochs,
         num_minibatches=s.num_minibatches, updates_per_chunk=s.updates_per_chunk, num_seeds=s.seeds,
@@ -123,7 +126,8 @@ def config_dict(s: TrainSettings, cfg: ppo.PPOConfig, env_params: E.EnvParams) -
         "delay": s.delay, "alpha": s.alpha, "n_points": s.n_points, "dt": s.dt,
         "max_delay_steps": s.max_delay_steps,
         "ppo": {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)},
-        "env": {"gain_max": s.gain_max, "horizon_steps": int(env_params.horizon)},
+        "env": {"gain_max": s.gain_max, "gain_filter": s.gain_filter, "accel_weight": s.accel_weight,
+                "horizon_steps": int(env_params.horizon)},
         "devices": [str(d) for d in jax.devices()],
         "jax_version": jax.__version__,
     }
@@ -141,7 +145,8 @@ def make_evaluator(cfg: ppo.PPOConfig, env_params: E.EnvParams, eval_steps: int)
         rep = ppo.replicated(runner)  # settings with a leading seed axis: one batched rollout
         ctrl = policy_controller(rep.params, rep.stats.mean, rep.stats.var,
                                  jnp.full((cfg.num_seeds,), env_params.gain_max), hidden=tuple(cfg.hidden),
-                                 activation=cfg.activation, init_sigma=cfg.init_sigma)
+                                 activation=cfg.activation, init_sigma=cfg.init_sigma,
+                                 gain_filter=jnp.full((cfg.num_seeds,), env_params.gain_filter))
         res = simulate_batch(plant, ctrl, n_steps=eval_steps, rho0=rho0, v0=v0, batch_controller=True)
         return {k: np.asarray(v) for k, v in res.metrics.items()}
 

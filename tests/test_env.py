@@ -29,12 +29,14 @@ def _params(**kw) -> E.EnvParams:
 def test_reset_step_shapes_and_reward():
     ep = _params()
     obs, st = reset_jit(jax.random.PRNGKey(0), ep)
-    assert obs.shape == (3 * N,) == (E.obs_size(ep),)
+    assert obs.shape == (3 * N + 3,) == (E.obs_size(ep),)
+    np.testing.assert_array_equal(obs[3 * N:], 0.0)  # no gains applied yet
     assert E.GainEnv.action_size == 3
     assert int(st.t) == 0 and st.plant.rho.shape == (N,)
     obs2, st2, r, done, info = step_jit(jax.random.PRNGKey(1), st, jnp.array([0.3, -0.2, 0.1]), ep)
-    assert obs2.shape == (3 * N,) and r.shape == () and done.shape == () and done.dtype == jnp.bool_
-    assert info["terminal_obs"].shape == (3 * N,) and info["gains"].shape == (3,)
+    assert obs2.shape == (3 * N + 3,) and r.shape == () and done.shape == () and done.dtype == jnp.bool_
+    assert info["terminal_obs"].shape == (3 * N + 3,) and info["gains"].shape == (3,)
+    np.testing.assert_allclose(obs2[3 * N:], info["gains"] / ep.gain_max, rtol=1e-6)
     assert info["truncated"].dtype == jnp.bool_ and info["terminated"].dtype == jnp.bool_
     assert int(st2.t) == 1 and not bool(done)
     # no reset: obs is the new state's (equal up to XLA fusion rounding)
@@ -49,7 +51,7 @@ def test_reset_step_shapes_and_reward():
 def test_equilibrium_gives_zero_observation_and_stays():
     rho, v = equilibrium_state(TP)
     plant = initial_state(TP, rho, v)
-    np.testing.assert_allclose(E.observe(plant, TP), np.zeros(3 * N), atol=1e-6)
+    np.testing.assert_allclose(E.observe(plant, jnp.zeros(3), _params()), np.zeros(3 * N + 3), atol=1e-6)
     # zero amplitude: reset is the equilibrium; zero gains keep it there with reward ~ 0
     ep = _params(amp_min=0.0, amp_max=0.0)
     obs, st = reset_jit(jax.random.PRNGKey(3), ep)
@@ -153,6 +155,8 @@ def test_action_to_gains_bounded():
     ({"delay_min": 3.0, "delay_max": 2.0}, "delay_min"),
     ({"delay_min": 1.0, "delay_max": 20.0}, "buffer"),
     ({"horizon": 0}, "horizon"),
+    ({"gain_filter": 0.0}, "gain_filter"),
+    ({"gain_filter": 1.5}, "gain_filter"),
 ])
 def test_make_env_params_rejects_bad_ranges(kw, match):
     with pytest.raises(ValueError, match=match):
@@ -185,3 +189,52 @@ def test_auto_reset_forgets_the_previous_episodes_inputs():
                                       np.full(21, tp.h_bar, np.float32))
     # the newest entry is this episode's own input, not a stale one
     assert float(jnp.max(jnp.abs(delay_buffer.read(state.plant.sent, 0) - state.plant.h_prev))) == 0.0
+
+
+def test_gain_filter_is_a_first_order_lag():
+    """With gain_filter k and a constant action, the applied gains after n steps are
+    target (1 - (1 - k)^n); k = 1 applies the policy's gains at once. A reset zeroes them."""
+    k = 0.2
+    ep = _params(gain_filter=k, horizon=8)
+    _, st = reset_jit(jax.random.PRNGKey(0), ep)
+    a = jnp.array([0.4, -0.7, 1.1])
+    target = np.asarray(E.action_to_gains(a, ep))
+    for n in range(1, 8):
+        obs, st, _, done, info = step_jit(jax.random.PRNGKey(n), st, a, ep)
+        np.testing.assert_allclose(info["gains"], target * (1 - (1 - k) ** n), rtol=1e-5)
+        np.testing.assert_allclose(obs[3 * N:], np.asarray(info["gains"]) / ep.gain_max, rtol=1e-6)
+        assert not bool(done)
+    # the state the plant received is the gain law with the *applied* gains, not the policy's
+    obs, st, _, done, info = step_jit(jax.random.PRNGKey(9), st, a, ep)
+    assert bool(done) and float(jnp.max(jnp.abs(st.gains))) == 0.0 and float(jnp.max(jnp.abs(obs[3 * N:]))) == 0.0
+    _, _, _, _, info1 = step_jit(jax.random.PRNGKey(1), reset_jit(jax.random.PRNGKey(0), _params())[1], a, _params())
+    np.testing.assert_allclose(info1["gains"], target, rtol=1e-6)
+
+
+def test_acceleration_cost_in_the_reward():
+    """accel_weight w subtracts w * sum_i (rho_i/rho_bar) a_i^2; the cost vanishes at the
+    equilibrium (a fixed point) and its acceleration is the one J_comfort integrates."""
+    from jaxtraffic.rollout import simulate
+
+    w = 0.7
+    _, st = reset_jit(jax.random.PRNGKey(0), _params())
+    a = jnp.array([0.2, 0.1, -0.3])
+    _, st0, r0, _, _ = step_jit(jax.random.PRNGKey(1), st, a, _params())
+    _, st1, r1, _, _ = step_jit(jax.random.PRNGKey(1), st, a, _params(accel_weight=w))
+    np.testing.assert_array_equal(st0.plant.rho, st1.plant.rho)  # the weight changes the reward only
+    cost = float(E.acceleration_cost(st.plant, st0.plant, TP))
+    assert cost > 0.0
+    np.testing.assert_allclose(float(r1), float(r0) - w * cost, rtol=1e-5)
+    rho_e, v_e = equilibrium_state(TP)
+    eq = initial_state(TP, rho_e, v_e)
+    flat = _params(amp_min=0.0, amp_max=0.0)
+    _, eq1, _, _, _ = step_jit(jax.random.PRNGKey(2), reset_jit(jax.random.PRNGKey(0), flat)[1], jnp.zeros(3), flat)
+    assert float(E.acceleration_cost(eq, eq1.plant, TP)) < 1e-9
+    # one open-loop step from the same state: J_comfort = 1000 dt * trapz(rho a^2) (a_t = 0 at the first step),
+    # and the cost is the node sum of rho/rho_bar a^2: equal up to the halved end nodes of the trapezoid
+    _, open_st, _, _, _ = step_jit(jax.random.PRNGKey(1), st, jnp.zeros(3), _params())
+    res = simulate(TP, n_steps=1, rho0=st.plant.rho, v0=st.plant.v)
+    rho_bar, _ = equilibrium(TP)
+    open_cost = float(E.acceleration_cost(st.plant, open_st.plant, TP))
+    j_from_cost = open_cost * float(rho_bar) * 1000.0 * TP.dt * TP.dx
+    np.testing.assert_allclose(float(res.metrics["J_comfort"]), j_from_cost, rtol=0.1)

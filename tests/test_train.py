@@ -118,7 +118,7 @@ def _round_trip(run: Path, runner) -> dict:
     rep = jax.tree.map(lambda x: x[0, 0], runner)  # device 0, seed 0
     mem = policy_controller(rep.params, rep.stats.mean, rep.stats.var, config["env"]["gain_max"],
                             hidden=tuple(config["ppo"]["hidden"]), activation=config["ppo"]["activation"],
-                            init_sigma=config["ppo"]["init_sigma"])
+                            init_sigma=config["ppo"]["init_sigma"], gain_filter=config["env"]["gain_filter"])
     tp = build(TrainSettings(n_points=21, delay=0.5, max_delay_steps=20))[1].traffic  # the run's nominal plant
     out = {"identical": [], "h": [], "stats_trained": bool(np.abs(rep.stats.mean).max() > 0
                                                            and not np.allclose(rep.stats.var, 1.0))}

@@ -1,0 +1,73 @@
+"""A policy as a controller (jaxtraffic/policy.py) against the training environment, tiny grid."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxtraffic import env as E
+from jaxtraffic.networks import ActorCritic
+from jaxtraffic.params import TrafficParams
+from jaxtraffic.policy import policy_controller
+from jaxtraffic.rollout import simulate
+
+TP = TrafficParams(n_points=21, delay=0.5)
+HIDDEN = (16,)
+STEPS = 40
+
+
+def _random_policy(ep: E.EnvParams, seed: int = 0):
+    """Network parameters perturbed away from the (near-zero-output) initialisation, and
+    observation statistics that are not the identity, so every part of the input path matters."""
+    net = ActorCritic(hidden=HIDDEN, init_sigma=0.3)
+    k_init, k_noise, k_mean, k_var = jax.random.split(jax.random.PRNGKey(seed), 4)
+    params = net.init(k_init, jnp.zeros((E.obs_size(ep),)))
+    leaves, tree = jax.tree.flatten(params)
+    keys = jax.random.split(k_noise, len(leaves))
+    noisy = [x + 0.5 * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys, strict=True)]
+    params = jax.tree.unflatten(tree, noisy)
+    mean = 0.01 * jax.random.normal(k_mean, (E.obs_size(ep),))
+    var = jax.random.uniform(k_var, (E.obs_size(ep),), minval=0.005, maxval=0.02)
+    return net, params, mean, var
+
+
+@pytest.mark.parametrize("gain_filter", [1.0, 0.3])
+def test_policy_controller_replays_the_environment(gain_filter):
+    """``simulate`` with the policy controller applies, step for step, the gains the environment
+    applies for the policy's deterministic action (same observation, same filter, same law), so
+    the evaluation of a trained policy is the rollout it was trained on."""
+    ep = E.make_env_params(TP, horizon=10 * STEPS, gain_max=2.0, gain_filter=gain_filter)
+    net, params, mean, var = _random_policy(ep)
+    obs, state = E.reset(jax.random.PRNGKey(0), ep)
+    step = jax.jit(E.step)
+    rho_env, gains_env = [], []
+    for n in range(STEPS):
+        mu, _, _ = net.apply(params, jnp.clip((obs - mean) / jnp.sqrt(var + 1e-8), -10.0, 10.0))
+        obs, state, _, done, info = step(jax.random.PRNGKey(n), state, mu, ep)
+        assert not bool(done)
+        rho_env.append(np.asarray(state.plant.rho))
+        gains_env.append(np.asarray(info["gains"]))
+    gains_env = np.array(gains_env)
+    assert np.ptp(gains_env, axis=0).min() > 1e-3  # the gains really vary along the rollout
+
+    ctrl = policy_controller(params, mean, var, 2.0, hidden=HIDDEN, init_sigma=0.3, gain_filter=gain_filter)
+    res = simulate(TP, ctrl, n_steps=STEPS, record_every=1)
+    np.testing.assert_allclose(res.trajectory.rho[1:], np.array(rho_env[:-1]), rtol=1e-5, atol=1e-8)
+    np.testing.assert_allclose(res.final.rho, rho_env[-1], rtol=1e-5, atol=1e-8)
+    np.testing.assert_allclose(res.controller_state, gains_env[-1], rtol=1e-4, atol=1e-6)
+
+
+def test_gain_filter_smooths_the_time_gap():
+    """A filtered policy changes the sent time gap less from step to step than the same policy
+    applied directly (the filter is a low-pass on the gains)."""
+    ep = E.make_env_params(TP, gain_max=2.0)
+    net, params, mean, var = _random_policy(ep, seed=3)
+
+    def step_changes(k: float) -> float:
+        ctrl = policy_controller(params, mean, var, 2.0, hidden=HIDDEN, init_sigma=0.3, gain_filter=k)
+        h = np.asarray(simulate(TP, ctrl, n_steps=STEPS, record_every=1).trajectory.h)
+        return float(np.abs(np.diff(h, axis=0)).mean())
+
+    assert step_changes(0.1) < 0.5 * step_changes(1.0)

@@ -158,14 +158,13 @@ def _reset(key: Array, params: EnvParams, sent: delay_buffer.DelayBuffer | None)
 
 def acceleration_cost(before: PlantState, after: PlantState, nominal: TrafficParams) -> Array:
     """sum_i (rho_i / rho_bar) a_i^2 over one step, m^2/s^4: the acceleration part of the J_comfort
-    integrand (MODEL.md section 10), with a = v_t + v v_x as in ``metrics.update_metrics``.
+    integrand (MODEL.md section 10), with a = ``metrics.material_acceleration`` (as J_comfort).
 
     The jerk part (a_t^2) is left out on purpose: under the Gaussian exploration noise of training
     the gains change every step, and the jerk of that noise dwarfs everything else in the reward.
     """
     rho_bar, _ = equilibrium(nominal)
-    v = before.v
-    a = (after.v - v) / nominal.dt + v * M.spatial_gradient(v, nominal.dx)
+    a = M.material_acceleration(before.v, after.v, nominal.dx, nominal.dt)
     return jnp.sum(before.rho / rho_bar * a * a, axis=-1)
 
 

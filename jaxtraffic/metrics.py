@@ -53,6 +53,11 @@ def physical_reward(rho: Array, v: Array, rho_bar: Array | float, v_bar: Array |
     return -jnp.sum(jnp.where(ok, terms, jnp.nan), axis=-1)
 
 
+def material_acceleration(v: Array, v_next: Array, dx: Array | float, dt: Array | float) -> Array:
+    """a = v_t + v v_x at t_n (m/s^2): forward difference in time, ``spatial_gradient`` in space."""
+    return (v_next - v) * (1.0 / dt) + v * spatial_gradient(v, dx)
+
+
 def fuel_rate(v: Array, a: Array) -> Array:
     """Fuel rate xi(v, a) = max(0, b0 + b1 v + b3 v^3 + b4 v a), in ml/s per vehicle."""
     return jnp.maximum(0.0, FUEL_B0 + FUEL_B1 * v + FUEL_B3 * v**3 + FUEL_B4 * v * a)
@@ -107,7 +112,7 @@ def update_metrics(
     value never enters).
     """
     inv_dt = 1.0 / dt
-    a = (v_next - v) * inv_dt + v * spatial_gradient(v, dx)
+    a = material_acceleration(v, v_next, dx, dt)
     a_prev = jnp.where(step == 0, a, acc.a_prev)
     a_t = (a - a_prev) * inv_dt
     w = (dt * VEH_PER_KM) * rho

@@ -19,6 +19,7 @@ from flax import struct
 from jaxtraffic.controllers import Controller, gain_law
 from jaxtraffic.env import filter_gains, policy_input
 from jaxtraffic.networks import ActorCritic
+from jaxtraffic.ppo import normalize_obs
 
 Array = jax.Array
 
@@ -35,11 +36,10 @@ class PolicySettings:
     gain_filter: Array
 
 
-def policy_gains(settings: PolicySettings, x: Array, network: ActorCritic) -> tuple[Array, Array]:
-    """(mean gains, sigma of the pre-squash action) for a raw observation vector ``x``."""
-    xn = jnp.clip((x - settings.obs_mean) / jnp.sqrt(settings.obs_var + 1e-8), -10.0, 10.0)
-    mean, sigma, _ = network.apply(settings.params, xn)
-    return settings.gain_max * jnp.tanh(mean), sigma
+def _policy_head(settings: PolicySettings, x: Array, network: ActorCritic) -> tuple[Array, Array]:
+    """(mean, sigma) of the pre-squash Gaussian action for a raw observation vector ``x``."""
+    mean, sigma, _ = network.apply(settings.params, normalize_obs(x, settings.obs_mean, settings.obs_var))
+    return mean, sigma
 
 
 @functools.cache
@@ -48,13 +48,10 @@ def _policy_act_fn(hidden: tuple, activation: str, init_sigma: float, stochastic
 
     def act(settings: PolicySettings, gains_prev, obs, nominal, key):
         x = policy_input(obs.rho, obs.v, obs.h_prev, gains_prev, nominal, settings.gain_max)
+        mean, sigma = _policy_head(settings, x, network)
         if stochastic:
-            xn = jnp.clip((x - settings.obs_mean) / jnp.sqrt(settings.obs_var + 1e-8), -10.0, 10.0)
-            mean, sigma, _ = network.apply(settings.params, xn)
-            target = settings.gain_max * jnp.tanh(mean + sigma * jax.random.normal(key, mean.shape))
-        else:
-            target, _ = policy_gains(settings, x, network)
-        gains = filter_gains(gains_prev, target, settings.gain_filter)
+            mean = mean + sigma * jax.random.normal(key, mean.shape)
+        gains = filter_gains(gains_prev, settings.gain_max * jnp.tanh(mean), settings.gain_filter)
         return gain_law(gains, obs, nominal), gains
 
     return act
@@ -92,9 +89,13 @@ def load_policy(run_dir: str | Path, seed: int | None = None, stochastic: bool =
     n_seeds = saved.obs_mean.shape[0]
     if not 0 <= seed < n_seeds:
         raise ValueError(f"seed {seed} not in run with {n_seeds} seeds")
+    expected = 3 * int(config["n_points"]) + 3
+    if saved.obs_mean.shape[-1] != expected or "gain_filter" not in config["env"]:
+        raise ValueError(f"{run_dir} was written by an older jaxtraffic (observation of {saved.obs_mean.shape[-1]} "
+                         f"values, expected {expected} with the applied gains): retrain it with train.py")
     ppo_cfg = config["ppo"]
     controller = policy_controller(
         jax.tree.map(lambda x: jnp.asarray(x[seed]), saved.params), saved.obs_mean[seed], saved.obs_var[seed],
         config["env"]["gain_max"], hidden=tuple(ppo_cfg["hidden"]), activation=ppo_cfg["activation"],
-        init_sigma=ppo_cfg["init_sigma"], stochastic=stochastic, gain_filter=config["env"].get("gain_filter", 1.0))
+        init_sigma=ppo_cfg["init_sigma"], stochastic=stochastic, gain_filter=config["env"]["gain_filter"])
     return controller, config

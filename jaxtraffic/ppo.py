@@ -65,6 +65,11 @@ class PPOConfig:
         return self.num_envs * self.num_steps
 
 
+def normalize_obs(x: Array, mean: Array, var: Array) -> Array:
+    """Observation normalised by running statistics, clipped to [-10, 10] (dimensionless)."""
+    return jnp.clip((x - mean) / jnp.sqrt(var + 1e-8), -10.0, 10.0)
+
+
 @struct.dataclass
 class RunningStats:
     """Running mean / variance of observations (parallel Welford update)."""
@@ -78,7 +83,7 @@ class RunningStats:
         return cls(jnp.zeros(size), jnp.ones(size), jnp.asarray(1e-4))
 
     def normalize(self, x: Array) -> Array:
-        return jnp.clip((x - self.mean) / jnp.sqrt(self.var + 1e-8), -10.0, 10.0)
+        return normalize_obs(x, self.mean, self.var)
 
     def update(self, batch_mean: Array, batch_var: Array, batch_count: Array) -> RunningStats:
         delta = batch_mean - self.mean

@@ -146,7 +146,7 @@ def make_evaluator(cfg: ppo.PPOConfig, env_params: E.EnvParams, eval_steps: int)
         ctrl = policy_controller(rep.params, rep.stats.mean, rep.stats.var,
                                  jnp.full((cfg.num_seeds,), env_params.gain_max), hidden=tuple(cfg.hidden),
                                  activation=cfg.activation, init_sigma=cfg.init_sigma,
-                                 gain_filter=jnp.full((cfg.num_seeds,), env_params.gain_filter))
+                                 gain_filter=env_params.gain_filter)
         res = simulate_batch(plant, ctrl, n_steps=eval_steps, rho0=rho0, v0=v0, batch_controller=True)
         return {k: np.asarray(v) for k, v in res.metrics.items()}
 

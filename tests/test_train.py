@@ -263,6 +263,19 @@ def test_checkpoint_round_trip_gives_identical_actions(runs):
     assert rt["bad_seed_rejected"]
 
 
+def test_load_policy_rejects_a_run_from_an_older_version(runs, tmp_path):
+    """A run whose config predates the gain filter (observation without the applied gains) gives a
+    clear error instead of a shape error deep inside the network."""
+    old = tmp_path / "old"
+    shutil.copytree(runs["A"], old)
+    config = json.loads((old / "config.json").read_text())
+    del config["env"]["gain_filter"]
+    (old / "config.json").write_text(json.dumps(config))
+    with pytest.raises(ValueError, match="older jaxtraffic"):
+        load_policy(old)
+    load_policy(runs["A"])  # the unmodified run loads
+
+
 def test_cli_help_documents_every_flag(capsys):
     with pytest.raises(SystemExit) as exc:
         train_cli.main(["--help"])

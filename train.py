@@ -69,6 +69,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--accel-weight", type=float, default=d.accel_weight,
                    help="training reward = paper reward - w * sum_i (rho_i/rho_bar) a_i^2 (a: material "
                    "acceleration, m/s^2; the acceleration part of J_comfort), w in s^4/m^2; 0: the paper's reward")
+    g.add_argument("--h-rate-weight", type=float, default=d.h_rate_weight,
+                   help="training reward -= w * sum_i ((h_i - h_prev_i)/h_bar)^2, the squared step change of "
+                   "the commanded time gap (dimensionless); 0: the paper's reward")
     g = p.add_argument_group("PPO")
     g.add_argument("--num-envs", type=int, default=d.num_envs, help="parallel environments per seed")
     g.add_argument("--num-steps", type=int, default=d.num_steps, help="rollout steps per update (100 = 10 s)")

@@ -62,6 +62,7 @@ class EnvParams:
     diverge_penalty: float = 100.0
     accel_weight: float = 0.0  # s^4/m^2; 0: the paper's reward
     gain_filter: float = 1.0  # in (0, 1]; 1: the policy's gains are applied directly
+    h_rate_weight: float = 0.0  # dimensionless; 0: the paper's reward
 
 
 @struct.dataclass
@@ -90,6 +91,8 @@ def make_env_params(traffic: TrafficParams | None = None, **kwargs) -> EnvParams
         raise ValueError("alpha range must lie in [0, 1]")
     if not 0.0 < ep.gain_filter <= 1.0:
         raise ValueError(f"gain_filter must lie in (0, 1], got {ep.gain_filter}")
+    if ep.h_rate_weight < 0.0 or ep.accel_weight < 0.0:
+        raise ValueError("h_rate_weight and accel_weight must be >= 0")
     if ep.horizon < 1:
         raise ValueError(f"horizon must be >= 1 step, got {ep.horizon}")
     return ep
@@ -168,6 +171,13 @@ def acceleration_cost(before: PlantState, after: PlantState, nominal: TrafficPar
     return jnp.sum(before.rho / rho_bar * a * a, axis=-1)
 
 
+def h_rate_cost(h_prev: Array, h: Array, h_bar: Array | float) -> Array:
+    """sum_i ((h_i - h_prev_i) / h_bar)^2: how much the commanded time gap moves in one step
+    (dimensionless). Unlike the acceleration, which the delay D postpones, it depends on this
+    step's action alone, so its credit is immediate."""
+    return jnp.sum(((h - h_prev) / h_bar) ** 2, axis=-1)
+
+
 def step(key: Array, state: EnvState, action: Array, params: EnvParams):
     """Apply the gains ``action`` for one dt; returns (obs, state, reward, done, info).
 
@@ -184,7 +194,8 @@ def step(key: Array, state: EnvState, action: Array, params: EnvParams):
     h = saturate(gain_law(gains, obs_struct, tp), tp).astype(p.rho.dtype)
     plant = plant_step(p, h, state.plant_params, k_plant)
     terminated = plant.diverged
-    r = M.reward(plant.rho, plant.v, rho_bar, v_bar) - params.accel_weight * acceleration_cost(p, plant, tp)
+    r = (M.reward(plant.rho, plant.v, rho_bar, v_bar) - params.accel_weight * acceleration_cost(p, plant, tp)
+         - params.h_rate_weight * h_rate_cost(p.h_prev, h, tp.h_bar))
     r = jnp.where(terminated, -params.diverge_penalty, r)
     t = state.t + 1
     truncated = (t >= params.horizon) & ~terminated

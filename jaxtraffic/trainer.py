@@ -11,7 +11,9 @@ policies); ``seconds_to_stop_rule`` records the first time it held. Ctrl-C saves
 completed chunk; ``resume`` continues from it exactly.
 
 Run directory: config.json, checkpoint.msgpack, learning_curve.csv, learning_curve.png,
-summary.json.
+summary.json. The curve's evaluation columns are means over seeds of the deterministic rollout:
+eval_reward (the paper's reward at its end, dimensionless), eval_J_comfort and eval_rho_L2 (final
+density L2 deviation, veh/km).
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ from jaxtraffic.policy import policy_controller
 from jaxtraffic.rollout import paper_initial_condition, simulate_batch
 
 CURVE_FIELDS = ["update", "env_steps", "wall_s", "mean_reward", "eval_reward", "eval_reward_min",
-                "eval_J_comfort", "eta1", "eta2", "eta3", "entropy", "approx_kl", "value_loss"]
+                "eval_J_comfort", "eval_rho_L2", "eta1", "eta2", "eta3", "entropy", "approx_kl", "value_loss"]
 
 
 @dataclass
@@ -66,6 +68,7 @@ class TrainSettings:
     gain_max: float = 3.0
     accel_weight: float = 0.0
     gain_filter: float = 0.2
+    h_rate_weight: float = 0.2
     # PPO
     num_envs: int = 256
     num_steps: int = 100
@@ -109,7 +112,7 @@ def build(s: TrainSettings) -> tuple[ppo.PPOConfig, E.EnvParams]:
         amp_max=s.amp_range[1], wavenumber_min=int(s.wavenumber_range[0]),
         wavenumber_max=int(s.wavenumber_range[1]), phase_max=s.phase_max, delay_min=d_lo, delay_max=d_hi,
         alpha_min=a_lo, alpha_max=a_hi, accel_weight=s.accel_weight,
-        gain_filter=s.gain_filter)
+        gain_filter=s.gain_filter, h_rate_weight=s.h_rate_weight)
     cfg = ppo.PPOConfig(
         num_envs=s.num_envs, num_steps=s.num_steps, update_epochs=s.update_epochs,
         num_minibatches=s.num_minibatches, updates_per_chunk=s.updates_per_chunk, num_seeds=s.seeds,
@@ -127,6 +130,7 @@ def config_dict(s: TrainSettings, cfg: ppo.PPOConfig, env_params: E.EnvParams) -
         "max_delay_steps": s.max_delay_steps,
         "ppo": {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)},
         "env": {"gain_max": s.gain_max, "gain_filter": s.gain_filter, "accel_weight": s.accel_weight,
+                "h_rate_weight": s.h_rate_weight,
                 "horizon_steps": int(env_params.horizon)},
         "devices": [str(d) for d in jax.devices()],
         "jax_version": jax.__version__,
@@ -233,7 +237,8 @@ def train(s: TrainSettings) -> Path:
             row = {"update": int(np.asarray(ppo.replicated(runner).update).max()), "env_steps": meta["env_steps"],
                    "wall_s": round(meta["wall_s"], 3), "mean_reward": float(m["mean_reward"][:, -1].mean()),
                    "eval_reward": float(ev.mean()), "eval_reward_min": float(ev.min()),
-                   "eval_J_comfort": float(last_eval["J_comfort"].mean())}
+                   "eval_J_comfort": float(last_eval["J_comfort"].mean()),
+                   "eval_rho_L2": float(last_eval["final_rho_L2"].mean()) * 1000.0}
             row.update({k: float(m[k][:, -1].mean()) for k in ("eta1", "eta2", "eta3", "entropy", "approx_kl",
                                                                "value_loss")})
             meta["rows"].append(row)

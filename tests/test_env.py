@@ -211,17 +211,24 @@ def test_gain_filter_is_a_first_order_lag():
     np.testing.assert_allclose(info1["gains"], target, rtol=1e-6)
 
 
+def _step_with_and_without(**penalty):
+    """One step from a reset state with the paper's reward and with ``penalty``: (state before, state after,
+    paper reward, penalised reward); checks that the penalty changes the reward only."""
+    _, st = reset_jit(jax.random.PRNGKey(0), _params())
+    a = jnp.array([0.2, 0.1, -0.3])
+    _, st0, r0, _, _ = step_jit(jax.random.PRNGKey(1), st, a, _params())
+    _, st1, r1, _, _ = step_jit(jax.random.PRNGKey(1), st, a, _params(**penalty))
+    np.testing.assert_array_equal(st0.plant.rho, st1.plant.rho)
+    return st, st0, r0, r1
+
+
 def test_acceleration_cost_in_the_reward():
     """accel_weight w subtracts w * sum_i (rho_i/rho_bar) a_i^2; the cost vanishes at the
     equilibrium (a fixed point) and its acceleration is the one J_comfort integrates."""
     from jaxtraffic.rollout import simulate
 
     w = 0.7
-    _, st = reset_jit(jax.random.PRNGKey(0), _params())
-    a = jnp.array([0.2, 0.1, -0.3])
-    _, st0, r0, _, _ = step_jit(jax.random.PRNGKey(1), st, a, _params())
-    _, st1, r1, _, _ = step_jit(jax.random.PRNGKey(1), st, a, _params(accel_weight=w))
-    np.testing.assert_array_equal(st0.plant.rho, st1.plant.rho)  # the weight changes the reward only
+    st, st0, r0, r1 = _step_with_and_without(accel_weight=w)
     cost = float(E.acceleration_cost(st.plant, st0.plant, TP))
     assert cost > 0.0
     np.testing.assert_allclose(float(r1), float(r0) - w * cost, rtol=1e-5)
@@ -238,3 +245,21 @@ def test_acceleration_cost_in_the_reward():
     open_cost = float(E.acceleration_cost(st.plant, open_st.plant, TP))
     j_from_cost = open_cost * float(rho_bar) * 1000.0 * TP.dt * TP.dx
     np.testing.assert_allclose(float(res.metrics["J_comfort"]), j_from_cost, rtol=0.1)
+
+
+def test_h_rate_cost_in_the_reward():
+    """h_rate_weight w subtracts w * sum_i ((h_i - h_prev_i)/h_bar)^2 of the time gap commanded at
+    this step; zero gains at the start command h_bar, so they cost nothing."""
+    w = 0.3
+    st, st0, r0, r1 = _step_with_and_without(h_rate_weight=w)
+    h_new = np.asarray(st0.plant.h_prev, np.float64)  # the gap commanded at this step
+    expected = np.sum(((h_new - np.asarray(st.plant.h_prev)) / float(TP.h_bar)) ** 2)
+    assert expected > 0.0
+    np.testing.assert_allclose(float(E.h_rate_cost(st.plant.h_prev, st0.plant.h_prev, TP.h_bar)), expected,
+                               rtol=1e-5)
+    np.testing.assert_allclose(float(r1), float(r0) - w * expected, rtol=1e-5)
+    _, _, r_zero, _, _ = step_jit(jax.random.PRNGKey(1), st, jnp.zeros(3), _params(h_rate_weight=w))
+    _, _, r_zero_ref, _, _ = step_jit(jax.random.PRNGKey(1), st, jnp.zeros(3), _params())
+    np.testing.assert_allclose(float(r_zero), float(r_zero_ref), rtol=1e-6)
+    with pytest.raises(ValueError, match="h_rate_weight"):
+        _params(h_rate_weight=-1.0)

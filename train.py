@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import sys
 from pathlib import Path
 
@@ -32,7 +33,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--out-dir", default=d.out_dir, help="run directory")
     g.add_argument("--resume", action="store_true",
                    help="continue from the run directory's checkpoint (its saved settings are used; only the "
-                   "run-control flags --total-steps/--max-wall-s/--keep-going/--stop-patience/--target-reward apply)")
+                   "run-control flags --total-steps/--max-wall-s/--keep-going/--stop-patience/--target-reward/"
+                   "--min-wave-speed apply)")
     g.add_argument("--seed", type=int, default=d.seed, help="PRNG seed")
     g.add_argument("--seeds", type=int, default=d.seeds, help="independent seeds trained at once (vmap)")
     g.add_argument("--total-steps", type=int, default=d.total_steps, help="environment steps (all envs, per seed)")
@@ -40,6 +42,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--keep-going", action="store_true", help="ignore the stop rule")
     g.add_argument("--target-reward", type=float, default=d.target_reward,
                    help="stop rule: deterministic evaluation reward (end of the evaluation rollout) >= this")
+    g.add_argument("--min-wave-speed", type=float, default=d.min_wave_speed,
+                   help="stop rule also requires the closed loop's kinematic wave speed at the policy's "
+                   "equilibrium gains (linear.gain_law_wave_speed, m/s) >= this; -inf: the paper's rule alone")
     g.add_argument("--stop-patience", type=int, default=d.stop_patience,
                    help="consecutive evaluations that must meet the stop rule before stopping")
     g.add_argument("--eval-horizon-s", type=float, default=d.eval_horizon_s, help="evaluation rollout length, s")
@@ -61,6 +66,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--amp-range", type=_pair(float), default=d.amp_range, help="initial amplitude LO,HI veh/m")
     g.add_argument("--wavenumber-range", type=_pair(int), default=d.wavenumber_range,
                    help="initial wavenumber LO,HI (integers)")
+    g.add_argument("--offset-range", type=_pair(float), default=d.offset_range,
+                   help="uniform density offset LO,HI veh/m added to the initial condition")
     g.add_argument("--phase-max", type=float, default=d.phase_max, help="initial phase ~ U(0, phase_max) rad")
     g.add_argument("--gain-max", type=float, default=d.gain_max, help="|eta_i| bound (normalised gains)")
     g.add_argument("--gain-filter", type=float, default=d.gain_filter,
@@ -72,6 +79,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--h-rate-weight", type=float, default=d.h_rate_weight,
                    help="training reward -= w * sum_i ((h_i - h_prev_i)/h_bar)^2, the squared step change of "
                    "the commanded time gap (dimensionless); 0: the paper's reward")
+    g.add_argument("--wave-weight", type=float, default=d.wave_weight,
+                   help="training reward -= w * env.backward_wave_cost(gains): 0 when the applied gains' closed-loop "
+                   "wave speed is >= --wave-speed-min, up to 1 below it; 0: the paper's reward")
+    g.add_argument("--wave-speed-min", type=float, default=d.wave_speed_min, help="m/s, see --wave-weight")
     g = p.add_argument_group("PPO")
     g.add_argument("--num-envs", type=int, default=d.num_envs, help="parallel environments per seed")
     g.add_argument("--num-steps", type=int, default=d.num_steps, help="rollout steps per update (100 = 10 s)")
@@ -82,6 +93,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--network", choices=("small", "paper"), default=d.network,
                    help="small: 2x64 tanh MLPs; paper: 8 layers (1024, then 512 units)")
     g.add_argument("--lr", type=float, default=d.lr, help="Adam learning rate")
+    g.add_argument("--lr-decay-steps", type=float, default=d.lr_decay_steps,
+                   help="env steps (per seed) over which the learning rate falls linearly to lr * lr-final; "
+                   "0: constant")
+    g.add_argument("--lr-final", type=float, default=d.lr_final, help="final learning rate, as a fraction of --lr")
     g.add_argument("--gamma", type=float, default=d.gamma, help="discount")
     g.add_argument("--gae-lambda", type=float, default=d.gae_lambda, help="GAE lambda")
     g.add_argument("--clip-eps", type=float, default=d.clip_eps, help="PPO clip range")
@@ -95,6 +110,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def settings_from_args(argv: list[str] | None = None) -> TrainSettings:
     args = build_parser().parse_args(argv)
+    if args.min_wave_speed == -math.inf:  # the paper's rule alone (stored as null in the JSON outputs)
+        args.min_wave_speed = None
     names = {f.name for f in dataclasses.fields(TrainSettings)}
     return TrainSettings(**{k: v for k, v in vars(args).items() if k in names})
 

@@ -14,14 +14,15 @@ pytrees, so a batch of environments is a ``vmap`` and a batch of scenarios a ``v
   ``controllers.gain_law``.
 * Reward: the paper's r = -sum_i [(rho~_i/rho_bar)^2 + (v~_i/v_bar)^2] of the state after the
   step (dimensionless), minus ``accel_weight`` times the step's ``acceleration_cost`` (the
-  acceleration part of the J_comfort integrand; 0 by default here, i.e. the paper's reward).
+  acceleration part of the J_comfort integrand), ``h_rate_weight`` times ``h_rate_cost`` and
+  ``wave_weight`` times ``backward_wave_cost`` (all 0 by default here, i.e. the paper's reward).
 * Episodes last ``horizon`` steps and end by *truncation* (``info["truncated"]``: bootstrap the
   value of ``info["terminal_obs"]``). A plant that leaves the physical region *terminates* with
   reward ``-diverge_penalty``. ``step`` resets finished environments itself.
 * Domain randomisation, drawn at each reset: initial amplitude (veh/m), integer wavenumber and
-  phase of the cosine perturbation; plant delay (a multiple of dt) and plant alpha (uniform
-  ranges); per-step alpha noise (``traffic.alpha_noise``). Metrics stay relative to the nominal
-  equilibrium of ``traffic`` (MODEL.md section 12).
+  phase of the cosine perturbation, and a uniform density offset (veh/m); plant delay (a multiple
+  of dt) and plant alpha (uniform ranges); per-step alpha noise (``traffic.alpha_noise``).
+  Metrics stay relative to the nominal equilibrium of ``traffic`` (MODEL.md section 12).
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from flax import struct
 from jaxtraffic import delay as delay_buffer
 from jaxtraffic import metrics as M
 from jaxtraffic.controllers import Observation, gain_law, saturate
+from jaxtraffic.linear import LinearModel, gain_law_wave_speed, linearize
 from jaxtraffic.params import TrafficParams, equilibrium
 from jaxtraffic.rollout import PlantState, initial_state, paper_initial_condition, plant_step
 
@@ -55,6 +57,8 @@ class EnvParams:
     wavenumber_min: int = 4
     wavenumber_max: int = 4
     phase_max: float = 0.0  # rad; phase ~ U(0, phase_max)
+    offset_min: float = 0.0  # veh/m; uniform density offset of the initial condition
+    offset_max: float = 0.0
     delay_min: float = 4.0  # s
     delay_max: float = 4.0
     alpha_min: float = 0.15
@@ -63,6 +67,8 @@ class EnvParams:
     accel_weight: float = 0.0  # s^4/m^2; 0: the paper's reward
     gain_filter: float = 1.0  # in (0, 1]; 1: the policy's gains are applied directly
     h_rate_weight: float = 0.0  # dimensionless; 0: the paper's reward
+    wave_weight: float = 0.0  # dimensionless; 0: the paper's reward
+    wave_speed_min: float = 1.0  # m/s
 
 
 @struct.dataclass
@@ -81,7 +87,7 @@ def make_env_params(traffic: TrafficParams | None = None, **kwargs) -> EnvParams
     kwargs.setdefault("alpha_min", float(traffic.alpha))
     kwargs.setdefault("alpha_max", float(traffic.alpha))
     ep = EnvParams(traffic=traffic, **kwargs)
-    for lo, hi in (("amp_min", "amp_max"), ("wavenumber_min", "wavenumber_max"),
+    for lo, hi in (("amp_min", "amp_max"), ("wavenumber_min", "wavenumber_max"), ("offset_min", "offset_max"),
                    ("delay_min", "delay_max"), ("alpha_min", "alpha_max")):
         if getattr(ep, lo) > getattr(ep, hi):
             raise ValueError(f"{lo}={getattr(ep, lo)} > {hi}={getattr(ep, hi)}")
@@ -140,16 +146,18 @@ def _reset(key: Array, params: EnvParams, sent: delay_buffer.DelayBuffer | None)
     """``reset``; with ``sent`` given, its storage is reused (restarted in O(n)) instead of a new
     (capacity x n) buffer being filled, which keeps the auto-reset inside ``step`` cheap."""
     k_amp, k_wn, k_ph, k_d, k_a = jax.random.split(key, 5)
+    k_off = jax.random.fold_in(key, 1)  # kept out of the split: the other draws stay as they were
     tp = params.traffic
     amp = jax.random.uniform(k_amp, minval=params.amp_min, maxval=params.amp_max)
     wn = jax.random.randint(k_wn, (), params.wavenumber_min, params.wavenumber_max + 1)
     phase = jax.random.uniform(k_ph, maxval=params.phase_max)
+    offset = jax.random.uniform(k_off, minval=params.offset_min, maxval=params.offset_max)
     d_lo = jnp.round(params.delay_min / tp.dt).astype(jnp.int32)
     d_hi = jnp.round(params.delay_max / tp.dt).astype(jnp.int32)
     delay = jax.random.randint(k_d, (), d_lo, d_hi + 1) * tp.dt
     alpha = jax.random.uniform(k_a, minval=params.alpha_min, maxval=params.alpha_max)
     plant_params = tp.replace(delay=delay, alpha=alpha)
-    rho0, v0 = paper_initial_condition(tp, amp, wn.astype(jnp.float32), phase)
+    rho0, v0 = paper_initial_condition(tp, amp, wn.astype(jnp.float32), phase, offset=offset)
     plant = initial_state(plant_params, rho0, v0) if sent is None else PlantState(
         rho=rho0, v=v0, sent=delay_buffer.restart(sent, jnp.full_like(rho0, tp.h_bar)),
         h_prev=jnp.full_like(rho0, tp.h_bar), step=jnp.zeros((), jnp.int32), diverged=jnp.zeros((), bool),
@@ -178,6 +186,15 @@ def h_rate_cost(h_prev: Array, h: Array, h_bar: Array | float) -> Array:
     return jnp.sum(((h - h_prev) / h_bar) ** 2, axis=-1)
 
 
+def backward_wave_cost(gains: Array, lm: LinearModel, speed_min: Array | float, scale: float = 5.0) -> Array:
+    """0 when the gains' closed-loop wave speed s (``linear.gain_law_wave_speed``) is >= speed_min
+    (m/s), rising linearly to 1 at speed_min - scale and beyond; 1 also where the relaxed relation
+    v~ = c rho~ breaks down (its denominator <= 0, s changes sign through infinity). Dimensionless."""
+    den = 1.0 + lm.V_h * lm.h_bar * gains[..., 1] / ((1.0 + gains[..., 0]) * lm.v_bar)
+    s = gain_law_wave_speed(gains, lm)
+    return jnp.where(den > 0, jnp.clip((speed_min - s) / scale, 0.0, 1.0), 1.0)
+
+
 def step(key: Array, state: EnvState, action: Array, params: EnvParams):
     """Apply the gains ``action`` for one dt; returns (obs, state, reward, done, info).
 
@@ -195,7 +212,8 @@ def step(key: Array, state: EnvState, action: Array, params: EnvParams):
     plant = plant_step(p, h, state.plant_params, k_plant)
     terminated = plant.diverged
     r = (M.reward(plant.rho, plant.v, rho_bar, v_bar) - params.accel_weight * acceleration_cost(p, plant, tp)
-         - params.h_rate_weight * h_rate_cost(p.h_prev, h, tp.h_bar))
+         - params.h_rate_weight * h_rate_cost(p.h_prev, h, tp.h_bar)
+         - params.wave_weight * backward_wave_cost(gains, linearize(tp), params.wave_speed_min))
     r = jnp.where(terminated, -params.diverge_penalty, r)
     t = state.t + 1
     truncated = (t >= params.horizon) & ~terminated

@@ -77,3 +77,24 @@ def linear_step(rho_t: Array, v_t: Array, U: Array, lm: LinearModel) -> tuple[Ar
     v_new = v_t + dt * (source - adv)
     rho_new = rho_new.at[0].set(-(lm.rho_bar / lm.v_bar) * v_new[0])
     return rho_new, v_new
+
+
+def gain_law_wave_speed(gains: Array, lm: LinearModel) -> Array:
+    """Kinematic wave speed s (m/s) of the plant closed by the three-gain law with constant gains.
+
+    ``gains = [eta1, eta2, eta3]`` (dimensionless, ``controllers.gain_law``), shape (..., 3).
+    In a slowly varying, relaxed state (v = V(rho, h), h = h_prev) the law gives
+    h~ (1 + eta1) = h_bar (-eta2 v~/v_bar + eta3 rho~/rho_bar), so v~ = c rho~ with
+
+        c = (V_rho + V_h h_bar eta3 / ((1 + eta1) rho_bar)) / (1 + V_h h_bar eta2 / ((1 + eta1) v_bar))
+
+    and density perturbations travel like in a first-order model, at s = v_bar + rho_bar c (the
+    delay does not enter). With s > 0 they are carried out of the road at the outlet (the fixed
+    inflow admits none), at s <= 0 they enter from the outlet and stay: the closed loop cannot be
+    asymptotically stable. Open loop: s = lambda2 < 0 (congested, backward waves). The time to
+    flush the road, L / s, bounds how fast a uniform density offset can decay.
+    """
+    e1, e2, e3 = gains[..., 0], gains[..., 1], gains[..., 2]
+    scale = lm.V_h * lm.h_bar / (1.0 + e1)
+    c = (lm.V_rho + scale * e3 / lm.rho_bar) / (1.0 + scale * e2 / lm.v_bar)
+    return lm.v_bar + lm.rho_bar * c

@@ -16,9 +16,10 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from jaxtraffic.controllers import Controller, gain_law
+from jaxtraffic.controllers import Controller, Observation, gain_law
 from jaxtraffic.env import filter_gains, policy_input
 from jaxtraffic.networks import ActorCritic
+from jaxtraffic.params import TrafficParams, equilibrium
 from jaxtraffic.ppo import normalize_obs
 
 Array = jax.Array
@@ -71,6 +72,23 @@ def policy_controller(params: Any, obs_mean: Array, obs_var: Array, gain_max: fl
                               gain_filter=jnp.broadcast_to(jnp.asarray(gain_filter, float), jnp.shape(gain_max)))
     act = _policy_act_fn(tuple(hidden), activation, float(init_sigma), stochastic)
     return Controller(settings=settings, act_fn=act, init_fn=_zero_gains, name="ppo")
+
+
+def equilibrium_gains(controller: Controller, nominal: TrafficParams, n_iter: int = 300) -> Array:
+    """Gains (shape (3,), dimensionless) that a policy controller settles to while the plant sits at
+    the equilibrium of ``nominal``: the fixed point of its filtered gains, iterated ``n_iter`` steps
+    from zero (for a policy whose gains keep cycling there: the gains after ``n_iter`` steps). They
+    set the closed loop's asymptotic behaviour (``linear.gain_law_wave_speed``).
+    For a controller with batched settings, ``vmap`` over them."""
+    rho_bar, v_bar = equilibrium(nominal)
+    n = nominal.n_points
+    obs = Observation(rho=jnp.full((n,), rho_bar), v=jnp.full((n,), v_bar), h_prev=jnp.full((n,), nominal.h_bar),
+                      t=jnp.zeros(()), sent=None)
+
+    def body(_, gains):
+        return controller.act_fn(controller.settings, gains, obs, nominal, None)[1]
+
+    return jax.lax.fori_loop(0, n_iter, body, jnp.zeros((3,), obs.rho.dtype))
 
 
 def load_policy(run_dir: str | Path, seed: int | None = None, stochastic: bool = False

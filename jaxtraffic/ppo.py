@@ -55,6 +55,8 @@ class PPOConfig:
     vf_coef: float = 0.5
     max_grad_norm: float = 0.5
     reward_scale: float = 0.1
+    lr_decay_steps: float = 0.0  # env steps (per seed) over which lr falls linearly to lr * lr_final; 0: constant
+    lr_final: float = 0.1
 
     def network(self, n_actions: int = 3) -> ActorCritic:
         return ActorCritic(hidden=tuple(self.hidden), activation=self.activation, init_sigma=self.init_sigma,
@@ -155,6 +157,27 @@ def ppo_loss(params, apply_fn, batch: dict, cfg: PPOConfig):
                   "approx_kl": jnp.mean(batch["logp"] - logp), "sigma": jnp.mean(sigma)}
 
 
+def validate_config(cfg: PPOConfig) -> None:
+    """Reject hyperparameters that make no sense (ValueError)."""
+    if cfg.lr_decay_steps < 0 or not 0.0 <= cfg.lr_final <= 1.0:
+        raise ValueError(f"need lr_decay_steps >= 0 and lr_final in [0, 1], got {cfg.lr_decay_steps}, {cfg.lr_final}")
+
+
+def learning_rate(cfg: PPOConfig, update: Array) -> Array:
+    """Adam step size of update number ``update`` (0-based): ``lr``, falling linearly to
+    ``lr * lr_final`` over ``lr_decay_steps`` env steps (constant when that is 0)."""
+    done = update * cfg.steps_per_update / jnp.maximum(cfg.lr_decay_steps, 1.0)
+    frac = jnp.where(cfg.lr_decay_steps > 0, jnp.clip(done, 0.0, 1.0), 0.0)
+    return cfg.lr * (1.0 - frac * (1.0 - cfg.lr_final))
+
+
+def set_learning_rate(opt_state, lr: Array):
+    """``opt_state`` of ``make_optimizer`` with its injected learning rate replaced."""
+    clip_state, adam_state = opt_state
+    hyper = dict(adam_state.hyperparams, learning_rate=jnp.asarray(lr, adam_state.hyperparams["learning_rate"].dtype))
+    return clip_state, adam_state._replace(hyperparams=hyper)
+
+
 def make_optimizer(cfg: PPOConfig) -> optax.GradientTransformation:
     return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm),
                        optax.inject_hyperparams(optax.adam)(learning_rate=cfg.lr, eps=1e-5))
@@ -249,7 +272,8 @@ def _update_seed(cfg: PPOConfig, env, env_params, runner: Runner, axis_name: str
 
         return jax.lax.scan(minibatch, (params, opt_state), shuffled)
 
-    (params, opt_state), aux = jax.lax.scan(epoch, (runner.params, runner.opt_state),
+    opt_state = set_learning_rate(runner.opt_state, learning_rate(cfg, runner.update))
+    (params, opt_state), aux = jax.lax.scan(epoch, (runner.params, opt_state),
                                             jax.random.split(k_perm, cfg.update_epochs))
     metrics = {k: v.mean() for k, v in aux.items()}
     metrics.update({"mean_reward": traj["raw_reward"].mean(), "terminated_frac": traj["terminated"].mean()})
@@ -292,6 +316,7 @@ def make_train(cfg: PPOConfig, env_params: Any, devices: list | None = None, env
     local_envs = cfg.num_envs // n_dev
     if (local_envs * cfg.num_steps) % cfg.num_minibatches:
         raise ValueError("num_envs/devices * num_steps must be divisible by num_minibatches")
+    validate_config(cfg)
 
     def _init(cfg, env_params, keys, dev):
         return _strong(jax.vmap(lambda k: _init_seed(cfg, env, env_params, local_envs, k, dev))(keys))

@@ -80,16 +80,16 @@ class SimResult:
 
 def paper_initial_condition(
     p: TrafficParams, amplitude: float | Array = 0.010, wavenumber: float | Array = 4.0,
-    phase: float | Array = 0.0, dtype: Any = jnp.float32,
+    phase: float | Array = 0.0, dtype: Any = jnp.float32, offset: float | Array = 0.0,
 ) -> tuple[Array, Array]:
     """Initial state of MODEL.md section 5 (shapes (n_points,)).
 
-    rho(x, 0) = rho_bar + amplitude cos(2 pi wavenumber x / L + phase) (amplitude in veh/m;
-    the paper's 10 veh/km, wavenumber 4), v(x, 0) = q_in / rho(x, 0).
+    rho(x, 0) = rho_bar + offset + amplitude cos(2 pi wavenumber x / L + phase) (offset and
+    amplitude in veh/m; the paper's: no offset, 10 veh/km, wavenumber 4), v(x, 0) = q_in / rho(x, 0).
     """
     rho_bar, _ = equilibrium(p)
     x = p.x()
-    rho0 = rho_bar + amplitude * jnp.cos(2.0 * jnp.pi * wavenumber * x / p.L + phase)
+    rho0 = rho_bar + offset + amplitude * jnp.cos(2.0 * jnp.pi * wavenumber * x / p.L + phase)
     rho0 = rho0.astype(dtype)
     return rho0, (p.q_in / rho0).astype(dtype)
 

@@ -5,15 +5,20 @@ deterministic policy of every seed on the paper's initial condition (``eval_hori
 training plant without randomisation), prints a progress line, rewrites ``learning_curve.csv``
 and the checkpoint atomically, and applies the paper's stop rule (evaluation reward, i.e. the
 reward at the end of the evaluation rollout, >= ``target_reward`` for every seed) unless
-``keep_going``. The rule must hold at ``stop_patience`` consecutive evaluations (default 2: the
-deterministic evaluation is noisy early on, and a single lucky evaluation gave fragile
-policies); ``seconds_to_stop_rule`` records the first time it held. Ctrl-C saves the last
-completed chunk; ``resume`` continues from it exactly.
+``keep_going``. With ``min_wave_speed`` set, the rule also asks that the closed loop under the
+gains each policy settles to at the equilibrium carries density waves downstream at least that
+fast (``linear.gain_law_wave_speed``, m/s): a policy with a backward wave speed leaves a slow mode
+that enters at the outlet and never decays, which the 300 s evaluation reward hardly sees. The
+rule must hold at ``stop_patience`` consecutive evaluations (default 2: the deterministic
+evaluation is noisy early on, and a single lucky evaluation gave fragile policies);
+``seconds_to_stop_rule`` records the first time it held, ``seconds_to_paper_rule`` the first time
+the paper's reward condition alone held. Ctrl-C saves the last completed chunk; ``resume``
+continues from it exactly.
 
 Run directory: config.json, checkpoint.msgpack, learning_curve.csv, learning_curve.png,
 summary.json. The curve's evaluation columns are means over seeds of the deterministic rollout:
-eval_reward (the paper's reward at its end, dimensionless), eval_J_comfort and eval_rho_L2 (final
-density L2 deviation, veh/km).
+eval_reward (the paper's reward at its end, dimensionless), eval_J_comfort, eval_rho_L2 (final
+density L2 deviation, veh/km) and eval_wave_speed (m/s, see above).
 """
 
 from __future__ import annotations
@@ -33,13 +38,15 @@ import numpy as np
 from jaxtraffic import checkpoint as ckpt
 from jaxtraffic import env as E
 from jaxtraffic import ppo
+from jaxtraffic.linear import gain_law_wave_speed, linearize
 from jaxtraffic.networks import PAPER_HIDDEN, SMALL_HIDDEN
 from jaxtraffic.params import TrafficParams
-from jaxtraffic.policy import policy_controller
+from jaxtraffic.policy import equilibrium_gains, policy_controller
 from jaxtraffic.rollout import paper_initial_condition, simulate_batch
 
 CURVE_FIELDS = ["update", "env_steps", "wall_s", "mean_reward", "eval_reward", "eval_reward_min",
-                "eval_J_comfort", "eval_rho_L2", "eta1", "eta2", "eta3", "entropy", "approx_kl", "value_loss"]
+                "eval_J_comfort", "eval_rho_L2", "eval_wave_speed", "eta1", "eta2", "eta3", "entropy", "approx_kl",
+                "value_loss"]
 
 
 @dataclass
@@ -64,11 +71,14 @@ class TrainSettings:
     amp_range: tuple[float, float] = (0.010, 0.010)
     wavenumber_range: tuple[int, int] = (4, 4)
     phase_max: float = 0.0
+    offset_range: tuple[float, float] = (0.0, 0.0)
     horizon_s: float = 100.0
     gain_max: float = 3.0
     accel_weight: float = 0.0
     gain_filter: float = 0.2
     h_rate_weight: float = 0.2
+    wave_weight: float = 0.0
+    wave_speed_min: float = 1.0
     # PPO
     num_envs: int = 256
     num_steps: int = 100
@@ -78,6 +88,8 @@ class TrainSettings:
     updates_per_chunk: int = 3
     network: str = "small"
     lr: float = 1e-3
+    lr_decay_steps: float = 0.0
+    lr_final: float = 0.1
     gamma: float = 0.995
     gae_lambda: float = 0.95
     clip_eps: float = 0.2
@@ -89,6 +101,7 @@ class TrainSettings:
     # evaluation and stopping
     eval_horizon_s: float = 300.0
     target_reward: float = -0.1
+    min_wave_speed: float | None = 0.5
     stop_patience: int = 2
     keep_going: bool = False
     max_wall_s: float = math.inf
@@ -110,15 +123,18 @@ def build(s: TrainSettings) -> tuple[ppo.PPOConfig, E.EnvParams]:
     env_params = E.make_env_params(
         traffic, horizon=max(1, round(s.horizon_s / s.dt)), gain_max=s.gain_max, amp_min=s.amp_range[0],
         amp_max=s.amp_range[1], wavenumber_min=int(s.wavenumber_range[0]),
-        wavenumber_max=int(s.wavenumber_range[1]), phase_max=s.phase_max, delay_min=d_lo, delay_max=d_hi,
+        wavenumber_max=int(s.wavenumber_range[1]), phase_max=s.phase_max, offset_min=s.offset_range[0],
+        offset_max=s.offset_range[1], delay_min=d_lo, delay_max=d_hi,
         alpha_min=a_lo, alpha_max=a_hi, accel_weight=s.accel_weight,
-        gain_filter=s.gain_filter, h_rate_weight=s.h_rate_weight)
+        gain_filter=s.gain_filter, h_rate_weight=s.h_rate_weight, wave_weight=s.wave_weight,
+        wave_speed_min=s.wave_speed_min)
     cfg = ppo.PPOConfig(
         num_envs=s.num_envs, num_steps=s.num_steps, update_epochs=s.update_epochs,
         num_minibatches=s.num_minibatches, updates_per_chunk=s.updates_per_chunk, num_seeds=s.seeds,
         hidden=s.hidden(), init_sigma=s.init_sigma, lr=s.lr, gamma=s.gamma, gae_lambda=s.gae_lambda,
         clip_eps=s.clip_eps, ent_coef=s.ent_coef, vf_coef=s.vf_coef, max_grad_norm=s.max_grad_norm,
-        reward_scale=s.reward_scale)
+        reward_scale=s.reward_scale, lr_decay_steps=s.lr_decay_steps, lr_final=s.lr_final)
+    ppo.validate_config(cfg)
     return cfg, env_params
 
 
@@ -140,10 +156,19 @@ def config_dict(s: TrainSettings, cfg: ppo.PPOConfig, env_params: E.EnvParams) -
 def make_evaluator(cfg: ppo.PPOConfig, env_params: E.EnvParams, eval_steps: int):
     """Deterministic evaluation of every seed's policy on the paper's initial condition.
 
-    Returns ``evaluate(runner) -> dict`` of per-seed metrics (final_reward, J's, ...).
+    Returns ``evaluate(runner) -> dict`` of per-seed metrics (final_reward, J's, ...), plus the
+    gains each policy settles to at the equilibrium (``policy.equilibrium_gains``) and the closed
+    loop's kinematic wave speed under them (``wave_speed``, m/s, ``linear.gain_law_wave_speed``).
     """
     plant = env_params.traffic.replace(alpha_noise=0.0)
     rho0, v0 = paper_initial_condition(plant)
+    lm = linearize(plant)
+
+    @jax.jit
+    @jax.vmap
+    def equilibrium_diagnostics(ctrl):  # one seed's controller
+        gains = equilibrium_gains(ctrl, plant)
+        return gains, gain_law_wave_speed(gains, lm)
 
     def evaluate(runner: ppo.Runner) -> dict:
         rep = ppo.replicated(runner)  # settings with a leading seed axis: one batched rollout
@@ -152,7 +177,10 @@ def make_evaluator(cfg: ppo.PPOConfig, env_params: E.EnvParams, eval_steps: int)
                                  activation=cfg.activation, init_sigma=cfg.init_sigma,
                                  gain_filter=env_params.gain_filter)
         res = simulate_batch(plant, ctrl, n_steps=eval_steps, rho0=rho0, v0=v0, batch_controller=True)
-        return {k: np.asarray(v) for k, v in res.metrics.items()}
+        out = {k: np.asarray(v) for k, v in res.metrics.items()}
+        gains, speed = equilibrium_diagnostics(ctrl)
+        out.update(equilibrium_gains=np.asarray(gains), wave_speed=np.asarray(speed))
+        return out
 
     return evaluate
 
@@ -181,7 +209,7 @@ def _fmt_time(sec: float) -> str:
 
 
 RUN_CONTROL = ("out_dir", "total_steps", "max_wall_s", "keep_going", "resume", "quiet", "stop_patience",
-               "target_reward")
+               "target_reward", "min_wave_speed")
 
 
 def _settings_for_resume(s: TrainSettings, run_dir: Path) -> TrainSettings:
@@ -238,11 +266,17 @@ def train(s: TrainSettings) -> Path:
                    "wall_s": round(meta["wall_s"], 3), "mean_reward": float(m["mean_reward"][:, -1].mean()),
                    "eval_reward": float(ev.mean()), "eval_reward_min": float(ev.min()),
                    "eval_J_comfort": float(last_eval["J_comfort"].mean()),
-                   "eval_rho_L2": float(last_eval["final_rho_L2"].mean()) * 1000.0}
+                   "eval_rho_L2": float(last_eval["final_rho_L2"].mean()) * 1000.0,
+                   "eval_wave_speed": float(last_eval["wave_speed"].mean())}
             row.update({k: float(m[k][:, -1].mean()) for k in ("eta1", "eta2", "eta3", "entropy", "approx_kl",
                                                                "value_loss")})
             meta["rows"].append(row)
-            reached = bool(np.all(ev >= s.target_reward)) and not bool(np.any(last_eval["diverged"]))
+            paper_rule = bool(np.all(ev >= s.target_reward)) and not bool(np.any(last_eval["diverged"]))
+            if paper_rule and meta.get("seconds_to_paper_rule") is None:
+                meta["seconds_to_paper_rule"] = meta["wall_s"]
+                meta["env_steps_to_paper_rule"] = meta["env_steps"]
+            reached = paper_rule and (s.min_wave_speed is None
+                                      or bool(np.all(last_eval["wave_speed"] >= s.min_wave_speed)))
             if reached and meta["seconds_to_stop_rule"] is None:
                 meta["seconds_to_stop_rule"] = meta["wall_s"]
                 meta["env_steps_to_stop_rule"] = meta["env_steps"]
@@ -254,7 +288,8 @@ def train(s: TrainSettings) -> Path:
             eta = (s.total_steps - meta["env_steps"]) / max(rate, 1e-9)
             say(f"[{meta['env_steps']:>9d} steps] {rate:8.0f} steps/s | reward {row['mean_reward']:9.3f} | "
                 f"eval {row['eval_reward']:9.4f} (min {row['eval_reward_min']:.4f}) | gains "
-                f"({row['eta1']:+.2f}, {row['eta2']:+.2f}, {row['eta3']:+.2f}) | {_fmt_time(meta['wall_s'])} | "
+                f"({row['eta1']:+.2f}, {row['eta2']:+.2f}, {row['eta3']:+.2f}) | s {row['eval_wave_speed']:+.2f} m/s | "
+                f"{_fmt_time(meta['wall_s'])} | "
                 f"ETA {_fmt_time(eta)}" + (" | stop rule reached" if reached else ""))
             ckpt.save_checkpoint(run_dir, runner, meta)
             _write_curve(run_dir / "learning_curve.csv", meta["rows"])
@@ -277,6 +312,9 @@ def train(s: TrainSettings) -> Path:
         "env_steps": meta["env_steps"], "wall_s": meta["wall_s"],
         "seconds_to_stop_rule": meta["seconds_to_stop_rule"],
         "env_steps_to_stop_rule": meta.get("env_steps_to_stop_rule"),
+        "seconds_to_paper_rule": meta.get("seconds_to_paper_rule"),
+        "env_steps_to_paper_rule": meta.get("env_steps_to_paper_rule"),
+        "min_wave_speed": s.min_wave_speed,
         "stop_rule_reached": meta["seconds_to_stop_rule"] is not None,
         "target_reward": s.target_reward, "interrupted": interrupted,
         "best_seed": int(np.argmax(ev)),

@@ -128,6 +128,19 @@ def test_domain_randomisation_ranges():
     assert float(ep.traffic.delay) == 0.5 and float(ep.traffic.alpha) == pytest.approx(0.15)
 
 
+def test_initial_density_offset():
+    """offset_min/offset_max add a uniform density offset (veh/m) to the initial cosine."""
+    ep = _params(offset_min=-0.003, offset_max=0.002, amp_min=0.0, amp_max=0.0)
+    obs, st = reset_batch(KEYS, ep)
+    rho_bar, _ = equilibrium(TP)
+    dev = np.asarray(st.plant.rho) - float(rho_bar)
+    np.testing.assert_allclose(dev, dev[:, :1] * np.ones((1, N)), atol=1e-7)  # uniform along the road
+    assert dev.min() >= -0.003 - 1e-6 and dev.max() <= 0.002 + 1e-6 and dev[:, 0].std() > 1e-3
+    np.testing.assert_allclose(np.asarray(obs[:, :N]), dev / float(rho_bar), atol=1e-5)
+    with pytest.raises(ValueError, match="offset_min"):
+        _params(offset_min=0.002, offset_max=0.001)
+
+
 def test_no_randomisation_by_default():
     ep = _params()
     obs, st = reset_batch(KEYS, ep)
@@ -263,3 +276,26 @@ def test_h_rate_cost_in_the_reward():
     np.testing.assert_allclose(float(r_zero), float(r_zero_ref), rtol=1e-6)
     with pytest.raises(ValueError, match="h_rate_weight"):
         _params(h_rate_weight=-1.0)
+
+
+def test_backward_wave_cost():
+    """0 at or above the speed threshold, linear below it down to 1 at 5 m/s below (the open loop,
+    s = lambda2 = -3.6 m/s, costs 0.92 at a 1 m/s threshold), 1 across the singular surface; in the
+    reward it is charged on the applied gains."""
+    from jaxtraffic.controllers import lyapunov_equivalent_gains
+    from jaxtraffic.linear import gain_law_wave_speed, linearize
+
+    lm = linearize(TP)
+    cost = lambda g, smin=1.0: float(E.backward_wave_cost(jnp.asarray(g, jnp.float32), lm, smin))  # noqa: E731
+    lyap = np.asarray(lyapunov_equivalent_gains(1.0, TP))  # s = v_bar ~ 3.1 m/s
+    assert cost(lyap) == 0.0
+    assert cost(np.zeros(3)) == pytest.approx((1.0 - float(lm.lam2)) / 5.0, rel=1e-5)  # open loop, ramp 5 m/s
+    assert cost(np.zeros(3), smin=3.0) == 1.0
+    s_lyap = float(gain_law_wave_speed(jnp.asarray(lyap), lm))
+    assert cost(lyap, smin=s_lyap + 2.5) == pytest.approx(0.5, abs=1e-5)  # 2.5 m/s short of the threshold, scale 5
+    assert cost([0.0, 1.3 * 1.283333, 0.0]) == 1.0  # denominator < 0: s flipped through infinity
+    w = 0.4
+    st, st0, r0, r1 = _step_with_and_without(wave_weight=w, wave_speed_min=1.0)
+    gains = E.filter_gains(st.gains, E.action_to_gains(jnp.array([0.2, 0.1, -0.3]), _params()), 1.0)
+    np.testing.assert_allclose(float(r1), float(r0) - w * cost(gains), rtol=1e-5, atol=1e-7)
+    assert cost(gains) > 0.0

@@ -7,9 +7,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxtraffic import TrafficParams, equilibrium
+from jaxtraffic import TrafficParams, constant_gains, equilibrium, simulate
 from jaxtraffic import fundamental as fd
-from jaxtraffic.linear import linear_step, linearize, riemann_w
+from jaxtraffic.controllers import lyapunov_equivalent_gains
+from jaxtraffic.linear import gain_law_wave_speed, linear_step, linearize, riemann_w
 from jaxtraffic.solver import arz_step
 
 
@@ -90,3 +91,42 @@ def test_linear_step_fixed_point_and_input_channel():
         # the inlet density follows the boundary condition; the interior density is untouched
         np.testing.assert_allclose(float(r[0]), float(-(lm.rho_bar / lm.v_bar) * expected_v), rtol=1e-12)
         assert float(jnp.max(jnp.abs(r[1:]))) == 0.0
+
+
+def test_gain_law_wave_speed_oracles():
+    """Open loop: the second characteristic speed lambda2 = v_bar + rho_bar V_rho (< 0, congested).
+    The Lyapunov-equivalent gains make v~ = 0 in the relaxed state: density is carried at v_bar."""
+    with jax.enable_x64(True):
+        p = TrafficParams()
+        lm = linearize(p)
+        np.testing.assert_allclose(float(gain_law_wave_speed(jnp.zeros(3), lm)), float(lm.lam2), rtol=1e-12)
+        for k in (0.5, 1.0, 2.0):
+            g = lyapunov_equivalent_gains(k, p)
+            np.testing.assert_allclose(float(gain_law_wave_speed(g, lm)), float(lm.v_bar), rtol=1e-12)
+        # batched over leading axes
+        assert gain_law_wave_speed(jnp.zeros((4, 2, 3)), lm).shape == (4, 2)
+
+
+# (eta1, eta2, eta3): s = v_bar (Lyapunov k = 1), s ~ +1.5 m/s, s ~ -1.5 m/s, open loop (s = lambda2)
+WAVE_GAINS = [(0.0, 0.0, -2.7705607), (-0.49, -0.81, -0.64), (0.028, -0.183, -0.628), (0.0, 0.0, 0.0)]
+
+
+def test_wave_speed_decides_whether_a_density_offset_leaves_the_road():
+    """Constant gains on a 200 m road (41 points, D = 1 s) from a uniform +2 veh/km offset: with s > 0
+    the offset is carried out at the outlet within about L / s (plus the relaxation time), with
+    s < 0 it stays and grows from the inlet."""
+    p = TrafficParams(n_points=41, L=200.0, delay=1.0)
+    lm = linearize(p)
+    rho_bar, _ = equilibrium(p)
+    rho0 = jnp.full((p.n_points,), rho_bar + 0.002)
+    for gains in WAVE_GAINS:
+        s = float(gain_law_wave_speed(jnp.asarray(gains), lm))
+        res = simulate(p, constant_gains(*gains), rho0=rho0, v0=p.q_in / rho0, n_steps=2000, record_every=100)
+        l2 = np.asarray(res.trajectory.rho_L2)  # every 10 s, 10 .. 200 s
+        if s > 0:
+            flushed = int(np.ceil((p.L / s + 2 * float(lm.tau)) / 10.0)) - 1  # index of t >= L/s + 2 tau
+            assert np.all(np.diff(l2[:flushed + 1]) < 0), (gains, s, l2)
+            assert l2[flushed] < 0.25 * 0.002, (gains, s, l2)
+        else:
+            grow = l2[:15]  # 10 .. 150 s (the open loop leaves the physical region later)
+            assert np.all(np.diff(grow) > 0) and grow[-1] > 2 * 0.002, (gains, s, l2)

@@ -10,15 +10,15 @@ import pytest
 from jaxtraffic import env as E
 from jaxtraffic.networks import ActorCritic
 from jaxtraffic.params import TrafficParams
-from jaxtraffic.policy import policy_controller
-from jaxtraffic.rollout import simulate
+from jaxtraffic.policy import equilibrium_gains, policy_controller
+from jaxtraffic.rollout import equilibrium_state, simulate
 
 TP = TrafficParams(n_points=21, delay=0.5)
 HIDDEN = (16,)
 STEPS = 40
 
 
-def _random_policy(ep: E.EnvParams, seed: int = 0):
+def _random_policy(ep: E.EnvParams, seed: int = 0, scale: float = 0.5):
     """Network parameters perturbed away from the (near-zero-output) initialisation, and
     observation statistics that are not the identity, so every part of the input path matters."""
     net = ActorCritic(hidden=HIDDEN, init_sigma=0.3)
@@ -26,7 +26,7 @@ def _random_policy(ep: E.EnvParams, seed: int = 0):
     params = net.init(k_init, jnp.zeros((E.obs_size(ep),)))
     leaves, tree = jax.tree.flatten(params)
     keys = jax.random.split(k_noise, len(leaves))
-    noisy = [x + 0.5 * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys, strict=True)]
+    noisy = [x + scale * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys, strict=True)]
     params = jax.tree.unflatten(tree, noisy)
     mean = 0.01 * jax.random.normal(k_mean, (E.obs_size(ep),))
     var = jax.random.uniform(k_var, (E.obs_size(ep),), minval=0.005, maxval=0.02)
@@ -71,3 +71,22 @@ def test_gain_filter_smooths_the_time_gap():
         return float(np.abs(np.diff(h, axis=0)).mean())
 
     assert step_changes(0.1) < 0.5 * step_changes(1.0)
+
+
+def test_equilibrium_gains_are_what_the_policy_settles_to():
+    """At the equilibrium the filtered gains of a policy converge to a fixed point; a rollout that
+    starts there applies exactly those gains after a while (the controller state)."""
+    ep = E.make_env_params(TP, horizon=1000, gain_max=2.0, gain_filter=0.3)
+    _, params, mean, var = _random_policy(ep, seed=1, scale=0.2)
+    var = var.at[-3:].set(1.0)  # a weak feedback of the gains on themselves: a stable fixed point
+    ctrl = policy_controller(params, mean, var, 2.0, hidden=HIDDEN, init_sigma=0.3, gain_filter=0.3)
+    g = np.asarray(equilibrium_gains(ctrl, TP))
+    assert np.abs(g).max() > 1e-2  # not trivially zero
+    rho, v = equilibrium_state(TP)
+    res = simulate(TP, ctrl, n_steps=300, rho0=rho, v0=v)
+    np.testing.assert_allclose(res.controller_state, g, rtol=1e-4, atol=1e-5)
+    # a fixed point: one more step at the equilibrium leaves it unchanged
+    from jaxtraffic.controllers import Observation
+    n = TP.n_points
+    obs = Observation(rho=rho, v=v, h_prev=jnp.full((n,), TP.h_bar), t=jnp.zeros(()), sent=None)
+    np.testing.assert_allclose(ctrl.act(g, obs, TP, None)[1], g, rtol=1e-5, atol=1e-6)

@@ -40,7 +40,8 @@ TINY = ["--n-points", "21", "--delay", "0.5", "--max-delay-steps", "20", "--num-
         "--eval-horizon-s", "2", "--quiet"]
 CHUNK = 4 * 8 * 2  # env steps per chunk
 SUMMARY_KEYS = {"env_steps", "wall_s", "seconds_to_stop_rule", "env_steps_to_stop_rule", "stop_rule_reached",
-                "target_reward", "interrupted", "best_seed", "final_eval", "eval_horizon_s"}
+                "target_reward", "interrupted", "best_seed", "final_eval", "eval_horizon_s", "seconds_to_paper_rule",
+                "env_steps_to_paper_rule", "min_wave_speed"}
 
 
 class SharedCompile:
@@ -89,7 +90,9 @@ def _leaves_equal(a, b) -> bool:
 def _train_runs(root: Path) -> None:
     """All the single-device runs (4 chunks = 256 env steps unless noted), in a subprocess:
     A: one go; B: 2 chunks, then --resume to 4; I: Ctrl-C before chunk 3, then --resume;
-    C: seed 1, 1 chunk; S: stop rule always met (target -1e9), patience 2, no --keep-going.
+    C: seed 1, 1 chunk; S: the paper's rule alone (--min-wave-speed=-inf), always met (target -1e9),
+    patience 2, no --keep-going;
+    W: like S, but the rule also asks for a wave speed no policy has (--min-wave-speed 1e9).
     Also compares, right after A, the in-memory policy with ``load_policy(A)``."""
     shared = SharedCompile(ppo.make_train)
     ppo.make_train = shared
@@ -104,7 +107,8 @@ def _train_runs(root: Path) -> None:
     shutil.copytree(i, root / "I_first")
     train_cli.main(["--out-dir", str(i), "--resume", "--total-steps", str(4 * CHUNK), "--keep-going", "--quiet"])
     _cli(root / "C", "--seed", "1", "--total-steps", str(CHUNK), "--keep-going")
-    _cli(root / "S", "--total-steps", str(6 * CHUNK), "--target-reward=-1e9")
+    _cli(root / "S", "--total-steps", str(6 * CHUNK), "--target-reward=-1e9", "--min-wave-speed=-inf")
+    _cli(root / "W", "--total-steps", str(3 * CHUNK), "--target-reward=-1e9", "--min-wave-speed", "1e9")
     _write_json(root / "done.json", {"compiled_programs": len(shared.cache)})
 
 
@@ -167,7 +171,7 @@ def runs(tmp_path_factory, two_device_proc):
     proc = subprocess.run([sys.executable, "-c", code, str(root)], cwd=REPO, env=_xla_env(), capture_output=True,
                           text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-4000:]
-    out = {k: root / k for k in ("A", "B", "I", "C", "S")}
+    out = {k: root / k for k in ("A", "B", "I", "C", "S", "W")}
     out["B_first_rows"] = _rows(root / "B_first")
     out["B_first_summary"] = json.loads((root / "B_first" / "summary.json").read_text())
     out["I_first_rows"] = _rows(root / "I_first")
@@ -255,6 +259,21 @@ def test_stop_rule_with_patience(runs):
     assert summary["seconds_to_stop_rule"] == pytest.approx(float(rows[0]["wall_s"]), abs=1e-3)
 
 
+def test_stop_rule_with_wave_speed(runs):
+    """--min-wave-speed adds a condition to the paper's rule: the paper's rule alone is still timed."""
+    rows = _rows(runs["W"])
+    summary = json.loads((runs["W"] / "summary.json").read_text())
+    assert len(rows) == 3 and summary["stop_rule_reached"] is False and summary["seconds_to_stop_rule"] is None
+    assert summary["min_wave_speed"] == 1e9
+    assert summary["seconds_to_paper_rule"] == pytest.approx(float(rows[0]["wall_s"]), abs=1e-3)
+    assert summary["env_steps_to_paper_rule"] == CHUNK
+    s = summary["final_eval"]["wave_speed"]
+    assert len(s) == 1 and np.isfinite(s[0]) and len(summary["final_eval"]["equilibrium_gains"][0]) == 3
+    assert float(rows[-1]["eval_wave_speed"]) == pytest.approx(s[0], rel=1e-6)
+    plain = json.loads((runs["S"] / "summary.json").read_text())
+    assert plain["min_wave_speed"] is None and plain["seconds_to_paper_rule"] == plain["seconds_to_stop_rule"]
+
+
 def test_checkpoint_round_trip_gives_identical_actions(runs):
     rt = runs["roundtrip"]
     assert rt["identical"] == [True, True]  # load_policy(run) == in-memory policy, bit for bit
@@ -300,6 +319,7 @@ def test_cli_help_documents_every_flag(capsys):
     (["--n-points", "2"], "n_points"),
     (["--network", "huge"], "invalid choice"),
     (["--delay-range", "1"], "LO,HI"),
+    (["--lr-final", "2"], "lr_final"),
 ])
 def test_cli_invalid_values_exit_2(argv, match, tmp_path, capsys):
     out = tmp_path / "run"

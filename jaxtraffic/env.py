@@ -35,7 +35,7 @@ from flax import struct
 from jaxtraffic import delay as delay_buffer
 from jaxtraffic import metrics as M
 from jaxtraffic.controllers import Observation, gain_law, saturate
-from jaxtraffic.linear import LinearModel, gain_law_wave_speed, linearize
+from jaxtraffic.linear import LinearModel, gain_law_is_regular, gain_law_wave_speed, linearize
 from jaxtraffic.params import TrafficParams, equilibrium
 from jaxtraffic.rollout import PlantState, initial_state, paper_initial_condition, plant_step
 
@@ -190,9 +190,8 @@ def backward_wave_cost(gains: Array, lm: LinearModel, speed_min: Array | float, 
     """0 when the gains' closed-loop wave speed s (``linear.gain_law_wave_speed``) is >= speed_min
     (m/s), rising linearly to 1 at speed_min - scale and beyond; 1 also where the relaxed relation
     v~ = c rho~ breaks down (its denominator <= 0, s changes sign through infinity). Dimensionless."""
-    den = 1.0 + lm.V_h * lm.h_bar * gains[..., 1] / ((1.0 + gains[..., 0]) * lm.v_bar)
     s = gain_law_wave_speed(gains, lm)
-    return jnp.where(den > 0, jnp.clip((speed_min - s) / scale, 0.0, 1.0), 1.0)
+    return jnp.where(gain_law_is_regular(gains, lm), jnp.clip((speed_min - s) / scale, 0.0, 1.0), 1.0)
 
 
 def step(key: Array, state: EnvState, action: Array, params: EnvParams):

@@ -94,7 +94,19 @@ def gain_law_wave_speed(gains: Array, lm: LinearModel) -> Array:
     asymptotically stable. Open loop: s = lambda2 < 0 (congested, backward waves). The time to
     flush the road, L / s, bounds how fast a uniform density offset can decay.
     """
+    num, den = _relaxed_slope_terms(gains, lm)
+    return lm.v_bar + lm.rho_bar * num / den
+
+
+def gain_law_is_regular(gains: Array, lm: LinearModel) -> Array:
+    """Whether the relaxed relation v~ = c rho~ of ``gain_law_wave_speed`` holds with a finite c of
+    the continuous branch (its denominator > 0); across the surface where it vanishes, s changes
+    sign through infinity and means nothing. Shape gains.shape[:-1], bool."""
+    return _relaxed_slope_terms(gains, lm)[1] > 0
+
+
+def _relaxed_slope_terms(gains: Array, lm: LinearModel) -> tuple[Array, Array]:
+    """Numerator (m^2/(s veh)) and denominator (dimensionless) of c in ``gain_law_wave_speed``."""
     e1, e2, e3 = gains[..., 0], gains[..., 1], gains[..., 2]
     scale = lm.V_h * lm.h_bar / (1.0 + e1)
-    c = (lm.V_rho + scale * e3 / lm.rho_bar) / (1.0 + scale * e2 / lm.v_bar)
-    return lm.v_bar + lm.rho_bar * c
+    return lm.V_rho + scale * e3 / lm.rho_bar, 1.0 + scale * e2 / lm.v_bar

@@ -10,7 +10,7 @@ import pytest
 from jaxtraffic import TrafficParams, constant_gains, equilibrium, simulate
 from jaxtraffic import fundamental as fd
 from jaxtraffic.controllers import lyapunov_equivalent_gains
-from jaxtraffic.linear import gain_law_wave_speed, linear_step, linearize, riemann_w
+from jaxtraffic.linear import gain_law_is_regular, gain_law_wave_speed, linear_step, linearize, riemann_w
 from jaxtraffic.solver import arz_step
 
 
@@ -105,6 +105,10 @@ def test_gain_law_wave_speed_oracles():
             np.testing.assert_allclose(float(gain_law_wave_speed(g, lm)), float(lm.v_bar), rtol=1e-12)
         # batched over leading axes
         assert gain_law_wave_speed(jnp.zeros((4, 2, 3)), lm).shape == (4, 2)
+        # the relaxed relation breaks down where 1 + V_h h_bar eta2 / ((1 + eta1) v_bar) = 0
+        e2_sing = -float(lm.v_bar / (lm.V_h * lm.h_bar))  # 1.283333 at eta1 = 0
+        assert bool(gain_law_is_regular(jnp.array([0.0, 0.9 * e2_sing, 0.0]), lm))
+        assert not bool(gain_law_is_regular(jnp.array([0.0, 1.1 * e2_sing, 0.0]), lm))
 
 
 # (eta1, eta2, eta3): s = v_bar (Lyapunov k = 1), s ~ +1.5 m/s, s ~ -1.5 m/s, open loop (s = lambda2)

@@ -41,9 +41,11 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 from machine import cpu_model, load  # noqa: E402  (benchmarks/machine.py)
 
-from jaxtraffic import TrafficParams, backstepping, open_loop, ppo, simulate  # noqa: E402
-from jaxtraffic.policy import load_policy  # noqa: E402
-from jaxtraffic.trainer import TrainSettings, build, make_evaluator  # noqa: E402
+from jaxtraffic import TrafficParams, backstepping, open_loop, simulate  # noqa: E402
+from jaxtraffic.learn import ppo  # noqa: E402
+from jaxtraffic.learn.checkpoint import load_policy  # noqa: E402
+from jaxtraffic.learn.env import GainEnv  # noqa: E402
+from jaxtraffic.learn.trainer import TrainSettings, build, make_evaluator  # noqa: E402
 
 SIM_STEPS = 3000  # 300 s at dt = 0.1 s
 
@@ -60,7 +62,7 @@ def throughput(num_envs: int, chunks: int) -> dict:
     steps_per_chunk = cfg.steps_per_update * cfg.updates_per_chunk
     load0 = load()
     t0 = time.perf_counter()
-    init, train_chunk = ppo.make_train(cfg, env_params)
+    init, train_chunk = ppo.make_train(cfg, env_params, env=GainEnv)
     runner = _block(init(jax.random.PRNGKey(0)))
     t_init = time.perf_counter() - t0
     t0 = time.perf_counter()

@@ -1,5 +1,13 @@
 """jaxtraffic: JAX simulation and control of congested mixed ACC/manual freeway traffic.
 
+Layers (imports flow one way, model <- control <- sim <- learn <- paper <- cli):
+    model/    parameters, fundamental diagram, ARZ solver, delay buffer, linearisation
+    control/  controller interface, baselines, three-gain law, learned gain policy
+    sim/      plant state and the one closed-loop step, rollouts, initial conditions, metrics
+    learn/    environment, PPO, trainer, checkpoints and load_policy
+    paper/    the paper's scenarios, summaries, claims, report and figures
+    cli/      the train and evaluate command lines
+
 Public API (see README.md for a module map):
     TrafficParams, equilibrium                      -- parameters and equilibrium
     simulate, simulate_batch, stack_params          -- jit-compiled, vmappable rollouts
@@ -7,7 +15,7 @@ Public API (see README.md for a module map):
     open_loop, lyapunov, backstepping, constant_gains, Controller, Observation -- controllers
 """
 
-from jaxtraffic.controllers import (
+from jaxtraffic.control import (
     Controller,
     Observation,
     backstepping,
@@ -17,8 +25,8 @@ from jaxtraffic.controllers import (
     open_loop,
     saturate,
 )
-from jaxtraffic.params import TrafficParams, cfl_number, equilibrium, steps_for
-from jaxtraffic.rollout import (
+from jaxtraffic.model.params import TrafficParams, cfl_number, equilibrium, steps_for
+from jaxtraffic.sim import (
     SimResult,
     Trajectory,
     equilibrium_state,

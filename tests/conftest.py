@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from jaxtraffic import TrafficParams, equilibrium
-from jaxtraffic.solver import arz_step
+from jaxtraffic.model.solver import arz_step
 
 # A tiny grid: 41 nodes (dx = 25 m), dt = 0.5 s, CFL ~ 0.072; fast to compile and run.
 # (Coarser grids are not used: with the upwind inlet, node 0's speed obeys the locally unstable

@@ -9,8 +9,8 @@ import pytest
 from conftest import SMALL, bump_state
 
 from jaxtraffic import Controller, TrafficParams, equilibrium_state, simulate, simulate_batch, stack_params
-from jaxtraffic import delay as db
-from jaxtraffic.rollout import initial_state, plant_step
+from jaxtraffic.model import delay as db
+from jaxtraffic.sim.plant import initial_state, plant_step
 
 
 def test_buffer_starts_filled_with_h0():
@@ -76,7 +76,7 @@ def test_pulse_reaches_plant_exactly_d_steps_later(d):
 
 def test_plant_applies_delayed_input_like_a_direct_solver_step():
     """With delay d the plant step n uses exactly the field sent at step n - d."""
-    from jaxtraffic.solver import arz_step
+    from jaxtraffic.model.solver import arz_step
 
     d = 4
     p = TrafficParams(**SMALL, delay=d * SMALL["dt"])

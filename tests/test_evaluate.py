@@ -8,8 +8,8 @@ import math
 import pytest
 
 import evaluate
-from jaxtraffic.experiments import REQUIRED_KEYS, SCENARIOS
-from jaxtraffic.trainer import TrainSettings, train
+from jaxtraffic.learn.trainer import TrainSettings, train
+from jaxtraffic.paper import REQUIRED_KEYS, SCENARIOS
 
 
 @pytest.fixture(scope="module")

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from jaxtraffic import TrafficParams, constant_gains, equilibrium, simulate
-from jaxtraffic import fundamental as fd
-from jaxtraffic.controllers import lyapunov_equivalent_gains
-from jaxtraffic.linear import gain_law_is_regular, gain_law_wave_speed, linear_step, linearize, riemann_w
-from jaxtraffic.solver import arz_step
+from jaxtraffic.control import lyapunov_equivalent_gains
+from jaxtraffic.model import fundamental as fd
+from jaxtraffic.model.linear import gain_law_is_regular, gain_law_wave_speed, linear_step, linearize, riemann_w
+from jaxtraffic.model.solver import arz_step
 
 
 def test_coefficients_match_model_table():

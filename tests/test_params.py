@@ -9,7 +9,7 @@ import pytest
 
 import jaxtraffic
 from jaxtraffic import TrafficParams, cfl_number, equilibrium, stack_params, steps_for
-from jaxtraffic import fundamental as fd
+from jaxtraffic.model import fundamental as fd
 
 # MODEL.md section 2 table: (value, decimals shown)
 ORACLES = {

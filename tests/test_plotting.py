@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from jaxtraffic import plotting as P
+from jaxtraffic.paper import plotting as P
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 RHO_BAR, V_BAR, H_BAR = 0.10735931, 3.104839, 1.5

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from flax import struct
 
-from jaxtraffic import env as E
-from jaxtraffic import ppo
-from jaxtraffic.params import TrafficParams
+from jaxtraffic.learn import env as E
+from jaxtraffic.learn import ppo
+from jaxtraffic.model.params import TrafficParams
 
 # ----------------------------------------------------------------------------------------- GAE
 
@@ -230,7 +230,7 @@ def test_ppo_updates_move_policy_toward_target(toy_run):
 def test_make_train_rejects_indivisible_batch():
     cfg = ppo.PPOConfig(num_envs=3, num_steps=5, num_minibatches=4)
     with pytest.raises(ValueError, match="num_minibatches"):
-        ppo.make_train(cfg, E.make_env_params(TrafficParams(n_points=21, delay=0.5)))
+        ppo.make_train(cfg, E.make_env_params(TrafficParams(n_points=21, delay=0.5)), env=E.GainEnv)
 
 
 def test_learning_rate_schedule():

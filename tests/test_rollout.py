@@ -22,7 +22,9 @@ from jaxtraffic import (
     simulate_batch,
     stack_params,
 )
-from jaxtraffic import metrics as M
+from jaxtraffic.model.solver import is_physical
+from jaxtraffic.sim import metrics as M
+from jaxtraffic.sim.plant import closed_loop_step, initial_state, plant_alpha_sequence, select_state
 
 SENTINELS = ("time_to_reward_target_s", "diverged_at_s")  # documented inf = "never"
 
@@ -109,7 +111,7 @@ def test_divergence_is_contained(bad_amplitude):
     _finite_except_sentinels(B.metrics)
     # the diverged environment is frozen at a physical state from its divergence on
     fin = take(B.final, 1)
-    assert bool(jaxtraffic.solver.is_physical(fin.rho, fin.v, p))
+    assert bool(is_physical(fin.rho, fin.v, p))
     rec = np.asarray(B.trajectory.rho[1])  # every 10th step
     k = int(np.ceil(t_div / (10 * float(p.dt)))) + 1
     for j in range(k, rec.shape[0]):
@@ -310,3 +312,51 @@ def test_time_to_reward_target_matches_the_recorded_rewards():
     expected = (bad[-1] + 1) * float(p.dt)
     assert float(res.metrics["time_to_reward_target_s"]) == pytest.approx(expected)
     assert 0.0 < expected < 200 * float(p.dt)
+
+
+def test_simulate_is_a_scan_of_closed_loop_step():
+    """``simulate`` is exactly ``closed_loop_step`` iterated (with the plant alphas drawn up front)."""
+    p = jaxtraffic.TrafficParams(**SMALL, delay=0.5, alpha_noise=0.05)
+    ctrl = jaxtraffic.backstepping(0.5, 1.0)
+    n_steps = 30
+    key = jax.random.PRNGKey(5)
+    res = jaxtraffic.simulate(p, ctrl, n_steps=n_steps, key=key)
+    k_plant, k_ctrl = jax.random.split(key)
+    rho0, v0 = jaxtraffic.paper_initial_condition(p)
+    target = jaxtraffic.equilibrium(p)
+    alphas = plant_alpha_sequence(p, k_plant, n_steps, rho0.dtype)
+
+    @jax.jit
+    def run(alphas):
+        def body(carry, a):
+            plant, cstate = carry
+            plant, cstate, h, info = closed_loop_step(plant, cstate, ctrl, p, p, a,
+                                                      jax.random.fold_in(k_ctrl, plant.step), target)
+            return (plant, cstate), (h, info.reward)
+
+        state = initial_state(p, rho0, v0)
+        return jax.lax.scan(body, (state, ctrl.init(state.observation(p), p)), alphas)
+
+    (plant, _), (hs, rewards) = run(alphas)
+    np.testing.assert_allclose(plant.rho, res.final.rho, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(plant.v, res.final.v, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(hs[-1], res.final.h_prev, rtol=1e-6)
+    np.testing.assert_allclose(rewards[-1], res.metrics["final_reward"], rtol=1e-4)
+
+
+def test_select_state_restarts_without_copying_the_buffer():
+    """``select_state(done, initial_state(..., sent=s.sent), s)``: the fresh state where done, the old
+    one elsewhere; the buffer storage is the old one's either way (only its bookkeeping switches)."""
+    p = jaxtraffic.TrafficParams(**SMALL, delay=1.5)
+    rho0, v0 = jaxtraffic.paper_initial_condition(p)
+    s = initial_state(p, rho0, v0)
+    for _ in range(5):
+        s, _, _, _ = closed_loop_step(s, (), jaxtraffic.constant_gains(0.0, 0.0, 1.0), p, p, p.alpha,
+                                      jax.random.PRNGKey(0), jaxtraffic.equilibrium(p))
+    fresh = initial_state(p, rho0 * 1.01, q := p.q_in / (rho0 * 1.01), sent=s.sent)
+    kept, reset = select_state(jnp.asarray(False), fresh, s), select_state(jnp.asarray(True), fresh, s)
+    assert leaves_equal(kept, s)
+    np.testing.assert_array_equal(reset.rho, fresh.rho)
+    np.testing.assert_array_equal(reset.v, q)
+    assert int(reset.step) == 0 and int(reset.sent.valid) == 0 and int(kept.sent.valid) == 5
+    np.testing.assert_array_equal(reset.sent.data, s.sent.data)

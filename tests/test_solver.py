@@ -9,7 +9,7 @@ import pytest
 from conftest import SMALL, bump_state, run_solver
 
 from jaxtraffic import TrafficParams, equilibrium, equilibrium_state
-from jaxtraffic.solver import arz_step, is_physical, max_cfl, minmod
+from jaxtraffic.model.solver import arz_step, is_physical, max_cfl, minmod
 
 SCHEMES = ("upwind", "muscl")
 

@@ -25,14 +25,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import train as train_cli
-from jaxtraffic import checkpoint as ckpt
-from jaxtraffic import env as E
-from jaxtraffic import ppo
-from jaxtraffic.controllers import Observation
-from jaxtraffic.policy import load_policy, policy_controller
-from jaxtraffic.rollout import initial_state, paper_initial_condition
-from jaxtraffic.trainer import CURVE_FIELDS, TrainSettings, build
+from jaxtraffic.cli import train as train_cli
+from jaxtraffic.control import Observation
+from jaxtraffic.control.gain_policy import policy_controller
+from jaxtraffic.learn import checkpoint as ckpt
+from jaxtraffic.learn import ppo
+from jaxtraffic.learn.checkpoint import load_policy
+from jaxtraffic.learn.trainer import CURVE_FIELDS, TrainSettings, build
+from jaxtraffic.sim import initial_state, paper_initial_condition
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = ["--n-points", "21", "--delay", "0.5", "--max-delay-steps", "20", "--num-envs", "4", "--num-steps", "8",
@@ -51,10 +51,10 @@ class SharedCompile:
     def __init__(self, orig):
         self.orig, self.cache, self.last_runner, self.interrupt_at, self.calls = orig, {}, None, None, 0
 
-    def __call__(self, cfg, env_params, devices=None, env=E.GainEnv):
+    def __call__(self, cfg, env_params, devices=None, *, env):
         key = (cfg, env_params, None if devices is None else tuple(devices), env)
         if key not in self.cache:
-            self.cache[key] = self.orig(cfg, env_params, devices, env)
+            self.cache[key] = self.orig(cfg, env_params, devices, env=env)
         init, chunk = self.cache[key]
 
         def train_chunk(runner):
@@ -121,7 +121,7 @@ def _round_trip(run: Path, runner) -> dict:
     ctrl, config = load_policy(run)
     rep = jax.tree.map(lambda x: x[0, 0], runner)  # device 0, seed 0
     mem = policy_controller(rep.params, rep.stats.mean, rep.stats.var, config["env"]["gain_max"],
-                            hidden=tuple(config["ppo"]["hidden"]), activation=config["ppo"]["activation"],
+                            hidden=tuple(config["ppo"]["hidden"]),
                             init_sigma=config["ppo"]["init_sigma"], gain_filter=config["env"]["gain_filter"])
     tp = build(TrainSettings(n_points=21, delay=0.5, max_delay_steps=20))[1].traffic  # the run's nominal plant
     out = {"identical": [], "h": [], "stats_trained": bool(np.abs(rep.stats.mean).max() > 0
@@ -206,7 +206,7 @@ def test_run_directory_contents(runs):
     else:
         assert summary["seconds_to_stop_rule"] is None
     try:
-        from jaxtraffic.plotting import plot_learning_curve  # noqa: F401
+        from jaxtraffic.paper.plotting import plot_learning_curve  # noqa: F401
     except ImportError:
         pytest.skip("jaxtraffic.plotting.plot_learning_curve not available yet: learning_curve.png not checked")
     png = run / "learning_curve.png"
@@ -346,12 +346,13 @@ import json, sys, tempfile
 import jax, numpy as np
 sys.path.insert(0, ".")
 import train
-from jaxtraffic import checkpoint as ckpt, ppo
+from jaxtraffic.learn import checkpoint as ckpt
+from jaxtraffic.learn import ppo
 
 orig, cache = ppo.make_train, {}
-def shared(cfg, env_params, devices=None, env=ppo.E.GainEnv):  # resume reuses the compiled program
+def shared(cfg, env_params, devices=None, *, env):  # resume reuses the compiled program
     key = (cfg, env_params, env)
-    cache[key] = cache.get(key) or orig(cfg, env_params, devices, env)
+    cache[key] = cache.get(key) or orig(cfg, env_params, devices, env=env)
     return cache[key]
 ppo.make_train = shared
 

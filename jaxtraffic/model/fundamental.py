@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 import jax.numpy as jnp
 
 if TYPE_CHECKING:
-    from jaxtraffic.params import TrafficParams
+    from jaxtraffic.model.params import TrafficParams
 
 Array = jnp.ndarray
 
@@ -22,7 +22,9 @@ def tau_mix(p: TrafficParams, alpha: Array | float | None = None) -> Array:
     return 1.0 / (a / p.tau_acc + (1.0 - a) / p.tau_m)
 
 
-def _c_b(p: TrafficParams, alpha: Array | float | None) -> tuple[Array, Array]:
+def mix_coefficients(p: TrafficParams, alpha: Array | float | None = None) -> tuple[Array, Array]:
+    """Coefficients (c, b) of h_mix(h) = c h / (alpha + b h): c = alpha + (1 - alpha) tau_acc/tau_m
+    (dimensionless), b = (1 - alpha) tau_acc / (tau_m h_m) (1/s). h_mix saturates at c / b (s)."""
     a = p.alpha if alpha is None else alpha
     ratio = p.tau_acc / p.tau_m
     c = a + (1.0 - a) * ratio
@@ -33,21 +35,21 @@ def _c_b(p: TrafficParams, alpha: Array | float | None) -> tuple[Array, Array]:
 def h_mix(h: Array, p: TrafficParams, alpha: Array | float | None = None) -> Array:
     """Mixed time gap h_mix(h) = c h / (alpha + b h) in s, for an ACC time gap ``h`` in s."""
     a = p.alpha if alpha is None else alpha
-    c, b = _c_b(p, a)
+    c, b = mix_coefficients(p, a)
     return c * h / (a + b * h)
 
 
 def h_mix_prime(h: Array, p: TrafficParams, alpha: Array | float | None = None) -> Array:
     """Derivative dh_mix/dh = c alpha / (alpha + b h)^2 (dimensionless)."""
     a = p.alpha if alpha is None else alpha
-    c, b = _c_b(p, a)
+    c, b = mix_coefficients(p, a)
     return c * a / (a + b * h) ** 2
 
 
 def h_mix_inv(hm: Array, p: TrafficParams, alpha: Array | float | None = None) -> Array:
     """Inverse of ``h_mix``: the ACC time gap (s) giving mixed gap ``hm`` (s); needs hm < c/b."""
     a = p.alpha if alpha is None else alpha
-    c, b = _c_b(p, a)
+    c, b = mix_coefficients(p, a)
     return a * hm / (c - b * hm)
 
 
@@ -72,3 +74,12 @@ def characteristic_speeds(
 ) -> tuple[Array, Array]:
     """Characteristic speeds (lambda1, lambda2) = (v, v - 1/(rho h_mix)), in m/s."""
     return v, v - 1.0 / (rho * h_mix(h, p, alpha))
+
+
+def in_physical_region(rho: Array, v: Array, l: Array | float) -> Array:
+    """Elementwise: the node is finite and in the physical region 0 < rho < 1/l, 0 <= v < inf.
+
+    A NaN fails every comparison, an infinite rho fails rho < 1/l. Only comparisons, so it works
+    on numpy arrays (in their precision) as well as on JAX arrays.
+    """
+    return (rho > 0) & (rho < 1.0 / l) & (v >= 0) & (v < float("inf"))

@@ -1,15 +1,6 @@
-"""Controllers: pure functions from an observation to the ACC time-gap field.
+"""Baseline controllers: open loop, Lyapunov and backstepping (predictor) feedback.
 
-Every controller is a ``Controller`` pytree: its ``settings`` (gains, assumed delay, network
-weights, ...) are traced leaves, so a batch of controller settings is a ``vmap`` over a batched
-``Controller`` and changing a gain or an assumed delay never recompiles; the functions are static.
-
-Interface (shared by the baselines and the PPO policy):
-    cstate = controller.init(obs, nominal)
-    h, cstate = controller.act(cstate, obs, nominal, key)
-``obs`` is an ``Observation``; ``nominal`` is the ``TrafficParams`` the controller believes in
-(its model: nominal alpha, the equilibrium target); ``key`` is a PRNG key for stochastic
-controllers. The rollout saturates every returned field to [h_min, h_max] (``saturate``).
+Each is a ``control.base.Controller`` (interface there).
 
 Laws (MODEL.md sections 7-9; see docs/controllers.md for sources and differences):
     open_loop:     h = h_bar
@@ -21,59 +12,17 @@ Laws (MODEL.md sections 7-9; see docs/controllers.md for sources and differences
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import Any
-
-import chex
 import jax
 import jax.numpy as jnp
 from flax import struct
 
-from jaxtraffic import delay as delay_buffer
-from jaxtraffic import fundamental as fd
-from jaxtraffic.linear import LinearModel, linear_step, linearize, riemann_w
-from jaxtraffic.params import TrafficParams, equilibrium
+from jaxtraffic.control.base import Controller
+from jaxtraffic.model import delay as delay_buffer
+from jaxtraffic.model import fundamental as fd
+from jaxtraffic.model.linear import LinearModel, linear_step, linearize, riemann_w
+from jaxtraffic.model.params import TrafficParams, equilibrium
 
 Array = jax.Array
-
-
-@struct.dataclass
-class Observation:
-    """What a controller sees at t_n: rho (veh/m), v (m/s), the previously sent time gap
-    h_prev (s), the time t (s) and the buffer of time gaps it has sent (s)."""
-
-    rho: Array
-    v: Array
-    h_prev: Array
-    t: Array
-    sent: delay_buffer.DelayBuffer
-
-
-@struct.dataclass
-class Controller:
-    """A controller: traced ``settings`` plus static ``act_fn`` / ``init_fn``.
-
-    act_fn(settings, cstate, obs, nominal, key) -> (h, cstate)
-    init_fn(settings, obs, nominal) -> cstate
-    """
-
-    settings: Any
-    act_fn: Callable = struct.field(pytree_node=False)
-    init_fn: Callable = struct.field(pytree_node=False, default=lambda s, o, n: ())
-    name: str = struct.field(pytree_node=False, default="controller")
-
-    def init(self, obs: Observation, nominal: TrafficParams) -> Any:
-        return self.init_fn(self.settings, obs, nominal)
-
-    def act(self, cstate: Any, obs: Observation, nominal: TrafficParams, key: Array) -> tuple[Array, Any]:
-        h, cstate = self.act_fn(self.settings, cstate, obs, nominal, key)
-        chex.assert_equal_shape([h, obs.rho])
-        return h, cstate
-
-
-def saturate(h: Array, p: TrafficParams) -> Array:
-    """Clip a time-gap field to the actuator bounds [h_min, h_max] (s)."""
-    return jnp.clip(h, p.h_min, p.h_max)
 
 
 # ----------------------------------------------------------------------------- open loop
@@ -84,50 +33,6 @@ def _open_loop_act(settings, cstate, obs, nominal, key):
 def open_loop() -> Controller:
     """The uncontrolled system: h = h_bar everywhere."""
     return Controller(settings=(), act_fn=_open_loop_act, name="open_loop")
-
-
-# ----------------------------------------------------------------------------- gain law
-GAIN_NAMES = ("eta1", "eta2", "eta3")
-
-
-def gain_law(gains: Array, obs: Observation, nominal: TrafficParams) -> Array:
-    """The paper's three-gain law on normalised deviations (MODEL.md section 9).
-
-    h = h_bar + h_bar * (-eta1 (h_prev - h_bar)/h_bar - eta2 (v - v_bar)/v_bar
-                         + eta3 (rho - rho_bar)/rho_bar),
-    with dimensionless gains ``gains = [eta1, eta2, eta3]`` (shape (3,)).
-    """
-    chex.assert_shape(gains, (3,))
-    rho_bar, v_bar = equilibrium(nominal)
-    h_bar = nominal.h_bar
-    dev = (-gains[0] * (obs.h_prev - h_bar) / h_bar - gains[1] * (obs.v - v_bar) / v_bar
-           + gains[2] * (obs.rho - rho_bar) / rho_bar)
-    return h_bar + h_bar * dev
-
-
-def lyapunov_equivalent_gains(k: float | Array, nominal: TrafficParams) -> Array:
-    """Gains [eta1, eta2, eta3] for which ``gain_law`` is the Lyapunov law with gain ``k``.
-
-    Matching h_bar (-eta2 v~/v_bar + eta3 rho~/rho_bar) = ((1 - k) v~ - V_rho rho~)/V_h gives
-    eta1 = 0, eta2 = (k - 1) v_bar / (h_bar V_h), eta3 = -V_rho rho_bar / (h_bar V_h)
-    (all dimensionless). At the paper's defaults: eta2 = -1.283333 (k - 1), eta3 = -2.770561, so the
-    Lyapunov law is *not* inside the paper's sigmoid range (0, 1) of gains (MODEL.md section 9).
-    """
-    lm = linearize(nominal)
-    k = jnp.asarray(k, lm.V_h.dtype)
-    scale = lm.h_bar * lm.V_h
-    return jnp.stack([jnp.zeros_like(k), (k - 1.0) * lm.v_bar / scale,
-                      jnp.broadcast_to(-lm.V_rho * lm.rho_bar / scale, jnp.shape(k))], axis=-1)
-
-
-def _gain_act(settings, cstate, obs, nominal, key):
-    return gain_law(settings, obs, nominal), cstate
-
-
-def constant_gains(eta1: float = 0.0, eta2: float = 0.0, eta3: float = 0.0) -> Controller:
-    """The three-gain law with constant gains (what a PPO policy outputs, frozen)."""
-    return Controller(settings=jnp.asarray([eta1, eta2, eta3], float), act_fn=_gain_act,
-                      name="constant_gains")
 
 
 # ----------------------------------------------------------------------------- Lyapunov
@@ -168,8 +73,7 @@ def _lyapunov_nonlinear_act(settings, cstate, obs, nominal, key):
     v_target = obs.v - settings.k * (obs.v - v_bar)
     # speed matching: V(rho, h) = v_target, i.e. h_mix(h) = (1/rho - l)/v_target
     hm = (1.0 / obs.rho - nominal.l) / jnp.maximum(v_target, 1e-6)
-    c = nominal.alpha + (1.0 - nominal.alpha) * nominal.tau_acc / nominal.tau_m
-    b = (1.0 - nominal.alpha) * nominal.tau_acc / nominal.tau_m / nominal.h_m
+    c, b = fd.mix_coefficients(nominal)
     hm = jnp.minimum(hm, 0.999 * c / b)  # h_mix saturates at c/b: beyond it no h exists
     return fd.h_mix_inv(hm, nominal), cstate
 

@@ -15,6 +15,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from jaxtraffic.model.fundamental import in_physical_region
+
 Array = jax.Array
 
 VEH_PER_KM = 1000.0  # veh/m -> veh/km
@@ -48,7 +50,7 @@ def physical_reward(rho: Array, v: Array, rho_bar: Array | float, v_bar: Array |
                     l: Array | float) -> Array:
     """The reward of (rho, v), or NaN if any node is outside the physical region
     (finite, 0 < rho < 1/l, v >= 0): one reduction serves both the divergence check and the reward."""
-    ok = (rho > 0) & (rho < 1.0 / l) & (v >= 0) & (v < jnp.inf)
+    ok = in_physical_region(rho, v, l)
     terms = ((rho - rho_bar) * (1.0 / rho_bar)) ** 2 + ((v - v_bar) * (1.0 / v_bar)) ** 2
     return -jnp.sum(jnp.where(ok, terms, jnp.nan), axis=-1)
 

@@ -19,9 +19,9 @@ from jaxtraffic import (
     simulate_batch,
     steps_for,
 )
-from jaxtraffic import fundamental as fd
-from jaxtraffic.controllers import lyapunov_equivalent_gains
-from jaxtraffic.rollout import initial_state, paper_initial_condition
+from jaxtraffic.control import lyapunov_equivalent_gains
+from jaxtraffic.model import fundamental as fd
+from jaxtraffic.sim import initial_state, paper_initial_condition
 
 KEY = jax.random.PRNGKey(0)
 # One grid / horizon / recording stride for the float32 rollouts, so that each controller type

@@ -1,4 +1,4 @@
-"""A policy as a controller (jaxtraffic/policy.py) against the training environment, tiny grid."""
+"""A policy as a controller (jaxtraffic/control/gain_policy.py) against the training environment, tiny grid."""
 
 from __future__ import annotations
 
@@ -7,11 +7,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxtraffic import env as E
-from jaxtraffic.networks import ActorCritic
-from jaxtraffic.params import TrafficParams
-from jaxtraffic.policy import equilibrium_gains, policy_controller
-from jaxtraffic.rollout import equilibrium_state, simulate
+from jaxtraffic.control.gain_policy import equilibrium_gains, policy_controller
+from jaxtraffic.control.networks import ActorCritic
+from jaxtraffic.learn import env as E
+from jaxtraffic.model.params import TrafficParams
+from jaxtraffic.sim import equilibrium_state, simulate
 
 TP = TrafficParams(n_points=21, delay=0.5)
 HIDDEN = (16,)
@@ -86,7 +86,7 @@ def test_equilibrium_gains_are_what_the_policy_settles_to():
     res = simulate(TP, ctrl, n_steps=300, rho0=rho, v0=v)
     np.testing.assert_allclose(res.controller_state, g, rtol=1e-4, atol=1e-5)
     # a fixed point: one more step at the equilibrium leaves it unchanged
-    from jaxtraffic.controllers import Observation
+    from jaxtraffic.control import Observation
     n = TP.n_points
     obs = Observation(rho=rho, v=v, h_prev=jnp.full((n,), TP.h_bar), t=jnp.zeros(()), sent=None)
     np.testing.assert_allclose(ctrl.act(g, obs, TP, None)[1], g, rtol=1e-5, atol=1e-6)

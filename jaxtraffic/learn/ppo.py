@@ -27,8 +27,8 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from jaxtraffic import env as E
-from jaxtraffic.networks import SMALL_HIDDEN, ActorCritic
+from jaxtraffic.control.gain_policy import normalize_obs
+from jaxtraffic.control.networks import SMALL_HIDDEN, ActorCritic
 
 Array = jax.Array
 AXIS = "dev"
@@ -45,7 +45,6 @@ class PPOConfig:
     updates_per_chunk: int = struct.field(pytree_node=False, default=10)
     num_seeds: int = struct.field(pytree_node=False, default=1)
     hidden: tuple = struct.field(pytree_node=False, default=SMALL_HIDDEN)
-    activation: str = struct.field(pytree_node=False, default="tanh")
     init_sigma: float = struct.field(pytree_node=False, default=0.5)
     lr: float = 3e-4
     gamma: float = 0.99
@@ -59,17 +58,12 @@ class PPOConfig:
     lr_final: float = 0.1
 
     def network(self, n_actions: int = 3) -> ActorCritic:
-        return ActorCritic(hidden=tuple(self.hidden), activation=self.activation, init_sigma=self.init_sigma,
+        return ActorCritic(hidden=tuple(self.hidden), init_sigma=self.init_sigma,
                            n_actions=n_actions)
 
     @property
     def steps_per_update(self) -> int:
         return self.num_envs * self.num_steps
-
-
-def normalize_obs(x: Array, mean: Array, var: Array) -> Array:
-    """Observation normalised by running statistics, clipped to [-10, 10] (dimensionless)."""
-    return jnp.clip((x - mean) / jnp.sqrt(var + 1e-8), -10.0, 10.0)
 
 
 @struct.dataclass
@@ -99,7 +93,7 @@ class RunningStats:
 class Runner:
     params: Any
     opt_state: Any
-    env_state: E.EnvState
+    env_state: Any
     obs: Array
     stats: RunningStats
     key: Array
@@ -297,12 +291,13 @@ def _strong(tree):
     return jax.tree.map(lambda x: jax.lax.convert_element_type(x, x.dtype), tree)
 
 
-def make_train(cfg: PPOConfig, env_params: Any, devices: list | None = None, env: Any = E.GainEnv):
+def make_train(cfg: PPOConfig, env_params: Any, devices: list | None = None, *, env: Any):
     """Build ``(init, train_chunk)`` for ``cfg`` and ``env_params`` over ``devices``.
 
     ``env`` is any object with gymnax-style ``reset(key, params)``, ``step(key, state, action,
     params) -> (obs, state, reward, done, info)`` (info with ``terminal_obs``, ``truncated``,
-    ``terminated``), ``obs_size(params)`` and ``action_size``; default: the traffic gain env.
+    ``terminated``), ``obs_size(params)`` and ``action_size``, e.g. ``learn.env.GainEnv`` (passed
+    explicitly: PPO does not depend on the traffic environment).
 
     Every leaf of the returned ``Runner`` has a leading device axis and then a seed axis; the
     network, optimiser state, statistics and key are identical across devices (kept so by

@@ -24,7 +24,8 @@ import chex
 import jax
 import jax.numpy as jnp
 
-from jaxtraffic.params import TrafficParams
+from jaxtraffic.model import fundamental as fd
+from jaxtraffic.model.params import TrafficParams
 
 Array = jax.Array
 
@@ -48,9 +49,7 @@ def _speeds_and_source(rho: Array, v: Array, h: Array, alpha: Array, p: TrafficP
     Same quantities as ``fundamental.characteristic_speeds`` / ``fundamental.V`` (equal up to
     rounding): 1/h_mix(h) = (alpha + b h) / (c h) and 1/tau_mix = alpha/tau_acc + (1-alpha)/tau_m.
     """
-    ratio = p.tau_acc / p.tau_m
-    c = alpha + (1.0 - alpha) * ratio
-    b = (1.0 - alpha) * ratio / p.h_m
+    c, b = fd.mix_coefficients(p, alpha)
     inv_tau = alpha / p.tau_acc + (1.0 - alpha) / p.tau_m
     inv_rho = 1.0 / rho
     inv_hm = (alpha + b * h) / (c * h)
@@ -136,7 +135,7 @@ def is_physical(rho: Array, v: Array, p: TrafficParams) -> Array:
 
     One fused reduction: a NaN fails every comparison, an infinite rho fails rho < 1/l.
     """
-    return jnp.all((rho > 0) & (rho < 1.0 / p.l) & (v >= 0) & (v < jnp.inf))
+    return jnp.all(fd.in_physical_region(rho, v, p.l))
 
 
 def local_cfl(rho: Array, v: Array, h: Array, p: TrafficParams, alpha: Array | float | None = None) -> Array:

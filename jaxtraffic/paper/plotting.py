@@ -7,7 +7,7 @@ equilibrium value with symmetric, robust limits (the 99.5th percentile of |devia
 panels of a column), so the stop-and-go waves are visible and the controllers are comparable.
 
 Functions:
-    plot_learning_curve(csv_path, png_path)          -- paper fig. 3a (training reward)
+    plot_learning_curve(csv_path, png_path)          -- paper fig. 3a (from learn.curve)
     plot_reward(png_path, t, series, ...)            -- paper fig. 3b (reward over time)
     plot_spacetime(png_path, t, x, rows, ...)        -- paper figs. 4, 5, 7 (rho, v, h over x, t)
     plot_l2_norms(png_path, t, series, ...)          -- paper figs. 6, 8 (L2 norms over time)
@@ -17,7 +17,6 @@ Functions:
 
 from __future__ import annotations
 
-import csv
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -29,9 +28,16 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib import colors, ticker  # noqa: E402
 
-REWARD_TARGET = -0.1  # the paper's stop rule
-VEH_PER_KM = 1000.0
-DPI = 110
+from jaxtraffic.learn.curve import (  # noqa: E402
+    plot_learning_curve,
+    read_learning_curve,
+    save_figure,
+)
+from jaxtraffic.sim.metrics import REWARD_TARGET, VEH_PER_KM  # noqa: E402
+
+__all__ = ["plot_l2_norms", "plot_l2_panels", "plot_learning_curve", "plot_reward", "plot_robustness_map",
+           "plot_spacetime", "read_learning_curve"]
+
 
 # fixed colours so a controller looks the same in every figure
 CONTROLLER_STYLE = {
@@ -51,14 +57,6 @@ def _style(label: str) -> dict:
     return {}
 
 
-def _finish(fig: plt.Figure, png_path: str | Path) -> Path:
-    png_path = Path(png_path)
-    png_path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(png_path, dpi=DPI, bbox_inches="tight")
-    plt.close(fig)
-    return png_path
-
-
 def _mean_band(y: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """(mean, min, max) over the leading axis of a (S, T) array; (y, None, None) for (T,)."""
     y = np.asarray(y, float)
@@ -67,69 +65,6 @@ def _mean_band(y: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray
     if y.shape[0] == 1:
         return y[0], None, None
     return np.mean(y, axis=0), np.min(y, axis=0), np.max(y, axis=0)
-
-
-# ----------------------------------------------------------------------------- learning curve
-def read_learning_curve(csv_path: str | Path) -> dict[str, np.ndarray]:
-    """Columns of a learning_curve.csv as float arrays (empty cells become NaN)."""
-    with open(csv_path, newline="") as f:
-        rows = list(csv.DictReader(f))
-    if not rows:
-        raise ValueError(f"{csv_path}: no rows")
-    out = {}
-    for key in rows[0]:
-        vals = []
-        for r in rows:
-            try:
-                vals.append(float(r[key]))
-            except (TypeError, ValueError):
-                vals.append(math.nan)
-        out[key] = np.asarray(vals)
-    return out
-
-
-def _reward_axis(ax: plt.Axes, values: np.ndarray) -> None:
-    """Linear y axis, or symlog when the rewards span decades below the stop rule."""
-    finite = values[np.isfinite(values)]
-    if finite.size and np.min(finite) < 20 * REWARD_TARGET:
-        ax.set_yscale("symlog", linthresh=0.01)
-    ax.axhline(REWARD_TARGET, color="k", ls="--", lw=1, label="stop rule r = -0.1")
-    ax.grid(alpha=0.3, which="both")
-
-
-def plot_learning_curve(csv_path: str | Path, png_path: str | Path, title: str | None = None) -> Path:
-    """Paper fig. 3a: training reward against environment steps and against wall-clock seconds.
-
-    Reads ``csv_path`` (header ``update,env_steps,wall_s,mean_reward,eval_reward,...``) and plots
-    the mean training reward and the deterministic evaluation reward, with the -0.1 stop-rule line.
-    """
-    data = read_learning_curve(csv_path)
-    series = [(k, lab) for k, lab in (("mean_reward", "mean training reward (stochastic policy)"),
-                                      ("eval_reward", "evaluation reward (deterministic policy)"))
-              if k in data and np.isfinite(data[k]).any()]
-    if not series:
-        raise ValueError(f"{csv_path}: no mean_reward / eval_reward values")
-    xaxes = [(k, lab) for k, lab in (("env_steps", "environment steps"), ("wall_s", "wall-clock time (s)"))
-             if k in data and np.isfinite(data[k]).any()]
-    if not xaxes:
-        xaxes = [("update", "PPO update")]
-    fig, axes = plt.subplots(1, len(xaxes), figsize=(6.2 * len(xaxes), 4.2), squeeze=False,
-                             constrained_layout=True)
-    allv = np.concatenate([data[k] for k, _ in series])
-    for ax, (xk, xlab) in zip(axes[0], xaxes, strict=True):
-        for (yk, ylab), col in zip(series, ("tab:green", "tab:purple"), strict=False):
-            ok = np.isfinite(data[xk]) & np.isfinite(data[yk])
-            ax.plot(data[xk][ok], data[yk][ok], color=col, lw=1.5, marker="." if ok.sum() < 60 else None,
-                    label=ylab)
-        _reward_axis(ax, allv)
-        if xk == "env_steps":
-            ax.xaxis.set_major_formatter(ticker.EngFormatter(sep=""))
-        ax.set_xlabel(xlab)
-        ax.set_ylabel("reward r (dimensionless)")
-    handles, labels = axes[0, 0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="outside lower center", ncol=3, fontsize=9)
-    fig.suptitle(title or "PPO learning curve (paper fig. 3a)")
-    return _finish(fig, png_path)
 
 
 # ----------------------------------------------------------------------------- reward over time
@@ -163,7 +98,7 @@ def plot_reward(png_path: str | Path, t: np.ndarray, series: Mapping[str, np.nda
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8, loc="best")
     ax.set_title(title)
-    return _finish(fig, png_path)
+    return save_figure(fig, png_path)
 
 
 # ----------------------------------------------------------------------------- space-time maps
@@ -217,7 +152,7 @@ def plot_spacetime(
                 ax.text(td, x[-1], f" diverged at {td:.0f} s; frozen after", fontsize=7, va="top",
                         ha="right" if td > 0.6 * t[-1] else "left")
     fig.suptitle(title, fontsize=12)
-    return _finish(fig, png_path)
+    return save_figure(fig, png_path)
 
 
 # ----------------------------------------------------------------------------- L2 norms
@@ -253,7 +188,7 @@ def plot_l2_norms(png_path: str | Path, t: np.ndarray, series: Mapping[str, tupl
     axes[0].set_title("density deviation")
     axes[1].set_title("speed deviation")
     fig.suptitle(title)
-    return _finish(fig, png_path)
+    return save_figure(fig, png_path)
 
 
 def plot_l2_panels(png_path: str | Path, t: np.ndarray,
@@ -267,7 +202,7 @@ def plot_l2_panels(png_path: str | Path, t: np.ndarray,
         axes[0, j].set_title(f"{ptitle}: density deviation")
         axes[1, j].set_title(f"{ptitle}: speed deviation")
     fig.suptitle(title)
-    return _finish(fig, png_path)
+    return save_figure(fig, png_path)
 
 
 # ----------------------------------------------------------------------------- robustness map
@@ -333,4 +268,4 @@ def plot_robustness_map(
             cb.ax.text(1.05, initial_l2 * VEH_PER_KM, " initial", color="red", fontsize=7,
                        transform=cb.ax.get_yaxis_transform(), va="center")
     fig.suptitle(title)
-    return _finish(fig, png_path)
+    return save_figure(fig, png_path)

@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from jaxtraffic import fundamental as fd
+from jaxtraffic.model import fundamental as fd
 
 SCHEMES = ("upwind", "muscl")
 MODELS = ("arz", "linear")

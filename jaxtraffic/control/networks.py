@@ -20,20 +20,17 @@ import numpy as np
 
 PAPER_HIDDEN = (1024, 512, 512, 512, 512, 512, 512)
 SMALL_HIDDEN = (64, 64)
-ACTIVATIONS = {"tanh": nn.tanh, "relu": nn.relu}
 
 
 class MLP(nn.Module):
     hidden: Sequence[int]
     out: int
-    activation: str = "tanh"
     out_scale: float = 1.0
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
-        act = ACTIVATIONS[self.activation]
         for width in self.hidden:
-            x = act(nn.Dense(width, kernel_init=nn.initializers.orthogonal(np.sqrt(2.0)))(x))
+            x = nn.tanh(nn.Dense(width, kernel_init=nn.initializers.orthogonal(np.sqrt(2.0)))(x))
         return nn.Dense(self.out, kernel_init=nn.initializers.orthogonal(self.out_scale))(x)
 
 
@@ -41,16 +38,15 @@ class ActorCritic(nn.Module):
     """Returns (mean (..., 3), sigma (..., 3), value (...,))."""
 
     hidden: Sequence[int] = SMALL_HIDDEN
-    activation: str = "tanh"
     n_actions: int = 3
     init_sigma: float = 0.5
     sigma_offset: float = 1e-6
 
     @nn.compact
     def __call__(self, x: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-        mean = MLP(self.hidden, self.n_actions, self.activation, out_scale=0.01, name="actor")(x)
+        mean = MLP(self.hidden, self.n_actions, out_scale=0.01, name="actor")(x)
         bias = np.log(np.expm1(self.init_sigma))  # softplus^{-1}(init_sigma)
         raw_sigma = self.param("sigma", nn.initializers.constant(bias), (self.n_actions,))
         sigma = jnp.broadcast_to(nn.softplus(raw_sigma) + self.sigma_offset, mean.shape)
-        value = MLP(self.hidden, 1, self.activation, out_scale=1.0, name="critic")(x)[..., 0]
+        value = MLP(self.hidden, 1, out_scale=1.0, name="critic")(x)[..., 0]
         return mean, sigma, value

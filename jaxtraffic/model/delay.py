@@ -61,3 +61,10 @@ def read(buf: DelayBuffer, k: jax.Array | int) -> jax.Array:
     idx = (buf.head - k) % buf.size
     row = jax.lax.dynamic_index_in_dim(buf.data, idx, axis=0, keepdims=False)
     return jnp.where(k < buf.valid, row, buf.fill)
+
+
+def select_restarted(pred: jax.Array, restarted: DelayBuffer, buf: DelayBuffer) -> DelayBuffer:
+    """``restarted`` where ``pred`` else ``buf``, for ``restarted = restart(buf, h0)``: the two share
+    their storage, so only the O(n) bookkeeping is selected, never the (capacity x n) data."""
+    return buf.replace(valid=jnp.where(pred, restarted.valid, buf.valid),
+                       fill=jnp.where(pred, restarted.fill, buf.fill))

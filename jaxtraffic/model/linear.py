@@ -19,8 +19,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from jaxtraffic import fundamental as fd
-from jaxtraffic.params import TrafficParams, equilibrium
+from jaxtraffic.model import fundamental as fd
+from jaxtraffic.model.params import TrafficParams, equilibrium
 
 Array = jax.Array
 

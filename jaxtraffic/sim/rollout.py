@@ -3,16 +3,9 @@
 ``simulate`` runs one environment; ``simulate_batch`` vmaps it over a batch of parameters,
 initial states, keys and (optionally) controller settings. Both are jit-compiled; the number of
 steps and the recording stride are static, every physical constant, delay and gain is traced.
-
-Order of one step n (t_n = n dt):
-  1. the controller sees Observation(rho^n, v^n, h^{n-1}, t_n, sent inputs) and returns h^n,
-     saturated to [h_min, h_max];
-  2. h^n is pushed into the plant's ring buffer; the plant applies the input sent d = D/dt steps
-     ago (h_bar before t = D);
-  3. the plant advances with alpha_n = clip(alpha + alpha_noise N(0, 1), 0, 1) (the N(0, 1)
-     of all steps are drawn at once, before the loop, from the plant's key);
-  4. metrics accumulate; a state that leaves 0 < rho < 1/l, v >= 0 (or is not finite) is not
-     accepted: the environment is flagged ``diverged`` and frozen at its last physical state.
+Each step is ``sim.plant.closed_loop_step`` (the order of a step is described there); the plant
+alphas of all steps are drawn at once, before the loop, from the plant's key, and the metrics
+(``sim.metrics``) accumulate while the rollout streams.
 """
 
 from __future__ import annotations
@@ -20,37 +13,23 @@ from __future__ import annotations
 import functools
 from typing import Any
 
-import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from jaxtraffic import delay as delay_buffer
-from jaxtraffic import metrics as M
-from jaxtraffic.controllers import Controller, Observation, open_loop, saturate
-from jaxtraffic.linear import linear_step, linearize
-from jaxtraffic.params import TrafficParams, equilibrium
-from jaxtraffic.solver import arz_step, is_physical, local_cfl
+from jaxtraffic.control.base import Controller
+from jaxtraffic.control.baselines import open_loop
+from jaxtraffic.model.fundamental import in_physical_region
+from jaxtraffic.model.params import TrafficParams, equilibrium
+from jaxtraffic.sim import metrics as M
+from jaxtraffic.sim.initial import equilibrium_state, paper_initial_condition
+from jaxtraffic.sim.plant import PlantState, closed_loop_step, initial_state, plant_alpha_sequence, plant_step
 
 Array = jax.Array
 
-
-@struct.dataclass
-class PlantState:
-    """State of one freeway: rho (veh/m), v (m/s), sent time gaps (ring buffer, s), the last
-    sent field h_prev (s), the step counter and the divergence flag."""
-
-    rho: Array
-    v: Array
-    sent: delay_buffer.DelayBuffer
-    h_prev: Array
-    step: Array
-    diverged: Array
-    diverged_step: Array  # step at which the state left the physical region (-1: never)
-
-    def observation(self, p: TrafficParams) -> Observation:
-        return Observation(rho=self.rho, v=self.v, h_prev=self.h_prev, t=self.step * p.dt, sent=self.sent)
+__all__ = ["PlantState", "SimResult", "Trajectory", "chunked_vmap", "equilibrium_state", "finalize_metrics",
+           "initial_state", "paper_initial_condition", "plant_step", "simulate", "simulate_batch", "stack_params"]
 
 
 @struct.dataclass
@@ -76,96 +55,6 @@ class SimResult:
     final: PlantState
     controller_state: Any
     trajectory: Trajectory | None
-
-
-def paper_initial_condition(
-    p: TrafficParams, amplitude: float | Array = 0.010, wavenumber: float | Array = 4.0,
-    phase: float | Array = 0.0, dtype: Any = jnp.float32, offset: float | Array = 0.0,
-) -> tuple[Array, Array]:
-    """Initial state of MODEL.md section 5 (shapes (n_points,)).
-
-    rho(x, 0) = rho_bar + offset + amplitude cos(2 pi wavenumber x / L + phase) (offset and
-    amplitude in veh/m; the paper's: no offset, 10 veh/km, wavenumber 4), v(x, 0) = q_in / rho(x, 0).
-    """
-    rho_bar, _ = equilibrium(p)
-    x = p.x()
-    rho0 = rho_bar + offset + amplitude * jnp.cos(2.0 * jnp.pi * wavenumber * x / p.L + phase)
-    rho0 = rho0.astype(dtype)
-    return rho0, (p.q_in / rho0).astype(dtype)
-
-
-def equilibrium_state(p: TrafficParams, dtype: Any = jnp.float32) -> tuple[Array, Array]:
-    """The uniform equilibrium fields (rho_bar, v_bar), shapes (n_points,)."""
-    rho_bar, v_bar = equilibrium(p)
-    return jnp.full((p.n_points,), rho_bar, dtype), jnp.full((p.n_points,), v_bar, dtype)
-
-
-def initial_state(p: TrafficParams, rho0: Array, v0: Array) -> PlantState:
-    """Plant state at t = 0 with the buffer filled with h_bar (no input sent yet).
-
-    An initial state outside the physical region (see ``solver.is_physical``) is flagged as
-    diverged at step 0 and never advanced (``simulate`` rejects a concrete one with an error).
-    """
-    chex.assert_shape([rho0, v0], (p.n_points,))
-    h0 = jnp.full_like(rho0, p.h_bar)
-    bad = ~is_physical(rho0, v0, p)
-    return PlantState(
-        rho=rho0, v=v0, sent=delay_buffer.init_buffer(h0, p.max_delay_steps), h_prev=h0,
-        step=jnp.zeros((), jnp.int32), diverged=bad,
-        diverged_step=jnp.where(bad, 0, -1).astype(jnp.int32),
-    )
-
-
-def plant_alpha(p: TrafficParams, key: Array) -> Array:
-    """This step's plant penetration rate: clip(alpha + alpha_noise N(0,1), 0, 1)."""
-    return jnp.clip(p.alpha + p.alpha_noise * jax.random.normal(key), 0.0, 1.0)
-
-
-def plant_alpha_sequence(p: TrafficParams, key: Array, n_steps: int, dtype: Any = jnp.float32) -> Array:
-    """The plant penetration rates of ``n_steps`` steps, shape (n_steps,), drawn at once:
-    clip(alpha + alpha_noise N(0,1), 0, 1) (one vectorised draw instead of one per step)."""
-    z = jax.random.normal(key, (n_steps,), dtype)
-    return jnp.clip(p.alpha + p.alpha_noise * z, 0.0, 1.0).astype(dtype)
-
-
-def plant_step(state: PlantState, h_sent: Array, p: TrafficParams, key: Array) -> PlantState:
-    """Send ``h_sent`` (already saturated), apply the delayed input and advance the plant.
-
-    The step's plant alpha is ``plant_alpha(p, key)``. A step that would leave the physical
-    region is rejected: the state is frozen and flagged.
-    """
-    return _plant_step(state, h_sent, p, plant_alpha(p, key))[0]
-
-
-def _plant_step(state: PlantState, h_sent: Array, p: TrafficParams, alpha: Array,
-                target: tuple[Array, Array] | None = None) -> tuple[PlantState, Array, Array | None]:
-    """``plant_step`` with the plant alpha given. Returns (new state, applied (delayed) input,
-    reward of the new state against ``target`` = (rho_bar, v_bar), or None without a target).
-
-    With a target, the physicality check and the reward share one spatial reduction
-    (``metrics.physical_reward``; NaN when the step left the physical region).
-    """
-    sent = delay_buffer.push(state.sent, h_sent)
-    h_applied = delay_buffer.read(sent, p.delay_steps)
-    if p.model == "linear":
-        lm = linearize(p)
-        r_t, v_t = linear_step(state.rho - lm.rho_bar, state.v - lm.v_bar, h_applied - lm.h_bar, lm)
-        rho, v = r_t + lm.rho_bar, v_t + lm.v_bar
-    else:
-        rho, v, _, _ = arz_step(state.rho, state.v, h_applied, p, alpha)
-    if target is None:
-        r_new, ok = None, is_physical(rho, v, p)
-    else:
-        r_new = M.physical_reward(rho, v, target[0], target[1], p.l)
-        ok = ~jnp.isnan(r_new)
-    bad = ~ok & ~state.diverged
-    frozen = state.diverged | bad
-    new = PlantState(
-        rho=jnp.where(frozen, state.rho, rho), v=jnp.where(frozen, state.v, v), sent=sent,
-        h_prev=h_sent, step=state.step + 1, diverged=frozen,
-        diverged_step=jnp.where(bad, state.step, state.diverged_step),
-    )
-    return new, h_applied, r_new
 
 
 def finalize_metrics(acc: M.MetricsAccumulator, final: PlantState, target: TrafficParams,
@@ -224,14 +113,12 @@ def _simulate(params: TrafficParams, controller: Controller | None, rho0: Array 
     def one_step(carry, alpha_n):
         state, cstate, acc = carry
         n = state.step
-        h, cstate = controller.act(cstate, state.observation(p), nominal, jax.random.fold_in(k_ctrl, n))
-        h = saturate(h, p).astype(state.rho.dtype)
-        new, h_applied, r_next = _plant_step(state, h, p, alpha_n, (rho_bar, v_bar))
+        new, cstate, h, info = closed_loop_step(state, cstate, controller, p, nominal, alpha_n,
+                                                jax.random.fold_in(k_ctrl, n), (rho_bar, v_bar))
         active = ~new.diverged
-        cfl = local_cfl(state.rho, state.v, h_applied, p, alpha_n)
         acc = M.update_metrics(acc, step=n, rho=state.rho, v=state.v, v_next=new.v, h_sent=h,
                                rho_bar=rho_bar, v_bar=v_bar, h_bar=nominal.h_bar, dx=p.dx, dt=p.dt,
-                               cfl=cfl, active=active, reward_next=r_next)
+                               cfl=info.cfl, active=active, reward_next=info.reward)
         return (new, cstate, acc), h
 
     carry = (state, cstate, acc)
@@ -271,7 +158,7 @@ def _check_initial_condition(params: TrafficParams, rho0: Array | None, v0: Arra
     l = np.asarray(params.l, np.float64)
     if l.ndim == 1:  # batched parameters
         l = l[:, None]
-    ok = np.all((r > 0) & (r < 1.0 / l) & (v >= 0) & np.isfinite(v), axis=-1)
+    ok = np.all(in_physical_region(r, v, l), axis=-1)
     if not np.all(ok):
         which = "" if np.ndim(ok) == 0 else f" in environment(s) {np.flatnonzero(~ok).tolist()}"
         raise ValueError("initial state outside the physical region (finite, 0 < rho < 1/l, v >= 0)" + which)
@@ -382,24 +269,34 @@ def chunked_vmap(fn, args: tuple, axes: tuple, chunk_size: int) -> Any:
     return jax.tree.map(merge, out)
 
 
-def stack_params(**fields: Any) -> TrafficParams:
-    """A batched ``TrafficParams``: each keyword is a sequence of per-environment values (or a
-    scalar, shared by every environment); the others keep their defaults (broadcast). Static
-    fields are passed as scalars. At least one field must be a sequence."""
-    static = {k: fields.pop(k) for k in ("n_points", "max_delay_steps", "scheme", "model") if k in fields}
-    arrays = {k: np.asarray(v, np.float64) for k, v in fields.items()}
-    sizes = {a.shape[0] for a in arrays.values() if a.ndim == 1}
-    if any(a.ndim > 1 for a in arrays.values()):
-        raise ValueError("stack_params: each field must be a scalar or a 1-d sequence")
-    if len(sizes) != 1:
-        raise ValueError(f"all batched fields need the same length (and at least one is needed), got {sizes}")
-    (b,) = sizes
-    arrays = {k: np.broadcast_to(a, (b,)) for k, a in arrays.items()}
-    base = TrafficParams(**static)
-    # validate every concrete environment before building the traced batch
-    for i in range(b):
-        base.replace(**{k: np.asarray(a[i]).item() for k, a in arrays.items()})
-    full = {f: jnp.broadcast_to(jnp.asarray(getattr(base, f), float), (b,))
-            for f in base.__dataclass_fields__ if f not in ("n_points", "max_delay_steps", "scheme", "model")}
-    full.update({k: jnp.asarray(a, float) for k, a in arrays.items()})
-    return base.replace(**full)
+_STATIC_FIELDS = ("n_points", "max_delay_steps", "scheme", "model")
+
+
+def stack_params(*envs: TrafficParams, **fields: Any) -> TrafficParams:
+    """A batched ``TrafficParams``, from concrete per-environment ones (``stack_params(*envs)``) or
+    from keywords: each keyword is a sequence of per-environment values (or a scalar, shared by
+    every environment); the others keep their defaults. Static fields are passed as scalars (and
+    must agree between ``envs``). At least one keyword must be a sequence.
+
+    Every environment is validated, then the float fields are stacked as float64 numpy arrays
+    (leading batch axis), so that validation of the batch runs in double precision (in float32,
+    7.0 / 0.1 misses the "multiple of dt" tolerance and delays >= 7 s would be wrongly rejected);
+    inside ``jit`` they become float32 like any other input.
+    """
+    if envs and fields:
+        raise ValueError("stack_params: give environments or keywords, not both")
+    if not envs:
+        static = {k: fields.pop(k) for k in _STATIC_FIELDS if k in fields}
+        arrays = {k: np.asarray(v, np.float64) for k, v in fields.items()}
+        sizes = {a.shape[0] for a in arrays.values() if a.ndim == 1}
+        if any(a.ndim > 1 for a in arrays.values()):
+            raise ValueError("stack_params: each field must be a scalar or a 1-d sequence")
+        if len(sizes) != 1:
+            raise ValueError(f"all batched fields need the same length (and at least one is needed), got {sizes}")
+        (b,) = sizes
+        arrays = {k: np.broadcast_to(a, (b,)) for k, a in arrays.items()}
+        base = TrafficParams(**static)
+        envs = tuple(base.replace(**{k: np.asarray(a[i]).item() for k, a in arrays.items()}) for i in range(b))
+    if len({tuple(getattr(e, f) for f in _STATIC_FIELDS) for e in envs}) != 1:
+        raise ValueError(f"stack_params: the static fields {_STATIC_FIELDS} differ between environments")
+    return jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x, np.float64) for x in xs]), *envs)

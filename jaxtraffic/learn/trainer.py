@@ -23,31 +23,29 @@ density L2 deviation, veh/km) and eval_wave_speed (m/s, see above).
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import io
+import json
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxtraffic import checkpoint as ckpt
-from jaxtraffic import env as E
-from jaxtraffic import ppo
-from jaxtraffic.linear import gain_law_wave_speed, linearize
-from jaxtraffic.networks import PAPER_HIDDEN, SMALL_HIDDEN
-from jaxtraffic.params import TrafficParams
-from jaxtraffic.policy import equilibrium_gains, policy_controller
-from jaxtraffic.rollout import paper_initial_condition, simulate_batch
+from jaxtraffic.control.gain_policy import equilibrium_gains, policy_controller
+from jaxtraffic.control.networks import PAPER_HIDDEN, SMALL_HIDDEN
+from jaxtraffic.learn import checkpoint as ckpt
+from jaxtraffic.learn import env as E
+from jaxtraffic.learn import ppo
+from jaxtraffic.learn.curve import CURVE_FIELDS, plot_learning_curve, write_curve
+from jaxtraffic.model.linear import gain_law_wave_speed, linearize
+from jaxtraffic.model.params import TrafficParams
+from jaxtraffic.sim.initial import paper_initial_condition
+from jaxtraffic.sim.rollout import simulate_batch
 
-CURVE_FIELDS = ["update", "env_steps", "wall_s", "mean_reward", "eval_reward", "eval_reward_min",
-                "eval_J_comfort", "eval_rho_L2", "eval_wave_speed", "eta1", "eta2", "eta3", "entropy", "approx_kl",
-                "value_loss"]
-
+__all__ = ["CURVE_FIELDS", "TrainSettings", "build", "config_dict", "make_evaluator", "train"]
 
 @dataclass
 class TrainSettings:
@@ -71,14 +69,10 @@ class TrainSettings:
     amp_range: tuple[float, float] = (0.010, 0.010)
     wavenumber_range: tuple[int, int] = (4, 4)
     phase_max: float = 0.0
-    offset_range: tuple[float, float] = (0.0, 0.0)
     horizon_s: float = 100.0
     gain_max: float = 3.0
-    accel_weight: float = 0.0
     gain_filter: float = 0.2
     h_rate_weight: float = 0.2
-    wave_weight: float = 0.0
-    wave_speed_min: float = 1.0
     # PPO
     num_envs: int = 256
     num_steps: int = 100
@@ -107,7 +101,6 @@ class TrainSettings:
     max_wall_s: float = math.inf
     resume: bool = False
     quiet: bool = False
-    extra: dict = field(default_factory=dict)
 
     def hidden(self) -> tuple[int, ...]:
         return {"small": SMALL_HIDDEN, "paper": PAPER_HIDDEN}[self.network]
@@ -123,11 +116,8 @@ def build(s: TrainSettings) -> tuple[ppo.PPOConfig, E.EnvParams]:
     env_params = E.make_env_params(
         traffic, horizon=max(1, round(s.horizon_s / s.dt)), gain_max=s.gain_max, amp_min=s.amp_range[0],
         amp_max=s.amp_range[1], wavenumber_min=int(s.wavenumber_range[0]),
-        wavenumber_max=int(s.wavenumber_range[1]), phase_max=s.phase_max, offset_min=s.offset_range[0],
-        offset_max=s.offset_range[1], delay_min=d_lo, delay_max=d_hi,
-        alpha_min=a_lo, alpha_max=a_hi, accel_weight=s.accel_weight,
-        gain_filter=s.gain_filter, h_rate_weight=s.h_rate_weight, wave_weight=s.wave_weight,
-        wave_speed_min=s.wave_speed_min)
+        wavenumber_max=int(s.wavenumber_range[1]), phase_max=s.phase_max, delay_min=d_lo, delay_max=d_hi,
+        alpha_min=a_lo, alpha_max=a_hi, gain_filter=s.gain_filter, h_rate_weight=s.h_rate_weight)
     cfg = ppo.PPOConfig(
         num_envs=s.num_envs, num_steps=s.num_steps, update_epochs=s.update_epochs,
         num_minibatches=s.num_minibatches, updates_per_chunk=s.updates_per_chunk, num_seeds=s.seeds,
@@ -145,8 +135,7 @@ def config_dict(s: TrainSettings, cfg: ppo.PPOConfig, env_params: E.EnvParams) -
         "delay": s.delay, "alpha": s.alpha, "n_points": s.n_points, "dt": s.dt,
         "max_delay_steps": s.max_delay_steps,
         "ppo": {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)},
-        "env": {"gain_max": s.gain_max, "gain_filter": s.gain_filter, "accel_weight": s.accel_weight,
-                "h_rate_weight": s.h_rate_weight,
+        "env": {"gain_max": s.gain_max, "gain_filter": s.gain_filter, "h_rate_weight": s.h_rate_weight,
                 "horizon_steps": int(env_params.horizon)},
         "devices": [str(d) for d in jax.devices()],
         "jax_version": jax.__version__,
@@ -174,7 +163,7 @@ def make_evaluator(cfg: ppo.PPOConfig, env_params: E.EnvParams, eval_steps: int)
         rep = ppo.replicated(runner)  # settings with a leading seed axis: one batched rollout
         ctrl = policy_controller(rep.params, rep.stats.mean, rep.stats.var,
                                  jnp.full((cfg.num_seeds,), env_params.gain_max), hidden=tuple(cfg.hidden),
-                                 activation=cfg.activation, init_sigma=cfg.init_sigma,
+                                 init_sigma=cfg.init_sigma,
                                  gain_filter=env_params.gain_filter)
         res = simulate_batch(plant, ctrl, n_steps=eval_steps, rho0=rho0, v0=v0, batch_controller=True)
         out = {k: np.asarray(v) for k, v in res.metrics.items()}
@@ -185,19 +174,7 @@ def make_evaluator(cfg: ppo.PPOConfig, env_params: E.EnvParams, eval_steps: int)
     return evaluate
 
 
-def _write_curve(path: Path, rows: list[dict]) -> None:
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=CURVE_FIELDS, extrasaction="ignore")
-    w.writeheader()
-    w.writerows(rows)
-    ckpt.atomic_write_text(path, buf.getvalue())
-
-
 def _plot_curve(run_dir: Path) -> None:
-    try:
-        from jaxtraffic.plotting import plot_learning_curve
-    except ImportError:  # plotting is optional for the trainer itself
-        return
     plot_learning_curve(run_dir / "learning_curve.csv", run_dir / "learning_curve.png")
 
 
@@ -214,8 +191,6 @@ RUN_CONTROL = ("out_dir", "total_steps", "max_wall_s", "keep_going", "resume", "
 
 def _settings_for_resume(s: TrainSettings, run_dir: Path) -> TrainSettings:
     """The run's saved settings, with only the run-control fields (RUN_CONTROL) taken from ``s``."""
-    import json
-
     saved = json.loads((run_dir / ckpt.CONFIG).read_text())["settings"]
     fields = {f.name: f for f in dataclasses.fields(TrainSettings)}
     merged = {k: (tuple(v) if isinstance(v, list) else v) for k, v in saved.items() if k in fields}
@@ -231,7 +206,7 @@ def train(s: TrainSettings) -> Path:
     cfg, env_params = build(s)  # validates: fail before creating the run directory
     run_dir.mkdir(parents=True, exist_ok=True)
     eval_steps = max(1, round(s.eval_horizon_s / s.dt))
-    init, train_chunk = ppo.make_train(cfg, env_params)
+    init, train_chunk = ppo.make_train(cfg, env_params, env=E.GainEnv)
     evaluate = make_evaluator(cfg, env_params, eval_steps)
     say = (lambda *a: None) if s.quiet else (lambda *a: print(*a, flush=True))
 
@@ -292,7 +267,7 @@ def train(s: TrainSettings) -> Path:
                 f"{_fmt_time(meta['wall_s'])} | "
                 f"ETA {_fmt_time(eta)}" + (" | stop rule reached" if reached else ""))
             ckpt.save_checkpoint(run_dir, runner, meta)
-            _write_curve(run_dir / "learning_curve.csv", meta["rows"])
+            write_curve(run_dir / "learning_curve.csv", meta["rows"])
             if meta["wall_s"] > s.max_wall_s:
                 say(f"stopping: wall-clock budget {s.max_wall_s:g} s reached")
                 break
@@ -303,7 +278,7 @@ def train(s: TrainSettings) -> Path:
         return run_dir
     if not interrupted:
         ckpt.save_checkpoint(run_dir, runner, meta)
-    _write_curve(run_dir / "learning_curve.csv", meta["rows"])
+    write_curve(run_dir / "learning_curve.csv", meta["rows"])
     _plot_curve(run_dir)
     if not last_eval:
         last_eval = evaluate(runner)

@@ -1,4 +1,4 @@
-"""Atomic, pickle-free checkpoints (flax msgpack serialization) and run-directory I/O.
+"""Atomic, pickle-free checkpoints (flax msgpack serialization), run-directory I/O, ``load_policy``.
 
 A checkpoint file holds ``{"runner": <state dict of the PPO Runner>, "meta": <progress>}``.
 Every write goes to a temporary file in the same directory, is flushed and fsynced, then
@@ -15,8 +15,12 @@ from pathlib import Path
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from flax import serialization
+
+from jaxtraffic.control.base import Controller
+from jaxtraffic.control.gain_policy import policy_controller
 
 CHECKPOINT = "checkpoint.msgpack"
 CONFIG = "config.json"
@@ -104,3 +108,28 @@ def load_run(run_dir: str | Path) -> tuple[dict, SavedPolicy, dict]:
     summary_path = run_dir / SUMMARY
     summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
     return config, policy, summary
+
+
+def load_policy(run_dir: str | Path, seed: int | None = None) -> tuple[Controller, dict]:
+    """Controller and config of a run directory written by ``train.py``.
+
+    ``seed`` selects one of the run's seeds (default: the best one by final evaluation reward,
+    as recorded in ``summary.json``, else 0).
+    """
+    run_dir = Path(run_dir)
+    config, saved, summary = load_run(run_dir)
+    if seed is None:
+        seed = int(summary.get("best_seed", 0)) if summary else 0
+    n_seeds = saved.obs_mean.shape[0]
+    if not 0 <= seed < n_seeds:
+        raise ValueError(f"seed {seed} not in run with {n_seeds} seeds")
+    expected = 3 * int(config["n_points"]) + 3
+    if saved.obs_mean.shape[-1] != expected or "gain_filter" not in config["env"]:
+        raise ValueError(f"{run_dir} was written by an older jaxtraffic (observation of {saved.obs_mean.shape[-1]} "
+                         f"values, expected {expected} with the applied gains): retrain it with train.py")
+    ppo_cfg = config["ppo"]
+    controller = policy_controller(
+        jax.tree.map(lambda x: jnp.asarray(x[seed]), saved.params), saved.obs_mean[seed], saved.obs_var[seed],
+        config["env"]["gain_max"], hidden=tuple(ppo_cfg["hidden"]),
+        init_sigma=ppo_cfg["init_sigma"], gain_filter=config["env"]["gain_filter"])
+    return controller, config

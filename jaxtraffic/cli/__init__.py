@@ -1,0 +1,1 @@
+"""Command lines: ``cli.train`` (``python train.py``) and ``cli.evaluate`` (``python evaluate.py``)."""

@@ -1,0 +1,111 @@
+"""Reproduce the paper's section 4 (MODEL.md section 11): every scenario, figures, tables, report.
+
+    python evaluate.py [--run RUN_DIR] [--run-delay0 RUN_DIR] [--out results/]
+
+Without ``--run`` it uses ``runs/default`` if that holds a trained run (config.json and
+checkpoint.msgpack), else trains one with ``train.py``'s defaults first. Outputs in ``--out``:
+metrics.json, robustness.json, claims.json, table2.md, table2.csv, the figures (PNG) and
+REPORT.md. Small flags for tests: ``--n-points``, ``--horizon``, ``--seeds``, ``--robust-grid``.
+The logic lives in ``jaxtraffic.paper``; ``main(argv)`` returns the metrics dict.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from jaxtraffic import paper
+from jaxtraffic.cli import train as train_cli
+from jaxtraffic.learn.checkpoint import load_policy
+
+DEFAULT_RUN = Path("runs/default")
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--run", type=Path, default=None, help="PPO run dir trained with D = 4 s "
+                    f"(default: {DEFAULT_RUN}, trained first if missing)")
+    ap.add_argument("--run-delay0", type=Path, default=None,
+                    help="optional PPO run trained with D = 0, used in scenario delay0")
+    ap.add_argument("--out", type=Path, default=Path("results"), help="output directory (default results/)")
+    ap.add_argument("--n-points", type=int, default=None,
+                    help="grid points (default 201; with a run, taken from its config.json)")
+    ap.add_argument("--horizon", type=float, default=300.0, help="simulated time, s (default 300)")
+    ap.add_argument("--seeds", type=int, default=8, help="noise seeds for alpha_noise (default 8)")
+    ap.add_argument("--robust-grid", default="17x12",
+                    help="NDxNA: plant delays 0..8 s x plant alphas 0.05..0.6 (default 17x12; 0x0 skips "
+                    "the robustness map)")
+    ap.add_argument("--robust-horizon", type=float, default=None,
+                    help="simulated time of the robustness map, s (default 2 x --horizon)")
+    return ap.parse_args(argv)
+
+
+def _log(msg: str) -> None:
+    print(msg, flush=True)
+
+
+def find_or_train_run(run: Path | None, n_points: int | None) -> Path:
+    """The run to evaluate: ``run``, else runs/default if complete, else a fresh default training."""
+    if run is not None:
+        if not (run / "config.json").exists():
+            raise SystemExit(f"--run {run}: no config.json there")
+        return run
+    if (DEFAULT_RUN / "config.json").exists() and (DEFAULT_RUN / "checkpoint.msgpack").exists():
+        _log(f"using the existing run {DEFAULT_RUN}")
+        return DEFAULT_RUN
+    _log(f"no trained run at {DEFAULT_RUN}: training one with train.py's defaults first")
+    targv = ["--out-dir", str(DEFAULT_RUN)] + (["--n-points", str(n_points)] if n_points else [])
+    return Path(train_cli.main(targv))
+
+
+def _describe(run_dir: Path, config: dict[str, Any]) -> dict[str, Any]:
+    return {"run_dir": str(run_dir),
+            "description": f"PPO trained with D = {config.get('delay')} s, alpha = {config.get('alpha')}",
+            "config": config}
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    args = parse_args(argv)
+    t0 = time.perf_counter()
+    try:
+        nd, na = (int(v) for v in args.robust_grid.lower().split("x"))
+    except ValueError:
+        raise SystemExit(f"--robust-grid must look like 17x12, got {args.robust_grid!r}") from None
+    if args.seeds < 1 or nd < 0 or na < 0:
+        raise SystemExit("--seeds must be >= 1 and the --robust-grid sizes >= 0")
+
+    run_dir = find_or_train_run(args.run, args.n_points)
+    base = paper.EvalConfig()
+    ppo, config = load_policy(run_dir)
+    n_points, dt = int(config.get("n_points", base.n_points)), float(config.get("dt", base.dt))
+    if args.n_points and args.n_points != n_points:
+        _log(f"note: --n-points {args.n_points} ignored; the run was trained on {n_points} points")
+    ppo0, desc0 = None, None
+    if args.run_delay0 is not None:
+        ppo0, config0 = load_policy(args.run_delay0)
+        if (int(config0.get("n_points", n_points)), float(config0.get("dt", dt))) != (n_points, dt):
+            raise SystemExit(f"--run-delay0 {args.run_delay0}: grid differs from --run's ({n_points}, {dt})")
+        desc0 = _describe(args.run_delay0, config0)
+        if float(config0.get("delay", 0.0)) != 0.0:
+            _log(f"WARNING: --run-delay0 {args.run_delay0} was trained with D = {config0.get('delay')} s, not 0")
+    policy = _describe(run_dir, config)
+    policy0 = desc0 or {**policy, "description": f"the D = 4 s policy ({policy['description']}); "
+                        "no D = 0 run was given"}
+
+    cfg = paper.EvalConfig(
+        n_points=n_points, dt=dt, horizon_s=args.horizon, seeds=tuple(range(args.seeds)),
+        robust_delays=paper.robust_axis(nd, 0.0, 8.0, dt), robust_alphas=paper.robust_axis(na, 0.05, 0.6),
+        robust_horizon_s=args.robust_horizon or 2.0 * args.horizon)
+    lc = run_dir / "learning_curve.csv"
+    meta = {"policy": policy, "policy_delay0": policy0,
+            "argv": list(sys.argv[1:] if argv is None else argv)}
+    metrics = paper.evaluate_all({"ppo": ppo}, cfg, args.out, meta, ppo_delay0=ppo0, learning_curve_csv=lc,
+                             log=_log)
+    _log(f"total {time.perf_counter() - t0:.1f} s; verdicts: {json.dumps(metrics['meta']['claims'])}")
+    return metrics
+

@@ -1,0 +1,27 @@
+"""The control layer (imports only ``model``): the controller interface, the baselines, the
+three-gain law and the learned gain policy as a controller (it does not import the trainer)."""
+
+from jaxtraffic.control.base import Controller, Observation, saturate
+from jaxtraffic.control.baselines import (
+    BacksteppingSettings,
+    LyapunovSettings,
+    backstepping,
+    lyapunov,
+    lyapunov_input,
+    lyapunov_law,
+    open_loop,
+    predict,
+)
+from jaxtraffic.control.gain_law import GAIN_NAMES, constant_gains, gain_law, lyapunov_equivalent_gains
+from jaxtraffic.control.gain_policy import (
+    equilibrium_gains,
+    gain_target_controller,
+    policy_controller,
+)
+
+__all__ = [
+    "GAIN_NAMES", "BacksteppingSettings", "Controller", "LyapunovSettings", "Observation", "backstepping",
+    "constant_gains", "equilibrium_gains", "gain_law", "gain_target_controller", "lyapunov",
+    "lyapunov_equivalent_gains", "lyapunov_input", "lyapunov_law", "open_loop", "policy_controller", "predict",
+    "saturate",
+]

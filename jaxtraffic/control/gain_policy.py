@@ -1,0 +1,151 @@
+"""The learned gain policy as a controller, and the pieces it shares with the environment.
+
+The policy (MODEL.md section 9) sees ``policy_features``: [rho/rho_bar - 1, v/v_bar - 1,
+h_prev/h_bar - 1] on the grid (normalised by the nominal equilibrium, dimensionless) followed by
+the gains applied at the previous step / gain_max, shape (3 n + 3,). Its action is three
+unbounded reals ``a``, squashed to gains eta = gain_max tanh(a) (``action_to_gains``). The gains
+applied move a fraction ``gain_filter`` of the way from the previous step's gains to them
+(``filter_gains``; 1: applied directly, as in the paper; they start at 0, i.e. h = h_bar) and act
+on normalised deviations through ``control.gain_law``.
+
+Two controllers share this: ``gain_target_controller`` (the target gains are given, e.g. the
+environment's action) and ``policy_controller`` (the target gains come from a network on the
+normalised features). Both keep the applied gains as their controller state.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import chex
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from jaxtraffic.control.base import Controller, Observation
+from jaxtraffic.control.gain_law import gain_law
+from jaxtraffic.control.networks import ActorCritic
+from jaxtraffic.model.params import TrafficParams, equilibrium
+
+Array = jax.Array
+N_GAINS = 3
+
+
+def policy_features(obs: Observation, gains_prev: Array, nominal: TrafficParams, gain_max: Array | float,
+                    eq: tuple[Array, Array] | None = None) -> Array:
+    """The policy's observation vector, shape (3 n + 3,): [rho/rho_bar - 1, v/v_bar - 1,
+    h_prev/h_bar - 1, gains_prev / gain_max]. ``eq``: (rho_bar, v_bar) of ``nominal`` if known."""
+    chex.assert_shape(gains_prev, (N_GAINS,))
+    rho_bar, v_bar = equilibrium(nominal) if eq is None else eq
+    return jnp.concatenate([obs.rho / rho_bar - 1.0, obs.v / v_bar - 1.0, obs.h_prev / nominal.h_bar - 1.0,
+                            gains_prev / gain_max])
+
+
+def feature_size(n_points: int) -> int:
+    """Length of ``policy_features`` on a grid of ``n_points``."""
+    return 3 * n_points + N_GAINS
+
+
+def action_to_gains(action: Array, gain_max: Array | float) -> Array:
+    """The policy's gains eta = gain_max * tanh(action), shape (3,)."""
+    return gain_max * jnp.tanh(action)
+
+
+def filter_gains(gains_prev: Array, target: Array, gain_filter: Array | float) -> Array:
+    """First-order filter: gains_prev + gain_filter (target - gains_prev). With gain_filter = k the
+    applied gains follow the target with a time constant of about dt / k."""
+    return gains_prev + gain_filter * (target - gains_prev)
+
+
+def normalize_obs(x: Array, mean: Array, var: Array) -> Array:
+    """Observation normalised by running statistics, clipped to [-10, 10] (dimensionless)."""
+    return jnp.clip((x - mean) / jnp.sqrt(var + 1e-8), -10.0, 10.0)
+
+
+def filtered_gain_law(gains_prev: Array, target: Array, gain_filter: Array | float, obs: Observation,
+                      nominal: TrafficParams) -> tuple[Array, Array]:
+    """(h, applied gains): filter the gains towards ``target``, then apply the three-gain law."""
+    gains = filter_gains(gains_prev, target, gain_filter)
+    return gain_law(gains, obs, nominal), gains
+
+
+def zero_gains(settings: Any, obs: Observation, nominal: TrafficParams) -> Array:
+    """Initial controller state of the gain controllers: no gains applied yet (h = h_bar)."""
+    return jnp.zeros((N_GAINS,), obs.rho.dtype)
+
+
+# ----------------------------------------------------------------------------- given target gains
+@struct.dataclass
+class GainTarget:
+    """Target gains (shape (3,), dimensionless) and the gain filter in (0, 1]."""
+
+    target: Array
+    gain_filter: Array
+
+
+def _target_act(settings: GainTarget, gains_prev, obs, nominal, key):
+    h, gains = filtered_gain_law(gains_prev, settings.target, settings.gain_filter, obs, nominal)
+    return h, gains
+
+
+def gain_target_controller(target: Array, gain_filter: Array | float = 1.0) -> Controller:
+    """The filtered three-gain law towards the given ``target`` gains (the environment's action,
+    squashed); its state is the gains applied at the previous step."""
+    settings = GainTarget(target=jnp.asarray(target), gain_filter=jnp.asarray(gain_filter, float))
+    return Controller(settings=settings, act_fn=_target_act, init_fn=zero_gains, name="gain_target")
+
+
+# ----------------------------------------------------------------------------- learned policy
+@struct.dataclass
+class PolicySettings:
+    """Traced settings of a policy controller: network parameters, observation mean/variance
+    (shape (3 n + 3,)), the gain bound and the gain filter (dimensionless, ``filter_gains``)."""
+
+    params: Any
+    obs_mean: Array
+    obs_var: Array
+    gain_max: Array
+    gain_filter: Array
+
+
+@functools.cache
+def _policy_act_fn(hidden: tuple, init_sigma: float):
+    network = ActorCritic(hidden=hidden, init_sigma=init_sigma)
+
+    def act(settings: PolicySettings, gains_prev, obs, nominal, key):
+        x = policy_features(obs, gains_prev, nominal, settings.gain_max)
+        mean, _, _ = network.apply(settings.params, normalize_obs(x, settings.obs_mean, settings.obs_var))
+        target = action_to_gains(mean, settings.gain_max)
+        return filtered_gain_law(gains_prev, target, settings.gain_filter, obs, nominal)
+
+    return act
+
+
+def policy_controller(params: Any, obs_mean: Array, obs_var: Array, gain_max: float, *,
+                      hidden: tuple, init_sigma: float = 0.5, gain_filter: float | Array = 1.0) -> Controller:
+    """Controller applying the policy's deterministic gains (the mean of its Gaussian, squashed,
+    then filtered like in the environment) through the three-gain law; its state is the gains
+    applied at the previous step (zero at the start)."""
+    settings = PolicySettings(params=params, obs_mean=jnp.asarray(obs_mean), obs_var=jnp.asarray(obs_var),
+                              gain_max=jnp.asarray(gain_max, float),
+                              gain_filter=jnp.broadcast_to(jnp.asarray(gain_filter, float), jnp.shape(gain_max)))
+    act = _policy_act_fn(tuple(hidden), float(init_sigma))
+    return Controller(settings=settings, act_fn=act, init_fn=zero_gains, name="ppo")
+
+
+def equilibrium_gains(controller: Controller, nominal: TrafficParams, n_iter: int = 300) -> Array:
+    """Gains (shape (3,), dimensionless) that a gain controller settles to while the plant sits at
+    the equilibrium of ``nominal``: the fixed point of its filtered gains, iterated ``n_iter`` steps
+    from zero (for a policy whose gains keep cycling there: the gains after ``n_iter`` steps). They
+    set the closed loop's asymptotic behaviour (``model.linear.gain_law_wave_speed``).
+    For a controller with batched settings, ``vmap`` over them."""
+    rho_bar, v_bar = equilibrium(nominal)
+    n = nominal.n_points
+    obs = Observation(rho=jnp.full((n,), rho_bar), v=jnp.full((n,), v_bar), h_prev=jnp.full((n,), nominal.h_bar),
+                      t=jnp.zeros(()), sent=None)
+
+    def body(_, gains):
+        return controller.act_fn(controller.settings, gains, obs, nominal, None)[1]
+
+    return jax.lax.fori_loop(0, n_iter, body, jnp.zeros((N_GAINS,), obs.rho.dtype))

@@ -1,0 +1,106 @@
+"""The learning curve of a training run: learning_curve.csv (written atomically) and its figure
+(paper fig. 3a). The paper's figures (``paper.plotting``) share ``save_figure`` and ``reward_axis``.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib import ticker  # noqa: E402
+
+from jaxtraffic.learn.checkpoint import atomic_write_text  # noqa: E402
+from jaxtraffic.sim.metrics import REWARD_TARGET  # noqa: E402
+
+DPI = 110
+CURVE_FIELDS = ["update", "env_steps", "wall_s", "mean_reward", "eval_reward", "eval_reward_min",
+                "eval_J_comfort", "eval_rho_L2", "eval_wave_speed", "eta1", "eta2", "eta3", "entropy", "approx_kl",
+                "value_loss"]
+
+
+def write_curve(path: Path, rows: list[dict]) -> None:
+    """learning_curve.csv with the columns ``CURVE_FIELDS`` (atomic write)."""
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=CURVE_FIELDS, extrasaction="ignore")
+    w.writeheader()
+    w.writerows(rows)
+    atomic_write_text(path, buf.getvalue())
+
+
+def save_figure(fig: plt.Figure, png_path: str | Path) -> Path:
+    png_path = Path(png_path)
+    png_path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(png_path, dpi=DPI, bbox_inches="tight")
+    plt.close(fig)
+    return png_path
+
+
+def read_learning_curve(csv_path: str | Path) -> dict[str, np.ndarray]:
+    """Columns of a learning_curve.csv as float arrays (empty cells become NaN)."""
+    with open(csv_path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        raise ValueError(f"{csv_path}: no rows")
+    out = {}
+    for key in rows[0]:
+        vals = []
+        for r in rows:
+            try:
+                vals.append(float(r[key]))
+            except (TypeError, ValueError):
+                vals.append(math.nan)
+        out[key] = np.asarray(vals)
+    return out
+
+
+def reward_axis(ax: plt.Axes, values: np.ndarray) -> None:
+    """Linear y axis, or symlog when the rewards span decades below the stop rule."""
+    finite = values[np.isfinite(values)]
+    if finite.size and np.min(finite) < 20 * REWARD_TARGET:
+        ax.set_yscale("symlog", linthresh=0.01)
+    ax.axhline(REWARD_TARGET, color="k", ls="--", lw=1, label="stop rule r = -0.1")
+    ax.grid(alpha=0.3, which="both")
+
+
+def plot_learning_curve(csv_path: str | Path, png_path: str | Path, title: str | None = None) -> Path:
+    """Paper fig. 3a: training reward against environment steps and against wall-clock seconds.
+
+    Reads ``csv_path`` (header ``update,env_steps,wall_s,mean_reward,eval_reward,...``) and plots
+    the mean training reward and the deterministic evaluation reward, with the -0.1 stop-rule line.
+    """
+    data = read_learning_curve(csv_path)
+    series = [(k, lab) for k, lab in (("mean_reward", "mean training reward (stochastic policy)"),
+                                      ("eval_reward", "evaluation reward (deterministic policy)"))
+              if k in data and np.isfinite(data[k]).any()]
+    if not series:
+        raise ValueError(f"{csv_path}: no mean_reward / eval_reward values")
+    xaxes = [(k, lab) for k, lab in (("env_steps", "environment steps"), ("wall_s", "wall-clock time (s)"))
+             if k in data and np.isfinite(data[k]).any()]
+    if not xaxes:
+        xaxes = [("update", "PPO update")]
+    fig, axes = plt.subplots(1, len(xaxes), figsize=(6.2 * len(xaxes), 4.2), squeeze=False,
+                             constrained_layout=True)
+    allv = np.concatenate([data[k] for k, _ in series])
+    for ax, (xk, xlab) in zip(axes[0], xaxes, strict=True):
+        for (yk, ylab), col in zip(series, ("tab:green", "tab:purple"), strict=False):
+            ok = np.isfinite(data[xk]) & np.isfinite(data[yk])
+            ax.plot(data[xk][ok], data[yk][ok], color=col, lw=1.5, marker="." if ok.sum() < 60 else None,
+                    label=ylab)
+        reward_axis(ax, allv)
+        if xk == "env_steps":
+            ax.xaxis.set_major_formatter(ticker.EngFormatter(sep=""))
+        ax.set_xlabel(xlab)
+        ax.set_ylabel("reward r (dimensionless)")
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncol=3, fontsize=9)
+    fig.suptitle(title or "PPO learning curve (paper fig. 3a)")
+    return save_figure(fig, png_path)
+
+

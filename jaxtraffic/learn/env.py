@@ -1,0 +1,192 @@
+"""Gymnax-style environment for learning the paper's three-gain policy (MODEL.md section 9).
+
+Pure functions ``reset_env(key, params) -> (obs, state)`` and
+``step_env(key, state, action, params) -> (obs, state, reward, done, info)`` over ``flax.struct``
+pytrees (``reset`` / ``step`` are the same functions), so a batch of environments is a ``vmap``
+and a batch of scenarios a ``vmap`` over params. A step is one ``sim.plant.closed_loop_step``
+under ``control.gain_policy.gain_target_controller``: the action, squashed to gains, is the
+controller's target and the environment's ``gains`` (the applied, filtered gains) are its state.
+
+* Observation: ``control.gain_policy.policy_features`` of the plant state and the applied gains,
+  shape (3 n + 3,) (the deployed ``policy_controller`` computes the same).
+* Action: three unbounded reals; target gains gain_max * tanh(action) (``action_to_gains``),
+  filtered with ``gain_filter`` (``filter_gains``).
+* Reward: the paper's r = -sum_i [(rho~_i/rho_bar)^2 + (v~_i/v_bar)^2] of the state after the
+  step (dimensionless), minus ``h_rate_weight`` times ``h_rate_cost`` (0 by default here, i.e. the
+  paper's reward).
+* Episodes last ``horizon`` steps and end by *truncation* (``info["truncated"]``: bootstrap the
+  value of ``info["terminal_obs"]``). A plant that leaves the physical region *terminates* with
+  reward ``-diverge_penalty``. ``step_env`` resets finished environments itself, reusing the delay
+  buffer's storage (``initial_state(..., sent=...)`` and ``select_state``: O(n), not O(capacity n)).
+* Domain randomisation, drawn at each reset: initial amplitude (veh/m), integer wavenumber and
+  phase of the cosine perturbation; plant delay (a multiple of dt) and plant alpha (uniform
+  ranges); per-step alpha noise (``traffic.alpha_noise``). Metrics stay relative to the nominal
+  equilibrium of ``traffic`` (MODEL.md section 12).
+"""
+
+from __future__ import annotations
+
+import chex
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from jaxtraffic.control import gain_policy as gp
+from jaxtraffic.model.params import TrafficParams, equilibrium
+from jaxtraffic.sim.initial import paper_initial_condition
+from jaxtraffic.sim.plant import PlantState, closed_loop_step, initial_state, plant_alpha, select_state
+
+Array = jax.Array
+
+
+@struct.dataclass
+class EnvParams:
+    """Environment settings; ``traffic`` is the nominal plant (its delay is the training delay).
+
+    Ranges (lo, hi) are sampled uniformly at every reset; equal bounds disable randomisation.
+    """
+
+    traffic: TrafficParams = TrafficParams(delay=4.0)
+    horizon: int = 3000  # steps per episode (300 s)
+    gain_max: float = 5.0  # |eta_i| <= gain_max (dimensionless)
+    amp_min: float = 0.010  # veh/m
+    amp_max: float = 0.010
+    wavenumber_min: int = 4
+    wavenumber_max: int = 4
+    phase_max: float = 0.0  # rad; phase ~ U(0, phase_max)
+    delay_min: float = 4.0  # s
+    delay_max: float = 4.0
+    alpha_min: float = 0.15
+    alpha_max: float = 0.15
+    diverge_penalty: float = 100.0
+    gain_filter: float = 1.0  # in (0, 1]; 1: the policy's gains are applied directly
+    h_rate_weight: float = 0.0  # dimensionless; 0: the paper's reward
+
+
+@struct.dataclass
+class EnvState:
+    plant: PlantState
+    plant_params: TrafficParams  # this episode's plant (randomised delay / alpha)
+    t: Array  # step within the episode
+    gains: Array  # gains applied at the previous step, shape (3,) (dimensionless): the controller state
+
+
+def make_env_params(traffic: TrafficParams | None = None, **kwargs) -> EnvParams:
+    """EnvParams whose delay range defaults to the plant's delay and alpha range to its alpha."""
+    traffic = TrafficParams(delay=4.0) if traffic is None else traffic
+    kwargs.setdefault("delay_min", float(traffic.delay))
+    kwargs.setdefault("delay_max", float(traffic.delay))
+    kwargs.setdefault("alpha_min", float(traffic.alpha))
+    kwargs.setdefault("alpha_max", float(traffic.alpha))
+    ep = EnvParams(traffic=traffic, **kwargs)
+    for lo, hi in (("amp_min", "amp_max"), ("wavenumber_min", "wavenumber_max"),
+                   ("delay_min", "delay_max"), ("alpha_min", "alpha_max")):
+        if getattr(ep, lo) > getattr(ep, hi):
+            raise ValueError(f"{lo}={getattr(ep, lo)} > {hi}={getattr(ep, hi)}")
+    if ep.delay_max > traffic.max_delay_steps * traffic.dt + 1e-9:
+        raise ValueError(f"delay_max={ep.delay_max} s exceeds the buffer ({traffic.max_delay_steps} steps)")
+    if not (0.0 <= ep.alpha_min and ep.alpha_max <= 1.0):
+        raise ValueError("alpha range must lie in [0, 1]")
+    if not 0.0 < ep.gain_filter <= 1.0:
+        raise ValueError(f"gain_filter must lie in (0, 1], got {ep.gain_filter}")
+    if ep.h_rate_weight < 0.0:
+        raise ValueError("h_rate_weight must be >= 0")
+    if ep.horizon < 1:
+        raise ValueError(f"horizon must be >= 1 step, got {ep.horizon}")
+    return ep
+
+
+def obs_size(params: EnvParams) -> int:
+    return gp.feature_size(params.traffic.n_points)
+
+
+def observe(state: EnvState, params: EnvParams, eq: tuple[Array, Array] | None = None) -> Array:
+    """The policy's observation of ``state`` (``policy_features``), shape (3 n + 3,)."""
+    tp = params.traffic
+    return gp.policy_features(state.plant.observation(tp), state.gains, tp, params.gain_max, eq)
+
+
+def action_to_gains(action: Array, params: EnvParams) -> Array:
+    """The target gains of an action, gain_max * tanh(action), shape (3,)."""
+    return gp.action_to_gains(action, params.gain_max)
+
+
+def h_rate_cost(h_prev: Array, h: Array, h_bar: Array | float) -> Array:
+    """sum_i ((h_i - h_prev_i) / h_bar)^2: how much the commanded time gap moves in one step
+    (dimensionless). Unlike the acceleration, which the delay D postpones, it depends on this
+    step's action alone, so its credit is immediate."""
+    return jnp.sum(((h - h_prev) / h_bar) ** 2, axis=-1)
+
+
+def _new_episode(key: Array, params: EnvParams, rho_bar: Array,
+                 sent=None) -> EnvState:
+    """Draw an episode (initial condition, plant delay and alpha); ``sent``: a delay buffer whose
+    storage the new plant state reuses (``initial_state``)."""
+    k_amp, k_wn, k_ph, k_d, k_a = jax.random.split(key, 5)
+    tp = params.traffic
+    amp = jax.random.uniform(k_amp, minval=params.amp_min, maxval=params.amp_max)
+    wn = jax.random.randint(k_wn, (), params.wavenumber_min, params.wavenumber_max + 1)
+    phase = jax.random.uniform(k_ph, maxval=params.phase_max)
+    d_lo = jnp.round(params.delay_min / tp.dt).astype(jnp.int32)
+    d_hi = jnp.round(params.delay_max / tp.dt).astype(jnp.int32)
+    delay = jax.random.randint(k_d, (), d_lo, d_hi + 1) * tp.dt
+    alpha = jax.random.uniform(k_a, minval=params.alpha_min, maxval=params.alpha_max)
+    plant_params = tp.replace(delay=delay, alpha=alpha)
+    rho0, v0 = paper_initial_condition(tp, amp, wn.astype(jnp.float32), phase, rho_bar=rho_bar)
+    return EnvState(plant=initial_state(plant_params, rho0, v0, sent=sent), plant_params=plant_params,
+                    t=jnp.zeros((), jnp.int32), gains=jnp.zeros((gp.N_GAINS,), rho0.dtype))
+
+
+def reset_env(key: Array, params: EnvParams) -> tuple[Array, EnvState]:
+    """Draw an episode (initial condition, plant delay and alpha) and return (obs, state)."""
+    eq = equilibrium(params.traffic)
+    state = _new_episode(key, params, eq[0])
+    return observe(state, params, eq), state
+
+
+def step_env(key: Array, state: EnvState, action: Array, params: EnvParams):
+    """Apply the gains ``action`` for one dt; returns (obs, state, reward, done, info).
+
+    info: ``terminal_obs`` (observation before any reset), ``truncated`` and ``terminated``
+    (bool), ``gains`` (applied, shape (3,)).
+    """
+    chex.assert_shape(action, (gp.N_GAINS,))
+    k_plant, k_reset = jax.random.split(key)
+    tp = params.traffic
+    eq = equilibrium(tp)  # once per step: the target, both observations and the reset share it
+    ctrl = gp.gain_target_controller(action_to_gains(action, params), params.gain_filter)
+    plant, gains, h, info = closed_loop_step(state.plant, state.gains, ctrl, state.plant_params, tp,
+                                             plant_alpha(state.plant_params, k_plant), k_plant, eq)
+    terminated = plant.diverged
+    r = info.reward - params.h_rate_weight * h_rate_cost(state.plant.h_prev, h, tp.h_bar)
+    r = jnp.where(terminated, -params.diverge_penalty, r)
+    t = state.t + 1
+    truncated = (t >= params.horizon) & ~terminated
+    done = terminated | truncated
+    stepped = EnvState(plant=plant, plant_params=state.plant_params, t=t, gains=gains)
+    terminal_obs = observe(stepped, params, eq)
+    fresh = _new_episode(k_reset, params, eq[0], sent=plant.sent)
+    obs = jnp.where(done, observe(fresh, params, eq), terminal_obs)
+
+    def pick(a, b):
+        return jax.tree.map(lambda x, y: jnp.where(done, x, y), a, b)
+
+    new_state = EnvState(plant=select_state(done, fresh.plant, plant),
+                         plant_params=pick(fresh.plant_params, stepped.plant_params),
+                         t=pick(fresh.t, t), gains=pick(fresh.gains, gains))
+    info = {"terminal_obs": terminal_obs, "truncated": truncated, "terminated": terminated, "gains": gains}
+    return obs, new_state, r, done, info
+
+
+reset = reset_env
+step = step_env
+
+
+class GainEnv:
+    """The traffic gain environment as an object with the gymnax-style interface that
+    ``ppo.make_train`` expects: ``reset``, ``step``, ``obs_size(params)``, ``action_size``."""
+
+    action_size = gp.N_GAINS
+    reset = staticmethod(reset_env)
+    step = staticmethod(step_env)
+    obs_size = staticmethod(obs_size)

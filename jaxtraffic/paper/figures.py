@@ -1,0 +1,110 @@
+"""Every figure of the evaluation, from the scenario outcomes (``paper.plotting`` draws them)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from jaxtraffic.model.params import equilibrium
+from jaxtraffic.paper.scenarios import CTRL_DELAY, NOISE_STD, EvalConfig, Outcome, initial_norms
+
+
+# ----------------------------------------------------------------------------- figures
+def make_figures(results: dict[str, dict[str, Outcome]], robust: dict[str, dict[str, np.ndarray]],
+                 cfg: EvalConfig, out_dir: Path, learning_curve_csv: Path | None,
+                 log: Callable[[str], None] = print) -> list[str]:
+    """Write every figure into ``out_dir``; returns the file names written."""
+    from jaxtraffic.paper import plotting as P
+
+    nom = cfg.nominal()
+    rho_bar, v_bar = (float(x) for x in equilibrium(nom))
+    eq = (rho_bar, v_bar, float(nom.h_bar))
+    x = np.asarray(nom.x())
+    lab = P.LABELS
+    written: list[str] = []
+
+    def done(p: Path) -> None:
+        written.append(p.name)
+        log(f"  wrote {p.name}")
+
+    if learning_curve_csv is not None and Path(learning_curve_csv).exists():
+        try:
+            done(P.plot_learning_curve(learning_curve_csv, out_dir / "fig3a_learning_curve.png",
+                                       title="PPO learning curve, D = 4 s (paper fig. 3a)"))
+        except ValueError as e:
+            log(f"  learning curve not plotted: {e}")
+    else:
+        log("  no learning_curve.csv: fig3a skipped")
+
+    t = results["delay4"]["open_loop"].t
+    series, markers = {}, {}
+    for c in ("open_loop", "lyapunov", "backstepping", "ppo"):
+        o = results["delay4"][c]
+        key = f"{lab[c]} (D = 4 s)"
+        series[key] = o.reward[0]
+        if o.metrics["diverged"][0]:
+            markers[key] = float(o.metrics["diverged_at_s"][0])
+    for c in ("lyapunov", "ppo"):
+        o = results["delay0"][c]
+        key = f"{lab[c]} (D = 0)"
+        series[key] = o.reward[0]
+        if o.metrics["diverged"][0]:
+            markers[key] = float(o.metrics["diverged_at_s"][0])
+    done(P.plot_reward(out_dir / "fig3b_reward.png", t, series, markers=markers,
+                       title="Reward over time from the paper's initial condition (paper fig. 3b)"))
+
+    titles = {
+        "delay0": ("fig4_spacetime_delay0.png", "Plant delay D = 0 (paper fig. 4)"),
+        "delay4": ("fig5_spacetime_delay4.png", "Plant delay D = 4 s (paper fig. 5)"),
+        "alpha_noise": ("fig7_spacetime_alpha_noise.png",
+                        f"D = 4 s, plant alpha = 0.15 + N(0, {NOISE_STD}^2) per step, seed {cfg.seeds[0]} "
+                        "(paper fig. 7)"),
+        "delay_mismatch_3": ("spacetime_delay_mismatch_3.png", "Plant delay 3 s, controllers assume 4 s"),
+        "delay_mismatch_5": ("spacetime_delay_mismatch_5.png", "Plant delay 5 s, controllers assume 4 s"),
+    }
+    for s, (fname, title) in titles.items():
+        rows, div = {}, {}
+        for c, o in results[s].items():
+            rows[lab[c]] = (o.rho[0], o.v[0], o.h[0])
+            if o.metrics["diverged"][0]:
+                div[lab[c]] = float(o.metrics["diverged_at_s"][0])
+        done(P.plot_spacetime(out_dir / fname, t, x, rows, eq, title, diverged_at=div))
+
+    def l2(s, ctrls):
+        return {lab[c]: (results[s][c].rho_L2, results[s][c].v_L2) for c in ctrls}
+
+    done(P.plot_l2_norms(out_dir / "fig4_l2_delay0.png", t, l2("delay0", ("open_loop", "lyapunov", "ppo")),
+                         "L2 norms of the deviations, plant delay D = 0"))
+    done(P.plot_l2_norms(out_dir / "fig6_l2_delay4.png", t,
+                         l2("delay4", ("open_loop", "lyapunov", "backstepping", "ppo")),
+                         "L2 norms of the deviations, plant delay D = 4 s (paper fig. 6)"))
+    done(P.plot_l2_norms(out_dir / "fig7_l2_alpha_noise.png", t, l2("alpha_noise", ("backstepping", "ppo")),
+                         "L2 norms with alpha noise (D = 4 s): mean and min-max band over "
+                         f"{len(cfg.seeds)} seeds"))
+    done(P.plot_l2_panels(out_dir / "fig8_l2_delay_mismatch.png", t,
+                          {"plant D = 3 s": l2("delay_mismatch_3", ("backstepping", "ppo")),
+                           "plant D = 5 s": l2("delay_mismatch_5", ("backstepping", "ppo"))},
+                          "Mismatched delay, controllers assume 4 s (paper fig. 8)"))
+    if robust:
+        names = {"open_loop": "open loop", "lyapunov": "Lyapunov",
+                 "backstepping": "backstepping (assumes the true plant delay)",
+                 "ppo": "PPO (trained D = 4 s)"}
+        delays, alphas = np.asarray(cfg.robust_delays), np.asarray(cfg.robust_alphas)
+        horizon = replace(cfg, horizon_s=cfg.robust_horizon_s).n_steps * cfg.dt
+        maps = {names[c]: (r["final_rho_L2"], r["diverged"]) for c, r in robust.items()}
+        done(P.plot_robustness_map(
+            out_dir / "robustness_map.png", delays, alphas, maps,
+            f"Final density L2 deviation from the nominal target after {horizon:g} s, over plant delay x "
+            "plant ACC rate\n(includes the steady offset a proportional law keeps when alpha != 0.15)",
+            nominal=(CTRL_DELAY, 0.15), initial_l2=initial_norms(cfg)[0]))
+        maps = {names[c]: (r["final_rho_spatial_std"], r["diverged"]) for c, r in robust.items()}
+        done(P.plot_robustness_map(
+            out_dir / "robustness_map_waves.png", delays, alphas, maps,
+            f"Remaining density waves after {horizon:g} s: spatial standard deviation of rho "
+            "(blind to a uniform offset)", nominal=(CTRL_DELAY, 0.15), initial_l2=initial_norms(cfg)[0],
+            quantity="final std_x(rho) (veh/km)"))
+    return written
+

@@ -1,0 +1,248 @@
+"""The paper's experiments (MODEL.md sections 10-12): scenarios, batched evaluation, outputs.
+
+``evaluate.py`` (``cli.evaluate``) is a thin command line around ``paper.driver.evaluate_all``.
+Everything here works on a given set of controllers, so it is independent of how the PPO policy
+was obtained.
+
+Scenarios (all: the paper's initial condition, nominal model and target = TrafficParams(alpha=0.15)
+on the evaluation grid, MODEL.md section 12):
+
+    delay0            plant D = 0                         open_loop, lyapunov, ppo
+    delay4            plant D = 4 s                       open_loop, lyapunov, backstepping, ppo
+    alpha_noise       plant D = 4 s, alpha + N(0, 0.15^2) backstepping, ppo   (several seeds)
+    delay_mismatch_3  plant D = 3 s                       backstepping, ppo   (both assume 4 s)
+    delay_mismatch_5  plant D = 5 s                       backstepping, ppo   (both assume 4 s)
+
+Backstepping always assumes D_ctrl = 4 s in these scenarios. All scenarios (and seeds) of one
+controller run as one vmapped ``simulate_batch`` call; the robustness map (plant delay x plant
+alpha) is one more batched call per controller, with backstepping assuming the true plant delay.
+
+Derived quantities (computed from the recorded trajectories, stride ``record_every`` steps):
+    t_settle_rho_s / t_settle_v_s: the first recorded time after which ||rho~||_L2 (resp.
+        ||v~||_L2) stays <= SETTLE_FRACTION x its value at t = 0 until the end; None if never.
+
+Summaries and Table 2: ``paper.summaries``; claim verdicts: ``paper.claims``; REPORT.md:
+``paper.report``; figures: ``paper.figures``."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxtraffic.control import Controller, backstepping
+from jaxtraffic.model.params import TrafficParams, equilibrium, steps_for
+from jaxtraffic.sim import metrics as M
+from jaxtraffic.sim.initial import paper_initial_condition
+from jaxtraffic.sim.rollout import simulate_batch, stack_params
+
+CTRL_DELAY = 4.0  # s, the delay the controllers (backstepping, PPO) are designed / trained for
+NOISE_STD = 0.15  # std of the Gaussian noise on the plant's alpha (alpha_noise scenario)
+SETTLE_FRACTION = 0.1  # settling: L2 norm stays below this fraction of its initial value
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """Plant of one scenario: true delay (s), alpha noise std, whether it is averaged over seeds."""
+
+    name: str
+    plant_delay: float
+    alpha_noise: float
+    controllers: tuple[str, ...]
+    description: str
+
+    @property
+    def seeded(self) -> bool:
+        return self.alpha_noise > 0
+
+
+SCENARIOS = (
+    Scenario("delay0", 0.0, 0.0, ("open_loop", "lyapunov", "ppo"), "plant delay D = 0"),
+    Scenario("delay4", 4.0, 0.0, ("open_loop", "lyapunov", "backstepping", "ppo"), "plant delay D = 4 s"),
+    Scenario("alpha_noise", 4.0, NOISE_STD, ("backstepping", "ppo"),
+             f"plant delay D = 4 s, plant alpha = clip(0.15 + N(0, {NOISE_STD}^2), 0, 1) redrawn every step"),
+    Scenario("delay_mismatch_3", 3.0, 0.0, ("backstepping", "ppo"),
+             "plant delay D = 3 s, controllers assume 4 s"),
+    Scenario("delay_mismatch_5", 5.0, 0.0, ("backstepping", "ppo"),
+             "plant delay D = 5 s, controllers assume 4 s"),
+)
+SCENARIO_BY_NAME = {s.name: s for s in SCENARIOS}
+ROBUST_CONTROLLERS = ("open_loop", "lyapunov", "backstepping", "ppo")
+
+
+@dataclass
+class EvalConfig:
+    """Grid, horizon and sampling of an evaluation.
+
+    ``robust_horizon_s``: horizon of the robustness map, longer than the paper's 300 s because a
+    plant whose alpha differs from the nominal one needs about L / v_bar ~ 320 s for the transition
+    front towards its own steady state to cross the road; at 300 s the map would show that
+    transient rather than (in)stability.
+    """
+
+    n_points: int = 201
+    dt: float = 0.1
+    horizon_s: float = 300.0
+    seeds: tuple[int, ...] = tuple(range(8))
+    robust_delays: tuple[float, ...] = tuple(np.round(np.linspace(0.0, 8.0, 17), 6))
+    robust_alphas: tuple[float, ...] = tuple(np.round(np.linspace(0.05, 0.6, 12), 6))
+    record_every_target: int = 10
+    robust_horizon_s: float = 600.0
+
+    @property
+    def n_steps(self) -> int:
+        return steps_for(self.nominal(), self.horizon_s)
+
+    @property
+    def record_every(self) -> int:
+        """Largest divisor of n_steps that is <= record_every_target."""
+        n = self.n_steps
+        return max(r for r in range(1, min(self.record_every_target, n) + 1) if n % r == 0)
+
+    @property
+    def max_delay_steps(self) -> int:
+        worst = max([CTRL_DELAY, *self.robust_delays, *(s.plant_delay for s in SCENARIOS)])
+        return max(100, int(math.ceil(round(worst / self.dt, 6))))
+
+    def nominal(self, **changes: Any) -> TrafficParams:
+        return TrafficParams(alpha=0.15, n_points=self.n_points, dt=self.dt,
+                             max_delay_steps=self.max_delay_steps, **changes)
+
+
+def robust_axis(n: int, lo: float, hi: float, dt: float | None = None) -> tuple[float, ...]:
+    """n evenly spaced values in [lo, hi] (rounded to multiples of dt if given); n = 0: none."""
+    vals = np.linspace(lo, hi, n) if n != 1 else np.array([lo])
+    if dt is not None:
+        vals = np.round(vals / dt) * dt
+    return tuple(float(v) for v in np.round(vals, 6))
+
+
+@dataclass
+class Outcome:
+    """Result of one (scenario, controller): per-seed metrics and recorded series.
+
+    metrics: name -> array (S,); t: (T,) s (every record_every steps from 0, plus the final time);
+    rho, v (veh/m, m/s), h (sent time gap, s): (S, T, N); reward, rho_L2 (veh/m), v_L2 (m/s): (S, T).
+    """
+
+    metrics: dict[str, np.ndarray]
+    t: np.ndarray
+    rho: np.ndarray
+    v: np.ndarray
+    h: np.ndarray
+    reward: np.ndarray
+    rho_L2: np.ndarray
+    v_L2: np.ndarray
+    controller_label: str = ""
+
+
+def run_batch(controller: Controller, envs: list[TrafficParams], keys: list[int], cfg: EvalConfig,
+              record: bool = True, batch_controller: bool = False):
+    """One vmapped rollout of ``controller`` over ``envs`` from the paper's initial condition
+    (computed on the nominal equilibrium). Returns the SimResult with numpy leaves."""
+    nom = cfg.nominal()
+    rho0, v0 = paper_initial_condition(nom)
+    b = len(envs)
+    params = stack_params(*envs)
+    res = simulate_batch(
+        params, controller, n_steps=cfg.n_steps, nominal=nom,
+        rho0=jnp.broadcast_to(rho0, (b, nom.n_points)), v0=jnp.broadcast_to(v0, (b, nom.n_points)),
+        keys=jnp.stack([jax.random.PRNGKey(k) for k in keys]),
+        record_every=cfg.record_every if record else 0, batch_controller=batch_controller,
+    )
+    return jax.tree_util.tree_map(np.asarray, res)
+
+
+def initial_norms(cfg: EvalConfig) -> tuple[float, float]:
+    """||rho~(0)||_L2 (veh/m) and ||v~(0)||_L2 (m/s) of the paper's initial condition."""
+    nom = cfg.nominal()
+    rho_bar, v_bar = equilibrium(nom)
+    rho0, v0 = paper_initial_condition(nom)
+    return float(M.l2_deviation(rho0, rho_bar)), float(M.l2_deviation(v0, v_bar))
+
+
+def run_scenarios(controllers: dict[str, Controller], cfg: EvalConfig,
+                  log: Callable[[str], None] = print,
+                  scenario_controllers: dict[tuple[str, str], Controller] | None = None,
+                  ) -> dict[str, dict[str, Outcome]]:
+    """Evaluate every scenario; all scenarios and seeds of one controller in one batched rollout.
+
+    ``controllers``: name -> Controller for the names used in SCENARIOS ("ppo" included).
+    ``scenario_controllers``: (scenario, name) -> Controller overrides (e.g. a separate D = 0 PPO
+    policy for "delay0"); each distinct override runs as its own batch.
+    Returns {scenario: {controller name: Outcome}}.
+    """
+    overrides = scenario_controllers or {}
+    groups: dict[tuple[str, str], list[tuple[str, int]]] = {}
+    for sc in SCENARIOS:
+        for name in sc.controllers:
+            gid = (name, sc.name) if (sc.name, name) in overrides else (name, "")
+            seeds = cfg.seeds if sc.seeded else (0,)
+            groups.setdefault(gid, []).extend((sc.name, s) for s in seeds)
+    nom = cfg.nominal()
+    results: dict[str, dict[str, Outcome]] = {sc.name: {} for sc in SCENARIOS}
+    for (name, override_scenario), members in groups.items():
+        ctrl = overrides[(override_scenario, name)] if override_scenario else controllers[name]
+        envs = [nom.replace(delay=SCENARIO_BY_NAME[s].plant_delay,
+                            alpha_noise=SCENARIO_BY_NAME[s].alpha_noise) for s, _ in members]
+        t0 = time.perf_counter()
+        res = run_batch(ctrl, envs, [seed for _, seed in members], cfg)
+        scen = sorted({s for s, _ in members}, key=[x.name for x in SCENARIOS].index)
+        log(f"  {name:<13s} {len(envs):3d} envs x {cfg.n_steps} steps ({', '.join(scen)})"
+            f"  {time.perf_counter() - t0:6.1f} s")
+        tr, fin, met = res.trajectory, res.final, res.metrics
+
+        def cat(rec, last):  # append the final state (t = T) to the recorded series
+            return np.concatenate([rec, np.asarray(last)[:, None]], axis=1)
+
+        t_all = np.append(np.asarray(tr.t[0]), cfg.n_steps * cfg.dt)
+        rho, vel, h = cat(tr.rho, fin.rho), cat(tr.v, fin.v), cat(tr.h, fin.h_prev)
+        reward = cat(tr.reward, met["final_reward"])
+        rho_l2, v_l2 = cat(tr.rho_L2, met["final_rho_L2"]), cat(tr.v_L2, met["final_v_L2"])
+        for s in scen:
+            idx = np.array([i for i, (sn, _) in enumerate(members) if sn == s])
+            results[s][name] = Outcome(
+                metrics={k: np.asarray(a)[idx] for k, a in met.items()}, t=t_all, rho=rho[idx], v=vel[idx],
+                h=h[idx], reward=reward[idx], rho_L2=rho_l2[idx], v_L2=v_l2[idx],
+                controller_label=getattr(ctrl, "name", name),
+            )
+    return {s: {n: results[s][n] for n in SCENARIO_BY_NAME[s].controllers} for s in results}
+
+
+def run_robustness(controllers: dict[str, Controller], cfg: EvalConfig,
+                   log: Callable[[str], None] = print) -> dict[str, dict[str, np.ndarray]]:
+    """Final density L2 over plant delay x plant alpha (no noise), one batched rollout per
+    controller. Backstepping assumes the true plant delay (a batched controller setting); the
+    other controllers ignore the delay. Returns name -> {"final_rho_L2", "diverged",
+    "final_v_L2", "final_reward", "final_rho_spatial_std"} arrays of shape (len(delays),
+    len(alphas)); final_rho_spatial_std (veh/m) is the standard deviation over x of the final
+    density: the remaining wave amplitude, blind to a uniform offset from the nominal target."""
+    if not cfg.robust_delays or not cfg.robust_alphas:
+        return {}
+    cfg = replace(cfg, horizon_s=cfg.robust_horizon_s)
+    nom = cfg.nominal()
+    dd, aa = np.meshgrid(np.asarray(cfg.robust_delays), np.asarray(cfg.robust_alphas), indexing="ij")
+    envs = [nom.replace(delay=float(d), alpha=float(a)) for d, a in zip(dd.ravel(), aa.ravel(), strict=True)]
+    out = {}
+    for name in ROBUST_CONTROLLERS:
+        if name not in controllers:
+            continue
+        ctrl, batched = controllers[name], False
+        if name == "backstepping":
+            ctrl = backstepping(delay=jnp.asarray(dd.ravel(), jnp.float32), k=jnp.ones(dd.size))
+            batched = True
+        t0 = time.perf_counter()
+        res = run_batch(ctrl, envs, [0] * len(envs), cfg, record=False, batch_controller=batched)
+        out[name] = {k: np.asarray(res.metrics[k]).reshape(dd.shape)
+                     for k in ("final_rho_L2", "final_v_L2", "final_reward", "diverged")}
+        out[name]["final_rho_spatial_std"] = np.std(np.asarray(res.final.rho), axis=-1).reshape(dd.shape)
+        log(f"  robustness {name:<13s} {len(envs):3d} envs x {cfg.n_steps} steps"
+            f"  {time.perf_counter() - t0:6.1f} s")
+    return out
+

@@ -1,0 +1,158 @@
+"""The plant state and ONE closed-loop step (MODEL.md sections 4-5), shared by every loop.
+
+``closed_loop_step`` is the single definition of a control step; ``sim.rollout.simulate``, the
+learning environment (``learn.env``) and every trainer are scans of it. Order of step n
+(t_n = n dt):
+  1. the controller sees ``PlantState.observation`` = (rho^n, v^n, h^{n-1}, t_n, sent inputs)
+     and returns h^n, saturated to [h_min, h_max] (``control.saturate``);
+  2. h^n is pushed into the plant's ring buffer; the plant applies the input sent d = D/dt steps
+     ago (h_bar before t = D);
+  3. the plant advances with this step's alpha (``plant_alpha``: alpha + alpha_noise N(0, 1),
+     clipped to [0, 1]);
+  4. a state that leaves 0 < rho < 1/l, v >= 0 (or is not finite) is not accepted: the plant is
+     flagged ``diverged`` and frozen at its last physical state.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import chex
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from jaxtraffic.control.base import Controller, Observation, saturate
+from jaxtraffic.model import delay as delay_buffer
+from jaxtraffic.model.linear import linear_step, linearize
+from jaxtraffic.model.params import TrafficParams
+from jaxtraffic.model.solver import arz_step, is_physical, local_cfl
+from jaxtraffic.sim import metrics as M
+
+Array = jax.Array
+
+
+@struct.dataclass
+class PlantState:
+    """State of one freeway: rho (veh/m), v (m/s), sent time gaps (ring buffer, s), the last
+    sent field h_prev (s), the step counter and the divergence flag."""
+
+    rho: Array
+    v: Array
+    sent: delay_buffer.DelayBuffer
+    h_prev: Array
+    step: Array
+    diverged: Array
+    diverged_step: Array  # step at which the state left the physical region (-1: never)
+
+    def observation(self, p: TrafficParams) -> Observation:
+        return Observation(rho=self.rho, v=self.v, h_prev=self.h_prev, t=self.step * p.dt, sent=self.sent)
+
+
+def initial_state(p: TrafficParams, rho0: Array, v0: Array,
+                  sent: delay_buffer.DelayBuffer | None = None) -> PlantState:
+    """Plant state at t = 0 with a buffer whose history reads h_bar (no input sent yet).
+
+    ``sent``: reuse this buffer's storage (``delay.restart``, O(n)) instead of allocating and
+    filling a new (capacity x n) one; that keeps an environment's auto-reset cheap.
+    An initial state outside the physical region (see ``solver.is_physical``) is flagged as
+    diverged at step 0 and never advanced (``simulate`` rejects a concrete one with an error).
+    """
+    chex.assert_shape([rho0, v0], (p.n_points,))
+    h0 = jnp.full_like(rho0, p.h_bar)
+    buf = delay_buffer.init_buffer(h0, p.max_delay_steps) if sent is None else delay_buffer.restart(sent, h0)
+    bad = ~is_physical(rho0, v0, p)
+    return PlantState(
+        rho=rho0, v=v0, sent=buf, h_prev=h0,
+        step=jnp.zeros((), jnp.int32), diverged=bad,
+        diverged_step=jnp.where(bad, 0, -1).astype(jnp.int32),
+    )
+
+
+def select_state(pred: Array, restarted: PlantState, state: PlantState) -> PlantState:
+    """``restarted`` where ``pred`` else ``state``, for ``restarted = initial_state(..., sent=state.sent)``:
+    both share the buffer storage, so only its O(n) bookkeeping is selected (``delay.select_restarted``)."""
+    fields = {f: jnp.where(pred, getattr(restarted, f), getattr(state, f))
+              for f in ("rho", "v", "h_prev", "step", "diverged", "diverged_step")}
+    return PlantState(sent=delay_buffer.select_restarted(pred, restarted.sent, state.sent), **fields)
+
+
+def plant_alpha(p: TrafficParams, key: Array) -> Array:
+    """This step's plant penetration rate: clip(alpha + alpha_noise N(0,1), 0, 1)."""
+    return jnp.clip(p.alpha + p.alpha_noise * jax.random.normal(key), 0.0, 1.0)
+
+
+def plant_alpha_sequence(p: TrafficParams, key: Array, n_steps: int, dtype: Any = jnp.float32) -> Array:
+    """The plant penetration rates of ``n_steps`` steps, shape (n_steps,), drawn at once:
+    clip(alpha + alpha_noise N(0,1), 0, 1) (one vectorised draw instead of one per step)."""
+    z = jax.random.normal(key, (n_steps,), dtype)
+    return jnp.clip(p.alpha + p.alpha_noise * z, 0.0, 1.0).astype(dtype)
+
+
+def plant_step(state: PlantState, h_sent: Array, p: TrafficParams, key: Array) -> PlantState:
+    """Send ``h_sent`` (already saturated), apply the delayed input and advance the plant.
+
+    The step's plant alpha is ``plant_alpha(p, key)``. A step that would leave the physical
+    region is rejected: the state is frozen and flagged.
+    """
+    return _plant_step(state, h_sent, p, plant_alpha(p, key))[0]
+
+
+def _plant_step(state: PlantState, h_sent: Array, p: TrafficParams, alpha: Array,
+                target: tuple[Array, Array] | None = None) -> tuple[PlantState, Array, Array | None]:
+    """``plant_step`` with the plant alpha given. Returns (new state, applied (delayed) input,
+    reward of the new state against ``target`` = (rho_bar, v_bar), or None without a target).
+
+    With a target, the physicality check and the reward share one spatial reduction
+    (``metrics.physical_reward``; NaN when the step left the physical region).
+    """
+    sent = delay_buffer.push(state.sent, h_sent)
+    h_applied = delay_buffer.read(sent, p.delay_steps)
+    if p.model == "linear":
+        lm = linearize(p)
+        r_t, v_t = linear_step(state.rho - lm.rho_bar, state.v - lm.v_bar, h_applied - lm.h_bar, lm)
+        rho, v = r_t + lm.rho_bar, v_t + lm.v_bar
+    else:
+        rho, v, _, _ = arz_step(state.rho, state.v, h_applied, p, alpha)
+    if target is None:
+        r_new, ok = None, is_physical(rho, v, p)
+    else:
+        r_new = M.physical_reward(rho, v, target[0], target[1], p.l)
+        ok = ~jnp.isnan(r_new)
+    bad = ~ok & ~state.diverged
+    frozen = state.diverged | bad
+    new = PlantState(
+        rho=jnp.where(frozen, state.rho, rho), v=jnp.where(frozen, state.v, v), sent=sent,
+        h_prev=h_sent, step=state.step + 1, diverged=frozen,
+        diverged_step=jnp.where(bad, state.step, state.diverged_step),
+    )
+    return new, h_applied, r_new
+
+
+@struct.dataclass
+class StepInfo:
+    """What one closed-loop step reports besides the new state: the applied (delayed) input
+    ``h_applied`` (s), the ``reward`` of the new state against the target (dimensionless; NaN
+    where the step left the physical region) and the CFL number ``cfl`` of the step at every
+    node (with the applied input and the plant's alpha). Unused fields cost nothing under jit."""
+
+    h_applied: Array
+    reward: Array
+    cfl: Array
+
+
+def closed_loop_step(plant: PlantState, cstate: Any, controller: Controller, plant_params: TrafficParams,
+                     nominal: TrafficParams, alpha: Array, key: Array, target: tuple[Array, Array]
+                     ) -> tuple[PlantState, Any, Array, StepInfo]:
+    """One control step: observe, act, saturate, send, advance. Returns (plant, cstate, h_sent, info).
+
+    ``plant_params``: the true plant (its delay, alpha noise); ``nominal``: the parameters the
+    controller believes in; ``alpha``: this step's plant alpha (``plant_alpha``); ``key``: the
+    controller's PRNG key; ``target`` = (rho_bar, v_bar) of the nominal equilibrium (computed once
+    by the caller), against which ``info.reward`` is measured.
+    """
+    h, cstate = controller.act(cstate, plant.observation(plant_params), nominal, key)
+    h = saturate(h, plant_params).astype(plant.rho.dtype)
+    new, h_applied, r_new = _plant_step(plant, h, plant_params, alpha, target)
+    cfl = local_cfl(plant.rho, plant.v, h_applied, plant_params, alpha)
+    return new, cstate, h, StepInfo(h_applied=h_applied, reward=r_new, cfl=cfl)

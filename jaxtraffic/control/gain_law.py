@@ -18,15 +18,17 @@ Array = jax.Array
 GAIN_NAMES = ("eta1", "eta2", "eta3")
 
 
-def gain_law(gains: Array, obs: Observation, nominal: TrafficParams) -> Array:
+def gain_law(gains: Array, obs: Observation, nominal: TrafficParams,
+             eq: tuple[Array, Array] | None = None) -> Array:
     """The paper's three-gain law on normalised deviations (MODEL.md section 9).
 
     h = h_bar + h_bar * (-eta1 (h_prev - h_bar)/h_bar - eta2 (v - v_bar)/v_bar
                          + eta3 (rho - rho_bar)/rho_bar),
-    with dimensionless gains ``gains = [eta1, eta2, eta3]`` (shape (3,)).
+    with dimensionless gains ``gains = [eta1, eta2, eta3]`` (shape (3,)); ``eq``: (rho_bar, v_bar)
+    of ``nominal`` if the caller has it already (default: computed).
     """
     chex.assert_shape(gains, (3,))
-    rho_bar, v_bar = equilibrium(nominal)
+    rho_bar, v_bar = equilibrium(nominal) if eq is None else eq
     h_bar = nominal.h_bar
     dev = (-gains[0] * (obs.h_prev - h_bar) / h_bar - gains[1] * (obs.v - v_bar) / v_bar
            + gains[2] * (obs.rho - rho_bar) / rho_bar)

@@ -64,10 +64,11 @@ def normalize_obs(x: Array, mean: Array, var: Array) -> Array:
 
 
 def filtered_gain_law(gains_prev: Array, target: Array, gain_filter: Array | float, obs: Observation,
-                      nominal: TrafficParams) -> tuple[Array, Array]:
-    """(h, applied gains): filter the gains towards ``target``, then apply the three-gain law."""
+                      nominal: TrafficParams, eq: tuple[Array, Array] | None = None) -> tuple[Array, Array]:
+    """(h, applied gains): filter the gains towards ``target``, then apply the three-gain law
+    (``eq``: the nominal equilibrium (rho_bar, v_bar) if known)."""
     gains = filter_gains(gains_prev, target, gain_filter)
-    return gain_law(gains, obs, nominal), gains
+    return gain_law(gains, obs, nominal, eq), gains
 
 
 def zero_gains(settings: Any, obs: Observation, nominal: TrafficParams) -> Array:
@@ -78,21 +79,24 @@ def zero_gains(settings: Any, obs: Observation, nominal: TrafficParams) -> Array
 # ----------------------------------------------------------------------------- given target gains
 @struct.dataclass
 class GainTarget:
-    """Target gains (shape (3,), dimensionless) and the gain filter in (0, 1]."""
+    """Target gains (shape (3,), dimensionless), the gain filter in (0, 1] and, optionally, the
+    nominal equilibrium (rho_bar veh/m, v_bar m/s) the law acts about (None: computed per step)."""
 
     target: Array
     gain_filter: Array
+    eq: tuple[Array, Array] | None = None
 
 
 def _target_act(settings: GainTarget, gains_prev, obs, nominal, key):
-    h, gains = filtered_gain_law(gains_prev, settings.target, settings.gain_filter, obs, nominal)
-    return h, gains
+    return filtered_gain_law(gains_prev, settings.target, settings.gain_filter, obs, nominal, settings.eq)
 
 
-def gain_target_controller(target: Array, gain_filter: Array | float = 1.0) -> Controller:
+def gain_target_controller(target: Array, gain_filter: Array | float = 1.0,
+                           eq: tuple[Array, Array] | None = None) -> Controller:
     """The filtered three-gain law towards the given ``target`` gains (the environment's action,
-    squashed); its state is the gains applied at the previous step."""
-    settings = GainTarget(target=jnp.asarray(target), gain_filter=jnp.asarray(gain_filter, float))
+    squashed); its state is the gains applied at the previous step. ``eq``: the equilibrium of
+    the ``nominal`` it will be called with, when the caller has computed it already."""
+    settings = GainTarget(target=jnp.asarray(target), gain_filter=jnp.asarray(gain_filter, float), eq=eq)
     return Controller(settings=settings, act_fn=_target_act, init_fn=zero_gains, name="gain_target")
 
 
@@ -114,10 +118,11 @@ def _policy_act_fn(hidden: tuple, init_sigma: float):
     network = ActorCritic(hidden=hidden, init_sigma=init_sigma)
 
     def act(settings: PolicySettings, gains_prev, obs, nominal, key):
-        x = policy_features(obs, gains_prev, nominal, settings.gain_max)
+        eq = equilibrium(nominal)  # once per step: the features and the law share it
+        x = policy_features(obs, gains_prev, nominal, settings.gain_max, eq)
         mean, _, _ = network.apply(settings.params, normalize_obs(x, settings.obs_mean, settings.obs_var))
         target = action_to_gains(mean, settings.gain_max)
-        return filtered_gain_law(gains_prev, target, settings.gain_filter, obs, nominal)
+        return filtered_gain_law(gains_prev, target, settings.gain_filter, obs, nominal, eq)
 
     return act
 

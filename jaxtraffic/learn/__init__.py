@@ -1,3 +1,7 @@
 """The learning layer (imports ``model``, ``control``, ``sim``): the gymnax-style environment,
-PPO, the training loop, checkpoints and ``load_policy``, the learning curve. Submodules are
-imported explicitly (``from jaxtraffic.learn import ppo``)."""
+PPO, the training loop, checkpoints and ``load_policy``, the learning curve. Other submodules
+are imported explicitly (``from jaxtraffic.learn import ppo``)."""
+
+from jaxtraffic.learn.checkpoint import load_policy
+
+__all__ = ["load_policy"]

@@ -153,8 +153,8 @@ def step_env(key: Array, state: EnvState, action: Array, params: EnvParams):
     chex.assert_shape(action, (gp.N_GAINS,))
     k_plant, k_reset = jax.random.split(key)
     tp = params.traffic
-    eq = equilibrium(tp)  # once per step: the target, both observations and the reset share it
-    ctrl = gp.gain_target_controller(action_to_gains(action, params), params.gain_filter)
+    eq = equilibrium(tp)  # once per step: the law, the reward target, both observations, the reset
+    ctrl = gp.gain_target_controller(action_to_gains(action, params), params.gain_filter, eq)
     plant, gains, h, info = closed_loop_step(state.plant, state.gains, ctrl, state.plant_params, tp,
                                              plant_alpha(state.plant_params, k_plant), k_plant, eq)
     terminated = plant.diverged

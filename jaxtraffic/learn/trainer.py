@@ -146,7 +146,7 @@ def make_evaluator(cfg: ppo.PPOConfig, env_params: E.EnvParams, eval_steps: int)
     """Deterministic evaluation of every seed's policy on the paper's initial condition.
 
     Returns ``evaluate(runner) -> dict`` of per-seed metrics (final_reward, J's, ...), plus the
-    gains each policy settles to at the equilibrium (``policy.equilibrium_gains``) and the closed
+    gains each policy settles to at the equilibrium (``control.gain_policy.equilibrium_gains``) and the closed
     loop's kinematic wave speed under them (``wave_speed``, m/s, ``linear.gain_law_wave_speed``).
     """
     plant = env_params.traffic.replace(alpha_noise=0.0)

@@ -82,7 +82,7 @@ def linear_step(rho_t: Array, v_t: Array, U: Array, lm: LinearModel) -> tuple[Ar
 def gain_law_wave_speed(gains: Array, lm: LinearModel) -> Array:
     """Kinematic wave speed s (m/s) of the plant closed by the three-gain law with constant gains.
 
-    ``gains = [eta1, eta2, eta3]`` (dimensionless, ``controllers.gain_law``), shape (..., 3).
+    ``gains = [eta1, eta2, eta3]`` (dimensionless, ``control.gain_law``), shape (..., 3).
     In a slowly varying, relaxed state (v = V(rho, h), h = h_prev) the law gives
     h~ (1 + eta1) = h_bar (-eta2 v~/v_bar + eta3 rho~/rho_bar), so v~ = c rho~ with
 

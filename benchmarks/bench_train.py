@@ -41,11 +41,12 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 from machine import cpu_model, load  # noqa: E402  (benchmarks/machine.py)
 
-from jaxtraffic import TrafficParams, backstepping, open_loop, simulate  # noqa: E402
+from jaxtraffic import backstepping, open_loop, simulate  # noqa: E402
 from jaxtraffic.learn import ppo  # noqa: E402
 from jaxtraffic.learn.checkpoint import load_policy  # noqa: E402
+from jaxtraffic.learn.config import TrainConfig  # noqa: E402
 from jaxtraffic.learn.env import GainEnv  # noqa: E402
-from jaxtraffic.learn.trainer import TrainSettings, build, make_evaluator  # noqa: E402
+from jaxtraffic.learn.trainer import build, make_evaluator  # noqa: E402
 
 SIM_STEPS = 3000  # 300 s at dt = 0.1 s
 
@@ -57,7 +58,7 @@ def _block(x):
 
 def throughput(num_envs: int, chunks: int) -> dict:
     """Steps/s of ``train_chunk`` with the default settings but ``num_envs``."""
-    s = TrainSettings(num_envs=num_envs)
+    s = TrainConfig.from_flat(num_envs=num_envs)
     cfg, env_params = build(s)
     steps_per_chunk = cfg.steps_per_update * cfg.updates_per_chunk
     load0 = load()
@@ -132,11 +133,11 @@ def _summary_fields(summary: dict) -> dict:
 def compare(run_dir: Path) -> dict:
     """The run's deterministic policy vs backstepping(4.0) and open loop, nonlinear plant, 300 s."""
     ctrl, config = load_policy(run_dir)
-    plant = TrafficParams(delay=config["delay"], alpha=config["alpha"], n_points=config["n_points"],
-                          dt=config["dt"], max_delay_steps=config["max_delay_steps"])
-    out = {"run_dir": str(run_dir), "plant": {"delay": config["delay"], "alpha": config["alpha"],
-                                               "n_points": config["n_points"], "dt": config["dt"]},
-           "horizon_s": SIM_STEPS * config["dt"], "load_before": load()}
+    pc = config.plant
+    plant = pc.traffic().replace(alpha_noise=0.0)
+    out = {"run_dir": str(run_dir), "plant": {"delay": pc.delay, "alpha": pc.alpha, "n_points": pc.n_points,
+                                               "dt": pc.dt},
+           "horizon_s": SIM_STEPS * pc.dt, "load_before": load()}
     keys = ("final_rho_L2", "final_v_L2", "J_comfort", "J_TTT", "J_fuel", "final_reward", "diverged",
             "time_to_reward_target_s", "control_effort")
     for name, c in (("ppo", ctrl), ("backstepping", backstepping(4.0)), ("open_loop", open_loop())):

@@ -22,7 +22,11 @@ KEYS = jax.random.split(jax.random.PRNGKey(7), 400)
 
 
 def _params(**kw) -> E.EnvParams:
+    """The paper's environment (gains applied directly, the paper's reward) unless ``kw`` says otherwise."""
     kw.setdefault("horizon", 20)
+    kw.setdefault("gain_max", 5.0)
+    kw.setdefault("gain_filter", 1.0)
+    kw.setdefault("h_rate_weight", 0.0)
     return E.make_env_params(TP, **kw)
 
 

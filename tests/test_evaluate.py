@@ -8,14 +8,15 @@ import math
 import pytest
 
 import evaluate
-from jaxtraffic.learn.trainer import TrainSettings, train
+from jaxtraffic.learn.config import TrainConfig
+from jaxtraffic.learn.trainer import train
 from jaxtraffic.paper import REQUIRED_KEYS, SCENARIOS
 
 
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("run")
-    settings = TrainSettings(out_dir=str(out), n_points=21, num_envs=4, num_steps=8, num_minibatches=2,
+    settings = TrainConfig.from_flat(out_dir=str(out), n_points=21, num_envs=4, num_steps=8, num_minibatches=2,
                              update_epochs=1, updates_per_chunk=2, total_steps=64, horizon_s=3.0,
                              eval_horizon_s=2.0, quiet=True)
     return train(settings)

@@ -31,7 +31,8 @@ from jaxtraffic.control.gain_policy import policy_controller
 from jaxtraffic.learn import checkpoint as ckpt
 from jaxtraffic.learn import ppo
 from jaxtraffic.learn.checkpoint import load_policy
-from jaxtraffic.learn.trainer import CURVE_FIELDS, TrainSettings, build
+from jaxtraffic.learn.config import TrainConfig, load_config
+from jaxtraffic.learn.trainer import CURVE_FIELDS, build
 from jaxtraffic.sim import initial_state, paper_initial_condition
 
 REPO = Path(__file__).resolve().parents[1]
@@ -120,10 +121,10 @@ def _round_trip(run: Path, runner) -> dict:
     """Actions of ``load_policy(run)`` vs the in-memory policy (seed 0 of ``runner``) on two states."""
     ctrl, config = load_policy(run)
     rep = jax.tree.map(lambda x: x[0, 0], runner)  # device 0, seed 0
-    mem = policy_controller(rep.params, rep.stats.mean, rep.stats.var, config["env"]["gain_max"],
-                            hidden=tuple(config["ppo"]["hidden"]),
-                            init_sigma=config["ppo"]["init_sigma"], gain_filter=config["env"]["gain_filter"])
-    tp = build(TrainSettings(n_points=21, delay=0.5, max_delay_steps=20))[1].traffic  # the run's nominal plant
+    mem = policy_controller(rep.params, rep.stats.mean, rep.stats.var, config.env.gain_max,
+                            hidden=config.algo.hidden(), init_sigma=config.algo.init_sigma,
+                            gain_filter=config.env.gain_filter)
+    tp = build(config)[1].traffic  # the run's nominal plant
     out = {"identical": [], "h": [], "stats_trained": bool(np.abs(rep.stats.mean).max() > 0
                                                            and not np.allclose(rep.stats.var, 1.0))}
     for amp in (0.004, 0.012):
@@ -186,8 +187,13 @@ def test_run_directory_contents(runs):
     for name in ("config.json", "checkpoint.msgpack", "learning_curve.csv", "summary.json"):
         assert (run / name).is_file(), name
     cfg = json.loads((run / "config.json").read_text())
-    assert cfg["settings"]["n_points"] == 21 and cfg["delay"] == 0.5 and cfg["ppo"]["num_envs"] == 4
-    assert cfg["jax_version"] == jax.__version__ and cfg["env"]["horizon_steps"] == 30
+    tree = cfg["config"]
+    assert tree["plant"]["n_points"] == 21 and tree["plant"]["delay"] == 0.5 and tree["algo"]["num_envs"] == 4
+    assert cfg["jax_version"] == jax.__version__ and cfg["horizon_steps"] == 30 and cfg["version"] == 2
+    loaded = load_config(run)  # the one loader (resume, load_policy, evaluation) reads the tree back
+    assert loaded.plant.n_points == 21 and loaded.algo.num_envs == 4 and loaded.run.max_wall_s == float("inf")
+    assert loaded.env == TrainConfig.from_flat(**{k: tuple(v) if isinstance(v, list) else v
+                                                  for k, v in tree["env"].items()}).env
     rows = _rows(run)
     assert list(rows[0]) == CURVE_FIELDS
     assert [int(r["env_steps"]) for r in rows] == [CHUNK, 2 * CHUNK, 3 * CHUNK, 4 * CHUNK]
@@ -283,13 +289,17 @@ def test_checkpoint_round_trip_gives_identical_actions(runs):
 
 
 def test_load_policy_rejects_a_run_from_an_older_version(runs, tmp_path):
-    """A run whose config predates the gain filter (observation without the applied gains) gives a
-    clear error instead of a shape error deep inside the network."""
+    """A run whose config predates the gain filter (flat "settings", observation without the applied
+    gains) gives a clear error instead of a shape error deep inside the network; one written before
+    the config tree but after the gain filter loads."""
     old = tmp_path / "old"
     shutil.copytree(runs["A"], old)
-    config = json.loads((old / "config.json").read_text())
-    del config["env"]["gain_filter"]
-    (old / "config.json").write_text(json.dumps(config))
+    tree = json.loads((old / "config.json").read_text())["config"]
+    flat = {k: v for section in tree.values() for k, v in section.items()}
+    (old / "config.json").write_text(json.dumps({"settings": {**flat, "offset_range": [0, 0]}}))
+    assert load_policy(old)[1] == load_policy(runs["A"])[1]  # a pre-tree run loads (removed options ignored)
+    del flat["gain_filter"]
+    (old / "config.json").write_text(json.dumps({"settings": flat}))
     with pytest.raises(ValueError, match="older jaxtraffic"):
         load_policy(old)
     load_policy(runs["A"])  # the unmodified run loads

@@ -12,6 +12,7 @@ The logic lives in ``jaxtraffic.paper``; ``main(argv)`` returns the metrics dict
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -21,6 +22,7 @@ from typing import Any
 from jaxtraffic import paper
 from jaxtraffic.cli import train as train_cli
 from jaxtraffic.learn.checkpoint import load_policy
+from jaxtraffic.learn.config import TrainConfig
 
 DEFAULT_RUN = Path("runs/default")
 
@@ -63,10 +65,10 @@ def find_or_train_run(run: Path | None, n_points: int | None) -> Path:
     return Path(train_cli.main(targv))
 
 
-def _describe(run_dir: Path, config: dict[str, Any]) -> dict[str, Any]:
+def _describe(run_dir: Path, config: TrainConfig) -> dict[str, Any]:
     return {"run_dir": str(run_dir),
-            "description": f"PPO trained with D = {config.get('delay')} s, alpha = {config.get('alpha')}",
-            "config": config}
+            "description": f"PPO trained with D = {config.plant.delay} s, alpha = {config.plant.alpha}",
+            "config": dataclasses.asdict(config)}
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
@@ -80,19 +82,18 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         raise SystemExit("--seeds must be >= 1 and the --robust-grid sizes >= 0")
 
     run_dir = find_or_train_run(args.run, args.n_points)
-    base = paper.EvalConfig()
     ppo, config = load_policy(run_dir)
-    n_points, dt = int(config.get("n_points", base.n_points)), float(config.get("dt", base.dt))
+    n_points, dt = config.plant.n_points, float(config.plant.dt)
     if args.n_points and args.n_points != n_points:
         _log(f"note: --n-points {args.n_points} ignored; the run was trained on {n_points} points")
     ppo0, desc0 = None, None
     if args.run_delay0 is not None:
         ppo0, config0 = load_policy(args.run_delay0)
-        if (int(config0.get("n_points", n_points)), float(config0.get("dt", dt))) != (n_points, dt):
+        if (config0.plant.n_points, float(config0.plant.dt)) != (n_points, dt):
             raise SystemExit(f"--run-delay0 {args.run_delay0}: grid differs from --run's ({n_points}, {dt})")
         desc0 = _describe(args.run_delay0, config0)
-        if float(config0.get("delay", 0.0)) != 0.0:
-            _log(f"WARNING: --run-delay0 {args.run_delay0} was trained with D = {config0.get('delay')} s, not 0")
+        if float(config0.plant.delay) != 0.0:
+            _log(f"WARNING: --run-delay0 {args.run_delay0} was trained with D = {config0.plant.delay} s, not 0")
     policy = _describe(run_dir, config)
     policy0 = desc0 or {**policy, "description": f"the D = 4 s policy ({policy['description']}); "
                         "no D = 0 run was given"}

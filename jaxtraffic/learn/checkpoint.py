@@ -20,7 +20,8 @@ import numpy as np
 from flax import serialization
 
 from jaxtraffic.control.base import Controller
-from jaxtraffic.control.gain_policy import policy_controller
+from jaxtraffic.control.gain_policy import feature_size, policy_controller
+from jaxtraffic.learn.config import TrainConfig, load_config
 
 CHECKPOINT = "checkpoint.msgpack"
 CONFIG = "config.json"
@@ -95,7 +96,8 @@ class SavedPolicy:
 
 
 def load_run(run_dir: str | Path) -> tuple[dict, SavedPolicy, dict]:
-    """(config, saved policy, summary or {}) of a run directory."""
+    """(config.json content, saved policy, summary or {}) of a run directory (``learn.config.load_config``
+    turns the first into a ``TrainConfig``)."""
     run_dir = Path(run_dir)
     cfg_path = run_dir / CONFIG
     if not cfg_path.exists():
@@ -110,26 +112,26 @@ def load_run(run_dir: str | Path) -> tuple[dict, SavedPolicy, dict]:
     return config, policy, summary
 
 
-def load_policy(run_dir: str | Path, seed: int | None = None) -> tuple[Controller, dict]:
-    """Controller and config of a run directory written by ``train.py``.
+def load_policy(run_dir: str | Path, seed: int | None = None) -> tuple[Controller, TrainConfig]:
+    """Controller and ``TrainConfig`` of a run directory written by ``train.py``.
 
     ``seed`` selects one of the run's seeds (default: the best one by final evaluation reward,
     as recorded in ``summary.json``, else 0).
     """
     run_dir = Path(run_dir)
-    config, saved, summary = load_run(run_dir)
+    config = load_config(run_dir)
+    _, saved, summary = load_run(run_dir)
     if seed is None:
         seed = int(summary.get("best_seed", 0)) if summary else 0
     n_seeds = saved.obs_mean.shape[0]
     if not 0 <= seed < n_seeds:
         raise ValueError(f"seed {seed} not in run with {n_seeds} seeds")
-    expected = 3 * int(config["n_points"]) + 3
-    if saved.obs_mean.shape[-1] != expected or "gain_filter" not in config["env"]:
+    expected = feature_size(config.plant.n_points)
+    if saved.obs_mean.shape[-1] != expected:
         raise ValueError(f"{run_dir} was written by an older jaxtraffic (observation of {saved.obs_mean.shape[-1]} "
                          f"values, expected {expected} with the applied gains): retrain it with train.py")
-    ppo_cfg = config["ppo"]
     controller = policy_controller(
         jax.tree.map(lambda x: jnp.asarray(x[seed]), saved.params), saved.obs_mean[seed], saved.obs_var[seed],
-        config["env"]["gain_max"], hidden=tuple(ppo_cfg["hidden"]),
-        init_sigma=ppo_cfg["init_sigma"], gain_filter=config["env"]["gain_filter"])
+        config.env.gain_max, hidden=config.algo.hidden(), init_sigma=config.algo.init_sigma,
+        gain_filter=config.env.gain_filter)
     return controller, config

@@ -12,8 +12,8 @@ controller's target and the environment's ``gains`` (the applied, filtered gains
 * Action: three unbounded reals; target gains gain_max * tanh(action) (``action_to_gains``),
   filtered with ``gain_filter`` (``filter_gains``).
 * Reward: the paper's r = -sum_i [(rho~_i/rho_bar)^2 + (v~_i/v_bar)^2] of the state after the
-  step (dimensionless), minus ``h_rate_weight`` times ``h_rate_cost`` (0 by default here, i.e. the
-  paper's reward).
+  step (dimensionless), minus ``h_rate_weight`` times ``h_rate_cost`` (0: the paper's reward).
+  The defaults of ``EnvParams`` are the training defaults (``learn.config``, ``train.py``).
 * Episodes last ``horizon`` steps and end by *truncation* (``info["truncated"]``: bootstrap the
   value of ``info["terminal_obs"]``). A plant that leaves the physical region *terminates* with
   reward ``-diverge_penalty``. ``step_env`` resets finished environments itself, reusing the delay
@@ -47,8 +47,8 @@ class EnvParams:
     """
 
     traffic: TrafficParams = TrafficParams(delay=4.0)
-    horizon: int = 3000  # steps per episode (300 s)
-    gain_max: float = 5.0  # |eta_i| <= gain_max (dimensionless)
+    horizon: int = 1000  # steps per episode (100 s)
+    gain_max: float = 3.0  # |eta_i| <= gain_max (dimensionless)
     amp_min: float = 0.010  # veh/m
     amp_max: float = 0.010
     wavenumber_min: int = 4
@@ -59,8 +59,8 @@ class EnvParams:
     alpha_min: float = 0.15
     alpha_max: float = 0.15
     diverge_penalty: float = 100.0
-    gain_filter: float = 1.0  # in (0, 1]; 1: the policy's gains are applied directly
-    h_rate_weight: float = 0.0  # dimensionless; 0: the paper's reward
+    gain_filter: float = 0.2  # in (0, 1]; 1: the policy's gains are applied directly (the paper)
+    h_rate_weight: float = 0.2  # dimensionless; 0: the paper's reward
 
 
 @struct.dataclass

@@ -36,24 +36,25 @@ AXIS = "dev"
 
 @struct.dataclass
 class PPOConfig:
-    """PPO hyperparameters. Static: sizes and counts. Traced: the floats."""
+    """PPO hyperparameters (defaults: the training defaults of ``train.py``). Static: sizes and counts.
+    Traced: the floats."""
 
-    num_envs: int = struct.field(pytree_node=False, default=64)
+    num_envs: int = struct.field(pytree_node=False, default=256)
     num_steps: int = struct.field(pytree_node=False, default=100)  # update window: 10 s
     update_epochs: int = struct.field(pytree_node=False, default=4)
     num_minibatches: int = struct.field(pytree_node=False, default=4)
-    updates_per_chunk: int = struct.field(pytree_node=False, default=10)
+    updates_per_chunk: int = struct.field(pytree_node=False, default=3)
     num_seeds: int = struct.field(pytree_node=False, default=1)
     hidden: tuple = struct.field(pytree_node=False, default=SMALL_HIDDEN)
-    init_sigma: float = struct.field(pytree_node=False, default=0.5)
-    lr: float = 3e-4
-    gamma: float = 0.99
+    init_sigma: float = struct.field(pytree_node=False, default=0.3)
+    lr: float = 1e-3
+    gamma: float = 0.995
     gae_lambda: float = 0.95
     clip_eps: float = 0.2
     ent_coef: float = 0.0
     vf_coef: float = 0.5
     max_grad_norm: float = 0.5
-    reward_scale: float = 0.1
+    reward_scale: float = 0.01
     lr_decay_steps: float = 0.0  # env steps (per seed) over which lr falls linearly to lr * lr_final; 0: constant
     lr_final: float = 0.1
 

@@ -24,10 +24,8 @@ density L2 deviation, veh/km) and eval_wave_speed (m/s, see above).
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import jax
@@ -35,111 +33,42 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxtraffic.control.gain_policy import equilibrium_gains, policy_controller
-from jaxtraffic.control.networks import PAPER_HIDDEN, SMALL_HIDDEN
 from jaxtraffic.learn import checkpoint as ckpt
 from jaxtraffic.learn import env as E
 from jaxtraffic.learn import ppo
+from jaxtraffic.learn.config import RUN_CONTROL, TrainConfig, config_json, load_config
 from jaxtraffic.learn.curve import CURVE_FIELDS, plot_learning_curve, write_curve
 from jaxtraffic.model.linear import gain_law_wave_speed, linearize
-from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.sim.initial import paper_initial_condition
 from jaxtraffic.sim.rollout import simulate_batch
 
-__all__ = ["CURVE_FIELDS", "TrainSettings", "build", "config_dict", "make_evaluator", "train"]
-
-@dataclass
-class TrainSettings:
-    """Everything ``train.py`` exposes as a flag (defaults: the paper's D = 4 s policy)."""
-
-    out_dir: str = "runs/default"
-    seed: int = 0
-    seeds: int = 1
-    # plant and grid
-    delay: float = 4.0
-    alpha: float = 0.15
-    alpha_noise: float = 0.0
-    n_points: int = 201
-    dt: float = 0.1
-    max_delay_steps: int = 100
-    # domain randomisation: plant delay ~ U(delay - delay_spread, delay + delay_spread) (clipped at 0, whole
-    # steps) unless delay_range is given; None / 0 disable it
-    delay_spread: float = 1.0
-    delay_range: tuple[float, float] | None = None
-    alpha_range: tuple[float, float] | None = None
-    amp_range: tuple[float, float] = (0.010, 0.010)
-    wavenumber_range: tuple[int, int] = (4, 4)
-    phase_max: float = 0.0
-    horizon_s: float = 100.0
-    gain_max: float = 3.0
-    gain_filter: float = 0.2
-    h_rate_weight: float = 0.2
-    # PPO
-    num_envs: int = 256
-    num_steps: int = 100
-    total_steps: int = 10_000_000
-    update_epochs: int = 4
-    num_minibatches: int = 4
-    updates_per_chunk: int = 3
-    network: str = "small"
-    lr: float = 1e-3
-    lr_decay_steps: float = 0.0
-    lr_final: float = 0.1
-    gamma: float = 0.995
-    gae_lambda: float = 0.95
-    clip_eps: float = 0.2
-    ent_coef: float = 0.0
-    vf_coef: float = 0.5
-    max_grad_norm: float = 0.5
-    reward_scale: float = 0.01
-    init_sigma: float = 0.3
-    # evaluation and stopping
-    eval_horizon_s: float = 300.0
-    target_reward: float = -0.1
-    min_wave_speed: float | None = 0.5
-    stop_patience: int = 2
-    keep_going: bool = False
-    max_wall_s: float = math.inf
-    resume: bool = False
-    quiet: bool = False
-
-    def hidden(self) -> tuple[int, ...]:
-        return {"small": SMALL_HIDDEN, "paper": PAPER_HIDDEN}[self.network]
+__all__ = ["CURVE_FIELDS", "TrainConfig", "build", "config_dict", "make_evaluator", "train"]
 
 
-def build(s: TrainSettings) -> tuple[ppo.PPOConfig, E.EnvParams]:
-    """PPO config and environment parameters from settings (validated)."""
-    traffic = TrafficParams(delay=s.delay, alpha=s.alpha, alpha_noise=s.alpha_noise, n_points=s.n_points,
-                            dt=s.dt, max_delay_steps=s.max_delay_steps)
-    d_lo, d_hi = s.delay_range or (max(0.0, s.delay - s.delay_spread), s.delay + s.delay_spread)
-    d_lo, d_hi = (round(d / s.dt) * s.dt for d in (d_lo, d_hi))
-    a_lo, a_hi = s.alpha_range or (s.alpha, s.alpha)
+def build(s: TrainConfig) -> tuple[ppo.PPOConfig, E.EnvParams]:
+    """PPO config and environment parameters from a ``TrainConfig`` (validated)."""
+    traffic = s.plant.traffic()
+    pl, en = s.plant, s.env
+    d_lo, d_hi = en.delay_range or (max(0.0, pl.delay - en.delay_spread), pl.delay + en.delay_spread)
+    d_lo, d_hi = (round(d / pl.dt) * pl.dt for d in (d_lo, d_hi))
+    a_lo, a_hi = en.alpha_range or (pl.alpha, pl.alpha)
     env_params = E.make_env_params(
-        traffic, horizon=max(1, round(s.horizon_s / s.dt)), gain_max=s.gain_max, amp_min=s.amp_range[0],
-        amp_max=s.amp_range[1], wavenumber_min=int(s.wavenumber_range[0]),
-        wavenumber_max=int(s.wavenumber_range[1]), phase_max=s.phase_max, delay_min=d_lo, delay_max=d_hi,
-        alpha_min=a_lo, alpha_max=a_hi, gain_filter=s.gain_filter, h_rate_weight=s.h_rate_weight)
-    cfg = ppo.PPOConfig(
-        num_envs=s.num_envs, num_steps=s.num_steps, update_epochs=s.update_epochs,
-        num_minibatches=s.num_minibatches, updates_per_chunk=s.updates_per_chunk, num_seeds=s.seeds,
-        hidden=s.hidden(), init_sigma=s.init_sigma, lr=s.lr, gamma=s.gamma, gae_lambda=s.gae_lambda,
-        clip_eps=s.clip_eps, ent_coef=s.ent_coef, vf_coef=s.vf_coef, max_grad_norm=s.max_grad_norm,
-        reward_scale=s.reward_scale, lr_decay_steps=s.lr_decay_steps, lr_final=s.lr_final)
+        traffic, horizon=max(1, round(en.horizon_s / pl.dt)), gain_max=en.gain_max, amp_min=en.amp_range[0],
+        amp_max=en.amp_range[1], wavenumber_min=int(en.wavenumber_range[0]),
+        wavenumber_max=int(en.wavenumber_range[1]), phase_max=en.phase_max, delay_min=d_lo, delay_max=d_hi,
+        alpha_min=a_lo, alpha_max=a_hi, gain_filter=en.gain_filter, h_rate_weight=en.h_rate_weight)
+    algo = dataclasses.asdict(s.algo)
+    cfg = ppo.PPOConfig(num_seeds=s.run.seeds, hidden=s.algo.hidden(),
+                        **{f.name: algo[f.name] for f in dataclasses.fields(ppo.PPOConfig) if f.name in algo})
     ppo.validate_config(cfg)
     return cfg, env_params
 
 
-def config_dict(s: TrainSettings, cfg: ppo.PPOConfig, env_params: E.EnvParams) -> dict:
-    """The run's config.json content."""
-    return {
-        "settings": dataclasses.asdict(s),
-        "delay": s.delay, "alpha": s.alpha, "n_points": s.n_points, "dt": s.dt,
-        "max_delay_steps": s.max_delay_steps,
-        "ppo": {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)},
-        "env": {"gain_max": s.gain_max, "gain_filter": s.gain_filter, "h_rate_weight": s.h_rate_weight,
-                "horizon_steps": int(env_params.horizon)},
-        "devices": [str(d) for d in jax.devices()],
-        "jax_version": jax.__version__,
-    }
+def config_dict(s: TrainConfig, cfg: ppo.PPOConfig, env_params: E.EnvParams) -> dict:
+    """The run's config.json content (``config.config_json``): the config tree, plus the facts of the
+    run that the tree does not hold (the episode length in steps, the devices, the jax version)."""
+    return config_json(s, horizon_steps=int(env_params.horizon), devices=[str(d) for d in jax.devices()],
+                       jax_version=jax.__version__)
 
 
 def make_evaluator(cfg: ppo.PPOConfig, env_params: E.EnvParams, eval_steps: int):
@@ -185,39 +114,32 @@ def _fmt_time(sec: float) -> str:
     return f"{m}m{s:02d}s"
 
 
-RUN_CONTROL = ("out_dir", "total_steps", "max_wall_s", "keep_going", "resume", "quiet", "stop_patience",
-               "target_reward", "min_wave_speed")
+def _settings_for_resume(s: TrainConfig, run_dir: Path) -> TrainConfig:
+    """The run's saved config, with only the run-control fields (``config.RUN_CONTROL``) taken from ``s``."""
+    flat = s.flat()
+    return load_config(run_dir).replace(**{k: flat[k] for k in RUN_CONTROL})
 
 
-def _settings_for_resume(s: TrainSettings, run_dir: Path) -> TrainSettings:
-    """The run's saved settings, with only the run-control fields (RUN_CONTROL) taken from ``s``."""
-    saved = json.loads((run_dir / ckpt.CONFIG).read_text())["settings"]
-    fields = {f.name: f for f in dataclasses.fields(TrainSettings)}
-    merged = {k: (tuple(v) if isinstance(v, list) else v) for k, v in saved.items() if k in fields}
-    merged.update({k: getattr(s, k) for k in RUN_CONTROL})
-    return TrainSettings(**merged)
-
-
-def train(s: TrainSettings) -> Path:
+def train(s: TrainConfig) -> Path:
     """Train (or resume) and return the run directory."""
-    run_dir = Path(s.out_dir)
-    if s.resume and (run_dir / ckpt.CONFIG).exists():
+    run_dir = Path(s.run.out_dir)
+    if s.run.resume and (run_dir / ckpt.CONFIG).exists():
         s = _settings_for_resume(s, run_dir)
     cfg, env_params = build(s)  # validates: fail before creating the run directory
     run_dir.mkdir(parents=True, exist_ok=True)
-    eval_steps = max(1, round(s.eval_horizon_s / s.dt))
+    eval_steps = max(1, round(s.run.eval_horizon_s / s.plant.dt))
     init, train_chunk = ppo.make_train(cfg, env_params, env=E.GainEnv)
     evaluate = make_evaluator(cfg, env_params, eval_steps)
-    say = (lambda *a: None) if s.quiet else (lambda *a: print(*a, flush=True))
+    say = (lambda *a: None) if s.run.quiet else (lambda *a: print(*a, flush=True))
 
     t_start = time.perf_counter()
-    runner = init(jax.random.PRNGKey(s.seed))
+    runner = init(jax.random.PRNGKey(s.run.seed))
     meta = {"env_steps": 0, "wall_s": 0.0, "rows": [], "seconds_to_stop_rule": None, "stopped": False}
-    if s.resume and (run_dir / ckpt.CHECKPOINT).exists():
+    if s.run.resume and (run_dir / ckpt.CHECKPOINT).exists():
         state, meta = ckpt.load_checkpoint(run_dir)
         # place every leaf like the fresh runner's (pmap-sharded): uncommitted arrays would recompile
         runner = jax.tree.map(lambda t, x: jax.device_put(x, t.sharding), runner, ckpt.restore_runner(runner, state))
-        if s.keep_going:
+        if s.run.keep_going:
             meta["stopped"] = False
         say(f"resumed {run_dir} at {meta['env_steps']} env steps ({meta['wall_s']:.1f} s)")
     else:
@@ -225,12 +147,12 @@ def train(s: TrainSettings) -> Path:
     wall0 = float(meta["wall_s"])
     steps_per_chunk = cfg.steps_per_update * cfg.updates_per_chunk
     say(f"training PPO: {cfg.num_envs} envs x {cfg.num_steps} steps/update, {cfg.updates_per_chunk} updates/chunk,"
-        f" {s.seeds} seed(s), {len(jax.devices())} device(s), plant D = {s.delay:g} s, "
-        f"target eval reward >= {s.target_reward}")
+        f" {s.run.seeds} seed(s), {len(jax.devices())} device(s), plant D = {s.plant.delay:g} s, "
+        f"target eval reward >= {s.run.target_reward}")
     interrupted = False
     last_eval: dict = {}
     try:
-        while meta["env_steps"] < s.total_steps and not meta["stopped"]:
+        while meta["env_steps"] < s.run.total_steps and not meta["stopped"]:
             runner, m = train_chunk(runner)
             jax.block_until_ready(m)
             last_eval = evaluate(runner)
@@ -246,21 +168,21 @@ def train(s: TrainSettings) -> Path:
             row.update({k: float(m[k][:, -1].mean()) for k in ("eta1", "eta2", "eta3", "entropy", "approx_kl",
                                                                "value_loss")})
             meta["rows"].append(row)
-            paper_rule = bool(np.all(ev >= s.target_reward)) and not bool(np.any(last_eval["diverged"]))
+            paper_rule = bool(np.all(ev >= s.run.target_reward)) and not bool(np.any(last_eval["diverged"]))
             if paper_rule and meta.get("seconds_to_paper_rule") is None:
                 meta["seconds_to_paper_rule"] = meta["wall_s"]
                 meta["env_steps_to_paper_rule"] = meta["env_steps"]
-            reached = paper_rule and (s.min_wave_speed is None
-                                      or bool(np.all(last_eval["wave_speed"] >= s.min_wave_speed)))
+            reached = paper_rule and (s.run.min_wave_speed is None
+                                      or bool(np.all(last_eval["wave_speed"] >= s.run.min_wave_speed)))
             if reached and meta["seconds_to_stop_rule"] is None:
                 meta["seconds_to_stop_rule"] = meta["wall_s"]
                 meta["env_steps_to_stop_rule"] = meta["env_steps"]
             meta["streak"] = meta.get("streak", 0) + 1 if reached else 0
-            if meta["streak"] >= s.stop_patience and not s.keep_going:
+            if meta["streak"] >= s.run.stop_patience and not s.run.keep_going:
                 meta["stopped"] = True
             rate = steps_per_chunk / max(1e-9, (meta["wall_s"] - (meta["rows"][-2]["wall_s"] if len(meta["rows"]) > 1
                                                                   else wall0)))
-            eta = (s.total_steps - meta["env_steps"]) / max(rate, 1e-9)
+            eta = (s.run.total_steps - meta["env_steps"]) / max(rate, 1e-9)
             say(f"[{meta['env_steps']:>9d} steps] {rate:8.0f} steps/s | reward {row['mean_reward']:9.3f} | "
                 f"eval {row['eval_reward']:9.4f} (min {row['eval_reward_min']:.4f}) | gains "
                 f"({row['eta1']:+.2f}, {row['eta2']:+.2f}, {row['eta3']:+.2f}) | s {row['eval_wave_speed']:+.2f} m/s | "
@@ -268,8 +190,8 @@ def train(s: TrainSettings) -> Path:
                 f"ETA {_fmt_time(eta)}" + (" | stop rule reached" if reached else ""))
             ckpt.save_checkpoint(run_dir, runner, meta)
             write_curve(run_dir / "learning_curve.csv", meta["rows"])
-            if meta["wall_s"] > s.max_wall_s:
-                say(f"stopping: wall-clock budget {s.max_wall_s:g} s reached")
+            if meta["wall_s"] > s.run.max_wall_s:
+                say(f"stopping: wall-clock budget {s.run.max_wall_s:g} s reached")
                 break
     except KeyboardInterrupt:
         interrupted = True
@@ -289,12 +211,12 @@ def train(s: TrainSettings) -> Path:
         "env_steps_to_stop_rule": meta.get("env_steps_to_stop_rule"),
         "seconds_to_paper_rule": meta.get("seconds_to_paper_rule"),
         "env_steps_to_paper_rule": meta.get("env_steps_to_paper_rule"),
-        "min_wave_speed": s.min_wave_speed,
+        "min_wave_speed": s.run.min_wave_speed,
         "stop_rule_reached": meta["seconds_to_stop_rule"] is not None,
-        "target_reward": s.target_reward, "interrupted": interrupted,
+        "target_reward": s.run.target_reward, "interrupted": interrupted,
         "best_seed": int(np.argmax(ev)),
         "final_eval": {k: v for k, v in last_eval.items()},
-        "eval_horizon_s": s.eval_horizon_s,
+        "eval_horizon_s": s.run.eval_horizon_s,
     }
     ckpt.write_json(run_dir / ckpt.SUMMARY, summary)
     rule = (f"first reached after {meta['seconds_to_stop_rule']:.1f} s" if summary["stop_rule_reached"]

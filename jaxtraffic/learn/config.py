@@ -1,0 +1,195 @@
+"""One config tree for training: plant, environment, algorithm, run (nested frozen dataclasses).
+
+Each default is defined once: the plant's, the environment's and PPO's come from the library
+structs they configure (``TrafficParams``, ``EnvParams``, ``PPOConfig``), the run's are here.
+``train.py``'s flags are generated from the fields (``cli.train``, one flag per leaf field, named
+after it, with the ``help`` of its metadata). A run's config.json is ``config_json(cfg)``, and
+``load_config(run_dir)`` reads it back: resume, ``load_policy`` and the evaluation all use it.
+Run directories written before the tree (flat "settings") load too; keys of removed options are
+ignored.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from jaxtraffic.control.networks import PAPER_HIDDEN, SMALL_HIDDEN
+from jaxtraffic.learn.env import EnvParams
+from jaxtraffic.learn.ppo import PPOConfig
+from jaxtraffic.model.params import TrafficParams
+from jaxtraffic.sim.metrics import REWARD_TARGET
+
+CONFIG_VERSION = 2
+_TP = TrafficParams()
+_EP = EnvParams()
+_PPO = {f.name: f.default for f in dataclasses.fields(PPOConfig)}
+
+
+def _f(default: Any, help: str, **meta: Any) -> Any:
+    """A config field with its ``help`` (the flag's help text) and flag options in its metadata."""
+    return field(default=default, metadata={"help": help, **meta})
+
+
+@dataclass(frozen=True)
+class PlantConfig:
+    """The nominal training plant and grid."""
+
+    delay: float = _f(float(_EP.traffic.delay), "plant input delay D, s (multiple of dt)")
+    alpha: float = _f(_TP.alpha, "ACC penetration rate")
+    alpha_noise: float = _f(_TP.alpha_noise, "per-step std of plant alpha noise")
+    n_points: int = _f(_TP.n_points, "grid points (dx = L/(n-1))")
+    dt: float = _f(_TP.dt, "time step, s")
+    max_delay_steps: int = _f(_TP.max_delay_steps, "delay buffer capacity, steps")
+
+    def traffic(self) -> TrafficParams:
+        return TrafficParams(delay=self.delay, alpha=self.alpha, alpha_noise=self.alpha_noise,
+                             n_points=self.n_points, dt=self.dt, max_delay_steps=self.max_delay_steps)
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """Episodes, domain randomisation and reward shaping (``learn.env.EnvParams``)."""
+
+    horizon_s: float = _f(_EP.horizon * float(_EP.traffic.dt), "episode length, s (truncation)")
+    delay_spread: float = _f(1.0, "train on plant delays ~ U(D - spread, D + spread) s (clipped at 0); 0 disables")
+    delay_range: tuple[float, float] | None = _f(None, "plant delay range LO,HI s (overrides --delay-spread)")
+    alpha_range: tuple[float, float] | None = _f(None, "plant alpha range LO,HI")
+    amp_range: tuple[float, float] = _f((_EP.amp_min, _EP.amp_max), "initial amplitude LO,HI veh/m")
+    wavenumber_range: tuple[int, int] = _f((_EP.wavenumber_min, _EP.wavenumber_max),
+                                           "initial wavenumber LO,HI (integers)")
+    phase_max: float = _f(_EP.phase_max, "initial phase ~ U(0, phase_max) rad")
+    gain_max: float = _f(_EP.gain_max, "|eta_i| bound (normalised gains)")
+    gain_filter: float = _f(_EP.gain_filter, "applied gains move this fraction of the way to the policy's gains "
+                            "each step (first-order filter, time constant ~ dt/k); 1: applied directly (the paper)")
+    h_rate_weight: float = _f(_EP.h_rate_weight, "training reward -= w * sum_i ((h_i - h_prev_i)/h_bar)^2, the "
+                              "squared step change of the commanded time gap (dimensionless); 0: the paper's reward")
+
+
+@dataclass(frozen=True)
+class AlgoConfig:
+    """PPO (``learn.ppo.PPOConfig``; ``network`` chooses its ``hidden`` layers)."""
+
+    num_envs: int = _f(_PPO["num_envs"], "parallel environments per seed")
+    num_steps: int = _f(_PPO["num_steps"], "rollout steps per update (100 = 10 s)")
+    update_epochs: int = _f(_PPO["update_epochs"], "epochs per update")
+    num_minibatches: int = _f(_PPO["num_minibatches"], "minibatches per epoch")
+    updates_per_chunk: int = _f(_PPO["updates_per_chunk"],
+                                "updates per jit-compiled chunk (progress/checkpoint interval)")
+    network: str = _f("small", "small: 2x64 tanh MLPs; paper: 8 layers (1024, then 512 units)",
+                      choices=("small", "paper"))
+    lr: float = _f(_PPO["lr"], "Adam learning rate")
+    lr_decay_steps: float = _f(_PPO["lr_decay_steps"], "env steps (per seed) over which the learning rate falls "
+                               "linearly to lr * lr-final; 0: constant")
+    lr_final: float = _f(_PPO["lr_final"], "final learning rate, as a fraction of --lr")
+    gamma: float = _f(_PPO["gamma"], "discount")
+    gae_lambda: float = _f(_PPO["gae_lambda"], "GAE lambda")
+    clip_eps: float = _f(_PPO["clip_eps"], "PPO clip range")
+    ent_coef: float = _f(_PPO["ent_coef"], "entropy bonus")
+    vf_coef: float = _f(_PPO["vf_coef"], "value loss weight")
+    max_grad_norm: float = _f(_PPO["max_grad_norm"], "gradient clipping")
+    reward_scale: float = _f(_PPO["reward_scale"], "reward multiplier for learning")
+    init_sigma: float = _f(_PPO["init_sigma"], "initial action std (pre-tanh)")
+
+    def hidden(self) -> tuple[int, ...]:
+        return {"small": SMALL_HIDDEN, "paper": PAPER_HIDDEN}[self.network]
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """Run control: where, how long, the stop rule. ``RUN_CONTROL`` fields may change on resume."""
+
+    out_dir: str = _f("runs/default", "run directory")
+    resume: bool = _f(False, "continue from the run directory's checkpoint (its saved config is used; only the "
+                      "run-control flags --total-steps/--max-wall-s/--keep-going/--stop-patience/--target-reward/"
+                      "--min-wave-speed apply)")
+    seed: int = _f(0, "PRNG seed")
+    seeds: int = _f(1, "independent seeds trained at once (vmap)")
+    total_steps: int = _f(10_000_000, "environment steps (all envs, per seed)")
+    max_wall_s: float = _f(math.inf, "stop after this many seconds")
+    keep_going: bool = _f(False, "ignore the stop rule")
+    target_reward: float = _f(REWARD_TARGET, "stop rule: deterministic evaluation reward (end of the evaluation "
+                              "rollout) >= this")
+    min_wave_speed: float | None = _f(0.5, "stop rule also requires the closed loop's kinematic wave speed at the "
+                                      "policy's equilibrium gains (linear.gain_law_wave_speed, m/s) >= this; -inf: the "
+                                      "paper's rule alone")
+    stop_patience: int = _f(2, "consecutive evaluations that must meet the stop rule before stopping")
+    eval_horizon_s: float = _f(300.0, "evaluation rollout length, s")
+    quiet: bool = _f(False, "no progress lines")
+
+
+RUN_CONTROL = ("out_dir", "total_steps", "max_wall_s", "keep_going", "resume", "quiet", "stop_patience",
+               "target_reward", "min_wave_speed")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """The whole training configuration: ``plant``, ``env``, ``algo`` (PPO) and ``run``."""
+
+    plant: PlantConfig = PlantConfig()
+    env: EnvConfig = EnvConfig()
+    algo: AlgoConfig = AlgoConfig()
+    run: RunConfig = RunConfig()
+
+    @classmethod
+    def from_flat(cls, **values: Any) -> TrainConfig:
+        """A config from leaf-field names (``TrainConfig.from_flat(n_points=21, lr=1e-3)``); an unknown
+        name is a ``TypeError``."""
+        parts: dict[str, dict[str, Any]] = {s: {} for s in SECTIONS}
+        for name, value in values.items():
+            if name not in _OWNER:
+                raise TypeError(f"unknown config field {name!r}")
+            parts[_OWNER[name]][name] = value
+        return cls(**{s: SECTIONS[s](**kw) for s, kw in parts.items()})
+
+    def flat(self) -> dict[str, Any]:
+        """Every leaf field by name."""
+        return {f.name: getattr(getattr(self, s), f.name) for s in SECTIONS for f in dataclasses.fields(SECTIONS[s])}
+
+    def replace(self, **values: Any) -> TrainConfig:
+        """A copy with the given leaf fields changed."""
+        return TrainConfig.from_flat(**{**self.flat(), **values})
+
+
+SECTIONS = {"plant": PlantConfig, "env": EnvConfig, "algo": AlgoConfig, "run": RunConfig}
+_OWNER = {f.name: s for s, c in SECTIONS.items() for f in dataclasses.fields(c)}
+_TYPES = {f.name: str(f.type) for c in SECTIONS.values() for f in dataclasses.fields(c)}
+
+
+def _tuples(x: Any) -> Any:
+    return tuple(x) if isinstance(x, list) else x
+
+
+def config_json(cfg: TrainConfig, **extra: Any) -> dict[str, Any]:
+    """The content of a run's config.json: the tree (``{section: {field: value}}``) and its version,
+    plus ``extra`` facts about the run (devices, jax version, ...)."""
+    return {"version": CONFIG_VERSION, "config": dataclasses.asdict(cfg), **extra}
+
+
+def config_from_json(data: dict[str, Any], where: str = "config.json") -> TrainConfig:
+    """The ``TrainConfig`` of a config.json's content. Keys of options that no longer exist are ignored;
+    files written before the tree (flat ``settings``) are converted."""
+    if "config" in data:
+        flat = {k: v for section in data["config"].values() for k, v in section.items()}
+    elif "settings" in data:  # written before the config tree
+        flat = data["settings"]
+        if "gain_filter" not in flat:
+            raise ValueError(f"{where} was written by an older jaxtraffic (before the gain filter, with an "
+                             "observation without the applied gains): retrain it with train.py")
+    else:
+        raise ValueError(f"{where}: neither a config tree nor settings; not written by train.py")
+    # JSON has no inf: a null stands for the default where the field cannot be None (max_wall_s = inf)
+    return TrainConfig.from_flat(**{k: _tuples(v) for k, v in flat.items()
+                                    if k in _OWNER and (v is not None or "None" in _TYPES[k])})
+
+
+def load_config(run_dir: str | Path) -> TrainConfig:
+    """The ``TrainConfig`` of a run directory (its config.json)."""
+    path = Path(run_dir) / "config.json"
+    if not path.exists():
+        raise FileNotFoundError(f"{run_dir} is not a run directory (no config.json)")
+    return config_from_json(json.loads(path.read_text()), str(path))

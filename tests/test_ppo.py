@@ -3,6 +3,13 @@ bootstrap in the rollout, and learning on toy environments with GainEnv's interf
 
 from __future__ import annotations
 
+import json
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -253,3 +260,69 @@ def test_decayed_learning_rate_reaches_adam():
     leaves = [jax.tree_util.tree_leaves(r.params) for r in (r0, r1, r2)]
     assert any(not np.array_equal(a, b) for a, b in zip(leaves[0], leaves[1], strict=True))
     assert all(np.array_equal(a, b) for a, b in zip(leaves[1], leaves[2], strict=True))
+
+
+# ------------------------------------------------------------------------------ several seeds
+SEVERAL_SEEDS = """
+import json
+import jax, jax.numpy as jnp, numpy as np
+from jaxtraffic.learn import env as E, ppo
+from jaxtraffic.model.params import TrafficParams
+
+cfg = ppo.PPOConfig(num_envs=16, num_steps=8, update_epochs=1, num_minibatches=2, updates_per_chunk=1, num_seeds=2)
+ep = E.make_env_params(TrafficParams(n_points=21, delay=4.0))
+init, train_chunk = ppo.make_train(cfg, ep, env=E.GainEnv)
+for seed in range(4):  # the deadlock was a race: give it several chances
+    runner = jax.block_until_ready(init(jax.random.PRNGKey(seed)))
+runner, m = train_chunk(runner)
+jax.block_until_ready((runner, m))
+# lax.map over the seeds gives each seed the network the one-seed vmap gives it (bit for bit) and
+# the same environments (a different XLA program: equal to a few float32 ulps)
+one = jax.jit(lambda ks: ppo._init_seeds(lambda k: ppo._init_seed(cfg, E.GainEnv, ep, 16, k, jnp.int32(0)), ks))
+keys = jax.random.split(jax.random.PRNGKey(3), 2)
+both = init(jax.random.PRNGKey(3))
+alone = [one(keys[i:i + 1]) for i in range(2)]
+pairs = [(np.asarray(a)[0, i], np.asarray(b)[0]) for i in range(2)
+         for a, b in zip(jax.tree.leaves(both.params), jax.tree.leaves(alone[i].params), strict=True)]
+close = [(np.asarray(a)[0, i], np.asarray(b)[0]) for i in range(2)
+         for a, b in zip(jax.tree.leaves(both), jax.tree.leaves(alone[i]), strict=True)]
+print("RESULT " + json.dumps({"shape": list(m["mean_reward"].shape),
+                              "same_params": all(np.array_equal(a, b) for a, b in pairs),
+                              "close": all(np.allclose(a, b, rtol=1e-5, atol=1e-6) for a, b in close),
+                              "finite": all(bool(np.all(np.isfinite(x))) for x in jax.tree.leaves(m))}))
+"""
+
+
+def test_several_seeds_do_not_hang():
+    """Two seeds, the default (64, 64) networks: ``init`` and one chunk finish .
+    Under ``vmap`` the orthogonal initialisers were batched LAPACK QRs, which jaxlib 0.10 splits
+    over XLA:CPU's intra-op pool and waits for; on a 2-core machine this deadlocked ``init``.
+    Run in a subprocess with a timeout, so that a regression fails instead of hanging the suite."""
+    repo = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": os.pathsep.join(
+        filter(None, [str(repo), os.environ.get("PYTHONPATH", "")]))}
+    try:
+        proc = subprocess.run([sys.executable, "-c", SEVERAL_SEEDS], cwd=repo, env=env, capture_output=True,
+                              text=True, timeout=300)
+    except subprocess.TimeoutExpired:
+        pytest.fail("two-seed init + one chunk did not finish in 300 s (XLA:CPU LAPACK thread-pool deadlock?)")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    line = [x for x in proc.stdout.splitlines() if x.startswith("RESULT ")]
+    assert line, proc.stdout[-2000:]
+    res = json.loads(line[0][len("RESULT "):])
+    assert res["shape"] == [2, 1] and res["finite"]
+    assert res["same_params"] and res["close"]
+
+
+def test_several_seeds_init_has_no_batched_lapack_call():
+    """The deterministic side of the test above: in the two-seed ``init`` program every LAPACK
+    custom call (the orthogonal initialisers' QRs) works on one matrix, never on a batch, so
+    jaxlib cannot split it over the thread pool (the race above needs it to)."""
+    cfg = ppo.PPOConfig(num_envs=8, num_seeds=2)
+    ep = E.make_env_params(TrafficParams(n_points=21, delay=4.0))
+    keys = jax.random.split(jax.random.PRNGKey(0), 2)
+    text = jax.jit(lambda ks: ppo._init_seeds(lambda k: ppo._init_seed(cfg, E.GainEnv, ep, 8, k, jnp.int32(0)),
+                                              ks)).lower(keys).as_text()
+    shapes = re.findall(r"custom_call @lapack_\w+\(.*: \(tensor<([0-9x]+)x[a-z]+[0-9]*>", text)
+    assert {"66x64", "64x64", "64x3", "64x1"} <= set(shapes), shapes  # geqrf + orgqr per layer shape
+    assert all(s.count("x") == 1 for s in shapes), shapes

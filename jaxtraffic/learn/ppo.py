@@ -196,6 +196,27 @@ def _init_seed(cfg: PPOConfig, env, env_params, num_envs: int, key: Array, dev: 
                   update=jnp.zeros((), jnp.int32))
 
 
+def _init_seeds(init_one, keys: Array) -> Runner:
+    """``init_one`` for each key, stacked along a leading seed axis.
+
+    Several seeds go through ``lax.map`` (one seed after the other), not ``vmap``: under ``vmap``
+    the orthogonal initialisers become batched QR factorisations (LAPACK ``geqrf``/``orgqr``
+    custom calls with a batch dimension), and jaxlib 0.10.x splits such a batch into tasks on
+    XLA:CPU's intra-op thread pool and blocks a pool thread until they finish
+    (``ParallelBatchMap``). When XLA runs as many of these custom calls concurrently as the pool
+    has threads (the actor and critic layers are independent), every pool thread waits for tasks
+    that no thread is left to run: the process hangs with the CPU idle. An
+    unbatched QR runs inline, so ``lax.map`` cannot deadlock. Per seed it gives the network that
+    ``vmap`` gives (the same bits) and the same environments (a two-seed run's learning curve is
+    bit-identical to the ``vmap`` version's where that one finishes, pinned to one core). One
+    seed keeps the ``vmap`` of size one: a batch of one is never split, and one-seed results stay
+    bit-identical to earlier runs. The training chunk has no LAPACK call and stays a ``vmap``.
+    """
+    if keys.shape[0] == 1:
+        return jax.vmap(init_one)(keys)
+    return jax.lax.map(init_one, keys)
+
+
 def _device_index(axis_name: str | None) -> Array:
     return jax.lax.axis_index(axis_name) if axis_name else jnp.zeros((), jnp.int32)
 
@@ -315,7 +336,7 @@ def make_train(cfg: PPOConfig, env_params: Any, devices: list | None = None, *, 
     validate_config(cfg)
 
     def _init(cfg, env_params, keys, dev):
-        return _strong(jax.vmap(lambda k: _init_seed(cfg, env, env_params, local_envs, k, dev))(keys))
+        return _strong(_init_seeds(lambda k: _init_seed(cfg, env, env_params, local_envs, k, dev), keys))
 
     def _chunk(cfg, env_params, runner):
         runner, metrics = jax.vmap(functools.partial(_chunk_seed, cfg, env, env_params, axis_name=AXIS))(runner)

@@ -116,10 +116,15 @@ def load_policy(run_dir: str | Path, seed: int | None = None) -> tuple[Controlle
     """Controller and ``TrainConfig`` of a run directory written by ``train.py``.
 
     ``seed`` selects one of the run's seeds (default: the best one by final evaluation reward,
-    as recorded in ``summary.json``, else 0).
+    as recorded in ``summary.json``, else 0). A run trained by gradient (``"algo": "gradient"`` in
+    its config.json) loads through ``gradient_trainer.load_gradient_run``.
     """
     run_dir = Path(run_dir)
     config = load_config(run_dir)
+    if config.run.algo == "gradient":
+        from jaxtraffic.learn.gradient_trainer import load_gradient_policy  # it imports this module
+
+        return load_gradient_policy(run_dir, config), config
     _, saved, summary = load_run(run_dir)
     if seed is None:
         seed = int(summary.get("best_seed", 0)) if summary else 0

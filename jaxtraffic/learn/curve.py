@@ -25,10 +25,10 @@ CURVE_FIELDS = ["update", "env_steps", "wall_s", "mean_reward", "eval_reward", "
                 "value_loss"]
 
 
-def write_curve(path: Path, rows: list[dict]) -> None:
-    """learning_curve.csv with the columns ``CURVE_FIELDS`` (atomic write)."""
+def write_curve(path: Path, rows: list[dict], fields: list[str] = CURVE_FIELDS) -> None:
+    """learning_curve.csv with the columns ``fields`` (default: PPO's ``CURVE_FIELDS``; atomic write)."""
     buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=CURVE_FIELDS, extrasaction="ignore")
+    w = csv.DictWriter(buf, fieldnames=fields, extrasaction="ignore")
     w.writeheader()
     w.writerows(rows)
     atomic_write_text(path, buf.getvalue())

@@ -91,7 +91,7 @@ def finalize_metrics(acc: M.MetricsAccumulator, final: PlantState, target: Traff
 
 def _simulate(params: TrafficParams, controller: Controller | None, rho0: Array | None,
               v0: Array | None, key: Array | None, nominal: TrafficParams | None,
-              n_steps: int, record_every: int) -> SimResult:
+              n_steps: int, record_every: int, remat: bool = False) -> SimResult:
     p = params
     nominal = p if nominal is None else nominal
     controller = open_loop() if controller is None else controller
@@ -134,7 +134,10 @@ def _simulate(params: TrafficParams, controller: Controller | None, rho0: Array 
                    M.l2_deviation(s.rho, rho_bar), M.l2_deviation(s.v, v_bar))
             return carry, rec
 
-        carry, rec = jax.lax.scan(chunk, carry, alphas.reshape(n_steps // record_every, record_every))
+        # remat: reverse-mode differentiation keeps only the carry at chunk boundaries and recomputes
+        # the steps of one chunk at a time (memory O(n_steps / record_every + record_every))
+        chunk_fn = jax.checkpoint(chunk) if remat else chunk
+        carry, rec = jax.lax.scan(chunk_fn, carry, alphas.reshape(n_steps // record_every, record_every))
         traj = Trajectory(*rec)
     else:
         carry, _ = jax.lax.scan(lambda c, x: (one_step(c, x)[0], None), carry, alphas)
@@ -143,7 +146,7 @@ def _simulate(params: TrafficParams, controller: Controller | None, rho0: Array 
                      controller_state=cstate, trajectory=traj)
 
 
-_simulate_jit = jax.jit(_simulate, static_argnames=("n_steps", "record_every"))
+_simulate_jit = jax.jit(_simulate, static_argnames=("n_steps", "record_every", "remat"))
 
 
 def _check_initial_condition(params: TrafficParams, rho0: Array | None, v0: Array | None) -> None:
@@ -167,7 +170,7 @@ def _check_initial_condition(params: TrafficParams, rho0: Array | None, v0: Arra
 def simulate(
     params: TrafficParams, controller: Controller | None = None, *, n_steps: int,
     rho0: Array | None = None, v0: Array | None = None, key: Array | None = None,
-    nominal: TrafficParams | None = None, record_every: int = 0,
+    nominal: TrafficParams | None = None, record_every: int = 0, remat: bool = False,
 ) -> SimResult:
     """Closed-loop rollout of one freeway for ``n_steps`` steps of ``params.dt``.
 
@@ -181,20 +184,24 @@ def simulate(
             (default: ``params``). MODEL.md section 12: keep the nominal target when the plant's
             alpha differs.
         record_every: record the fields every k-th step (0: no trajectory, metrics only).
+        remat: checkpoint every recording chunk for reverse-mode differentiation (see
+            ``simulate_batch``).
     """
+    if remat and not record_every:
+        raise ValueError("remat needs record_every > 0 (the checkpointed chunk length)")
     if (rho0 is None) != (v0 is None):
         raise ValueError("give both rho0 and v0, or neither")
     if n_steps < 1:
         raise ValueError(f"n_steps must be >= 1, got {n_steps}")
     _check_initial_condition(params, rho0, v0)
-    return _simulate_jit(params, controller, rho0, v0, key, nominal, n_steps, record_every)
+    return _simulate_jit(params, controller, rho0, v0, key, nominal, n_steps, record_every, remat)
 
 
 def simulate_batch(
     params: TrafficParams, controller: Controller | None = None, *, n_steps: int,
     rho0: Array | None = None, v0: Array | None = None, keys: Array | None = None,
     nominal: TrafficParams | None = None, record_every: int = 0, batch_controller: bool = False,
-    chunk_size: int | None = 64,
+    chunk_size: int | None = 64, remat: bool = False,
 ) -> SimResult:
     """``simulate`` vmapped over a batch; every returned leaf gets a leading batch axis.
 
@@ -208,7 +215,13 @@ def simulate_batch(
     set of a chunk stays in cache (on a CPU this is 1.5-3x faster for large batches than one
     vmap over everything). ``None`` or 0: a single vmap. Results do not depend on it beyond
     rounding, and every environment stays independent of the others.
+
+    ``remat`` (static, needs ``record_every`` > 0): checkpoint each recording chunk for reverse-mode
+    differentiation (``jax.checkpoint``), so that the memory of a gradient grows with
+    n_steps / record_every + record_every steps instead of n_steps. Values are unchanged.
     """
+    if remat and not record_every:
+        raise ValueError("remat needs record_every > 0 (the checkpointed chunk length)")
     p_axis = 0 if jnp.ndim(jax.tree_util.tree_leaves(params)[0]) == 1 else None
     r_axis = 0 if rho0 is not None and jnp.ndim(rho0) == 2 else None
     k_axis = 0 if keys is not None and jnp.ndim(keys) == 2 else None
@@ -221,14 +234,14 @@ def simulate_batch(
         raise ValueError(f"n_steps must be >= 1, got {n_steps}")
     _check_initial_condition(params, rho0, v0)
     return _simulate_batch_jit(params, controller, rho0, v0, keys, nominal, n_steps, record_every,
-                               (p_axis, c_axis, r_axis, r_axis, k_axis), chunk_size or 0)
+                               (p_axis, c_axis, r_axis, r_axis, k_axis), chunk_size or 0, remat)
 
 
-@functools.partial(jax.jit, static_argnames=("n_steps", "record_every", "axes", "chunk_size"))
+@functools.partial(jax.jit, static_argnames=("n_steps", "record_every", "axes", "chunk_size", "remat"))
 def _simulate_batch_jit(params, controller, rho0, v0, keys, nominal, n_steps: int, record_every: int,
-                        axes: tuple, chunk_size: int = 0) -> SimResult:
+                        axes: tuple, chunk_size: int = 0, remat: bool = False) -> SimResult:
     def one(p, c, r, v, k):
-        return _simulate(p, c, r, v, k, nominal, n_steps, record_every)
+        return _simulate(p, c, r, v, k, nominal, n_steps, record_every, remat)
 
     return chunked_vmap(one, (params, controller, rho0, v0, keys), axes, chunk_size)
 

@@ -1,0 +1,295 @@
+"""Gradient-based training through the differentiable simulator (analytic policy gradients).
+
+The plant (ARZ solver, delay buffer, gain law, metrics) is pure JAX, so ``jax.grad`` of a rollout
+objective with respect to the controller's parameters is exact (to rounding) and cheap: one
+forward and one backward pass of a batched ``simulate_batch`` over a grid of training scenarios.
+Two policies are trained this way:
+
+* ``"gains"``: the paper's three-gain law with three constant gains (eta1, eta2, eta3);
+* ``"network"``: the same actor network PPO trains (``control.networks.ActorCritic``; its critic is not
+  used), whose deterministic gains gain_max * tanh(mean) pass through the same first-order gain
+  filter as PPO's and act through the same three-gain law (``control.gain_policy.policy_controller``).
+
+Objective (minimised, dimensionless), averaged over the training scenarios s:
+
+    J = mean_s [ -w_r mean_k r_s(t_k)  +  w_w mean_k log(1 + var_x rho_s(t_k) / 100 + var_x v_s(t_k))
+                 +  w_c J_comfort_s  +  w_e effort_s^2 ]
+
+with r the paper's reward (dimensionless) sampled every ``record_every`` steps t_k, var_x the
+spatial variance of density (veh/km)^2 and speed (m/s)^2 (the "waves" term: zero for any uniform
+state, so it does not penalise the steady offset a plant with another alpha settles to),
+J_comfort in the units of ``metrics`` (rho in veh/km, a in m/s^2) and effort the RMS of h - h_bar
+in s (both sampled every ``record_every`` steps; the square is used directly, since the gradient of
+an RMS is not finite at zero). Default weights: w_r = 1, w_w = 0, w_c = 1e-5, w_e = 0.
+
+Memory: the rollout checkpoints every recording chunk (``simulate(remat=True)``), so the
+backward pass stores the carry once per chunk and recomputes one chunk at a time.
+Divergence containment (``sim.plant``) freezes an environment at its last physical state; the
+frozen branch and the unphysical branch are both finite, so the gradient stays finite when a
+scenario diverges (tested). Adam with global-norm gradient clipping.
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+from dataclasses import dataclass
+from typing import Any
+
+import chex
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from jaxtraffic.control.base import Controller
+from jaxtraffic.control.gain_law import constant_gains
+from jaxtraffic.control.gain_policy import feature_size, policy_controller
+from jaxtraffic.control.networks import SMALL_HIDDEN, ActorCritic
+from jaxtraffic.model.params import TrafficParams
+from jaxtraffic.sim.initial import paper_initial_condition
+from jaxtraffic.sim.rollout import simulate
+
+Array = jax.Array
+POLICIES = ("gains", "network")
+OBS_SCALE = 0.1  # std assumed for the normalised field deviations of the observation (dimensionless)
+
+
+@dataclass(frozen=True)
+class GradientConfig:
+    """Gradient-training settings. Shape-setting fields (scenario grid, horizon, policy, network)
+    are static; the objective weights and Adam's settings are traced (``Weights``, ``lr``...).
+
+    The training scenarios are the Cartesian product of ``delays`` (s, multiples of dt) x
+    ``alphas`` x ``amplitudes`` (veh/m) x ``wavenumbers`` x ``phases`` (rad) of the initial
+    cosine perturbation (``sim.initial.paper_initial_condition``).
+    """
+
+    policy: str = "gains"
+    delays: tuple[float, ...] = (3.0, 4.0, 5.0)
+    alphas: tuple[float, ...] = (0.15,)
+    amplitudes: tuple[float, ...] = (0.010,)
+    wavenumbers: tuple[int, ...] = (4,)
+    phases: tuple[float, ...] = (0.0,)
+    horizon_s: float = 300.0
+    record_every: int = 10
+    steps_per_chunk: int = 5
+    hidden: tuple[int, ...] = SMALL_HIDDEN
+    gain_max: float = 3.0
+    gain_filter: float = 0.2
+    lr: float = 0.05
+    max_grad_norm: float = 1.0
+    reward_weight: float = 1.0
+    wave_weight: float = 0.0
+    comfort_weight: float = 1e-5
+    effort_weight: float = 0.0
+    init_gains: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    steps: int = 40  # Adam steps in all
+    scenario_clip: float = 0.0  # > 0: clip each scenario's gradient to this norm (``objective_and_grad``)
+
+    def __post_init__(self) -> None:
+        if self.policy not in POLICIES:
+            raise ValueError(f"policy must be one of {POLICIES}, got {self.policy!r}")
+        for name in ("delays", "alphas", "amplitudes", "wavenumbers", "phases"):
+            if len(getattr(self, name)) < 1:
+                raise ValueError(f"{name} needs at least one value")
+        if min(self.delays) < 0:
+            raise ValueError(f"delays must be >= 0 s, got {self.delays}")
+        if not all(0.0 < a <= 1.0 for a in self.alphas):
+            raise ValueError(f"alphas must lie in (0, 1], got {self.alphas}")
+        if self.record_every < 1 or self.steps_per_chunk < 1 or self.steps < 1:
+            raise ValueError("record_every, steps_per_chunk and steps must be >= 1")
+        for name in ("lr", "max_grad_norm", "gain_max"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if not 0.0 < self.gain_filter <= 1.0:
+            raise ValueError(f"gain_filter must lie in (0, 1], got {self.gain_filter}")
+        for name in ("reward_weight", "wave_weight", "comfort_weight", "effort_weight", "scenario_clip"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if self.policy == "network" and max(abs(g) for g in self.init_gains) >= self.gain_max:
+            raise ValueError(f"init_gains {self.init_gains} must lie inside (-gain_max, gain_max)")
+
+    @classmethod
+    def for_policy(cls, policy: str = "gains", **overrides: Any) -> GradientConfig:
+        """The defaults of ``policy`` (``POLICY_DEFAULTS`` over the field defaults), then ``overrides``."""
+        if policy not in POLICIES:
+            raise ValueError(f"policy must be one of {POLICIES}, got {policy!r}")
+        return cls(policy=policy, **{**POLICY_DEFAULTS[policy], **overrides})
+
+    @property
+    def n_scenarios(self) -> int:
+        return (len(self.delays) * len(self.alphas) * len(self.amplitudes) * len(self.wavenumbers)
+                * len(self.phases))
+
+
+# The network policy: a smaller step (its first layer sees 3 n + 3 inputs), half the steps, and
+# plant delays 0-6 s (it is meant to stabilise all of them)
+POLICY_DEFAULTS: dict[str, dict[str, Any]] = {
+    "gains": {},
+    "network": {"lr": 3e-3, "steps": 20, "delays": (0.0, 3.0, 6.0)},
+}
+
+
+@struct.dataclass
+class Weights:
+    """Traced objective weights (see the module docstring)."""
+
+    reward: Array
+    waves: Array
+    comfort: Array
+    effort: Array
+
+
+@struct.dataclass
+class Scenarios:
+    """A batch of training plants: batched ``TrafficParams`` and initial fields (B, n)."""
+
+    params: TrafficParams
+    rho0: Array
+    v0: Array
+
+
+@struct.dataclass
+class GradState:
+    """Trainable parameters (``theta``: gains (3,) or flax params), Adam state, update count."""
+
+    theta: Any
+    opt_state: Any
+    update: Array
+
+
+def training_scenarios(cfg: GradientConfig, base: TrafficParams) -> Scenarios:
+    """The scenario grid of ``cfg`` on the grid of ``base`` (alpha noise off)."""
+    grid = list(itertools.product(cfg.delays, cfg.alphas, cfg.amplitudes, cfg.wavenumbers, cfg.phases))
+    dtype = jnp.result_type(float)  # float32, or float64 under jax.enable_x64
+    delays, alphas, amps, wns, phases = (jnp.asarray(c, dtype) for c in zip(*grid, strict=True))
+    b = len(grid)
+    batched = jax.tree.map(lambda x: jnp.broadcast_to(jnp.asarray(x, dtype), (b,)), base.replace(alpha_noise=0.0))
+    params = batched.replace(delay=jnp.round(delays / base.dt) * base.dt, alpha=alphas)
+    rho0, v0 = jax.vmap(lambda a, k, ph: paper_initial_condition(base, a, k, ph, dtype))(amps, wns, phases)
+    return Scenarios(params=params, rho0=rho0, v0=v0)
+
+
+def _network(cfg: GradientConfig) -> ActorCritic:
+    return ActorCritic(hidden=tuple(cfg.hidden))
+
+
+def obs_statistics(base: TrafficParams) -> tuple[Array, Array]:
+    """Fixed observation normalisation of a gradient-trained network: mean 0, std ``OBS_SCALE``
+    for the 3 n field entries and 1/sqrt(3) (a uniform variable on [-1, 1]) for the 3 gains."""
+    n = base.n_points
+    var = jnp.concatenate([jnp.full((3 * n,), OBS_SCALE**2), jnp.full((3,), 1.0 / 3.0)])
+    return jnp.zeros_like(var), var
+
+
+def init_theta(cfg: GradientConfig, base: TrafficParams, key: Array) -> Any:
+    """Initial parameters: the gains ``init_gains``, or a network whose output is (nearly) those
+    gains everywhere (final actor bias atanh(init_gains / gain_max), small final weights)."""
+    g0 = jnp.asarray(cfg.init_gains, jnp.result_type(float))
+    if cfg.policy == "gains":
+        return g0
+    params = _network(cfg).init(key, jnp.zeros((feature_size(base.n_points),)))
+    actor = params["params"]["actor"]
+    last = sorted(k for k in actor if k.startswith("Dense_"))[-1]
+    bias = jnp.arctanh(g0 / cfg.gain_max)
+    return {"params": {**params["params"], "actor": {**actor, last: {**actor[last], "bias": bias}}}}
+
+
+def make_controller(theta: Any, cfg: GradientConfig, base: TrafficParams) -> Controller:
+    """The controller of parameters ``theta`` (deterministic)."""
+    if cfg.policy == "gains":
+        chex.assert_shape(theta, (3,))
+        return constant_gains(theta[0], theta[1], theta[2])
+    mean, var = obs_statistics(base)
+    return policy_controller(theta, mean, var, cfg.gain_max, hidden=tuple(cfg.hidden), gain_filter=cfg.gain_filter)
+
+
+def weights_of(cfg: GradientConfig) -> Weights:
+    return Weights(*(jnp.asarray(getattr(cfg, f"{n}_weight"), jnp.float32)
+                     for n in ("reward", "wave", "comfort", "effort")))
+
+
+def horizon_steps(cfg: GradientConfig, dt: float) -> int:
+    """Rollout length of the objective: ``horizon_s`` / dt rounded to a multiple of ``record_every``."""
+    return max(cfg.record_every, round(cfg.horizon_s / float(dt) / cfg.record_every) * cfg.record_every)
+
+
+def scenario_objective(theta: Any, params: TrafficParams, rho0: Array, v0: Array, w: Weights,
+                       cfg: GradientConfig, base: TrafficParams, n_steps: int, remat: bool = True
+                       ) -> tuple[Array, dict]:
+    """(J_s, metrics) of one scenario (plant ``params``, initial fields (n,)); see the module docstring."""
+    res = simulate(params, make_controller(theta, cfg, base), n_steps=n_steps, rho0=rho0, v0=v0, nominal=base,
+                   record_every=cfg.record_every, remat=remat)
+    tr, m = res.trajectory, res.metrics
+    waves = jnp.log1p(jnp.var(tr.rho * 1000.0, axis=-1) / 100.0 + jnp.var(tr.v, axis=-1))
+    j = (-w.reward * jnp.mean(tr.reward) + w.waves * jnp.mean(waves) + w.comfort * m["J_comfort"]
+         + w.effort * jnp.mean((tr.h - base.h_bar) ** 2))
+    return j, m
+
+
+def objective(theta: Any, scen: Scenarios, w: Weights, cfg: GradientConfig, base: TrafficParams,
+              n_steps: int | None = None, remat: bool = True) -> tuple[Array, dict]:
+    """(J, per-scenario metrics and ``scenario_objective``) of ``theta``: the mean over the scenarios.
+    ``n_steps`` (static; default ``horizon_steps(cfg, base.dt)``, which needs a concrete dt);
+    ``remat``: checkpoint the rollout every ``record_every`` steps (same values and gradients)."""
+    n_steps = horizon_steps(cfg, base.dt) if n_steps is None else n_steps
+    per, m = jax.vmap(scenario_objective, (None, 0, 0, 0, None, None, None, None, None))(
+        theta, scen.params, scen.rho0, scen.v0, w, cfg, base, n_steps, remat)
+    return jnp.mean(per), {**m, "scenario_objective": per}
+
+
+def objective_and_grad(theta: Any, scen: Scenarios, w: Weights, cfg: GradientConfig, base: TrafficParams,
+                       n_steps: int) -> tuple[Array, Any, dict]:
+    """(J, dJ/dtheta, metrics). With ``cfg.scenario_clip`` > 0 every scenario's gradient is clipped
+    to that global norm before the mean, so that one scenario whose gradient explodes (a closed
+    loop near instability, long horizons) cannot dominate the step."""
+    if cfg.scenario_clip <= 0:
+        (j, aux), g = jax.value_and_grad(objective, has_aux=True)(theta, scen, w, cfg, base, n_steps)
+        return j, g, aux
+    vg = jax.value_and_grad(scenario_objective, has_aux=True)
+    (per, m), gs = jax.vmap(vg, (None, 0, 0, 0, None, None, None, None))(
+        theta, scen.params, scen.rho0, scen.v0, w, cfg, base, n_steps)
+    norms = jax.vmap(optax.tree.norm)(gs)
+    scale = jnp.minimum(1.0, cfg.scenario_clip / jnp.maximum(norms, 1e-30))
+    g = jax.tree.map(lambda x: jnp.mean(x * scale.reshape((-1,) + (1,) * (x.ndim - 1)), axis=0), gs)
+    return jnp.mean(per), g, {**m, "scenario_objective": per, "scenario_grad_norm": norms}
+
+
+def make_optimizer(cfg: GradientConfig) -> optax.GradientTransformation:
+    return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(cfg.lr))
+
+
+def _one_step(state: GradState, scen: Scenarios, w: Weights, cfg: GradientConfig, base: TrafficParams,
+              n_steps: int) -> tuple[GradState, dict]:
+    loss, g, aux = objective_and_grad(state.theta, scen, w, cfg, base, n_steps)
+    updates, opt_state = make_optimizer(cfg).update(g, state.opt_state, state.theta)
+    new = GradState(theta=optax.apply_updates(state.theta, updates), opt_state=opt_state, update=state.update + 1)
+    return new, {"objective": loss, "grad_norm": optax.tree.norm(g), **aux}
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "n_steps"))
+def _train_chunk(state: GradState, base: TrafficParams, cfg: GradientConfig, n_steps: int
+                 ) -> tuple[GradState, dict]:
+    scen, w = training_scenarios(cfg, base), weights_of(cfg)
+    return jax.lax.scan(lambda s, _: _one_step(s, scen, w, cfg, base, n_steps), state, None,
+                        length=cfg.steps_per_chunk)
+
+
+@functools.partial(jax.jit, static_argnames=("cfg",))
+def _init(key: Array, base: TrafficParams, cfg: GradientConfig) -> GradState:
+    theta = init_theta(cfg, base, key)
+    return GradState(theta=theta, opt_state=make_optimizer(cfg).init(theta), update=jnp.zeros((), jnp.int32))
+
+
+def make_train(cfg: GradientConfig, base: TrafficParams):
+    """``(init, train_chunk)``: ``init(key) -> GradState``; ``train_chunk(state) -> (state,
+    metrics)`` runs ``steps_per_chunk`` Adam steps in one jit-compiled ``lax.scan``; metrics are
+    per step: objective, gradient norm and the per-scenario metrics of the rollout.
+
+    ``cfg`` is static (hashable: a second ``make_train`` with an equal config reuses the compiled
+    programs); ``base`` (the nominal plant and grid) is traced.
+    """
+    n_steps = horizon_steps(cfg, base.dt)
+    return (functools.partial(_init, base=base, cfg=cfg),
+            functools.partial(_train_chunk, base=base, cfg=cfg, n_steps=n_steps))

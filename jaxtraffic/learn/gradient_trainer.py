@@ -1,0 +1,203 @@
+"""Training loop around ``gradient.make_train``: chunks, evaluation, checkpoints, outputs.
+
+The run directory has the same files as a PPO run (config.json, checkpoint.msgpack,
+learning_curve.csv/.png, summary.json) and loads with ``learn.load_policy``. After every chunk
+of Adam steps the deterministic controller is evaluated on the paper's initial condition with
+the nominal plant (``eval_horizon_s``) next to the delay-compensated baseline
+``backstepping(delay)``; the summary records when it first met the paper's stop rule and when
+it first beat backstepping on both final density L2 and J_comfort. Ctrl-C keeps the last completed
+chunk; ``resume`` continues from it exactly (training is deterministic).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import serialization
+
+from jaxtraffic.control.base import Controller
+from jaxtraffic.control.baselines import backstepping
+from jaxtraffic.control.gain_policy import equilibrium_gains
+from jaxtraffic.learn import checkpoint as ckpt
+from jaxtraffic.learn import gradient as G
+from jaxtraffic.learn.curve import plot_learning_curve, write_curve
+from jaxtraffic.learn.trainer import _fmt_time
+from jaxtraffic.model.linear import gain_law_wave_speed, linearize
+from jaxtraffic.model.params import TrafficParams
+from jaxtraffic.sim.metrics import REWARD_TARGET
+from jaxtraffic.sim.rollout import simulate
+
+ALGO = "gradient"
+
+
+@dataclass(frozen=True)
+class GradientRun:
+    """Run control and the nominal plant of a gradient-trained run."""
+
+    out_dir: str = "runs/gradient"
+    seed: int = 0
+    delay: float = 4.0  # s, the nominal plant (controller's design point and evaluation plant)
+    alpha: float = 0.15
+    n_points: int = 201
+    dt: float = 0.1
+    max_delay_steps: int = 100
+    max_wall_s: float = float("inf")
+    eval_horizon_s: float = 300.0
+    resume: bool = False
+    quiet: bool = False
+
+    def plant(self) -> TrafficParams:
+        return TrafficParams(delay=self.delay, alpha=self.alpha, n_points=self.n_points, dt=self.dt,
+                             max_delay_steps=self.max_delay_steps)
+
+
+def config_dict(run: GradientRun, cfg: G.GradientConfig) -> dict:
+    """The run's config.json content (read back by ``load_gradient_run`` and ``load_policy``)."""
+    return {"algo": ALGO, "policy": cfg.policy, "run": dataclasses.asdict(run),
+            "gradient": dataclasses.asdict(cfg), "delay": run.delay, "alpha": run.alpha,
+            "n_points": run.n_points, "dt": run.dt, "max_delay_steps": run.max_delay_steps,
+            "jax_version": jax.__version__}
+
+
+def _tuple_fields(d: dict, cls) -> dict:
+    names = {f.name for f in dataclasses.fields(cls)}
+    return {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items() if k in names}
+
+
+def config_from_dict(config: dict) -> tuple[GradientRun, G.GradientConfig]:
+    """Inverse of ``config_dict`` (ValueError for a config that is not a gradient run)."""
+    if config.get("algo") != ALGO or "gradient" not in config or "run" not in config:
+        raise ValueError("not a gradient-trained run's config.json (need algo='gradient', 'run', 'gradient')")
+    return GradientRun(**_tuple_fields(config["run"], GradientRun)), \
+        G.GradientConfig(**_tuple_fields(config["gradient"], G.GradientConfig))
+
+
+def controller_of(run: GradientRun, cfg: G.GradientConfig, theta: Any) -> Controller:
+    return G.make_controller(jax.tree.map(jnp.asarray, theta), cfg, run.plant())
+
+
+def load_gradient_run(run_dir: str | Path) -> tuple[Controller, dict]:
+    """(controller, config) of a gradient-trained run directory."""
+    run_dir = Path(run_dir)
+    config = json.loads((run_dir / ckpt.CONFIG).read_text())
+    run, cfg = config_from_dict(config)
+    state, _ = ckpt.load_checkpoint(run_dir)
+    template = G.init_theta(cfg, run.plant(), jax.random.PRNGKey(0))
+    theta = serialization.from_state_dict(template, state["theta"])
+    return controller_of(run, cfg, theta), config
+
+
+def evaluation(ctrl: Controller, plant: TrafficParams, n_steps: int, gains: Any | None) -> dict:
+    """Deterministic rollout metrics of ``ctrl`` on the paper's initial condition, plus the gains it
+    settles to at the equilibrium and the closed loop's wave speed there (m/s)."""
+    res = simulate(plant, ctrl, n_steps=n_steps)
+    out = {k: float(v) for k, v in res.metrics.items()}
+    g = jnp.asarray(gains) if gains is not None else equilibrium_gains(ctrl, plant)
+    out["equilibrium_gains"] = np.asarray(g).tolist()
+    out["wave_speed"] = float(gain_law_wave_speed(g, linearize(plant)))
+    return out
+
+
+def beats(ev: dict, ref: dict) -> bool:
+    """Final density L2 and J_comfort both below the reference's, not diverged."""
+    return (not ev["diverged"]) and ev["final_rho_L2"] < ref["final_rho_L2"] and ev["J_comfort"] < ref["J_comfort"]
+
+
+CURVE_FIELDS = ["update", "env_steps", "wall_s", "objective", "grad_norm", "eval_reward", "eval_J_comfort",
+                "eval_rho_L2", "eval_wave_speed", "eta1", "eta2", "eta3"]
+
+
+def train_gradient(run: GradientRun, cfg: G.GradientConfig) -> Path:
+    """Train (or resume) and return the run directory."""
+    run_dir = Path(run.out_dir)
+    if run.resume and (run_dir / ckpt.CONFIG).exists():
+        saved_run, saved_cfg = config_from_dict(json.loads((run_dir / ckpt.CONFIG).read_text()))
+        run = dataclasses.replace(saved_run, out_dir=run.out_dir, max_wall_s=run.max_wall_s, resume=True,
+                                  quiet=run.quiet)
+        cfg = dataclasses.replace(saved_cfg, steps=cfg.steps)
+    plant = run.plant()
+    say = (lambda *a: None) if run.quiet else (lambda *a: print(*a, flush=True))
+    t_start = time.perf_counter()
+    init, train_chunk = G.make_train(cfg, plant)
+    state = init(jax.random.PRNGKey(run.seed))
+    meta: dict = {"updates": 0, "env_steps": 0, "wall_s": 0.0, "rows": []}
+    if run.resume and (run_dir / ckpt.CHECKPOINT).exists():
+        saved, meta = ckpt.load_checkpoint(run_dir)
+        state = serialization.from_state_dict(state, saved)
+        say(f"resumed {run_dir} at update {meta['updates']} ({meta['wall_s']:.1f} s)")
+    else:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        ckpt.write_json(run_dir / ckpt.CONFIG, config_dict(run, cfg))
+    eval_steps = max(1, round(run.eval_horizon_s / run.dt))
+    ref = evaluation(backstepping(run.delay), plant, eval_steps, gains=jnp.zeros(3))
+    n_steps = G.horizon_steps(cfg, run.dt)
+    steps_per_update = cfg.n_scenarios * n_steps
+    wall0 = float(meta["wall_s"])
+    say(f"training by gradient ({cfg.policy}): {cfg.n_scenarios} scenarios x {n_steps} steps per Adam step, "
+        f"{cfg.steps_per_chunk} steps/chunk, plant D = {run.delay:g} s; backstepping reference: "
+        f"rho L2 {ref['final_rho_L2'] * 1e3:.3f} veh/km, J_comfort {ref['J_comfort']:.4g}")
+    interrupted, ev = False, {}
+    try:
+        while meta["updates"] < cfg.steps:
+            state, m = train_chunk(state)
+            jax.block_until_ready(m)
+            ctrl = controller_of(run, cfg, state.theta)
+            ev = evaluation(ctrl, plant, eval_steps, state.theta if cfg.policy == "gains" else None)
+            t_prev = meta["rows"][-1]["wall_s"] if meta["rows"] else wall0
+            meta["updates"] += cfg.steps_per_chunk
+            meta["env_steps"] += cfg.steps_per_chunk * steps_per_update
+            meta["wall_s"] = wall0 + time.perf_counter() - t_start
+            g = ev["equilibrium_gains"]
+            row = {"update": meta["updates"], "env_steps": meta["env_steps"], "wall_s": round(meta["wall_s"], 3),
+                   "objective": float(m["objective"][-1]), "grad_norm": float(m["grad_norm"][-1]),
+                   "eval_reward": ev["final_reward"], "eval_J_comfort": ev["J_comfort"],
+                   "eval_rho_L2": ev["final_rho_L2"] * 1e3, "eval_wave_speed": ev["wave_speed"],
+                   "eta1": g[0], "eta2": g[1], "eta3": g[2]}
+            meta["rows"].append(row)
+            paper_rule = (not ev["diverged"]) and ev["final_reward"] >= REWARD_TARGET
+            for key, hit in (("paper_rule", paper_rule), ("beat_backstepping", beats(ev, ref))):
+                if hit and meta.get(f"seconds_to_{key}") is None:
+                    meta[f"seconds_to_{key}"] = meta["wall_s"]
+                    meta[f"updates_to_{key}"] = meta["updates"]
+            say(f"[update {meta['updates']:>4d}] objective {row['objective']:.4f} | |grad| {row['grad_norm']:.3g} | "
+                f"eval reward {row['eval_reward']:.4f} | rho L2 {row['eval_rho_L2']:.3f} veh/km | "
+                f"J_comfort {row['eval_J_comfort']:.4g} | gains ({g[0]:+.2f}, {g[1]:+.2f}, {g[2]:+.2f}) | "
+                f"{_fmt_time(meta['wall_s'])} ({meta['wall_s'] - t_prev:.1f} s/chunk)"
+                + (" | beats backstepping" if beats(ev, ref) else ""))
+            ckpt.atomic_write_bytes(run_dir / ckpt.CHECKPOINT, serialization.msgpack_serialize(
+                {"runner": serialization.to_state_dict(jax.device_get(state)), "meta": ckpt.to_jsonable(meta)}))
+            write_curve(run_dir / "learning_curve.csv", meta["rows"], CURVE_FIELDS)
+            if meta["wall_s"] > run.max_wall_s:
+                say(f"stopping: wall-clock budget {run.max_wall_s:g} s reached")
+                break
+    except KeyboardInterrupt:
+        interrupted = True
+        say("interrupted: last completed chunk is saved; continue with --resume")
+    if not meta["rows"]:
+        return run_dir
+    plot_learning_curve(run_dir / "learning_curve.csv", run_dir / "learning_curve.png",
+                        title=f"gradient-based training ({cfg.policy})")
+    if not ev:
+        ev = evaluation(controller_of(run, cfg, state.theta), plant, eval_steps,
+                        state.theta if cfg.policy == "gains" else None)
+    summary = {"algo": ALGO, "policy": cfg.policy, "updates": meta["updates"], "env_steps": meta["env_steps"],
+               "wall_s": meta["wall_s"], "interrupted": interrupted, "eval_horizon_s": run.eval_horizon_s,
+               "final_eval": ev, "backstepping_eval": ref,
+               "stop_rule_reached": meta.get("seconds_to_paper_rule") is not None,
+               **{k: meta.get(k) for k in ("seconds_to_paper_rule", "updates_to_paper_rule",
+                                           "seconds_to_beat_backstepping", "updates_to_beat_backstepping")}}
+    if cfg.policy == "gains":
+        summary["gains"] = np.asarray(state.theta).tolist()
+    ckpt.write_json(run_dir / ckpt.SUMMARY, summary)
+    say(f"done: {meta['updates']} Adam steps in {meta['wall_s']:.1f} s; final rho L2 "
+        f"{ev['final_rho_L2'] * 1e3:.3f} veh/km, J_comfort {ev['J_comfort']:.4g}; first beat backstepping "
+        f"after {meta.get('seconds_to_beat_backstepping') or float('nan'):.1f} s; outputs in {run_dir}")
+    return run_dir

@@ -3,17 +3,17 @@ run directories that load with ``load_policy``."""
 
 from __future__ import annotations
 
-import dataclasses
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 from conftest import SMALL
 
 from jaxtraffic import TrafficParams, simulate
+from jaxtraffic.cli.train import settings_from_args
 from jaxtraffic.learn import gradient as G
-from jaxtraffic.learn import gradient_trainer as GT
 from jaxtraffic.learn import load_policy
+from jaxtraffic.learn.config import TrainConfig
+from jaxtraffic.learn.gradient_trainer import gradient_setup, train_gradient
 
 BASE = TrafficParams(delay=2.0, **SMALL)  # 41 nodes, dt = 0.5 s
 CFG = G.GradientConfig(delays=(1.0, 2.0), horizon_s=60.0, record_every=10, steps_per_chunk=2)
@@ -63,27 +63,36 @@ def test_a_few_steps_lower_the_objective():
 
 
 def test_network_run_lowers_objective_round_trips_and_resumes_exactly(tmp_path):
-    cfg = G.GradientConfig.for_policy("network", delays=(2.0,), horizon_s=30.0, steps_per_chunk=2, steps=4)
-    run = GT.GradientRun(out_dir=str(tmp_path / "a"), delay=2.0, n_points=SMALL["n_points"], dt=SMALL["dt"],
-                         eval_horizon_s=30.0, quiet=True)
-    GT.train_gradient(run, cfg)
+    tc = TrainConfig.from_flat(algo="gradient", policy="network", out_dir=str(tmp_path / "a"), delay=2.0,
+                               n_points=SMALL["n_points"], dt=SMALL["dt"], train_delays=(2.0,), train_horizon_s=30.0,
+                               steps_per_chunk=2, grad_steps=4, eval_horizon_s=30.0, quiet=True)
+    train_gradient(tc)
     for name in ("config.json", "checkpoint.msgpack", "learning_curve.csv", "learning_curve.png", "summary.json"):
         assert (tmp_path / "a" / name).exists(), name
     ctrl, config = load_policy(tmp_path / "a")
-    assert config["algo"] == "gradient" and config["policy"] == "network"
+    assert config == tc
     # the same 4 steps in process: the loaded controller acts exactly like the trained parameters
-    init, chunk = G.make_train(cfg, run.plant())
+    cfg, plant = gradient_setup(tc)
+    init, chunk = G.make_train(cfg, plant)
     state, m1 = chunk(init(jax.random.PRNGKey(0)))
     state, m2 = chunk(state)
     obj = np.concatenate([np.asarray(m1["objective"]), np.asarray(m2["objective"])])
     assert obj[-1] < obj[0], obj
 
     def actions(c):
-        return np.asarray(simulate(run.plant(), c, n_steps=40, record_every=1).trajectory.h)
+        return np.asarray(simulate(plant, c, n_steps=40, record_every=1).trajectory.h)
 
-    np.testing.assert_array_equal(actions(ctrl), actions(G.make_controller(state.theta, cfg, run.plant())))
+    np.testing.assert_array_equal(actions(ctrl), actions(G.make_controller(state.theta, cfg, plant)))
     # 2 steps, then --resume to 4: the same policy as 4 steps in one go
-    half = dataclasses.replace(run, out_dir=str(tmp_path / "b"))
-    GT.train_gradient(half, dataclasses.replace(cfg, steps=2))
-    GT.train_gradient(dataclasses.replace(half, resume=True), cfg)
+    half = tc.replace(out_dir=str(tmp_path / "b"), grad_steps=2)
+    train_gradient(half)
+    train_gradient(half.replace(grad_steps=4, resume=True))
     np.testing.assert_array_equal(actions(load_policy(tmp_path / "b")[0]), actions(ctrl))
+
+
+def test_train_cli_gradient_defaults_come_from_the_library():
+    tc = settings_from_args(["--algo", "gradient", "--policy", "network"])
+    cfg, _ = gradient_setup(tc)
+    assert tc.run.out_dir == "runs/gradient-network"
+    assert cfg == G.GradientConfig.for_policy("network")
+    assert gradient_setup(settings_from_args(["--algo", "gradient"]))[0] == G.GradientConfig()

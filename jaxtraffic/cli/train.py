@@ -1,4 +1,6 @@
-"""Train the paper's PPO gain policy: ``python train.py [flags]`` (``--help`` lists them).
+"""Train a gain policy: PPO (the paper's) or by gradient through the simulator (``--algo gradient``).
+
+``python train.py [flags]`` (``--help`` lists them).
 
 A default run trains the D = 4 s policy and writes, in ``--out-dir`` (default runs/default):
 config.json, checkpoint.msgpack, learning_curve.csv/.png and summary.json. Ctrl-C saves a
@@ -13,7 +15,8 @@ import math
 import sys
 from pathlib import Path
 
-from jaxtraffic.learn.config import SECTIONS, TrainConfig
+from jaxtraffic.learn.config import SECTIONS, RunConfig, TrainConfig
+from jaxtraffic.learn.gradient_trainer import train_gradient
 from jaxtraffic.learn.trainer import train
 
 
@@ -26,24 +29,36 @@ def _pair(kind):
     return parse
 
 
-GROUPS = {"run": "run", "plant": "plant and grid", "env": "episodes and domain randomisation", "algo": "PPO"}
-_PARSERS = {"int": int, "float": float, "str": str, "float | None": float,
+def _many(kind):
+    def parse(text: str):
+        try:
+            return tuple(kind(p) for p in text.split(","))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected comma-separated values, got {text!r}") from None
+    return parse
+
+
+GROUPS = {"run": "run", "plant": "plant and grid", "env": "episodes and domain randomisation", "algo": "PPO",
+          "grad": "gradient-based training (--algo gradient)"}
+_PARSERS = {"int": int, "float": float, "str": str, "float | None": float, "int | None": int,
             "tuple[float, float]": _pair(float), "tuple[float, float] | None": _pair(float),
-            "tuple[int, int]": _pair(int)}
+            "tuple[int, int]": _pair(int), "tuple[float, ...]": _many(float), "tuple[float, ...] | None": _many(float),
+            "tuple[int, ...]": _many(int)}
 
 
 def build_parser() -> argparse.ArgumentParser:
     """One flag per leaf of ``TrainConfig`` (``--n-points`` for ``plant.n_points``), with the field's
     default and help: the flags cannot drift from the library's defaults."""
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    for section in ("run", "plant", "env", "algo"):
+    for section in ("run", "plant", "env", "algo", "grad"):
         g = p.add_argument_group(GROUPS[section])
         for f in dataclasses.fields(SECTIONS[section]):
             flag = "--" + f.name.replace("_", "-")
             if f.type == "bool":
                 g.add_argument(flag, action="store_true", help=f.metadata["help"])
                 continue
-            g.add_argument(flag, type=_PARSERS[f.type], default=f.default, choices=f.metadata.get("choices"),
+            default = None if f.name == "out_dir" else f.default  # resolved from --algo below
+            g.add_argument(flag, type=_PARSERS[f.type], default=default, choices=f.metadata.get("choices"),
                            help=f.metadata["help"])
     return p
 
@@ -52,6 +67,8 @@ def settings_from_args(argv: list[str] | None = None) -> TrainConfig:
     args = build_parser().parse_args(argv)
     if args.min_wave_speed == -math.inf:  # the paper's rule alone (stored as null in the JSON outputs)
         args.min_wave_speed = None
+    if args.out_dir is None:
+        args.out_dir = f"runs/gradient-{args.policy}" if args.algo == "gradient" else RunConfig.out_dir
     return TrainConfig.from_flat(**vars(args))
 
 
@@ -59,7 +76,7 @@ def main(argv: list[str] | None = None) -> Path:
     """Parse flags, train, return the run directory."""
     try:
         settings = settings_from_args(argv)
-        return train(settings)
+        return train_gradient(settings) if settings.run.algo == "gradient" else train(settings)
     except ValueError as err:  # invalid parameters: a clear message, no traceback
         print(f"train.py: error: {err}", file=sys.stderr)
         raise SystemExit(2) from err

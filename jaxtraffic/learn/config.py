@@ -20,6 +20,7 @@ from typing import Any
 
 from jaxtraffic.control.networks import PAPER_HIDDEN, SMALL_HIDDEN
 from jaxtraffic.learn.env import EnvParams
+from jaxtraffic.learn.gradient import POLICIES, POLICY_DEFAULTS, GradientConfig
 from jaxtraffic.learn.ppo import PPOConfig
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.sim.metrics import REWARD_TARGET
@@ -28,6 +29,8 @@ CONFIG_VERSION = 2
 _TP = TrafficParams()
 _EP = EnvParams()
 _PPO = {f.name: f.default for f in dataclasses.fields(PPOConfig)}
+_GRAD = GradientConfig()
+ALGOS = ("ppo", "gradient")
 
 
 def _f(default: Any, help: str, **meta: Any) -> Any:
@@ -99,11 +102,57 @@ class AlgoConfig:
         return {"small": SMALL_HIDDEN, "paper": PAPER_HIDDEN}[self.network]
 
 
+def _by_policy(name: str) -> str:
+    return ", ".join(f"{p}: {POLICY_DEFAULTS[p].get(name, getattr(_GRAD, name))}" for p in POLICIES)
+
+
+@dataclass(frozen=True)
+class GradConfig:
+    """Gradient-based training (``--algo gradient``, ``learn.gradient.GradientConfig``): analytic gradients
+    of a rollout objective over a grid of training scenarios. ``None``: the policy's default."""
+
+    policy: str = _f(_GRAD.policy, "gains: three constant gains; network: the actor network PPO trains "
+                     "(state-dependent gains)", choices=POLICIES)
+    grad_steps: int | None = _f(None, f"Adam steps ({_by_policy('steps')})")
+    grad_lr: float | None = _f(None, f"Adam step size ({_by_policy('lr')})")
+    train_delays: tuple[float, ...] | None = _f(None, "plant delays of the training scenarios, s "
+                                                 f"({_by_policy('delays')})")
+    train_alphas: tuple[float, ...] = _f(_GRAD.alphas, "plant alphas of the training scenarios")
+    train_amplitudes: tuple[float, ...] = _f(_GRAD.amplitudes, "initial perturbation amplitudes, veh/m")
+    train_wavenumbers: tuple[int, ...] = _f(_GRAD.wavenumbers, "initial perturbation wavenumbers")
+    train_phases: tuple[float, ...] = _f(_GRAD.phases, "initial perturbation phases, rad")
+    train_horizon_s: float = _f(_GRAD.horizon_s, "rollout length of the objective, s")
+    record_every: int = _f(_GRAD.record_every, "steps between objective samples (also the checkpointed chunk)")
+    steps_per_chunk: int = _f(_GRAD.steps_per_chunk, "Adam steps per compiled chunk (progress/checkpoint interval)")
+    reward_weight: float = _f(_GRAD.reward_weight, "objective weight of -mean reward (dimensionless)")
+    waves_weight: float = _f(_GRAD.wave_weight, "objective weight of mean log(1 + var_x rho/100 + var_x v) "
+                             "(rho in veh/km, v in m/s): wave amplitude, blind to a uniform offset")
+    comfort_weight: float = _f(_GRAD.comfort_weight, "objective weight of J_comfort")
+    effort_weight: float = _f(_GRAD.effort_weight, "objective weight of mean (h - h_bar)^2, 1/s^2")
+    scenario_clip: float = _f(_GRAD.scenario_clip, "> 0: clip each scenario's gradient to this norm before "
+                              "averaging; 0: off")
+    init_gains: tuple[float, ...] = _f(_GRAD.init_gains, "initial gains eta1,eta2,eta3")
+
+    def gradient_config(self, env: EnvConfig, hidden: tuple[int, ...]) -> GradientConfig:
+        """The algorithm's ``GradientConfig`` (gain bound and filter from ``env``, network from ``algo``)."""
+        given = {"steps": self.grad_steps, "lr": self.grad_lr, "delays": self.train_delays}
+        return GradientConfig.for_policy(
+            self.policy, **{k: v for k, v in given.items() if v is not None}, alphas=self.train_alphas,
+            amplitudes=self.train_amplitudes, wavenumbers=self.train_wavenumbers, phases=self.train_phases,
+            horizon_s=self.train_horizon_s, record_every=self.record_every, steps_per_chunk=self.steps_per_chunk,
+            hidden=hidden, gain_max=env.gain_max, gain_filter=env.gain_filter, reward_weight=self.reward_weight,
+            wave_weight=self.waves_weight, comfort_weight=self.comfort_weight, effort_weight=self.effort_weight,
+            scenario_clip=self.scenario_clip, init_gains=tuple(self.init_gains))
+
+
 @dataclass(frozen=True)
 class RunConfig:
     """Run control: where, how long, the stop rule. ``RUN_CONTROL`` fields may change on resume."""
 
-    out_dir: str = _f("runs/default", "run directory")
+    algo: str = _f("ppo", "ppo: the paper's PPO; gradient: analytic gradients through the simulator "
+                   "(flags of the 'gradient-based training' group)", choices=ALGOS)
+    out_dir: str = _f("runs/default", "run directory (default runs/default; with --algo gradient: "
+                      "runs/gradient-POLICY)")
     resume: bool = _f(False, "continue from the run directory's checkpoint (its saved config is used; only the "
                       "run-control flags --total-steps/--max-wall-s/--keep-going/--stop-patience/--target-reward/"
                       "--min-wave-speed apply)")
@@ -128,11 +177,13 @@ RUN_CONTROL = ("out_dir", "total_steps", "max_wall_s", "keep_going", "resume", "
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """The whole training configuration: ``plant``, ``env``, ``algo`` (PPO) and ``run``."""
+    """The whole training configuration: ``plant``, ``env``, ``algo`` (PPO), ``grad`` (gradient-based
+    training) and ``run``."""
 
     plant: PlantConfig = PlantConfig()
     env: EnvConfig = EnvConfig()
     algo: AlgoConfig = AlgoConfig()
+    grad: GradConfig = GradConfig()
     run: RunConfig = RunConfig()
 
     @classmethod
@@ -155,7 +206,7 @@ class TrainConfig:
         return TrainConfig.from_flat(**{**self.flat(), **values})
 
 
-SECTIONS = {"plant": PlantConfig, "env": EnvConfig, "algo": AlgoConfig, "run": RunConfig}
+SECTIONS = {"plant": PlantConfig, "env": EnvConfig, "algo": AlgoConfig, "grad": GradConfig, "run": RunConfig}
 _OWNER = {f.name: s for s, c in SECTIONS.items() for f in dataclasses.fields(c)}
 _TYPES = {f.name: str(f.type) for c in SECTIONS.values() for f in dataclasses.fields(c)}
 

@@ -1,7 +1,7 @@
 """Training loop around ``gradient.make_train``: chunks, evaluation, checkpoints, outputs.
 
-The run directory has the same files as a PPO run (config.json, checkpoint.msgpack,
-learning_curve.csv/.png, summary.json) and loads with ``learn.load_policy``. After every chunk
+The run directory has the same files as a PPO run (config.json with the same config tree,
+checkpoint.msgpack, learning_curve.csv/.png, summary.json) and loads with ``learn.load_policy``. After every chunk
 of Adam steps the deterministic controller is evaluated on the paper's initial condition with
 the nominal plant (``eval_horizon_s``) next to the delay-compensated baseline
 ``backstepping(delay)``; the summary records when it first met the paper's stop rule and when
@@ -11,10 +11,7 @@ chunk; ``resume`` continues from it exactly (training is deterministic).
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +25,7 @@ from jaxtraffic.control.baselines import backstepping
 from jaxtraffic.control.gain_policy import equilibrium_gains
 from jaxtraffic.learn import checkpoint as ckpt
 from jaxtraffic.learn import gradient as G
+from jaxtraffic.learn.config import RUN_CONTROL, TrainConfig, config_json, load_config
 from jaxtraffic.learn.curve import plot_learning_curve, write_curve
 from jaxtraffic.learn.trainer import _fmt_time
 from jaxtraffic.model.linear import gain_law_wave_speed, linearize
@@ -38,61 +36,18 @@ from jaxtraffic.sim.rollout import simulate
 ALGO = "gradient"
 
 
-@dataclass(frozen=True)
-class GradientRun:
-    """Run control and the nominal plant of a gradient-trained run."""
-
-    out_dir: str = "runs/gradient"
-    seed: int = 0
-    delay: float = 4.0  # s, the nominal plant (controller's design point and evaluation plant)
-    alpha: float = 0.15
-    n_points: int = 201
-    dt: float = 0.1
-    max_delay_steps: int = 100
-    max_wall_s: float = float("inf")
-    eval_horizon_s: float = 300.0
-    resume: bool = False
-    quiet: bool = False
-
-    def plant(self) -> TrafficParams:
-        return TrafficParams(delay=self.delay, alpha=self.alpha, n_points=self.n_points, dt=self.dt,
-                             max_delay_steps=self.max_delay_steps)
+def gradient_setup(cfg: TrainConfig) -> tuple[G.GradientConfig, TrafficParams]:
+    """The algorithm config and the nominal plant of a ``TrainConfig`` with ``run.algo = "gradient"``."""
+    return cfg.grad.gradient_config(cfg.env, cfg.algo.hidden()), cfg.plant.traffic().replace(alpha_noise=0.0)
 
 
-def config_dict(run: GradientRun, cfg: G.GradientConfig) -> dict:
-    """The run's config.json content (read back by ``load_gradient_run`` and ``load_policy``)."""
-    return {"algo": ALGO, "policy": cfg.policy, "run": dataclasses.asdict(run),
-            "gradient": dataclasses.asdict(cfg), "delay": run.delay, "alpha": run.alpha,
-            "n_points": run.n_points, "dt": run.dt, "max_delay_steps": run.max_delay_steps,
-            "jax_version": jax.__version__}
-
-
-def _tuple_fields(d: dict, cls) -> dict:
-    names = {f.name for f in dataclasses.fields(cls)}
-    return {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items() if k in names}
-
-
-def config_from_dict(config: dict) -> tuple[GradientRun, G.GradientConfig]:
-    """Inverse of ``config_dict`` (ValueError for a config that is not a gradient run)."""
-    if config.get("algo") != ALGO or "gradient" not in config or "run" not in config:
-        raise ValueError("not a gradient-trained run's config.json (need algo='gradient', 'run', 'gradient')")
-    return GradientRun(**_tuple_fields(config["run"], GradientRun)), \
-        G.GradientConfig(**_tuple_fields(config["gradient"], G.GradientConfig))
-
-
-def controller_of(run: GradientRun, cfg: G.GradientConfig, theta: Any) -> Controller:
-    return G.make_controller(jax.tree.map(jnp.asarray, theta), cfg, run.plant())
-
-
-def load_gradient_run(run_dir: str | Path) -> tuple[Controller, dict]:
-    """(controller, config) of a gradient-trained run directory."""
-    run_dir = Path(run_dir)
-    config = json.loads((run_dir / ckpt.CONFIG).read_text())
-    run, cfg = config_from_dict(config)
+def load_gradient_policy(run_dir: str | Path, cfg: TrainConfig) -> Controller:
+    """The controller saved in a gradient-trained run directory (``cfg``: its ``load_config``)."""
+    gcfg, plant = gradient_setup(cfg)
     state, _ = ckpt.load_checkpoint(run_dir)
-    template = G.init_theta(cfg, run.plant(), jax.random.PRNGKey(0))
+    template = G.init_theta(gcfg, plant, jax.random.PRNGKey(0))
     theta = serialization.from_state_dict(template, state["theta"])
-    return controller_of(run, cfg, theta), config
+    return G.make_controller(jax.tree.map(jnp.asarray, theta), gcfg, plant)
 
 
 def evaluation(ctrl: Controller, plant: TrafficParams, n_steps: int, gains: Any | None) -> dict:
@@ -115,15 +70,17 @@ CURVE_FIELDS = ["update", "env_steps", "wall_s", "objective", "grad_norm", "eval
                 "eval_rho_L2", "eval_wave_speed", "eta1", "eta2", "eta3"]
 
 
-def train_gradient(run: GradientRun, cfg: G.GradientConfig) -> Path:
-    """Train (or resume) and return the run directory."""
-    run_dir = Path(run.out_dir)
-    if run.resume and (run_dir / ckpt.CONFIG).exists():
-        saved_run, saved_cfg = config_from_dict(json.loads((run_dir / ckpt.CONFIG).read_text()))
-        run = dataclasses.replace(saved_run, out_dir=run.out_dir, max_wall_s=run.max_wall_s, resume=True,
-                                  quiet=run.quiet)
-        cfg = dataclasses.replace(saved_cfg, steps=cfg.steps)
-    plant = run.plant()
+def train_gradient(tc: TrainConfig) -> Path:
+    """Train (or resume) and return the run directory. Uses ``tc.grad``, ``tc.plant`` (the nominal
+    plant), ``tc.env.gain_max`` / ``gain_filter`` and ``tc.algo.network`` (network policy) and the
+    run-control fields of ``tc.run``; on resume, the saved config with the new ``RUN_CONTROL``
+    fields and ``grad_steps``."""
+    run_dir = Path(tc.run.out_dir)
+    if tc.run.resume and (run_dir / ckpt.CONFIG).exists():
+        flat = tc.flat()
+        tc = load_config(run_dir).replace(**{k: flat[k] for k in (*RUN_CONTROL, "grad_steps")})
+    cfg, plant = gradient_setup(tc)  # validates: fail before creating the run directory
+    run = tc.run
     say = (lambda *a: None) if run.quiet else (lambda *a: print(*a, flush=True))
     t_start = time.perf_counter()
     init, train_chunk = G.make_train(cfg, plant)
@@ -135,21 +92,21 @@ def train_gradient(run: GradientRun, cfg: G.GradientConfig) -> Path:
         say(f"resumed {run_dir} at update {meta['updates']} ({meta['wall_s']:.1f} s)")
     else:
         run_dir.mkdir(parents=True, exist_ok=True)
-        ckpt.write_json(run_dir / ckpt.CONFIG, config_dict(run, cfg))
-    eval_steps = max(1, round(run.eval_horizon_s / run.dt))
-    ref = evaluation(backstepping(run.delay), plant, eval_steps, gains=jnp.zeros(3))
-    n_steps = G.horizon_steps(cfg, run.dt)
+        ckpt.write_json(run_dir / ckpt.CONFIG, config_json(tc, jax_version=jax.__version__))
+    eval_steps = max(1, round(run.eval_horizon_s / tc.plant.dt))
+    ref = evaluation(backstepping(tc.plant.delay), plant, eval_steps, gains=jnp.zeros(3))
+    n_steps = G.horizon_steps(cfg, tc.plant.dt)
     steps_per_update = cfg.n_scenarios * n_steps
     wall0 = float(meta["wall_s"])
     say(f"training by gradient ({cfg.policy}): {cfg.n_scenarios} scenarios x {n_steps} steps per Adam step, "
-        f"{cfg.steps_per_chunk} steps/chunk, plant D = {run.delay:g} s; backstepping reference: "
+        f"{cfg.steps_per_chunk} steps/chunk, plant D = {tc.plant.delay:g} s; backstepping reference: "
         f"rho L2 {ref['final_rho_L2'] * 1e3:.3f} veh/km, J_comfort {ref['J_comfort']:.4g}")
     interrupted, ev = False, {}
     try:
         while meta["updates"] < cfg.steps:
             state, m = train_chunk(state)
             jax.block_until_ready(m)
-            ctrl = controller_of(run, cfg, state.theta)
+            ctrl = G.make_controller(state.theta, cfg, plant)
             ev = evaluation(ctrl, plant, eval_steps, state.theta if cfg.policy == "gains" else None)
             t_prev = meta["rows"][-1]["wall_s"] if meta["rows"] else wall0
             meta["updates"] += cfg.steps_per_chunk
@@ -186,7 +143,7 @@ def train_gradient(run: GradientRun, cfg: G.GradientConfig) -> Path:
     plot_learning_curve(run_dir / "learning_curve.csv", run_dir / "learning_curve.png",
                         title=f"gradient-based training ({cfg.policy})")
     if not ev:
-        ev = evaluation(controller_of(run, cfg, state.theta), plant, eval_steps,
+        ev = evaluation(G.make_controller(state.theta, cfg, plant), plant, eval_steps,
                         state.theta if cfg.policy == "gains" else None)
     summary = {"algo": ALGO, "policy": cfg.policy, "updates": meta["updates"], "env_steps": meta["env_steps"],
                "wall_s": meta["wall_s"], "interrupted": interrupted, "eval_horizon_s": run.eval_horizon_s,

@@ -9,6 +9,7 @@ import pytest
 
 import evaluate
 from jaxtraffic.learn.config import TrainConfig
+from jaxtraffic.learn.gradient_trainer import train_gradient
 from jaxtraffic.learn.trainer import train
 from jaxtraffic.paper import REQUIRED_KEYS, SCENARIOS
 
@@ -35,11 +36,17 @@ def _walk_numbers(obj):
 
 def test_evaluate_end_to_end(tiny_run, tmp_path):
     out = tmp_path / "results"
+    # a tiny gradient-trained gains run where evaluate.py looks for it (the other gradient runs are absent)
+    train_gradient(TrainConfig.from_flat(algo="gradient", out_dir=str(tmp_path / "runs" / "gradient-gains"),
+                                         n_points=21, train_delays=(4.0,), train_horizon_s=6.0, steps_per_chunk=1,
+                                         grad_steps=1, eval_horizon_s=6.0, quiet=True))
     metrics = evaluate.main(["--run", str(tiny_run), "--out", str(out), "--horizon", "6", "--seeds", "2",
-                             "--robust-grid", "2x2"])
+                             "--robust-grid", "2x2", "--gradient", "existing", "--runs-root", str(tmp_path / "runs")])
     on_disk = json.loads((out / "metrics.json").read_text())
     assert "units" in on_disk and "meta" in on_disk
-    expected = {s.name: set(s.controllers) for s in SCENARIOS}
+    skipped = {"grad_network"}
+    expected = {s.name: set(s.controllers) - skipped for s in SCENARIOS}
+    assert "grad_gains" in expected["delay4"]
     assert set(expected) == {"delay0", "delay4", "alpha_noise", "delay_mismatch_3", "delay_mismatch_5"}
     for scenario, controllers in expected.items():
         assert set(on_disk[scenario]) == controllers, scenario
@@ -59,3 +66,6 @@ def test_evaluate_end_to_end(tiny_run, tmp_path):
         assert (out / name).stat().st_size > 0, name
     table = (out / "table2.csv").read_text()
     assert "J_TTT" in table and "paper" in table.lower()
+    report = (out / "REPORT.md").read_text()
+    assert "Beyond the paper: PPO and gradient-based training" in report
+    assert "gradient: 3 constant gains" in report and "gradient-gains" in report

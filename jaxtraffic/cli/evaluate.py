@@ -25,6 +25,17 @@ from jaxtraffic.learn.checkpoint import load_policy
 from jaxtraffic.learn.config import TrainConfig
 
 DEFAULT_RUN = Path("runs/default")
+# the gradient-trained controllers evaluated beside PPO: name -> (run directory under --runs-root,
+# train.py flags)
+GRADIENT_RUNS = {
+    "grad_gains": ("gradient-gains", ["--algo", "gradient", "--policy", "gains"]),
+    "grad_network": ("gradient-network", ["--algo", "gradient", "--policy", "network"]),
+    # trained over the robustness map's ranges on the wave objective (blind to the steady offset a
+    # plant with another alpha keeps), each scenario's gradient clipped
+    "grad_robust": ("gradient-robust", [
+        "--algo", "gradient", "--policy", "network", "--train-delays", "0,4,8", "--train-alphas", "0.05,0.3,0.6",
+        "--reward-weight", "0", "--waves-weight", "1", "--scenario-clip", "1", "--grad-steps", "20"]),
+}
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -44,11 +55,25 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                     "the robustness map)")
     ap.add_argument("--robust-horizon", type=float, default=None,
                     help="simulated time of the robustness map, s (default 2 x --horizon)")
+    ap.add_argument("--gradient", choices=("auto", "existing", "none"), default="auto",
+                    help="gradient-trained controllers (RUNS_ROOT/" + ", ".join(d for d, _ in GRADIENT_RUNS.values())
+                    + "): auto = use them, training the missing ones first; existing = only those already "
+                    "trained; none = skip")
+    ap.add_argument("--runs-root", type=Path, default=Path("runs"), help="where the gradient runs live")
     return ap.parse_args(argv)
 
 
 def _log(msg: str) -> None:
     print(msg, flush=True)
+
+
+def _curve(path: Path) -> dict | None:
+    from jaxtraffic.learn.curve import read_learning_curve
+
+    try:
+        return read_learning_curve(path) if path.exists() else None
+    except ValueError:
+        return None
 
 
 def find_or_train_run(run: Path | None, n_points: int | None) -> Path:
@@ -63,6 +88,27 @@ def find_or_train_run(run: Path | None, n_points: int | None) -> Path:
     _log(f"no trained run at {DEFAULT_RUN}: training one with train.py's defaults first")
     targv = ["--out-dir", str(DEFAULT_RUN)] + (["--n-points", str(n_points)] if n_points else [])
     return Path(train_cli.main(targv))
+
+
+def gradient_controllers(mode: str, n_points: int, root: Path) -> tuple[dict[str, Any], dict[str, dict]]:
+    """(name -> controller, name -> {"summary", "curve", "run_dir"}) of the gradient-trained runs
+    (``GRADIENT_RUNS`` under ``root``), training the missing ones first when ``mode`` is "auto"."""
+    ctrls, runs = {}, {}
+    for name, (sub, flags) in GRADIENT_RUNS.items() if mode != "none" else ():
+        run_dir = root / sub
+        if not (run_dir / "summary.json").exists():
+            if mode != "auto":
+                continue
+            _log(f"no trained run at {run_dir}: training it first (train.py {' '.join(flags)})")
+            train_cli.main([*flags, "--out-dir", str(run_dir), "--n-points", str(n_points)])
+        ctrl, config = load_policy(run_dir)
+        if config.plant.n_points != n_points:
+            raise SystemExit(f"{run_dir} was trained on {config.plant.n_points} points, the evaluation uses "
+                             f"{n_points}: remove it or pass --gradient none")
+        ctrls[name] = ctrl
+        runs[name] = {"run_dir": str(run_dir), "summary": json.loads((run_dir / "summary.json").read_text()),
+                      "curve": _curve(run_dir / "learning_curve.csv")}
+    return ctrls, runs
 
 
 def _describe(run_dir: Path, config: TrainConfig) -> dict[str, Any]:
@@ -105,8 +151,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     lc = run_dir / "learning_curve.csv"
     meta = {"policy": policy, "policy_delay0": policy0,
             "argv": list(sys.argv[1:] if argv is None else argv)}
-    metrics = paper.evaluate_all({"ppo": ppo}, cfg, args.out, meta, ppo_delay0=ppo0, learning_curve_csv=lc,
-                             log=_log)
+    grad, grad_runs = gradient_controllers(args.gradient, n_points, args.runs_root)
+    learned_runs = {"ppo": {"run_dir": str(run_dir), "curve": _curve(lc),
+                            "summary": json.loads((run_dir / "summary.json").read_text())
+                            if (run_dir / "summary.json").exists() else {}}, **grad_runs}
+    metrics = paper.evaluate_all({"ppo": ppo, **grad}, cfg, args.out, meta, ppo_delay0=ppo0, learning_curve_csv=lc,
+                                 log=_log, learned_runs=learned_runs)
     _log(f"total {time.perf_counter() - t0:.1f} s; verdicts: {json.dumps(metrics['meta']['claims'])}")
     return metrics
 

@@ -15,6 +15,7 @@ from jaxtraffic.learn.checkpoint import to_jsonable
 from jaxtraffic.model.params import equilibrium
 from jaxtraffic.paper.claims import evaluate_claims
 from jaxtraffic.paper.figures import make_figures
+from jaxtraffic.paper.learned import comparison_section
 from jaxtraffic.paper.report import robustness_summary, write_report
 from jaxtraffic.paper.scenarios import CTRL_DELAY, SCENARIOS, EvalConfig, initial_norms, run_robustness, run_scenarios
 from jaxtraffic.paper.summaries import UNITS, equilibrium_indices, summarise, table2_rows, write_table2
@@ -24,11 +25,13 @@ from jaxtraffic.paper.summaries import UNITS, equilibrium_indices, summarise, ta
 def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: str | Path,
                  meta: dict[str, Any], ppo_delay0: Controller | None = None,
                  learning_curve_csv: str | Path | None = None, log: Callable[[str], None] = print,
-                 ) -> dict[str, Any]:
+                 learned_runs: dict[str, dict] | None = None) -> dict[str, Any]:
     """Run every scenario and the robustness map, write all outputs; return the metrics dict.
 
     ``controllers`` must hold "ppo" (the D = 4 s policy); the baselines are added if missing.
     ``ppo_delay0``: a separate policy for scenario delay0 (else the D = 4 s one is used).
+    ``learned_runs``: controller name -> {"summary", "curve", "run_dir"} of the runs behind the
+    learned controllers, for REPORT.md's comparison section (``paper.learned``).
     """
     t_start = time.perf_counter()
     out_dir = Path(out_dir)
@@ -98,8 +101,9 @@ def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: s
     notes = []
     if lc_data is None:
         notes.append("- No learning curve was available, so figure 3a is missing.")
-    write_report(out_dir / "REPORT.md", claims, metrics, meta, figures, notes,
-                 sections=robustness_summary(robust, cfg))
+    sections = robustness_summary(robust, cfg) + comparison_section(
+        metrics, learned_runs or {}, robust, tuple(cfg.robust_alphas), tuple(cfg.robust_delays))
+    write_report(out_dir / "REPORT.md", claims, metrics, meta, figures, notes, sections=sections)
     (out_dir / "claims.json").write_text(json.dumps(to_jsonable(
         [{**{k: v for k, v in c.items() if k != "checks"},
           "checks": [ch.__dict__ for ch in c["checks"]]} for c in claims]), indent=1, allow_nan=False))

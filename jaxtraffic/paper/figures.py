@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxtraffic.model.params import equilibrium
-from jaxtraffic.paper.scenarios import CTRL_DELAY, NOISE_STD, EvalConfig, Outcome, initial_norms
+from jaxtraffic.paper.scenarios import CTRL_DELAY, EXTRA_LEARNED, NOISE_STD, EvalConfig, Outcome, initial_norms
 
 
 # ----------------------------------------------------------------------------- figures
@@ -73,7 +73,8 @@ def make_figures(results: dict[str, dict[str, Outcome]], robust: dict[str, dict[
                 div[lab[c]] = float(o.metrics["diverged_at_s"][0])
         done(P.plot_spacetime(out_dir / fname, t, x, rows, eq, title, diverged_at=div))
 
-    def l2(s, ctrls):
+    def l2(s, ctrls):  # the extra learned controllers are added where they were evaluated
+        ctrls = (*ctrls, *(c for c in EXTRA_LEARNED if c in results[s]))
         return {lab[c]: (results[s][c].rho_L2, results[s][c].v_L2) for c in ctrls}
 
     done(P.plot_l2_norms(out_dir / "fig4_l2_delay0.png", t, l2("delay0", ("open_loop", "lyapunov", "ppo")),
@@ -91,7 +92,7 @@ def make_figures(results: dict[str, dict[str, Outcome]], robust: dict[str, dict[
     if robust:
         names = {"open_loop": "open loop", "lyapunov": "Lyapunov",
                  "backstepping": "backstepping (assumes the true plant delay)",
-                 "ppo": "PPO (trained D = 4 s)"}
+                 "ppo": "PPO (trained D = 4 s)", **{c: lab[c] for c in ("grad_gains", "grad_network", "grad_robust")}}
         delays, alphas = np.asarray(cfg.robust_delays), np.asarray(cfg.robust_alphas)
         horizon = replace(cfg, horizon_s=cfg.robust_horizon_s).n_steps * cfg.dt
         maps = {names[c]: (r["final_rho_L2"], r["diverged"]) for c, r in robust.items()}

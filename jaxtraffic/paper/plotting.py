@@ -45,9 +45,13 @@ CONTROLLER_STYLE = {
     "lyapunov": dict(color="tab:orange", ls="-"),
     "backstepping": dict(color="tab:blue", ls="-"),
     "ppo": dict(color="tab:green", ls="-"),
+    "grad_gains": dict(color="tab:purple", ls="--"),
+    "grad_network": dict(color="tab:brown", ls="-."),
+    "grad_robust": dict(color="tab:pink", ls=":"),
 }
 LABELS = {"open_loop": "open loop", "lyapunov": "Lyapunov", "backstepping": "backstepping",
-          "ppo": "PPO"}
+          "ppo": "PPO", "grad_gains": "gradient gains", "grad_network": "gradient network",
+          "grad_robust": "gradient network (robust)"}
 
 
 def _style(label: str) -> dict:

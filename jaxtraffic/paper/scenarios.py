@@ -62,18 +62,21 @@ class Scenario:
         return self.alpha_noise > 0
 
 
+# learned controllers beyond the paper's PPO, evaluated wherever PPO is when they are given
+EXTRA_LEARNED = ("grad_gains", "grad_network")
+_L = ("ppo", *EXTRA_LEARNED)
 SCENARIOS = (
-    Scenario("delay0", 0.0, 0.0, ("open_loop", "lyapunov", "ppo"), "plant delay D = 0"),
-    Scenario("delay4", 4.0, 0.0, ("open_loop", "lyapunov", "backstepping", "ppo"), "plant delay D = 4 s"),
-    Scenario("alpha_noise", 4.0, NOISE_STD, ("backstepping", "ppo"),
+    Scenario("delay0", 0.0, 0.0, ("open_loop", "lyapunov", *_L), "plant delay D = 0"),
+    Scenario("delay4", 4.0, 0.0, ("open_loop", "lyapunov", "backstepping", *_L), "plant delay D = 4 s"),
+    Scenario("alpha_noise", 4.0, NOISE_STD, ("backstepping", *_L),
              f"plant delay D = 4 s, plant alpha = clip(0.15 + N(0, {NOISE_STD}^2), 0, 1) redrawn every step"),
-    Scenario("delay_mismatch_3", 3.0, 0.0, ("backstepping", "ppo"),
+    Scenario("delay_mismatch_3", 3.0, 0.0, ("backstepping", *_L),
              "plant delay D = 3 s, controllers assume 4 s"),
-    Scenario("delay_mismatch_5", 5.0, 0.0, ("backstepping", "ppo"),
+    Scenario("delay_mismatch_5", 5.0, 0.0, ("backstepping", *_L),
              "plant delay D = 5 s, controllers assume 4 s"),
 )
 SCENARIO_BY_NAME = {s.name: s for s in SCENARIOS}
-ROBUST_CONTROLLERS = ("open_loop", "lyapunov", "backstepping", "ppo")
+ROBUST_CONTROLLERS = ("open_loop", "lyapunov", "backstepping", "ppo", *EXTRA_LEARNED, "grad_robust")
 
 
 @dataclass
@@ -173,7 +176,8 @@ def run_scenarios(controllers: dict[str, Controller], cfg: EvalConfig,
                   ) -> dict[str, dict[str, Outcome]]:
     """Evaluate every scenario; all scenarios and seeds of one controller in one batched rollout.
 
-    ``controllers``: name -> Controller for the names used in SCENARIOS ("ppo" included).
+    ``controllers``: name -> Controller for the names used in SCENARIOS ("ppo" included; the
+    ``EXTRA_LEARNED`` ones are evaluated when given, skipped otherwise).
     ``scenario_controllers``: (scenario, name) -> Controller overrides (e.g. a separate D = 0 PPO
     policy for "delay0"); each distinct override runs as its own batch.
     Returns {scenario: {controller name: Outcome}}.
@@ -182,6 +186,8 @@ def run_scenarios(controllers: dict[str, Controller], cfg: EvalConfig,
     groups: dict[tuple[str, str], list[tuple[str, int]]] = {}
     for sc in SCENARIOS:
         for name in sc.controllers:
+            if name in EXTRA_LEARNED and name not in controllers:
+                continue
             gid = (name, sc.name) if (sc.name, name) in overrides else (name, "")
             seeds = cfg.seeds if sc.seeded else (0,)
             groups.setdefault(gid, []).extend((sc.name, s) for s in seeds)
@@ -212,7 +218,7 @@ def run_scenarios(controllers: dict[str, Controller], cfg: EvalConfig,
                 h=h[idx], reward=reward[idx], rho_L2=rho_l2[idx], v_L2=v_l2[idx],
                 controller_label=getattr(ctrl, "name", name),
             )
-    return {s: {n: results[s][n] for n in SCENARIO_BY_NAME[s].controllers} for s in results}
+    return {s: {n: results[s][n] for n in SCENARIO_BY_NAME[s].controllers if n in results[s]} for s in results}
 
 
 def run_robustness(controllers: dict[str, Controller], cfg: EvalConfig,

@@ -1,0 +1,92 @@
+"""Beyond the paper: the learned controllers side by side (PPO and gradient-based training).
+
+``comparison_section`` writes REPORT.md's section comparing how each learned controller was
+obtained (algorithm, wall time, environment steps) with what it achieves (Table 2 quality at
+D = 4 s, plant delays 0-6 s, the robustness map), every number read from the runs' summary.json
+and the evaluation's own metrics.
+
+Stabilised cell of the robustness map: not diverged and the final spatial standard deviation of
+the density below ``STABLE_STD`` (0.5 veh/km), i.e. the waves are gone (a steady offset from the
+nominal target, which a plant with another alpha keeps, is allowed).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+STABLE_STD = 0.5e-3  # veh/m: 0.5 veh/km
+LEARNED_LABELS = {"ppo": "PPO", "ppo_robust": "PPO (robust)", "grad_gains": "gradient: 3 constant gains",
+                  "grad_network": "gradient: network", "grad_robust": "gradient: network (robust)"}
+
+
+def stabilised_cells(r: dict[str, np.ndarray]) -> int:
+    """Cells of one controller's robustness map that are stabilised (see the module docstring)."""
+    return int(np.sum(~np.asarray(r["diverged"], bool) & (np.asarray(r["final_rho_spatial_std"]) < STABLE_STD)))
+
+
+def seconds_to_beat(curve: dict[str, np.ndarray] | None, rho_l2: float, j_comfort: float) -> float | None:
+    """Wall time of the first learning-curve row whose evaluation beats (``rho_l2`` veh/m,
+    ``j_comfort``) on both final density L2 and J_comfort; None if none does."""
+    if not curve:
+        return None
+    l2 = curve.get("eval_rho_L2_veh_km", curve.get("eval_rho_L2"))
+    if l2 is None or "eval_J_comfort" not in curve or "wall_s" not in curve:
+        return None
+    hit = np.flatnonzero((np.asarray(l2) < 1e3 * rho_l2) & (np.asarray(curve["eval_J_comfort"]) < j_comfort))
+    return float(curve["wall_s"][hit[0]]) if hit.size else None
+
+
+def _num(x: Any, fmt: str) -> str:
+    return "n/a" if x is None or (isinstance(x, float) and not np.isfinite(x)) else format(x, fmt)
+
+
+def comparison_section(metrics: dict, runs: dict[str, dict], robust: dict[str, dict[str, np.ndarray]],
+                       alphas: tuple[float, ...], delays: tuple[float, ...]) -> list[str]:
+    """Markdown lines of the section. ``runs``: controller name -> {"summary": summary.json of its
+    run, "curve": its learning curve (column -> array) or None, "run_dir": ...} for every learned
+    controller evaluated."""
+    if not runs:
+        return []
+    d4 = metrics["delay4"]
+    bs = d4.get("backstepping", {})
+    j = [i for i, a in enumerate(alphas) if abs(a - 0.15) < 1e-9]
+    lines = ["## Beyond the paper: PPO and gradient-based training", "",
+             "Every learned controller acts through the paper's three-gain law. PPO learns from sampled "
+             "episodes; the gradient-based controllers are trained by differentiating the rollout objective "
+             "through the simulator (`jaxtraffic.learn.gradient`). Training figures come from each run's "
+             "summary.json and learning curve (wall time includes compilation, on the machine that trained it; "
+             "*s to beat backstepping*: first evaluation during training whose final rho L2 and J_comfort are both "
+             "below backstepping's); quality figures "
+             "from this evaluation (paper initial condition, D = 4 s, 300 s, backstepping for reference: "
+             f"final rho L2 {_num(1e3 * bs['final_rho_L2'], '.3f') if bs else 'n/a'} veh/km, J_comfort "
+             f"{_num(bs.get('J_comfort'), '.4g')}). *Map* = stabilised cells of the robustness map (not "
+             f"diverged, final std_x(rho) < {STABLE_STD * 1e3:g} veh/km); *delays* = plant delays of the map "
+             "at alpha = 0.15 where it is stabilised.", "",
+             "| controller | run | training wall s | env steps | s to beat backstepping | final rho L2 (veh/km) "
+             "| J_comfort | J_comfort / backstepping | map | delays (s) |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for name, run in runs.items():
+        s, m = run["summary"], d4.get(name, {})
+        r = robust.get(name)
+        cells, ok_delays = "n/a", "n/a"
+        if r is not None:
+            cells = f"{stabilised_cells(r)}/{np.asarray(r['diverged']).size}"
+            if j:
+                col = ~np.asarray(r["diverged"], bool)[:, j[0]] & (np.asarray(r["final_rho_spatial_std"])[:, j[0]]
+                                                                   < STABLE_STD)
+                ok = [d for d, k in zip(delays, col, strict=True) if k]
+                ok_delays = "none" if not ok else (f"{min(ok):g}-{max(ok):g}" if len(ok) == len(delays)
+                                                   else ", ".join(f"{d:g}" for d in ok))
+        ratio = m.get("J_comfort") / bs["J_comfort"] if m.get("J_comfort") is not None and bs else None
+        t_beat = seconds_to_beat(run.get("curve"), bs["final_rho_L2"], bs["J_comfort"]) if bs else None
+        lines.append(
+            f"| {LEARNED_LABELS.get(name, name)} | `{run['run_dir']}` | {_num(s.get('wall_s'), '.1f')} "
+            f"| {_num(s.get('env_steps'), '.3g')} | {_num(t_beat, '.1f')} "
+            f"| {_num(1e3 * m['final_rho_L2'] if m else None, '.3f')} | {_num(m.get('J_comfort'), '.4g')} "
+            f"| {_num(ratio, '.2f')} | {cells} | {ok_delays} |")
+    if "backstepping" in robust:
+        lines.append(f"| backstepping (assumes the true delay) | | | | | | | | "
+                     f"{stabilised_cells(robust['backstepping'])}/{np.asarray(robust['backstepping']['diverged']).size}"
+                     " | |")
+    return lines + [""]

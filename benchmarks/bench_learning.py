@@ -30,7 +30,8 @@ from benchmarks.machine import cpu_model, load  # noqa: E402
 
 MEMORY_SNIPPET = r"""
 import resource, sys, time, jax, jax.numpy as jnp
-from jaxtraffic import TrafficParams, gradient as G
+from jaxtraffic import TrafficParams
+from jaxtraffic.learn import gradient as G
 remat, n_d, n_a = sys.argv[1] == "1", int(sys.argv[2]), int(sys.argv[3])
 cfg = G.GradientConfig(delays=tuple(float(d) for d in range(n_d)),
                        alphas=tuple(0.05 + 0.5 * i / max(1, n_a - 1) for i in range(n_a)), horizon_s=300.0)
@@ -47,7 +48,7 @@ print(f"{cfg.n_scenarios} {int(hwm) / 1024:.0f} {t:.2f}")
 DELAY_SNIPPET = r"""
 import json, sys
 import jaxtraffic as jt
-from jaxtraffic.policy import load_policy
+from jaxtraffic.learn import load_policy
 c, _ = load_policy(sys.argv[1])
 out = {}
 for d in range(7):

@@ -3,6 +3,8 @@ run directories that load with ``load_policy``."""
 
 from __future__ import annotations
 
+import json
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -71,6 +73,8 @@ def test_network_run_lowers_objective_round_trips_and_resumes_exactly(tmp_path):
         assert (tmp_path / "a" / name).exists(), name
     ctrl, config = load_policy(tmp_path / "a")
     assert config == tc
+    summary = json.loads((tmp_path / "a" / "summary.json").read_text())
+    assert summary["provenance"]["versions"]["jax"] == jax.__version__ and summary["updates"] == 4
     # the same 4 steps in process: the loaded controller acts exactly like the trained parameters
     cfg, plant = gradient_setup(tc)
     init, chunk = G.make_train(cfg, plant)

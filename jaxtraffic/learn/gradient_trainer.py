@@ -30,6 +30,7 @@ from jaxtraffic.learn.curve import plot_learning_curve, write_curve
 from jaxtraffic.learn.trainer import _fmt_time
 from jaxtraffic.model.linear import gain_law_wave_speed, linearize
 from jaxtraffic.model.params import TrafficParams
+from jaxtraffic.provenance import provenance
 from jaxtraffic.sim.metrics import REWARD_TARGET
 from jaxtraffic.sim.rollout import simulate
 
@@ -145,7 +146,8 @@ def train_gradient(tc: TrainConfig) -> Path:
     if not ev:
         ev = evaluation(G.make_controller(state.theta, cfg, plant), plant, eval_steps,
                         state.theta if cfg.policy == "gains" else None)
-    summary = {"algo": ALGO, "policy": cfg.policy, "updates": meta["updates"], "env_steps": meta["env_steps"],
+    summary = {"provenance": provenance(), "algo": ALGO, "policy": cfg.policy, "updates": meta["updates"],
+               "env_steps": meta["env_steps"],
                "wall_s": meta["wall_s"], "interrupted": interrupted, "eval_horizon_s": run.eval_horizon_s,
                "final_eval": ev, "backstepping_eval": ref,
                "stop_rule_reached": meta.get("seconds_to_paper_rule") is not None,

@@ -39,6 +39,7 @@ from jaxtraffic.learn import ppo
 from jaxtraffic.learn.config import RUN_CONTROL, TrainConfig, config_json, load_config
 from jaxtraffic.learn.curve import CURVE_FIELDS, plot_learning_curve, write_curve
 from jaxtraffic.model.linear import gain_law_wave_speed, linearize
+from jaxtraffic.provenance import provenance
 from jaxtraffic.sim.initial import paper_initial_condition
 from jaxtraffic.sim.rollout import simulate_batch
 
@@ -206,6 +207,7 @@ def train(s: TrainConfig) -> Path:
         last_eval = evaluate(runner)
     ev = last_eval["final_reward"]
     summary = {
+        "provenance": provenance(),
         "env_steps": meta["env_steps"], "wall_s": meta["wall_s"],
         "seconds_to_stop_rule": meta["seconds_to_stop_rule"],
         "env_steps_to_stop_rule": meta.get("env_steps_to_stop_rule"),

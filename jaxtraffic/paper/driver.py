@@ -19,6 +19,7 @@ from jaxtraffic.paper.learned import comparison_section
 from jaxtraffic.paper.report import robustness_summary, write_report
 from jaxtraffic.paper.scenarios import CTRL_DELAY, SCENARIOS, EvalConfig, initial_norms, run_robustness, run_scenarios
 from jaxtraffic.paper.summaries import UNITS, equilibrium_indices, summarise, table2_rows, write_table2
+from jaxtraffic.provenance import provenance
 
 
 # ----------------------------------------------------------------------------- driver
@@ -75,7 +76,7 @@ def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: s
         "equilibrium_indices": equilibrium_indices(cfg),
         "robust_grid": {"delays_s": list(cfg.robust_delays), "alphas": list(cfg.robust_alphas),
                         "horizon_s": cfg.robust_horizon_s},
-        "jax_version": jax.__version__, "backend": jax.default_backend(),
+        "jax_version": jax.__version__, "backend": jax.default_backend(), "provenance": provenance(),
     })
     lc_data = None
     if lc is not None and lc.exists():

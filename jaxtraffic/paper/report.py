@@ -10,6 +10,7 @@ import numpy as np
 
 from jaxtraffic.paper.claims import CRITERIA, _t
 from jaxtraffic.paper.scenarios import CTRL_DELAY, SETTLE_FRACTION, EvalConfig, initial_norms
+from jaxtraffic.provenance import describe
 
 
 def robustness_summary(robust: dict[str, dict[str, np.ndarray]], cfg: EvalConfig) -> list[str]:
@@ -53,6 +54,8 @@ def write_report(path: Path, claims: list[dict[str, Any]], metrics: dict, meta: 
     ``sections``: further markdown lines (e.g. the robustness summary) before the other figures."""
     lines = ["# Reproduction report: PPO control of congested freeway traffic (paper section 4)", ""]
     pol = meta["policy"]
+    if "provenance" in meta:
+        lines += [f"- produced by: {describe(meta['provenance'])}"]
     lines += [f"- PPO policy: `{pol.get('run_dir')}` ({pol.get('description', '')})",
               f"- PPO in scenario delay0: {meta['policy_delay0']['description']}",
               f"- grid: {meta['grid']['n_points']} points (dx = {meta['grid']['dx_m']:g} m), dt = "

@@ -1,0 +1,97 @@
+#!/usr/bin/env python
+"""Rerun the main job and say whether each headline claim of the README still holds.
+
+    python benchmarks/reproduce.py [--out DIR] [--skip-run] [--reference docs/results]
+
+Runs ``python evaluate.py --out DIR`` from an empty working directory (so every policy is trained
+anew into its runs/, as on a fresh clone; ``--skip-run`` only re-checks an existing DIR), then checks the headline
+claims below on DIR/metrics.json and prints, for each, PASS or FAIL with the numbers, and the
+relative change of the key numbers against the committed ``--reference`` outputs. Exit status 0
+when every claim holds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _d4(m: dict, c: str) -> dict:
+    return m["delay4"].get(c, {})
+
+
+def _beats_backstepping(c: str) -> Callable[[dict], tuple[bool, str]]:
+    def check(m: dict) -> tuple[bool, str]:
+        x, b = _d4(m, c), _d4(m, "backstepping")
+        if not x:
+            return False, f"{c} not evaluated"
+        ok = (not x["diverged"]) and x["final_rho_L2"] < b["final_rho_L2"] and x["J_comfort"] < b["J_comfort"]
+        return ok, (f"rho L2 {1e3 * x['final_rho_L2']:.3f} vs {1e3 * b['final_rho_L2']:.3f} veh/km, "
+                    f"J_comfort {x['J_comfort']:.4g} vs {b['J_comfort']:.4g}")
+    return check
+
+
+def _stabilises(scenario: str, c: str) -> Callable[[dict], tuple[bool, str]]:
+    def check(m: dict) -> tuple[bool, str]:
+        e = m[scenario].get(c)
+        if e is None:
+            return False, f"{c} not evaluated in {scenario}"
+        t = e.get("time_to_reward_-0.1_s")
+        return (not e["diverged"]) and t is not None, f"reward >= -0.1 from {t} s, diverged {e['diverged']}"
+    return check
+
+
+def _lyapunov_fails_with_delay(m: dict) -> tuple[bool, str]:
+    e = m["delay4"]["lyapunov"]
+    return e.get("time_to_reward_-0.1_s") is None, f"final rho L2 {1e3 * e['final_rho_L2']:.3g} veh/km"
+
+
+CLAIMS: dict[str, Callable[[dict], tuple[bool, str]]] = {
+    "Lyapunov stabilises without delay": _stabilises("delay0", "lyapunov"),
+    "Lyapunov does not stabilise with D = 4 s": _lyapunov_fails_with_delay,
+    "backstepping stabilises with D = 4 s": _stabilises("delay4", "backstepping"),
+    "PPO stabilises with D = 4 s": _stabilises("delay4", "ppo"),
+    "PPO beats backstepping at D = 4 s (final rho L2 and J_comfort)": _beats_backstepping("ppo"),
+    "gradient gains beat backstepping at D = 4 s": _beats_backstepping("grad_gains"),
+    "gradient network beats backstepping at D = 4 s": _beats_backstepping("grad_network"),
+}
+KEY_NUMBERS = [("delay4", c, k) for c in ("backstepping", "ppo", "grad_gains", "grad_network")
+               for k in ("final_rho_L2", "J_comfort")]
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", type=Path, default=None, help="output directory (default: a temporary one)")
+    ap.add_argument("--skip-run", action="store_true", help="only check an existing --out")
+    ap.add_argument("--reference", type=Path, default=ROOT / "docs" / "results")
+    args = ap.parse_args()
+    out = args.out or Path(tempfile.mkdtemp(prefix="jaxtraffic-reproduce-"))
+    if not args.skip_run:
+        work = Path(tempfile.mkdtemp(prefix="jaxtraffic-runs-"))  # its runs/ holds the freshly trained policies
+        subprocess.run([sys.executable, str(ROOT / "evaluate.py"), "--out", str(out.resolve())], check=True, cwd=work)
+    m = json.loads((out / "metrics.json").read_text())
+    results = {name: check(m) for name, check in CLAIMS.items()}
+    for name, (ok, detail) in results.items():
+        print(f"{'PASS' if ok else 'FAIL'}  {name}: {detail}")
+    ref_path = args.reference / "metrics.json"
+    if ref_path.exists():
+        ref = json.loads(ref_path.read_text())
+        print(f"\nagainst {ref_path} (code {ref.get('meta', {}).get('provenance', {}).get('commit')}):")
+        for s, c, k in KEY_NUMBERS:
+            a, b = m.get(s, {}).get(c, {}).get(k), ref.get(s, {}).get(c, {}).get(k)
+            if a is not None and b:
+                print(f"  {s}/{c}/{k}: {a:.4g} (reference {b:.4g}, {100 * (a - b) / abs(b):+.1f} %)")
+    prov = m.get("meta", {}).get("provenance", {})
+    print(f"\nthis run: code {prov.get('commit')} (dirty: {prov.get('dirty')}), versions {prov.get('versions')}")
+    return 0 if all(ok for ok, _ in results.values()) else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

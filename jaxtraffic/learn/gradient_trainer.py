@@ -130,8 +130,7 @@ def train_gradient(tc: TrainConfig) -> Path:
                 f"J_comfort {row['eval_J_comfort']:.4g} | gains ({g[0]:+.2f}, {g[1]:+.2f}, {g[2]:+.2f}) | "
                 f"{_fmt_time(meta['wall_s'])} ({meta['wall_s'] - t_prev:.1f} s/chunk)"
                 + (" | beats backstepping" if beats(ev, ref) else ""))
-            ckpt.atomic_write_bytes(run_dir / ckpt.CHECKPOINT, serialization.msgpack_serialize(
-                {"runner": serialization.to_state_dict(jax.device_get(state)), "meta": ckpt.to_jsonable(meta)}))
+            ckpt.save_checkpoint(run_dir, state, meta)
             write_curve(run_dir / "learning_curve.csv", meta["rows"], CURVE_FIELDS)
             if meta["wall_s"] > run.max_wall_s:
                 say(f"stopping: wall-clock budget {run.max_wall_s:g} s reached")

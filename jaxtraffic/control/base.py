@@ -64,6 +64,7 @@ class Controller:
 
 
 def saturate(h: Array, p: TrafficParams) -> Array:
-    """Clip a time-gap field to the actuator bounds [h_min, h_max] (s)."""
-    return jnp.clip(h, p.h_min, p.h_max)
+    """Clip a time-gap field to the actuator bounds [h_min, h_max] (s); NaN becomes h_bar (a
+    defined value: the closed loop also flags such a step, see ``sim.plant``), +-inf a bound."""
+    return jnp.clip(jnp.where(jnp.isnan(h), p.h_bar, h), p.h_min, p.h_max)
 

@@ -16,6 +16,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+import numpy as np
+
 from jaxtraffic.control.base import Controller
 from jaxtraffic.model import delay as delay_buffer
 from jaxtraffic.model import fundamental as fd
@@ -23,6 +25,24 @@ from jaxtraffic.model.linear import LinearModel, linear_step, linearize, riemann
 from jaxtraffic.model.params import TrafficParams, equilibrium
 
 Array = jax.Array
+
+
+def _check_setting(name: str, value: float | Array, minimum: float | None = None) -> None:
+    """Raise ``ValueError`` if a concrete controller setting is not a finite number (>= ``minimum``).
+    Traced values (inside ``jit``/``vmap``) are not checked, and no ``jnp`` operation runs here: a
+    controller can be built inside ``jax.jit`` (where even constants become tracers)."""
+    if isinstance(value, jax.core.Tracer):
+        return
+    if isinstance(value, (str, bytes)):
+        raise ValueError(f"{name} must be a number, got {value!r}")
+    try:
+        x = np.asarray(value, np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {value!r}") from None
+    if not np.all(np.isfinite(x)):
+        raise ValueError(f"{name} must be finite, got {x.tolist()}")
+    if minimum is not None and not np.all(x >= minimum):
+        raise ValueError(f"{name} must be >= {minimum}, got {x.tolist()}")
 
 
 # ----------------------------------------------------------------------------- open loop
@@ -87,6 +107,7 @@ def lyapunov(k: float | Array = 1.0, nonlinear: bool = False) -> Controller:
     (when v - k v~ <= 0 or the required h_mix exceeds its supremum c/b it asks for a very large
     gap, which the actuator bound turns into h_max).
     """
+    _check_setting("lyapunov gain k", k)
     act = _lyapunov_nonlinear_act if nonlinear else _lyapunov_act
     return Controller(settings=LyapunovSettings(k=jnp.asarray(k, float)), act_fn=act,
                       name="lyapunov_nl" if nonlinear else "lyapunov")
@@ -148,7 +169,7 @@ def backstepping(delay: float | Array = 4.0, k: float | Array = 1.0) -> Controll
     rounded to a whole number of steps and clipped to the buffer capacity (``max_delay_steps``).
     With delay = 0 it equals ``lyapunov(k)`` exactly.
     """
-    if not isinstance(delay, jax.core.Tracer) and bool(jnp.any(jnp.asarray(delay) < 0)):
-        raise ValueError(f"assumed delay must be >= 0, got {delay}")
+    _check_setting("assumed delay", delay, minimum=0.0)
+    _check_setting("backstepping gain k", k)
     settings = BacksteppingSettings(k=jnp.asarray(k, float), delay=jnp.asarray(delay, float))
     return Controller(settings=settings, act_fn=_backstepping_act, name="backstepping")

@@ -13,6 +13,7 @@ so invalid input fails at construction with a clear message.
 from __future__ import annotations
 
 import math
+import numbers
 
 import jax
 import jax.numpy as jnp
@@ -22,6 +23,8 @@ from flax import struct
 from jaxtraffic.model import fundamental as fd
 
 SCHEMES = ("upwind", "muscl")
+FLOAT_FIELDS = ("L", "l", "q_in", "alpha", "tau_acc", "tau_m", "h_bar", "h_m", "delay", "dt", "h_min", "h_max",
+                "alpha_noise")
 MODELS = ("arz", "linear")
 
 
@@ -67,6 +70,10 @@ class TrafficParams:
     model: str = struct.field(pytree_node=False, default="arz")
 
     def __post_init__(self) -> None:
+        for name in ("n_points", "max_delay_steps"):  # numpy integers are ints too (np.int64(21))
+            value = getattr(self, name)
+            if isinstance(value, numbers.Integral) and not isinstance(value, (bool, int)):
+                object.__setattr__(self, name, int(value))
         validate(self)
 
     @property
@@ -87,7 +94,8 @@ class TrafficParams:
 def _concrete(value: object) -> np.ndarray | None:
     """``value`` as a float numpy array, or None if it is a JAX array (a tracer, or a device array
     that JAX itself rebuilds the struct around, e.g. when dispatching ``pmap``: reading it back
-    would synchronise with the device there, and can deadlock) or not numeric. Python numbers and
+    would synchronise with the device there, and can deadlock) or not numeric (a placeholder leaf;
+    strings are rejected by ``validate`` before this). Python numbers and
     numpy arrays, what users pass, are validated; ``stack_params`` validates before converting."""
     if isinstance(value, jax.Array):
         return None
@@ -105,19 +113,24 @@ def validate(p: TrafficParams, cfl_max: float = 1.0) -> None:
     capacity, and the CFL condition max|lambda| dt/dx <= ``cfl_max`` at the equilibrium.
     Fields that are traced (inside ``jit``/``vmap``) are skipped: validate before tracing.
     """
-    if not isinstance(p.n_points, int) or p.n_points < 3:
+    if isinstance(p.n_points, bool) or not isinstance(p.n_points, int) or p.n_points < 3:
         raise ValueError(f"n_points must be an int >= 3, got {p.n_points!r}")
-    if not isinstance(p.max_delay_steps, int) or p.max_delay_steps < 0:
+    if isinstance(p.max_delay_steps, bool) or not isinstance(p.max_delay_steps, int) or p.max_delay_steps < 0:
         raise ValueError(f"max_delay_steps must be an int >= 0, got {p.max_delay_steps!r}")
     if p.scheme not in SCHEMES:
         raise ValueError(f"scheme must be one of {SCHEMES}, got {p.scheme!r}")
     if p.model not in MODELS:
         raise ValueError(f"model must be one of {MODELS}, got {p.model!r}")
-    vals = {k: _concrete(getattr(p, k)) for k in (
-        "L", "l", "q_in", "alpha", "tau_acc", "tau_m", "h_bar", "h_m", "delay", "dt",
-        "h_min", "h_max", "alpha_noise")}
+    for name in FLOAT_FIELDS:
+        value = getattr(p, name)
+        if isinstance(value, (str, bytes)):
+            raise ValueError(f"{name} must be a number, got {value!r}")
+    vals = {k: _concrete(getattr(p, k)) for k in FLOAT_FIELDS}
     if any(v is None for v in vals.values()):
         return  # traced or placeholder leaves: nothing concrete to check
+    for name, v in vals.items():
+        if not np.all(np.isfinite(v)):
+            raise ValueError(f"{name} must be finite, got {v}")
     for name in ("L", "l", "q_in", "tau_acc", "tau_m", "h_bar", "h_m", "dt", "h_min"):
         if not np.all(vals[name] > 0):
             raise ValueError(f"{name} must be > 0, got {vals[name]}")
@@ -149,6 +162,40 @@ def validate(p: TrafficParams, cfl_max: float = 1.0) -> None:
         raise ValueError(
             f"CFL violated: max|lambda| dt/dx = {cfl:.3f} > {cfl_max} (dt={vals['dt']} s, dx={dx} m);"
             " reduce dt or use fewer points")
+
+
+def check_nominal(plant: TrafficParams, nominal: TrafficParams | None) -> None:
+    """Raise ``ValueError`` unless ``nominal`` (the controller's model and the metrics' target) is on
+    the plant's grid: the same n_points, dt and L (so dx). The controller's step counts, its
+    predictor's dx and dt and the metrics' times all use the nominal's, so a nominal on another grid
+    gives silently wrong results. Traced values are not checked."""
+    if nominal is None:
+        return
+    if nominal.n_points != plant.n_points:
+        raise ValueError(f"nominal.n_points={nominal.n_points} differs from the plant's n_points={plant.n_points}: "
+                         "the nominal must be on the plant's grid")
+    for name in ("dt", "L"):
+        a, b = _concrete(getattr(plant, name)), _concrete(getattr(nominal, name))
+        if a is None or b is None:
+            continue
+        if not np.allclose(a, b, rtol=1e-6, atol=0.0):
+            raise ValueError(f"nominal.{name}={b.tolist()} differs from the plant's {name}={a.tolist()}: the nominal "
+                             f"must be on the plant's grid (same n_points, dt and L); change the nominal's "
+                             f"physical constants only")
+
+
+def check_steps(n_steps: object, record_every: object = 0) -> None:
+    """Raise ``ValueError`` unless ``n_steps`` is an int >= 1 and ``record_every`` an int >= 0
+    dividing it (numpy integers are accepted; floats are not)."""
+    def is_int(x: object) -> bool:
+        return isinstance(x, numbers.Integral) and not isinstance(x, (bool, np.bool_))
+
+    if not is_int(n_steps) or n_steps < 1:
+        raise ValueError(f"n_steps must be an int >= 1, got {n_steps!r}")
+    if not is_int(record_every) or record_every < 0:
+        raise ValueError(f"record_every must be an int >= 0 (0: no trajectory), got {record_every!r}")
+    if record_every and n_steps % record_every:
+        raise ValueError(f"n_steps={n_steps} is not a multiple of record_every={record_every}")
 
 
 class _np_view:  # minimal attribute view so fundamental.* works on numpy dicts

@@ -10,7 +10,14 @@ learning environment (``learn.env``) and every trainer are scans of it. Order of
   3. the plant advances with this step's alpha (``plant_alpha``: alpha + alpha_noise N(0, 1),
      clipped to [0, 1]);
   4. a state that leaves 0 < rho < 1/l, v >= 0 (or is not finite) is not accepted: the plant is
-     flagged ``diverged`` and frozen at its last physical state.
+     flagged ``diverged`` and frozen at its last physical state. So is a step whose controller
+     output is not finite (NaN/inf anywhere in h^n): the saturated field is still defined
+     (``saturate`` maps NaN to h_bar) but the step is refused, with its own reason code.
+
+``PlantState.diverged_reason`` says why a plant was frozen: ``DIVERGED_NONE`` (0, healthy),
+``DIVERGED_STATE`` (1, the state left the physical region), ``DIVERGED_CONTROL`` (2, the
+controller returned a non-finite time gap), ``DIVERGED_INITIAL`` (3, the initial state was not
+finite or not physical; only reachable with traced inputs, concrete ones are rejected).
 """
 
 from __future__ import annotations
@@ -31,6 +38,11 @@ from jaxtraffic.sim import metrics as M
 
 Array = jax.Array
 
+DIVERGED_NONE, DIVERGED_STATE, DIVERGED_CONTROL, DIVERGED_INITIAL = 0, 1, 2, 3
+DIVERGED_REASONS = {DIVERGED_NONE: "not diverged", DIVERGED_STATE: "state left the physical region",
+                    DIVERGED_CONTROL: "controller output not finite",
+                    DIVERGED_INITIAL: "initial state not finite or not physical"}
+
 
 @struct.dataclass
 class PlantState:
@@ -44,6 +56,7 @@ class PlantState:
     step: Array
     diverged: Array
     diverged_step: Array  # step at which the state left the physical region (-1: never)
+    diverged_reason: Array  # why (``DIVERGED_*`` codes above; 0: healthy)
 
     def observation(self, p: TrafficParams) -> Observation:
         return Observation(rho=self.rho, v=self.v, h_prev=self.h_prev, t=self.step * p.dt, sent=self.sent)
@@ -66,6 +79,7 @@ def initial_state(p: TrafficParams, rho0: Array, v0: Array,
         rho=rho0, v=v0, sent=buf, h_prev=h0,
         step=jnp.zeros((), jnp.int32), diverged=bad,
         diverged_step=jnp.where(bad, 0, -1).astype(jnp.int32),
+        diverged_reason=jnp.where(bad, DIVERGED_INITIAL, DIVERGED_NONE).astype(jnp.int32),
     )
 
 
@@ -73,7 +87,7 @@ def select_state(pred: Array, restarted: PlantState, state: PlantState) -> Plant
     """``restarted`` where ``pred`` else ``state``, for ``restarted = initial_state(..., sent=state.sent)``:
     both share the buffer storage, so only its O(n) bookkeeping is selected (``delay.select_restarted``)."""
     fields = {f: jnp.where(pred, getattr(restarted, f), getattr(state, f))
-              for f in ("rho", "v", "h_prev", "step", "diverged", "diverged_step")}
+              for f in ("rho", "v", "h_prev", "step", "diverged", "diverged_step", "diverged_reason")}
     return PlantState(sent=delay_buffer.select_restarted(pred, restarted.sent, state.sent), **fields)
 
 
@@ -99,12 +113,14 @@ def plant_step(state: PlantState, h_sent: Array, p: TrafficParams, key: Array) -
 
 
 def _plant_step(state: PlantState, h_sent: Array, p: TrafficParams, alpha: Array,
-                target: tuple[Array, Array] | None = None) -> tuple[PlantState, Array, Array | None]:
+                target: tuple[Array, Array] | None = None, bad_input: Array | bool = False
+                ) -> tuple[PlantState, Array, Array | None]:
     """``plant_step`` with the plant alpha given. Returns (new state, applied (delayed) input,
     reward of the new state against ``target`` = (rho_bar, v_bar), or None without a target).
 
     With a target, the physicality check and the reward share one spatial reduction
-    (``metrics.physical_reward``; NaN when the step left the physical region).
+    (``metrics.physical_reward``; NaN when the step left the physical region). ``bad_input``:
+    the controller's output was not finite; the step is refused (reason ``DIVERGED_CONTROL``).
     """
     sent = delay_buffer.push(state.sent, h_sent)
     h_applied = delay_buffer.read(sent, p.delay_steps)
@@ -119,12 +135,14 @@ def _plant_step(state: PlantState, h_sent: Array, p: TrafficParams, alpha: Array
     else:
         r_new = M.physical_reward(rho, v, target[0], target[1], p.l)
         ok = ~jnp.isnan(r_new)
-    bad = ~ok & ~state.diverged
+    bad = (~ok | bad_input) & ~state.diverged
     frozen = state.diverged | bad
+    reason = jnp.where(bad, jnp.where(bad_input, DIVERGED_CONTROL, DIVERGED_STATE), state.diverged_reason)
     new = PlantState(
         rho=jnp.where(frozen, state.rho, rho), v=jnp.where(frozen, state.v, v), sent=sent,
         h_prev=h_sent, step=state.step + 1, diverged=frozen,
         diverged_step=jnp.where(bad, state.step, state.diverged_step),
+        diverged_reason=reason.astype(jnp.int32),
     )
     return new, h_applied, r_new
 
@@ -152,7 +170,8 @@ def closed_loop_step(plant: PlantState, cstate: Any, controller: Controller, pla
     by the caller), against which ``info.reward`` is measured.
     """
     h, cstate = controller.act(cstate, plant.observation(plant_params), nominal, key)
+    bad_input = ~jnp.all(jnp.isfinite(h))  # NaN/inf from the controller: refused, not clipped into range
     h = saturate(h, plant_params).astype(plant.rho.dtype)
-    new, h_applied, r_new = _plant_step(plant, h, plant_params, alpha, target)
+    new, h_applied, r_new = _plant_step(plant, h, plant_params, alpha, target, bad_input)
     cfl = local_cfl(plant.rho, plant.v, h_applied, plant_params, alpha)
     return new, cstate, h, StepInfo(h_applied=h_applied, reward=r_new, cfl=cfl)

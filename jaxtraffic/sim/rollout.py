@@ -21,7 +21,7 @@ from flax import struct
 from jaxtraffic.control.base import Controller
 from jaxtraffic.control.baselines import open_loop
 from jaxtraffic.model.fundamental import in_physical_region
-from jaxtraffic.model.params import TrafficParams, equilibrium
+from jaxtraffic.model.params import TrafficParams, check_nominal, check_steps, equilibrium
 from jaxtraffic.sim import metrics as M
 from jaxtraffic.sim.initial import equilibrium_state, paper_initial_condition
 from jaxtraffic.sim.plant import PlantState, closed_loop_step, initial_state, plant_alpha_sequence, plant_step
@@ -63,7 +63,9 @@ def finalize_metrics(acc: M.MetricsAccumulator, final: PlantState, target: Traff
 
     J_TTT, J_fuel, J_comfort (rho in veh/km; see ``metrics``), final_rho_L2 (veh/m),
     final_v_L2 (m/s), final_reward, time_to_reward_target_s (time after which the reward stays
-    >= -0.1; inf if it never does), diverged, diverged_at_s (inf if never), control_effort
+    >= -0.1; inf if it never does), diverged, diverged_at_s (inf if never), diverged_reason
+    (``sim.plant.DIVERGED_*``: 0 healthy, 1 state left the physical region, 2 controller output
+    not finite, 3 initial state not finite/physical), control_effort
     (RMS over space and time of h_sent - h_bar, s), max_cfl (largest CFL number of the steps
     taken, with the applied input and the plant's alpha).
     """
@@ -84,6 +86,7 @@ def finalize_metrics(acc: M.MetricsAccumulator, final: PlantState, target: Traff
         "time_to_reward_target_s": jnp.where(reached, (acc.last_bad_step + 1) * dt, jnp.inf),
         "diverged": final.diverged,
         "diverged_at_s": jnp.where(final.diverged, final.diverged_step * dt, jnp.inf),
+        "diverged_reason": final.diverged_reason,
         "control_effort": tot["control_effort"],
         "max_cfl": tot["max_cfl"],
     }
@@ -182,7 +185,7 @@ def simulate(
         key: PRNG key for alpha noise and stochastic controllers (default PRNGKey(0)).
         nominal: the parameters the controller and the metrics use as model and target
             (default: ``params``). MODEL.md section 12: keep the nominal target when the plant's
-            alpha differs.
+            alpha differs. It must be on the plant's grid (same n_points, dt, L), else ValueError.
         record_every: record the fields every k-th step (0: no trajectory, metrics only).
         remat: checkpoint every recording chunk for reverse-mode differentiation (see
             ``simulate_batch``).
@@ -191,10 +194,10 @@ def simulate(
         raise ValueError("remat needs record_every > 0 (the checkpointed chunk length)")
     if (rho0 is None) != (v0 is None):
         raise ValueError("give both rho0 and v0, or neither")
-    if n_steps < 1:
-        raise ValueError(f"n_steps must be >= 1, got {n_steps}")
+    check_steps(n_steps, record_every)
+    check_nominal(params, nominal)
     _check_initial_condition(params, rho0, v0)
-    return _simulate_jit(params, controller, rho0, v0, key, nominal, n_steps, record_every, remat)
+    return _simulate_jit(params, controller, rho0, v0, key, nominal, int(n_steps), int(record_every), remat)
 
 
 def simulate_batch(
@@ -230,10 +233,10 @@ def simulate_batch(
         raise ValueError("simulate_batch: nothing is batched; use simulate")
     if (rho0 is None) != (v0 is None):
         raise ValueError("give both rho0 and v0, or neither")
-    if n_steps < 1:
-        raise ValueError(f"n_steps must be >= 1, got {n_steps}")
+    check_steps(n_steps, record_every)
+    check_nominal(params, nominal)
     _check_initial_condition(params, rho0, v0)
-    return _simulate_batch_jit(params, controller, rho0, v0, keys, nominal, n_steps, record_every,
+    return _simulate_batch_jit(params, controller, rho0, v0, keys, nominal, int(n_steps), int(record_every),
                                (p_axis, c_axis, r_axis, r_axis, k_axis), chunk_size or 0, remat)
 
 

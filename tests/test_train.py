@@ -103,7 +103,12 @@ def _train_runs(root: Path) -> None:
     shutil.copytree(b, root / "B_first")
     train_cli.main(["--out-dir", str(b), "--resume", "--total-steps", str(4 * CHUNK), "--keep-going", "--quiet"])
     shared.calls, shared.interrupt_at = 0, 3
-    i = _cli(root / "I", "--total-steps", str(4 * CHUNK), "--keep-going")
+    try:
+        _cli(root / "I", "--total-steps", str(4 * CHUNK), "--keep-going")
+        raise AssertionError("the interrupted run did not exit")
+    except SystemExit as exc:
+        assert exc.code == 130, exc.code  # the convention for SIGINT / Ctrl-C
+    i = root / "I"
     shared.interrupt_at = None
     shutil.copytree(i, root / "I_first")
     train_cli.main(["--out-dir", str(i), "--resume", "--total-steps", str(4 * CHUNK), "--keep-going", "--quiet"])
@@ -324,8 +329,8 @@ def test_cli_help_documents_every_flag(capsys):
 @pytest.mark.parametrize("argv, match", [
     (["--delay", "0.05", "--dt", "0.1"], "multiple of dt"),
     (["--alpha", "1.5"], "alpha"),
-    (["--alpha-range", "0.1,1.5"], "alpha range"),
-    (["--delay-range", "3,2"], "delay_min"),
+    (["--alpha-range", "0.1,1.5"], "alpha_range"),
+    (["--delay-range", "3,2"], "delay_range"),
     (["--n-points", "2"], "n_points"),
     (["--network", "huge"], "invalid choice"),
     (["--delay-range", "1"], "LO,HI"),

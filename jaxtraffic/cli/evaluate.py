@@ -14,6 +14,8 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -117,18 +119,58 @@ def _describe(run_dir: Path, config: TrainConfig) -> dict[str, Any]:
             "config": dataclasses.asdict(config)}
 
 
-def main(argv: list[str] | None = None) -> dict[str, Any]:
-    args = parse_args(argv)
-    t0 = time.perf_counter()
+def _fail(msg: str) -> SystemExit:
+    print(f"evaluate.py: error: {msg}", file=sys.stderr)
+    return SystemExit(2)
+
+
+def check_args(args: argparse.Namespace) -> tuple[int, int]:
+    """Reject bad flags (``SystemExit(2)`` with a message naming the flag, the value and the allowed
+    range) before anything is created or compiled; returns the robustness grid sizes."""
     try:
         nd, na = (int(v) for v in args.robust_grid.lower().split("x"))
     except ValueError:
-        raise SystemExit(f"--robust-grid must look like 17x12, got {args.robust_grid!r}") from None
-    if args.seeds < 1 or nd < 0 or na < 0:
-        raise SystemExit("--seeds must be >= 1 and the --robust-grid sizes >= 0")
+        raise _fail(f"--robust-grid must look like 17x12 (NDxNA, integers >= 0), got {args.robust_grid!r}") from None
+    if nd < 0 or na < 0:
+        raise _fail(f"--robust-grid sizes must be >= 0, got {args.robust_grid!r}")
+    if args.seeds < 1:
+        raise _fail(f"--seeds must be >= 1, got {args.seeds}")
+    for flag, value in (("--horizon", args.horizon), ("--robust-horizon", args.robust_horizon)):
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise _fail(f"{flag} must be a finite number of seconds > 0, got {value}")
+    if args.n_points is not None and args.n_points < 3:
+        raise _fail(f"--n-points must be >= 3, got {args.n_points}")
+    for flag, run in (("--run", args.run), ("--run-delay0", args.run_delay0)):
+        if run is not None and not (run / "config.json").is_file():
+            raise _fail(f"{flag} {run}: not a run directory (no config.json there)")
+        if run is not None and not (run / "checkpoint.msgpack").is_file():
+            raise _fail(f"{flag} {run}: no checkpoint.msgpack there (the training never completed a chunk)")
+    out = args.out
+    if out.exists() and not out.is_dir():
+        raise _fail(f"--out {out}: exists and is not a directory")
+    parent = out
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+        raise _fail(f"--out {out}: {parent} is not a writable directory")
+    return nd, na
 
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    args = parse_args(argv)
+    t0 = time.perf_counter()
+    nd, na = check_args(args)
+    try:
+        return _main(args, argv, t0, nd, na)
+    except (ValueError, FileNotFoundError) as err:  # a broken run directory: one line naming the file
+        raise _fail(str(err)) from None
+
+
+def _main(args: argparse.Namespace, argv: list[str] | None, t0: float, nd: int, na: int) -> dict[str, Any]:
     run_dir = find_or_train_run(args.run, args.n_points)
     ppo, config = load_policy(run_dir)
+    if args.horizon < float(config.plant.dt):
+        raise ValueError(f"--horizon must be at least one time step ({config.plant.dt} s), got {args.horizon}")
     n_points, dt = config.plant.n_points, float(config.plant.dt)
     if args.n_points and args.n_points != n_points:
         _log(f"note: --n-points {args.n_points} ignored; the run was trained on {n_points} points")

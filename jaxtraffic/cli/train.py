@@ -3,8 +3,8 @@
 ``python train.py [flags]`` (``--help`` lists them).
 
 A default run trains the D = 4 s policy and writes, in ``--out-dir`` (default runs/default):
-config.json, checkpoint.msgpack, learning_curve.csv/.png and summary.json. Ctrl-C saves a
-checkpoint; ``--resume`` continues from it.
+config.json, checkpoint.msgpack, learning_curve.csv/.png and summary.json. Ctrl-C or SIGTERM stops
+after the current chunk with its checkpoint saved (exit 130 / 143); ``--resume`` continues from it.
 """
 
 from __future__ import annotations
@@ -15,9 +15,9 @@ import math
 import sys
 from pathlib import Path
 
-from jaxtraffic.learn.config import SECTIONS, RunConfig, TrainConfig
+from jaxtraffic.learn.config import RUN_CONTROL, SECTIONS, RunConfig, TrainConfig, load_config
 from jaxtraffic.learn.gradient_trainer import train_gradient
-from jaxtraffic.learn.trainer import train
+from jaxtraffic.learn.trainer import TrainingInterrupted, train
 
 
 def _pair(kind):
@@ -72,12 +72,39 @@ def settings_from_args(argv: list[str] | None = None) -> TrainConfig:
     return TrainConfig.from_flat(**vars(args))
 
 
+def explicit_flags(argv: list[str] | None = None) -> dict:
+    """The flags given on the command line (not their defaults), by field name."""
+    p = build_parser()
+    for action in p._actions:
+        action.default = argparse.SUPPRESS
+    return vars(p.parse_args(argv))
+
+
+def warn_ignored_on_resume(settings: TrainConfig, given: dict) -> None:
+    """On --resume the run's saved config is used: say which given flags that ignores."""
+    try:
+        saved = load_config(settings.run.out_dir).flat()
+    except (OSError, ValueError):
+        return  # train() reports a broken directory itself
+    flat = settings.flat()
+    ignored = [f"--{k.replace('_', '-')} {flat[k]!r} (the run's value: {saved[k]!r})" for k in given
+               if k not in RUN_CONTROL and k in saved and flat[k] != saved[k]]
+    if ignored:
+        print("train.py: warning: --resume continues with the run's saved configuration; ignoring "
+              + ", ".join(ignored), file=sys.stderr)
+
+
 def main(argv: list[str] | None = None) -> Path:
-    """Parse flags, train, return the run directory."""
+    """Parse flags, train, return the run directory. Exit status 2 for invalid flags or a broken run
+    directory, 130 / 143 after SIGINT / SIGTERM (see ``learn.trainer``)."""
     try:
         settings = settings_from_args(argv)
+        if settings.run.resume:
+            warn_ignored_on_resume(settings, explicit_flags(argv))
         return train_gradient(settings) if settings.run.algo == "gradient" else train(settings)
-    except ValueError as err:  # invalid parameters: a clear message, no traceback
+    except TrainingInterrupted as exc:  # the trainer has said what is saved
+        raise SystemExit(exc.exit_code) from None
+    except (ValueError, FileNotFoundError) as err:  # invalid parameters / run directory: a clear message
         print(f"train.py: error: {err}", file=sys.stderr)
         raise SystemExit(2) from err
 

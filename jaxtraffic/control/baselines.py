@@ -14,9 +14,8 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-from flax import struct
-
 import numpy as np
+from flax import struct
 
 from jaxtraffic.control.base import Controller
 from jaxtraffic.model import delay as delay_buffer

@@ -1,13 +1,25 @@
-"""Atomic, pickle-free checkpoints (flax msgpack serialization), run-directory I/O, ``load_policy``.
+"""Atomic, checksummed, pickle-free checkpoints (flax msgpack serialization), run-directory I/O,
+``load_policy``.
 
-A checkpoint file holds ``{"runner": <state dict of the PPO Runner>, "meta": <progress>}``.
-Every write goes to a temporary file in the same directory, is flushed and fsynced, then
-``os.replace``d over the target, so an interruption never leaves a half-written file.
+A checkpoint file is a msgpack map ``{"format": "jaxtraffic-checkpoint", "version": 1, "sha256":
+<hex digest of payload>, "payload": <bytes>}`` whose payload is the flax-msgpack encoding of
+``{"runner": <state dict of the PPO Runner>, "meta": <progress>}``; ``load_checkpoint`` checks the
+digest, so a truncated, empty or corrupted file is an error naming it, never a silent load (files
+written before the checksum, a bare payload, still load). Every write goes to a temporary file in
+the same directory (mode 0666 less the umask, like any other file), is flushed and fsynced, then
+``os.replace``d over the target, so an interruption never leaves a half-written file; a temporary
+file left by a killed process (``.*.tmp``) is removed by ``clean_stale_tmp`` when training starts.
+
+JSON outputs (``to_jsonable``): ``null`` means "never" / "none" / unbounded (+inf: a time that is
+never reached, no wall-clock limit); a value that could not be computed, NaN, is the string
+``"nan"``, and -inf is ``"-inf"``. ``from_jsonable`` reads them back as floats.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
+import math
 import os
 import tempfile
 from dataclasses import dataclass
@@ -16,6 +28,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import msgpack
 import numpy as np
 from flax import serialization
 
@@ -26,6 +39,14 @@ from jaxtraffic.learn.config import TrainConfig, load_config
 CHECKPOINT = "checkpoint.msgpack"
 CONFIG = "config.json"
 SUMMARY = "summary.json"
+FORMAT = "jaxtraffic-checkpoint"
+FORMAT_VERSION = 1
+
+
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:
@@ -33,6 +54,7 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
+        os.fchmod(fd, 0o666 & ~_umask())  # mkstemp creates 0600: results readable like any file
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()
@@ -48,41 +70,140 @@ def atomic_write_text(path: str | Path, text: str) -> None:
     atomic_write_bytes(path, text.encode())
 
 
+def clean_stale_tmp(run_dir: str | Path) -> list[Path]:
+    """Remove the temporary files (``.<name>.XXXX.tmp``) that a killed process left in ``run_dir``;
+    returns them. Call it only when no other process writes to the directory."""
+    stale = sorted(p for p in Path(run_dir).glob(".*.tmp") if p.is_file())
+    for p in stale:
+        p.unlink(missing_ok=True)
+    return stale
+
+
 def to_jsonable(x: Any) -> Any:
-    """Convert numpy/jax scalars and arrays to JSON types; non-finite floats become None."""
+    """Convert numpy/jax scalars and arrays to JSON types. +inf becomes None (null: "never",
+    unbounded), NaN the string "nan" (not computable: kept distinct from null), -inf "-inf"."""
     if isinstance(x, dict):
         return {str(k): to_jsonable(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
         return [to_jsonable(v) for v in x]
     if isinstance(x, (jax.Array, np.ndarray, np.generic)):
         return to_jsonable(np.asarray(x).tolist())
-    if isinstance(x, float) and not np.isfinite(x):
-        return None
+    if isinstance(x, float) and not math.isfinite(x):
+        return "nan" if math.isnan(x) else (None if x > 0 else "-inf")
+    return x
+
+
+NONFINITE = {"nan": math.nan, "inf": math.inf, "-inf": -math.inf}
+
+
+def from_jsonable(x: Any) -> Any:
+    """Inverse of ``to_jsonable`` for non-finite values: the strings "nan", "inf", "-inf" become
+    floats (anywhere in dicts and lists); null stays None."""
+    if isinstance(x, dict):
+        return {k: from_jsonable(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [from_jsonable(v) for v in x]
+    if isinstance(x, str) and x in NONFINITE:
+        return NONFINITE[x]
     return x
 
 
 def write_json(path: str | Path, obj: Any) -> None:
-    atomic_write_text(path, json.dumps(to_jsonable(obj), indent=2, sort_keys=False) + "\n")
+    atomic_write_text(path, json.dumps(to_jsonable(obj), indent=2, sort_keys=False, allow_nan=False) + "\n")
 
 
 def save_checkpoint(run_dir: str | Path, runner: Any, meta: dict) -> None:
-    """Write the runner (all devices and seeds) and the progress ``meta`` atomically."""
+    """Write the runner (all devices and seeds) and the progress ``meta`` atomically, with the
+    sha256 of the payload."""
     state = {"runner": serialization.to_state_dict(jax.device_get(runner)), "meta": to_jsonable(meta)}
-    atomic_write_bytes(Path(run_dir) / CHECKPOINT, serialization.msgpack_serialize(state))
+    payload = serialization.msgpack_serialize(state)
+    wrapped = msgpack.packb({"format": FORMAT, "version": FORMAT_VERSION,
+                             "sha256": hashlib.sha256(payload).hexdigest(), "payload": payload}, use_bin_type=True)
+    atomic_write_bytes(Path(run_dir) / CHECKPOINT, wrapped)
+
+
+def _broken(path: Path, why: str) -> ValueError:
+    return ValueError(f"{path}: {why}; the checkpoint cannot be used (restore it from a copy, or retrain "
+                      "without --resume in a new --out-dir)")
 
 
 def load_checkpoint(run_dir: str | Path) -> tuple[dict, dict]:
-    """(runner state dict, meta) of ``run_dir``'s checkpoint."""
+    """(runner state dict, meta) of ``run_dir``'s checkpoint; ``ValueError`` naming the file if it is
+    empty, truncated, corrupted (checksum) or not a checkpoint."""
     path = Path(run_dir) / CHECKPOINT
     if not path.exists():
         raise FileNotFoundError(f"no checkpoint at {path}")
-    state = serialization.msgpack_restore(path.read_bytes())
+    data = path.read_bytes()
+    if not data:
+        raise _broken(path, "empty file")
+    try:
+        outer = msgpack.unpackb(data, raw=False, strict_map_key=False)
+    except Exception as err:  # noqa: BLE001 - msgpack raises several unrelated types
+        raise _broken(path, f"truncated or not msgpack ({type(err).__name__}: {err})") from None
+    if isinstance(outer, dict) and outer.get("format") == FORMAT:
+        payload = outer.get("payload")
+        if not isinstance(payload, bytes) or not isinstance(outer.get("sha256"), str):
+            raise _broken(path, "malformed checkpoint (no payload or checksum)")
+        if outer.get("version") != FORMAT_VERSION:
+            raise _broken(path, f"checkpoint format version {outer.get('version')!r}, this jaxtraffic reads "
+                                f"{FORMAT_VERSION}")
+        if hashlib.sha256(payload).hexdigest() != outer["sha256"]:
+            raise _broken(path, "checksum mismatch (the file is corrupted)")
+    elif isinstance(outer, dict) and "runner" in outer:
+        payload = data  # written before the checksum
+    else:
+        raise _broken(path, "not a jaxtraffic checkpoint")
+    try:
+        state = serialization.msgpack_restore(payload)
+    except Exception as err:  # noqa: BLE001
+        raise _broken(path, f"payload cannot be decoded ({type(err).__name__}: {err})") from None
+    if not (isinstance(state, dict) and isinstance(state.get("runner"), dict) and isinstance(state.get("meta"), dict)
+            and isinstance(state["meta"].get("env_steps"), int)):
+        raise _broken(path, "not a jaxtraffic checkpoint (no runner state and progress)")
     return state["runner"], state["meta"]
 
 
-def restore_runner(template: Any, state: dict) -> Any:
-    """Fill ``template`` (a Runner of the right structure) with a loaded state dict."""
+def restore_runner(template: Any, state: dict, path: str | Path = CHECKPOINT) -> Any:
+    """Fill ``template`` (a Runner of the right structure) with a loaded state dict; ``ValueError``
+    naming ``path`` if the structure or a shape differs (another grid, network, number of seeds,
+    environments or devices)."""
+    want = serialization.to_state_dict(template)
+    flat_want = dict(_flatten(want))
+    flat_have = dict(_flatten(state))
+    if set(flat_want) != set(flat_have):
+        missing = sorted(set(flat_want) - set(flat_have))[:3]
+        extra = sorted(set(flat_have) - set(flat_want))[:3]
+        raise ValueError(f"{path}: the saved state does not match this configuration (missing {missing}, "
+                         f"unexpected {extra}); was it written with another network or jaxtraffic version?")
+    if "update" in flat_want:  # shape (devices, seeds)
+        check_device_count(state, np.shape(flat_want["update"])[0], path)
+    for k, w in flat_want.items():
+        if np.shape(w) != np.shape(flat_have[k]):
+            raise ValueError(f"{path}: saved {k} has shape {np.shape(flat_have[k])}, this configuration needs "
+                             f"{np.shape(w)} (config.json and the checkpoint do not belong together: another grid, "
+                             "network, number of seeds or environments)")
     return serialization.from_state_dict(template, state)
+
+
+def check_device_count(state: dict, n_devices: int, path: str | Path = CHECKPOINT) -> None:
+    """``ValueError`` (explaining what to do) if the checkpoint's runner was split over another
+    number of devices than ``n_devices`` (every leaf has a leading device axis)."""
+    update = state.get("update") if isinstance(state, dict) else None
+    saved = np.shape(update)[0] if update is not None and np.ndim(update) >= 1 else None
+    if saved is not None and saved != n_devices:
+        raise ValueError(f"{path} was written by a process with {saved} device(s), this one has {n_devices}: "
+                         f"resume with {saved} device(s) (on CPU: XLA_FLAGS=--xla_force_host_platform_device_count="
+                         f"{saved}); the environments are split between the devices, so the saved state only "
+                         "continues on as many")
+
+
+def _flatten(tree: Any, prefix: str = "") -> list[tuple[str, Any]]:
+    if isinstance(tree, dict):
+        out = []
+        for k, v in tree.items():
+            out += _flatten(v, f"{prefix}/{k}" if prefix else str(k))
+        return out
+    return [(prefix, tree)]
 
 
 @dataclass
@@ -102,14 +223,27 @@ def load_run(run_dir: str | Path) -> tuple[dict, SavedPolicy, dict]:
     cfg_path = run_dir / CONFIG
     if not cfg_path.exists():
         raise FileNotFoundError(f"{run_dir} is not a run directory (no {CONFIG})")
-    config = json.loads(cfg_path.read_text())
+    config = _read_json(cfg_path)
     runner, _ = load_checkpoint(run_dir)
     first = lambda x: np.asarray(x)[0]  # noqa: E731 - replicated across devices
-    policy = SavedPolicy(params=jax.tree.map(first, runner["params"]),
-                         obs_mean=first(runner["stats"]["mean"]), obs_var=first(runner["stats"]["var"]))
+    try:
+        policy = SavedPolicy(params=jax.tree.map(first, runner["params"]),
+                             obs_mean=first(runner["stats"]["mean"]), obs_var=first(runner["stats"]["var"]))
+    except (KeyError, IndexError, TypeError) as err:
+        raise ValueError(f"{run_dir / CHECKPOINT}: no policy in the saved state "
+                         f"({type(err).__name__}: {err})") from None
     summary_path = run_dir / SUMMARY
-    summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
+    summary = from_jsonable(_read_json(summary_path)) if summary_path.exists() else {}
+    if not isinstance(summary, dict):
+        raise ValueError(f"{summary_path}: not a summary.json written by train.py")
     return config, policy, summary
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{path}: unreadable or not valid JSON ({err})") from None
 
 
 def load_policy(run_dir: str | Path, seed: int | None = None) -> tuple[Controller, TrainConfig]:
@@ -127,14 +261,19 @@ def load_policy(run_dir: str | Path, seed: int | None = None) -> tuple[Controlle
         return load_gradient_policy(run_dir, config), config
     _, saved, summary = load_run(run_dir)
     if seed is None:
-        seed = int(summary.get("best_seed", 0)) if summary else 0
+        seed = summary.get("best_seed", 0) if summary else 0
+        if not isinstance(seed, int):
+            raise ValueError(f"{run_dir / SUMMARY}: best_seed = {seed!r} is not an integer")
     n_seeds = saved.obs_mean.shape[0]
     if not 0 <= seed < n_seeds:
         raise ValueError(f"seed {seed} not in run with {n_seeds} seeds")
     expected = feature_size(config.plant.n_points)
-    if saved.obs_mean.shape[-1] != expected:
-        raise ValueError(f"{run_dir} was written by an older jaxtraffic (observation of {saved.obs_mean.shape[-1]} "
-                         f"values, expected {expected} with the applied gains): retrain it with train.py")
+    got = saved.obs_mean.shape[-1]
+    if got != expected:  # (a run from before the applied gains is recognised by its config.json, see config)
+        raise ValueError(f"{run_dir}: {CONFIG} says n_points = {config.plant.n_points} (an observation of {expected} "
+                         f"values) but {CHECKPOINT} holds an observation of {got} values"
+                         + (f" (n_points = {got // 3 - 1})" if got % 3 == 0 else "")
+                         + ": the two files do not belong together")
     controller = policy_controller(
         jax.tree.map(lambda x: jnp.asarray(x[seed]), saved.params), saved.obs_mean[seed], saved.obs_var[seed],
         config.env.gain_max, hidden=config.algo.hidden(), init_sigma=config.algo.init_sigma,

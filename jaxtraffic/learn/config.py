@@ -186,6 +186,10 @@ class TrainConfig:
     grad: GradConfig = GradConfig()
     run: RunConfig = RunConfig()
 
+    def __post_init__(self) -> None:
+        from jaxtraffic.learn.validate import check_config  # every field's type and range (ValueError)
+        check_config(self)
+
     @classmethod
     def from_flat(cls, **values: Any) -> TrainConfig:
         """A config from leaf-field names (``TrainConfig.from_flat(n_points=21, lr=1e-3)``); an unknown
@@ -224,8 +228,17 @@ def config_json(cfg: TrainConfig, **extra: Any) -> dict[str, Any]:
 def config_from_json(data: dict[str, Any], where: str = "config.json") -> TrainConfig:
     """The ``TrainConfig`` of a config.json's content. Keys of options that no longer exist are ignored;
     files written before the tree (flat ``settings``) are converted."""
+    if not isinstance(data, dict):
+        raise ValueError(f"{where}: not a config.json written by train.py (a JSON {type(data).__name__}, "
+                         "not an object)")
     if "config" in data:
-        flat = {k: v for section in data["config"].values() for k, v in section.items()}
+        tree = data["config"]
+        if not isinstance(tree, dict) or not all(isinstance(tree.get(s), dict) for s in SECTIONS):
+            have = sorted(tree) if isinstance(tree, dict) else type(tree).__name__
+            missing = [s for s in SECTIONS if not isinstance(tree, dict) or not isinstance(tree.get(s), dict)]
+            raise ValueError(f"{where}: the config tree lacks the section(s) {missing} (has {have}); "
+                             "not a complete config.json written by train.py")
+        flat = {k: v for section in tree.values() if isinstance(section, dict) for k, v in section.items()}
     elif "settings" in data:  # written before the config tree
         flat = data["settings"]
         if "gain_filter" not in flat:
@@ -233,9 +246,14 @@ def config_from_json(data: dict[str, Any], where: str = "config.json") -> TrainC
                              "observation without the applied gains): retrain it with train.py")
     else:
         raise ValueError(f"{where}: neither a config tree nor settings; not written by train.py")
+    if not isinstance(flat, dict):
+        raise ValueError(f"{where}: \"settings\" is not an object; not written by train.py")
     # JSON has no inf: a null stands for the default where the field cannot be None (max_wall_s = inf)
-    return TrainConfig.from_flat(**{k: _tuples(v) for k, v in flat.items()
-                                    if k in _OWNER and (v is not None or "None" in _TYPES[k])})
+    try:
+        return TrainConfig.from_flat(**{k: _tuples(v) for k, v in flat.items()
+                                        if k in _OWNER and (v is not None or "None" in _TYPES[k])})
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{where}: {err}") from None
 
 
 def load_config(run_dir: str | Path) -> TrainConfig:
@@ -243,4 +261,8 @@ def load_config(run_dir: str | Path) -> TrainConfig:
     path = Path(run_dir) / "config.json"
     if not path.exists():
         raise FileNotFoundError(f"{run_dir} is not a run directory (no config.json)")
-    return config_from_json(json.loads(path.read_text()), str(path))
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{path}: unreadable or not valid JSON ({err})") from None
+    return config_from_json(data, str(path))

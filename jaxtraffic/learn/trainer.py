@@ -12,8 +12,15 @@ that enters at the outlet and never decays, which the 300 s evaluation reward ha
 rule must hold at ``stop_patience`` consecutive evaluations (default 2: the deterministic
 evaluation is noisy early on, and a single lucky evaluation gave fragile policies);
 ``seconds_to_stop_rule`` records the first time it held, ``seconds_to_paper_rule`` the first time
-the paper's reward condition alone held. Ctrl-C saves the last completed chunk; ``resume``
-continues from it exactly.
+the paper's reward condition alone held. ``resume`` continues exactly from the checkpoint (and
+refuses a directory that has none).
+
+Signals: SIGINT (Ctrl-C) and SIGTERM (what a cluster scheduler sends before killing a job) only
+set a flag; the loop stops at the next safe point, after the chunk in progress, with a consistent
+checkpoint (or says that none exists yet), writes the summary and raises ``TrainingInterrupted``
+(``train.py`` exits 130 / 143). A second signal exits at once without saving (the files on disk
+are always complete: every write is atomic). Temporary files left by a killed run are removed
+when training starts.
 
 Run directory: config.json, checkpoint.msgpack, learning_curve.csv, learning_curve.png,
 summary.json. The curve's evaluation columns are means over seeds of the deterministic rollout:
@@ -25,6 +32,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
+import signal
+import sys
+import threading
 import time
 from pathlib import Path
 
@@ -38,12 +49,66 @@ from jaxtraffic.learn import env as E
 from jaxtraffic.learn import ppo
 from jaxtraffic.learn.config import RUN_CONTROL, TrainConfig, config_json, load_config
 from jaxtraffic.learn.curve import CURVE_FIELDS, plot_learning_curve, write_curve
+from jaxtraffic.learn.validate import check_devices
 from jaxtraffic.model.linear import gain_law_wave_speed, linearize
 from jaxtraffic.provenance import provenance
 from jaxtraffic.sim.initial import paper_initial_condition
 from jaxtraffic.sim.rollout import simulate_batch
 
-__all__ = ["CURVE_FIELDS", "TrainConfig", "build", "config_dict", "make_evaluator", "train"]
+__all__ = ["CURVE_FIELDS", "TrainConfig", "TrainingInterrupted", "build", "config_dict", "make_evaluator", "train"]
+
+
+class TrainingInterrupted(KeyboardInterrupt):
+    """Training stopped by SIGINT/SIGTERM (or a KeyboardInterrupt) after saving what it could;
+    ``exit_code`` is 128 + the signal number (130 for SIGINT, 143 for SIGTERM)."""
+
+    def __init__(self, signum: int, message: str):
+        super().__init__(message)
+        self.signum, self.exit_code, self.message = signum, 128 + signum, message
+
+
+class _StopSignals:
+    """While active (main thread only), SIGINT and SIGTERM set ``signum`` instead of raising inside
+    XLA; a second one exits at once (exit 128 + signal, nothing more is written). The previous
+    handlers are restored on exit."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self, say):
+        self.signum: int | None = None
+        self.say, self.old = say, {}
+
+    def _handle(self, signum, frame):
+        if self.signum is not None:
+            print(f"\n{signal.Signals(signum).name} again: exiting now without saving", file=sys.stderr, flush=True)
+            os._exit(128 + signum)
+        self.signum = signum
+        print(f"\n{signal.Signals(signum).name} received: stopping after the current chunk (send it again to "
+              "quit without saving)", file=sys.stderr, flush=True)
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            for sig in self.SIGNALS:
+                self.old[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def __exit__(self, *exc):
+        for sig, handler in self.old.items():
+            signal.signal(sig, handler)
+        return False
+
+
+def check_out_dir(run_dir: Path) -> None:
+    """``ValueError`` unless ``run_dir`` is (or can be created as) a writable directory."""
+    if run_dir.exists() and not run_dir.is_dir():
+        raise ValueError(f"--out-dir {run_dir}: exists and is not a directory")
+    parent = run_dir
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ValueError(f"--out-dir {run_dir}: {parent} is a file, not a directory")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ValueError(f"--out-dir {run_dir}: {parent} is not writable")
 
 
 def build(s: TrainConfig) -> tuple[ppo.PPOConfig, E.EnvParams]:
@@ -62,6 +127,7 @@ def build(s: TrainConfig) -> tuple[ppo.PPOConfig, E.EnvParams]:
     cfg = ppo.PPOConfig(num_seeds=s.run.seeds, hidden=s.algo.hidden(),
                         **{f.name: algo[f.name] for f in dataclasses.fields(ppo.PPOConfig) if f.name in algo})
     ppo.validate_config(cfg)
+    check_devices(s, len(jax.devices()))
     return cfg, env_params
 
 
@@ -121,25 +187,56 @@ def _settings_for_resume(s: TrainConfig, run_dir: Path) -> TrainConfig:
     return load_config(run_dir).replace(**{k: flat[k] for k in RUN_CONTROL})
 
 
+def check_resumable(run_dir: Path) -> None:
+    """``ValueError`` unless ``run_dir`` holds a config.json and a checkpoint to resume from."""
+    if not (run_dir / ckpt.CHECKPOINT).exists():
+        why = ("it has a config.json but no checkpoint: the run was stopped before its first chunk completed"
+               if (run_dir / ckpt.CONFIG).exists() else "it is not a run directory (no config.json, no checkpoint)")
+        raise ValueError(f"--resume: nothing to resume in {run_dir}: {why}; run without --resume to start afresh")
+    if not (run_dir / ckpt.CONFIG).exists():
+        raise ValueError(f"--resume: {run_dir / ckpt.CONFIG} is missing (the checkpoint alone does not say how it "
+                         "was trained)")
+
+
 def train(s: TrainConfig) -> Path:
-    """Train (or resume) and return the run directory."""
+    """Train (or resume) and return the run directory. Raises ``TrainingInterrupted`` after SIGINT or
+    SIGTERM (the checkpoint of the last completed chunk is on disk)."""
     run_dir = Path(s.run.out_dir)
-    if s.run.resume and (run_dir / ckpt.CONFIG).exists():
+    check_out_dir(run_dir)
+    if s.run.resume:
+        check_resumable(run_dir)
         s = _settings_for_resume(s, run_dir)
     cfg, env_params = build(s)  # validates: fail before creating the run directory
-    run_dir.mkdir(parents=True, exist_ok=True)
+    state = None
+    if s.run.resume:  # read (and verify) the checkpoint before compiling anything
+        state, saved_meta = ckpt.load_checkpoint(run_dir)
+        ckpt.check_device_count(state, len(jax.devices()), run_dir / ckpt.CHECKPOINT)
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ValueError(f"--out-dir {run_dir}: cannot create it ({err.strerror})") from None
+    say = (lambda *a: None) if s.run.quiet else (lambda *a: print(*a, flush=True))
+    stale = ckpt.clean_stale_tmp(run_dir)
+    if stale:
+        say(f"removed {len(stale)} temporary file(s) left by an interrupted write: {', '.join(p.name for p in stale)}")
+    with _StopSignals(say) as stop:
+        return _train(s, cfg, env_params, run_dir, state, saved_meta if state is not None else None, say, stop)
+
+
+def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: E.EnvParams, run_dir: Path, state: dict | None,
+           saved_meta: dict | None, say, stop: _StopSignals) -> Path:
     eval_steps = max(1, round(s.run.eval_horizon_s / s.plant.dt))
     init, train_chunk = ppo.make_train(cfg, env_params, env=E.GainEnv)
     evaluate = make_evaluator(cfg, env_params, eval_steps)
-    say = (lambda *a: None) if s.run.quiet else (lambda *a: print(*a, flush=True))
 
     t_start = time.perf_counter()
     runner = init(jax.random.PRNGKey(s.run.seed))
     meta = {"env_steps": 0, "wall_s": 0.0, "rows": [], "seconds_to_stop_rule": None, "stopped": False}
-    if s.run.resume and (run_dir / ckpt.CHECKPOINT).exists():
-        state, meta = ckpt.load_checkpoint(run_dir)
+    if state is not None:
+        meta = saved_meta
         # place every leaf like the fresh runner's (pmap-sharded): uncommitted arrays would recompile
-        runner = jax.tree.map(lambda t, x: jax.device_put(x, t.sharding), runner, ckpt.restore_runner(runner, state))
+        restored = ckpt.restore_runner(runner, state, run_dir / ckpt.CHECKPOINT)
+        runner = jax.tree.map(lambda t, x: jax.device_put(x, t.sharding), runner, restored)
         if s.run.keep_going:
             meta["stopped"] = False
         say(f"resumed {run_dir} at {meta['env_steps']} env steps ({meta['wall_s']:.1f} s)")
@@ -152,8 +249,9 @@ def train(s: TrainConfig) -> Path:
         f"target eval reward >= {s.run.target_reward}")
     interrupted = False
     last_eval: dict = {}
+    steps_at_start = meta["env_steps"]
     try:
-        while meta["env_steps"] < s.run.total_steps and not meta["stopped"]:
+        while meta["env_steps"] < s.run.total_steps and not meta["stopped"] and stop.signum is None:
             runner, m = train_chunk(runner)
             jax.block_until_ready(m)
             last_eval = evaluate(runner)
@@ -194,9 +292,24 @@ def train(s: TrainConfig) -> Path:
             if meta["wall_s"] > s.run.max_wall_s:
                 say(f"stopping: wall-clock budget {s.run.max_wall_s:g} s reached")
                 break
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:  # raised by Python code (the handlers above turn signals into a flag)
         interrupted = True
-        say("interrupted: last completed chunk is saved; continue with --resume")
+    signum = signal.SIGINT if interrupted else stop.signum
+    interrupted = signum is not None
+    if interrupted:
+        name = signal.Signals(signum).name
+        if not meta["rows"]:
+            msg = (f"interrupted ({name}) before the first chunk completed: no checkpoint exists yet (only config.json "
+                   f"in {run_dir}); run again without --resume")
+        elif meta["env_steps"] == steps_at_start:
+            msg = (f"interrupted ({name}) before a new chunk completed: the checkpoint at {meta['env_steps']} env "
+                   f"steps in {run_dir} is unchanged; continue with --resume")
+        else:
+            msg = (f"interrupted ({name}): the checkpoint of the last completed chunk ({meta['env_steps']} env steps) "
+                   f"is saved in {run_dir}; continue with --resume")
+        print(msg, file=sys.stderr, flush=True)
+        if not meta["rows"] or meta["env_steps"] == steps_at_start:
+            raise TrainingInterrupted(signum, msg)
     if not meta["rows"]:
         return run_dir
     if not interrupted:
@@ -225,4 +338,6 @@ def train(s: TrainConfig) -> Path:
             else "not reached")
     say(f"done: {meta['env_steps']} env steps in {meta['wall_s']:.1f} s; eval reward per seed {np.round(ev, 4)};"
         f" stop rule {rule}; outputs in {run_dir}")
+    if interrupted:
+        raise TrainingInterrupted(signum, msg)
     return run_dir

@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from jaxtraffic.learn.checkpoint import from_jsonable
 from jaxtraffic.paper.claims import CRITERIA, _t
 from jaxtraffic.paper.scenarios import CTRL_DELAY, SETTLE_FRACTION, EvalConfig, initial_norms
 from jaxtraffic.provenance import describe
@@ -51,7 +52,9 @@ def robustness_summary(robust: dict[str, dict[str, np.ndarray]], cfg: EvalConfig
 def write_report(path: Path, claims: list[dict[str, Any]], metrics: dict, meta: dict,
                  figures: list[str], extra_notes: list[str], sections: list[str] | None = None) -> None:
     """REPORT.md: each claim, the checks with measured values and verdicts, the figures embedded;
-    ``sections``: further markdown lines (e.g. the robustness summary) before the other figures."""
+    ``sections``: further markdown lines (e.g. the robustness summary) before the other figures.
+    ``metrics`` may be the JSON form (``learn.checkpoint.to_jsonable``: NaN as "nan")."""
+    metrics = from_jsonable(metrics)
     lines = ["# Reproduction report: PPO control of congested freeway traffic (paper section 4)", ""]
     pol = meta["policy"]
     if "provenance" in meta:

@@ -1,0 +1,177 @@
+"""Validation of the training config tree (``learn.config.TrainConfig``), in one place.
+
+``check_config(cfg)`` runs when a ``TrainConfig`` is built (its ``__post_init__``), so a bad value
+fails before any directory is created or anything compiles, with a message naming the field, its
+flag, the value and the allowed range, e.g. ``lr = -1.0 (--lr): must be > 0``. It checks every
+leaf's type (from its annotation; numpy integers and floats are accepted and normalised to Python
+ones, strings and bools where a number is expected are not) and its range (``RULES``), then the
+constraints between fields. ``check_devices`` adds what depends on the process (the device count).
+The plant's physics (equilibrium, CFL, delay vs buffer) is checked by ``TrafficParams``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import numbers
+from typing import Any
+
+# field -> (lo, lo_inclusive, hi, hi_inclusive); None: unbounded on that side. Every float must be
+# finite unless listed in ALLOW_INF.
+RULES: dict[str, tuple[float | None, bool, float | None, bool]] = {
+    # plant
+    "delay": (0.0, True, None, False), "alpha": (0.0, True, 1.0, True), "alpha_noise": (0.0, True, None, False),
+    "n_points": (3, True, None, False), "dt": (0.0, False, None, False), "max_delay_steps": (0, True, None, False),
+    # env
+    "horizon_s": (0.0, False, None, False), "delay_spread": (0.0, True, None, False),
+    "phase_max": (0.0, True, None, False), "gain_max": (0.0, False, None, False),
+    "gain_filter": (0.0, False, 1.0, True), "h_rate_weight": (0.0, True, None, False),
+    # algo
+    "num_envs": (1, True, None, False), "num_steps": (1, True, None, False), "update_epochs": (1, True, None, False),
+    "num_minibatches": (1, True, None, False), "updates_per_chunk": (1, True, None, False),
+    "lr": (0.0, False, None, False), "lr_decay_steps": (0.0, True, None, False), "lr_final": (0.0, True, 1.0, True),
+    "gamma": (0.0, False, 1.0, True), "gae_lambda": (0.0, True, 1.0, True), "clip_eps": (0.0, False, None, False),
+    "ent_coef": (0.0, True, None, False), "vf_coef": (0.0, True, None, False),
+    "max_grad_norm": (0.0, False, None, False), "reward_scale": (0.0, False, None, False),
+    "init_sigma": (0.0, False, None, False),
+    # run
+    "seed": (0, True, 2**32 - 1, True), "seeds": (1, True, None, False), "total_steps": (1, True, None, False),
+    "max_wall_s": (0.0, False, None, False), "stop_patience": (1, True, None, False),
+    "eval_horizon_s": (0.0, False, None, False),
+}
+ALLOW_INF = {"max_wall_s"}  # inf: no wall-clock limit
+PAIR_RULES = {"delay_range": (0.0, None), "alpha_range": (0.0, 1.0), "amp_range": (0.0, None),
+              "wavenumber_range": (0, None)}  # (lo bound, hi bound) of LO,HI pairs, with LO <= HI
+
+
+def _flag(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
+def _fail(name: str, value: Any, why: str) -> ValueError:
+    return ValueError(f"{name} = {value!r} ({_flag(name)}): {why}")
+
+
+def _range_text(rule: tuple) -> str:
+    lo, lo_in, hi, hi_in = rule
+    if hi is None:
+        return f"must be {'>=' if lo_in else '>'} {lo}"
+    return f"must lie in {'[' if lo_in else '('}{lo}, {hi}{']' if hi_in else ')'}"
+
+
+def _is_int(x: Any) -> bool:
+    return isinstance(x, numbers.Integral) and not isinstance(x, bool) and type(x).__name__ != "bool_"
+
+
+def _is_real(x: Any) -> bool:
+    return isinstance(x, numbers.Real) and not isinstance(x, bool) and type(x).__name__ != "bool_"
+
+
+def _scalar(name: str, kind: str, value: Any) -> Any:
+    """``value`` checked against the scalar type ``kind`` ("int", "float", "bool", "str") and normalised."""
+    if kind == "int":
+        if not _is_int(value):
+            raise _fail(name, value, "must be an integer")
+        return int(value)
+    if kind == "float":
+        if not _is_real(value):
+            raise _fail(name, value, "must be a number")
+        value = float(value)
+        if math.isnan(value) or (math.isinf(value) and name not in ALLOW_INF):
+            raise _fail(name, value, "must be finite")
+        return value
+    if kind == "bool":
+        if not isinstance(value, bool) and type(value).__name__ != "bool_":
+            raise _fail(name, value, "must be true or false")
+        return bool(value)
+    if kind == "str":
+        if not isinstance(value, str):
+            raise _fail(name, value, "must be a string")
+    return value
+
+
+def _typed(name: str, annotation: str, value: Any) -> Any:
+    """``value`` checked against the field's annotation (as written in ``learn.config``)."""
+    kind = annotation.replace(" ", "")
+    if kind.endswith("|None"):
+        if value is None:
+            return None
+        kind = kind[: -len("|None")]
+    if kind.startswith("tuple["):
+        inner = kind[len("tuple["):-1].split(",")
+        if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != len(inner):
+            raise _fail(name, value, f"must be a pair LO,HI of {inner[0]}s")
+        return tuple(_scalar(name, k, v) for k, v in zip(inner, value, strict=True))
+    if kind in ("int", "float", "bool", "str"):
+        return _scalar(name, kind, value)
+    return value  # an annotation this module does not know: left to its owner
+
+
+def _check_range(name: str, value: Any) -> None:
+    if name not in RULES or value is None:
+        return
+    rule = RULES[name]
+    lo, lo_in, hi, hi_in = rule
+    ok = (value >= lo if lo_in else value > lo) if lo is not None else True
+    ok = ok and ((value <= hi if hi_in else value < hi) if hi is not None else True)
+    if not ok:
+        raise _fail(name, value, _range_text(rule))
+
+
+def _check_pair(name: str, value: tuple | None) -> None:
+    if name not in PAIR_RULES or value is None:
+        return
+    lo_bound, hi_bound = PAIR_RULES[name]
+    lo, hi = value
+    if lo > hi:
+        raise _fail(name, value, "needs LO <= HI")
+    if lo < lo_bound or (hi_bound is not None and hi > hi_bound):
+        span = f"[{lo_bound}, {hi_bound}]" if hi_bound is not None else f">= {lo_bound}"
+        raise _fail(name, value, f"both ends must be {span}" if hi_bound is None else f"must lie in {span}")
+
+
+def check_section(section: Any) -> None:
+    """Check (and normalise in place: numpy scalars to Python ones, lists to tuples) one frozen
+    config dataclass: every field's type, range and pair bounds."""
+    for f in dataclasses.fields(section):
+        value = getattr(section, f.name)
+        typed = _typed(f.name, str(f.type), value)
+        if typed is not value:
+            object.__setattr__(section, f.name, typed)
+        choices = f.metadata.get("choices")
+        if choices and typed not in choices:
+            raise _fail(f.name, typed, f"must be one of {tuple(choices)}")
+        if isinstance(typed, tuple):
+            _check_pair(f.name, typed)
+        else:
+            _check_range(f.name, typed)
+
+
+def check_config(cfg: Any) -> None:
+    """Check a whole ``TrainConfig``: each section, then the constraints between fields."""
+    for name in ("plant", "env", "algo", "run"):
+        check_section(getattr(cfg, name))
+    pl, en, al, run = cfg.plant, cfg.env, cfg.algo, cfg.run
+    if not run.out_dir:
+        raise _fail("out_dir", run.out_dir, "must not be empty")
+    batch = al.num_envs * al.num_steps
+    if batch % al.num_minibatches:
+        raise _fail("num_minibatches", al.num_minibatches,
+                    f"must divide the batch num_envs * num_steps = {al.num_envs} * {al.num_steps} = {batch}")
+    if al.num_minibatches > batch:
+        raise _fail("num_minibatches", al.num_minibatches, f"must be <= the batch num_envs * num_steps = {batch}")
+    for name in ("horizon_s", "eval_horizon_s"):
+        value = getattr(en if name == "horizon_s" else run, name)
+        if value < pl.dt:
+            raise _fail(name, value, f"must be >= one time step dt = {pl.dt} s")
+
+
+def check_devices(cfg: Any, n_devices: int) -> None:
+    """The constraints that depend on the number of devices the environments are split over."""
+    al = cfg.algo
+    if al.num_envs % n_devices:
+        raise _fail("num_envs", al.num_envs, f"must be divisible by the number of devices ({n_devices})")
+    local = al.num_envs // n_devices * al.num_steps
+    if local % al.num_minibatches:
+        raise _fail("num_minibatches", al.num_minibatches,
+                    f"must divide the batch of each device, num_envs / devices * num_steps = {local}")

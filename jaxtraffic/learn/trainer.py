@@ -226,6 +226,7 @@ def train(s: TrainConfig) -> Path:
 def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: E.EnvParams, run_dir: Path, state: dict | None,
            saved_meta: dict | None, say, stop: _StopSignals) -> Path:
     eval_steps = max(1, round(s.run.eval_horizon_s / s.plant.dt))
+    say("compiling (Ctrl-C or SIGTERM from now on stops at the next safe point) ...")
     init, train_chunk = ppo.make_train(cfg, env_params, env=E.GainEnv)
     evaluate = make_evaluator(cfg, env_params, eval_steps)
 

@@ -38,6 +38,12 @@ RULES: dict[str, tuple[float | None, bool, float | None, bool]] = {
     "seed": (0, True, 2**32 - 1, True), "seeds": (1, True, None, False), "total_steps": (1, True, None, False),
     "max_wall_s": (0.0, False, None, False), "stop_patience": (1, True, None, False),
     "eval_horizon_s": (0.0, False, None, False),
+    # grad (gradient-based training)
+    "grad_steps": (1, True, None, False), "grad_lr": (0.0, False, None, False),
+    "train_horizon_s": (0.0, False, None, False), "record_every": (1, True, None, False),
+    "steps_per_chunk": (1, True, None, False), "reward_weight": (0.0, True, None, False),
+    "waves_weight": (0.0, True, None, False), "comfort_weight": (0.0, True, None, False),
+    "effort_weight": (0.0, True, None, False), "scenario_clip": (0.0, True, None, False),
 }
 ALLOW_INF = {"max_wall_s"}  # inf: no wall-clock limit
 PAIR_RULES = {"delay_range": (0.0, None), "alpha_range": (0.0, 1.0), "amp_range": (0.0, None),
@@ -99,7 +105,13 @@ def _typed(name: str, annotation: str, value: Any) -> Any:
         kind = kind[: -len("|None")]
     if kind.startswith("tuple["):
         inner = kind[len("tuple["):-1].split(",")
-        if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != len(inner):
+        if isinstance(value, (str, bytes)) or not hasattr(value, "__len__"):
+            raise _fail(name, value, f"must be a sequence of {inner[0]}s")
+        if inner[-1] == "...":  # any length >= 1
+            if len(value) < 1:
+                raise _fail(name, value, f"must hold at least one {inner[0]}")
+            return tuple(_scalar(name, inner[0], v) for v in value)
+        if len(value) != len(inner):
             raise _fail(name, value, f"must be a pair LO,HI of {inner[0]}s")
         return tuple(_scalar(name, k, v) for k, v in zip(inner, value, strict=True))
     if kind in ("int", "float", "bool", "str"):
@@ -149,8 +161,8 @@ def check_section(section: Any) -> None:
 
 def check_config(cfg: Any) -> None:
     """Check a whole ``TrainConfig``: each section, then the constraints between fields."""
-    for name in ("plant", "env", "algo", "run"):
-        check_section(getattr(cfg, name))
+    for f in dataclasses.fields(cfg):  # plant, env, algo, run and any other section
+        check_section(getattr(cfg, f.name))
     pl, en, al, run = cfg.plant, cfg.env, cfg.algo, cfg.run
     if not run.out_dir:
         raise _fail("out_dir", run.out_dir, "must not be empty")

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from jaxtraffic.learn.config import RUN_CONTROL, SECTIONS, RunConfig, TrainConfig, load_config
 from jaxtraffic.learn.gradient_trainer import train_gradient
-from jaxtraffic.learn.trainer import TrainingInterrupted, train
+from jaxtraffic.learn.trainer import TrainingInterrupted, check_resumable, train
 
 
 def _pair(kind):
@@ -100,6 +100,7 @@ def main(argv: list[str] | None = None) -> Path:
     try:
         settings = settings_from_args(argv)
         if settings.run.resume:
+            check_resumable(Path(settings.run.out_dir))
             warn_ignored_on_resume(settings, explicit_flags(argv))
         return train_gradient(settings) if settings.run.algo == "gradient" else train(settings)
     except TrainingInterrupted as exc:  # the trainer has said what is saved

@@ -32,7 +32,7 @@ from jaxtraffic.cli import train as train_cli
 from jaxtraffic.control import Controller, saturate
 from jaxtraffic.learn import checkpoint as ckpt
 from jaxtraffic.learn.config import TrainConfig, load_config
-from jaxtraffic.learn.trainer import _StopSignals
+from jaxtraffic.learn.trainer import StopSignals
 from jaxtraffic.learn.validate import check_devices
 from jaxtraffic.sim.plant import DIVERGED_CONTROL, DIVERGED_INITIAL, DIVERGED_NONE
 
@@ -234,7 +234,7 @@ def test_written_files_honour_the_umask(tmp_path):
 # ----------------------------------------------------------------------------- 4: signals (unit)
 def test_stop_signals_set_a_flag_and_restore_the_handlers():
     before = signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)
-    with _StopSignals(print) as stop:
+    with StopSignals(print) as stop:
         os.kill(os.getpid(), signal.SIGTERM)
         time.sleep(0.05)
         assert stop.signum == signal.SIGTERM  # no exception: only the flag

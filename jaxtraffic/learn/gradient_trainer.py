@@ -11,6 +11,7 @@ chunk; ``resume`` continues from it exactly (training is deterministic).
 
 from __future__ import annotations
 
+import signal
 import time
 from pathlib import Path
 from typing import Any
@@ -27,7 +28,15 @@ from jaxtraffic.learn import checkpoint as ckpt
 from jaxtraffic.learn import gradient as G
 from jaxtraffic.learn.config import RUN_CONTROL, TrainConfig, config_json, load_config
 from jaxtraffic.learn.curve import plot_learning_curve, write_curve
-from jaxtraffic.learn.trainer import _fmt_time
+from jaxtraffic.learn.trainer import (
+    StopSignals,
+    TrainingInterrupted,
+    _fmt_time,
+    check_out_dir,
+    check_resumable,
+    open_run_dir,
+    report_interruption,
+)
 from jaxtraffic.model.linear import gain_law_wave_speed, linearize
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.provenance import provenance
@@ -77,12 +86,22 @@ def train_gradient(tc: TrainConfig) -> Path:
     run-control fields of ``tc.run``; on resume, the saved config with the new ``RUN_CONTROL``
     fields and ``grad_steps``."""
     run_dir = Path(tc.run.out_dir)
-    if tc.run.resume and (run_dir / ckpt.CONFIG).exists():
+    check_out_dir(run_dir)
+    if tc.run.resume:
+        check_resumable(run_dir)
         flat = tc.flat()
         tc = load_config(run_dir).replace(**{k: flat[k] for k in (*RUN_CONTROL, "grad_steps")})
     cfg, plant = gradient_setup(tc)  # validates: fail before creating the run directory
     run = tc.run
     say = (lambda *a: None) if run.quiet else (lambda *a: print(*a, flush=True))
+    open_run_dir(run_dir, say)
+    with StopSignals(say) as stop:
+        return _train_gradient(tc, cfg, plant, run_dir, say, stop)
+
+
+def _train_gradient(tc: TrainConfig, cfg: G.GradientConfig, plant: TrafficParams, run_dir: Path, say,
+                    stop: StopSignals) -> Path:
+    run = tc.run
     t_start = time.perf_counter()
     init, train_chunk = G.make_train(cfg, plant)
     state = init(jax.random.PRNGKey(run.seed))
@@ -92,7 +111,6 @@ def train_gradient(tc: TrainConfig) -> Path:
         state = serialization.from_state_dict(state, saved)
         say(f"resumed {run_dir} at update {meta['updates']} ({meta['wall_s']:.1f} s)")
     else:
-        run_dir.mkdir(parents=True, exist_ok=True)
         ckpt.write_json(run_dir / ckpt.CONFIG, config_json(tc, jax_version=jax.__version__))
     eval_steps = max(1, round(run.eval_horizon_s / tc.plant.dt))
     ref = evaluation(backstepping(tc.plant.delay), plant, eval_steps, gains=jnp.zeros(3))
@@ -102,9 +120,9 @@ def train_gradient(tc: TrainConfig) -> Path:
     say(f"training by gradient ({cfg.policy}): {cfg.n_scenarios} scenarios x {n_steps} steps per Adam step, "
         f"{cfg.steps_per_chunk} steps/chunk, plant D = {tc.plant.delay:g} s; backstepping reference: "
         f"rho L2 {ref['final_rho_L2'] * 1e3:.3f} veh/km, J_comfort {ref['J_comfort']:.4g}")
-    interrupted, ev = False, {}
+    ev, updates_at_start = {}, meta["updates"]
     try:
-        while meta["updates"] < cfg.steps:
+        while meta["updates"] < cfg.steps and stop.signum is None:
             state, m = train_chunk(state)
             jax.block_until_ready(m)
             ctrl = G.make_controller(state.theta, cfg, plant)
@@ -135,11 +153,12 @@ def train_gradient(tc: TrainConfig) -> Path:
             if meta["wall_s"] > run.max_wall_s:
                 say(f"stopping: wall-clock budget {run.max_wall_s:g} s reached")
                 break
-    except KeyboardInterrupt:
-        interrupted = True
-        say("interrupted: last completed chunk is saved; continue with --resume")
-    if not meta["rows"]:
-        return run_dir
+    except KeyboardInterrupt:  # raised by Python code (StopSignals turns signals into a flag)
+        stop.signum = signal.SIGINT
+    interrupted = stop.signum is not None
+    if interrupted:
+        msg = report_interruption(stop.signum, run_dir, bool(meta["rows"]), meta["updates"] != updates_at_start,
+                                  f"{meta['updates']} Adam steps")
     plot_learning_curve(run_dir / "learning_curve.csv", run_dir / "learning_curve.png",
                         title=f"gradient-based training ({cfg.policy})")
     if not ev:
@@ -158,4 +177,6 @@ def train_gradient(tc: TrainConfig) -> Path:
     say(f"done: {meta['updates']} Adam steps in {meta['wall_s']:.1f} s; final rho L2 "
         f"{ev['final_rho_L2'] * 1e3:.3f} veh/km, J_comfort {ev['J_comfort']:.4g}; first beat backstepping "
         f"after {meta.get('seconds_to_beat_backstepping') or float('nan'):.1f} s; outputs in {run_dir}")
+    if interrupted:
+        raise TrainingInterrupted(stop.signum, msg)
     return run_dir

@@ -67,7 +67,7 @@ class TrainingInterrupted(KeyboardInterrupt):
         self.signum, self.exit_code, self.message = signum, 128 + signum, message
 
 
-class _StopSignals:
+class StopSignals:
     """While active (main thread only), SIGINT and SIGTERM set ``signum`` instead of raising inside
     XLA; a second one exits at once (exit 128 + signal, nothing more is written). The previous
     handlers are restored on exit."""
@@ -198,6 +198,36 @@ def check_resumable(run_dir: Path) -> None:
                          "was trained)")
 
 
+def report_interruption(signum: int, run_dir: Path, any_chunk: bool, new_chunk: bool, progress: str) -> str:
+    """Say what an interruption left on disk and return the message; raise ``TrainingInterrupted``
+    if it left nothing new (otherwise the caller writes its summary first, then raises it)."""
+    name = signal.Signals(signum).name
+    if not any_chunk:
+        msg = (f"interrupted ({name}) before the first chunk completed: no checkpoint exists yet (only config.json "
+               f"in {run_dir}); run again without --resume")
+    elif not new_chunk:
+        msg = (f"interrupted ({name}) before a new chunk completed: the checkpoint at {progress} in {run_dir} is "
+               "unchanged; continue with --resume")
+    else:
+        msg = (f"interrupted ({name}): the checkpoint of the last completed chunk ({progress}) is saved in "
+               f"{run_dir}; continue with --resume")
+    print(msg, file=sys.stderr, flush=True)
+    if not any_chunk or not new_chunk:
+        raise TrainingInterrupted(signum, msg)
+    return msg
+
+
+def open_run_dir(run_dir: Path, say) -> None:
+    """Create the run directory (clear error if impossible) and remove stale temporary files."""
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ValueError(f"--out-dir {run_dir}: cannot create it ({err.strerror})") from None
+    stale = ckpt.clean_stale_tmp(run_dir)
+    if stale:
+        say(f"removed {len(stale)} temporary file(s) left by an interrupted write: {', '.join(p.name for p in stale)}")
+
+
 def train(s: TrainConfig) -> Path:
     """Train (or resume) and return the run directory. Raises ``TrainingInterrupted`` after SIGINT or
     SIGTERM (the checkpoint of the last completed chunk is on disk)."""
@@ -211,20 +241,14 @@ def train(s: TrainConfig) -> Path:
     if s.run.resume:  # read (and verify) the checkpoint before compiling anything
         state, saved_meta = ckpt.load_checkpoint(run_dir)
         ckpt.check_device_count(state, len(jax.devices()), run_dir / ckpt.CHECKPOINT)
-    try:
-        run_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise ValueError(f"--out-dir {run_dir}: cannot create it ({err.strerror})") from None
     say = (lambda *a: None) if s.run.quiet else (lambda *a: print(*a, flush=True))
-    stale = ckpt.clean_stale_tmp(run_dir)
-    if stale:
-        say(f"removed {len(stale)} temporary file(s) left by an interrupted write: {', '.join(p.name for p in stale)}")
-    with _StopSignals(say) as stop:
+    open_run_dir(run_dir, say)
+    with StopSignals(say) as stop:
         return _train(s, cfg, env_params, run_dir, state, saved_meta if state is not None else None, say, stop)
 
 
 def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: E.EnvParams, run_dir: Path, state: dict | None,
-           saved_meta: dict | None, say, stop: _StopSignals) -> Path:
+           saved_meta: dict | None, say, stop: StopSignals) -> Path:
     eval_steps = max(1, round(s.run.eval_horizon_s / s.plant.dt))
     say("compiling (Ctrl-C or SIGTERM from now on stops at the next safe point) ...")
     init, train_chunk = ppo.make_train(cfg, env_params, env=E.GainEnv)
@@ -298,19 +322,8 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: E.EnvParams, run_dir:
     signum = signal.SIGINT if interrupted else stop.signum
     interrupted = signum is not None
     if interrupted:
-        name = signal.Signals(signum).name
-        if not meta["rows"]:
-            msg = (f"interrupted ({name}) before the first chunk completed: no checkpoint exists yet (only config.json "
-                   f"in {run_dir}); run again without --resume")
-        elif meta["env_steps"] == steps_at_start:
-            msg = (f"interrupted ({name}) before a new chunk completed: the checkpoint at {meta['env_steps']} env "
-                   f"steps in {run_dir} is unchanged; continue with --resume")
-        else:
-            msg = (f"interrupted ({name}): the checkpoint of the last completed chunk ({meta['env_steps']} env steps) "
-                   f"is saved in {run_dir}; continue with --resume")
-        print(msg, file=sys.stderr, flush=True)
-        if not meta["rows"] or meta["env_steps"] == steps_at_start:
-            raise TrainingInterrupted(signum, msg)
+        msg = report_interruption(signum, run_dir, bool(meta["rows"]), meta["env_steps"] != steps_at_start,
+                                  f"{meta['env_steps']} env steps")
     if not meta["rows"]:
         return run_dir
     if not interrupted:

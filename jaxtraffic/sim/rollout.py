@@ -24,12 +24,20 @@ from jaxtraffic.model.fundamental import in_physical_region
 from jaxtraffic.model.params import TrafficParams, equilibrium
 from jaxtraffic.sim import metrics as M
 from jaxtraffic.sim.initial import equilibrium_state, paper_initial_condition
-from jaxtraffic.sim.plant import PlantState, closed_loop_step, initial_state, plant_alpha_sequence, plant_step
+from jaxtraffic.sim.plant import (
+    NoiseReading,
+    PlantState,
+    closed_loop_step,
+    initial_state,
+    noise_alpha_sequence,
+    plant_step,
+)
 
 Array = jax.Array
 
-__all__ = ["PlantState", "SimResult", "Trajectory", "chunked_vmap", "equilibrium_state", "finalize_metrics",
-           "initial_state", "paper_initial_condition", "plant_step", "simulate", "simulate_batch", "stack_params"]
+__all__ = ["NoiseReading", "PlantState", "SimResult", "Trajectory", "chunked_vmap", "equilibrium_state",
+           "finalize_metrics", "initial_state", "paper_initial_condition", "plant_step", "simulate",
+           "simulate_batch", "stack_params"]
 
 
 @struct.dataclass
@@ -65,7 +73,8 @@ def finalize_metrics(acc: M.MetricsAccumulator, final: PlantState, target: Traff
     final_v_L2 (m/s), final_reward, time_to_reward_target_s (time after which the reward stays
     >= -0.1; inf if it never does), diverged, diverged_at_s (inf if never), control_effort
     (RMS over space and time of h_sent - h_bar, s), max_cfl (largest CFL number of the steps
-    taken, with the applied input and the plant's alpha).
+    taken, with the applied input and the plant's alpha); then ``metrics.EXTRA_INDICES`` (the
+    comfort parts, the switch-on step and the paper's km/h reading).
     """
     dx = target.dx if dx is None else dx
     rho_bar, v_bar = equilibrium(target)
@@ -86,12 +95,14 @@ def finalize_metrics(acc: M.MetricsAccumulator, final: PlantState, target: Traff
         "diverged_at_s": jnp.where(final.diverged, final.diverged_step * dt, jnp.inf),
         "control_effort": tot["control_effort"],
         "max_cfl": tot["max_cfl"],
+        **{k: tot[k] for k in M.EXTRA_INDICES},
     }
 
 
 def _simulate(params: TrafficParams, controller: Controller | None, rho0: Array | None,
               v0: Array | None, key: Array | None, nominal: TrafficParams | None,
-              n_steps: int, record_every: int, remat: bool = False) -> SimResult:
+              n_steps: int, record_every: int, remat: bool = False,
+              noise: NoiseReading | None = None) -> SimResult:
     p = params
     nominal = p if nominal is None else nominal
     controller = open_loop() if controller is None else controller
@@ -108,17 +119,20 @@ def _simulate(params: TrafficParams, controller: Controller | None, rho0: Array 
     r0 = M.reward(rho0, v0, rho_bar, v_bar)
     acc = acc.replace(last_bad_step=jnp.where(r0 < M.REWARD_TARGET, 0, -1).astype(jnp.int32))
     # the plant's alpha of every step, drawn at once (cheaper than a draw inside the loop)
-    alphas = plant_alpha_sequence(p, k_plant, n_steps, rho0.dtype)
+    alphas = noise_alpha_sequence(p, k_plant, n_steps, noise, rho0.dtype)
+    sees = noise is not None and noise.model_sees
+    switch_step = p.delay_steps
 
     def one_step(carry, alpha_n):
         state, cstate, acc = carry
         n = state.step
         new, cstate, h, info = closed_loop_step(state, cstate, controller, p, nominal, alpha_n,
-                                                jax.random.fold_in(k_ctrl, n), (rho_bar, v_bar))
+                                                jax.random.fold_in(k_ctrl, n), (rho_bar, v_bar), sees)
         active = ~new.diverged
         acc = M.update_metrics(acc, step=n, rho=state.rho, v=state.v, v_next=new.v, h_sent=h,
                                rho_bar=rho_bar, v_bar=v_bar, h_bar=nominal.h_bar, dx=p.dx, dt=p.dt,
-                               cfl=info.cfl, active=active, reward_next=info.reward)
+                               cfl=info.cfl, active=active, reward_next=info.reward,
+                               switch_step=switch_step)
         return (new, cstate, acc), h
 
     carry = (state, cstate, acc)
@@ -137,7 +151,8 @@ def _simulate(params: TrafficParams, controller: Controller | None, rho0: Array 
         # remat: reverse-mode differentiation keeps only the carry at chunk boundaries and recomputes
         # the steps of one chunk at a time (memory O(n_steps / record_every + record_every))
         chunk_fn = jax.checkpoint(chunk) if remat else chunk
-        carry, rec = jax.lax.scan(chunk_fn, carry, alphas.reshape(n_steps // record_every, record_every))
+        chunks = alphas.reshape((n_steps // record_every, record_every) + alphas.shape[1:])
+        carry, rec = jax.lax.scan(chunk_fn, carry, chunks)
         traj = Trajectory(*rec)
     else:
         carry, _ = jax.lax.scan(lambda c, x: (one_step(c, x)[0], None), carry, alphas)
@@ -146,7 +161,7 @@ def _simulate(params: TrafficParams, controller: Controller | None, rho0: Array 
                      controller_state=cstate, trajectory=traj)
 
 
-_simulate_jit = jax.jit(_simulate, static_argnames=("n_steps", "record_every", "remat"))
+_simulate_jit = jax.jit(_simulate, static_argnames=("n_steps", "record_every", "remat", "noise"))
 
 
 def _check_initial_condition(params: TrafficParams, rho0: Array | None, v0: Array | None) -> None:
@@ -171,6 +186,7 @@ def simulate(
     params: TrafficParams, controller: Controller | None = None, *, n_steps: int,
     rho0: Array | None = None, v0: Array | None = None, key: Array | None = None,
     nominal: TrafficParams | None = None, record_every: int = 0, remat: bool = False,
+    noise: NoiseReading | None = None,
 ) -> SimResult:
     """Closed-loop rollout of one freeway for ``n_steps`` steps of ``params.dt``.
 
@@ -186,6 +202,8 @@ def simulate(
         record_every: record the fields every k-th step (0: no trajectory, metrics only).
         remat: checkpoint every recording chunk for reverse-mode differentiation (see
             ``simulate_batch``).
+        noise: how the alpha noise is drawn and whether the controller sees it (``NoiseReading``;
+            default: one road-wide draw per step, plant only).
     """
     if remat and not record_every:
         raise ValueError("remat needs record_every > 0 (the checkpointed chunk length)")
@@ -194,14 +212,14 @@ def simulate(
     if n_steps < 1:
         raise ValueError(f"n_steps must be >= 1, got {n_steps}")
     _check_initial_condition(params, rho0, v0)
-    return _simulate_jit(params, controller, rho0, v0, key, nominal, n_steps, record_every, remat)
+    return _simulate_jit(params, controller, rho0, v0, key, nominal, n_steps, record_every, remat, noise)
 
 
 def simulate_batch(
     params: TrafficParams, controller: Controller | None = None, *, n_steps: int,
     rho0: Array | None = None, v0: Array | None = None, keys: Array | None = None,
     nominal: TrafficParams | None = None, record_every: int = 0, batch_controller: bool = False,
-    chunk_size: int | None = 64, remat: bool = False,
+    chunk_size: int | None = 64, remat: bool = False, noise: NoiseReading | None = None,
 ) -> SimResult:
     """``simulate`` vmapped over a batch; every returned leaf gets a leading batch axis.
 
@@ -234,14 +252,15 @@ def simulate_batch(
         raise ValueError(f"n_steps must be >= 1, got {n_steps}")
     _check_initial_condition(params, rho0, v0)
     return _simulate_batch_jit(params, controller, rho0, v0, keys, nominal, n_steps, record_every,
-                               (p_axis, c_axis, r_axis, r_axis, k_axis), chunk_size or 0, remat)
+                               (p_axis, c_axis, r_axis, r_axis, k_axis), chunk_size or 0, remat, noise)
 
 
-@functools.partial(jax.jit, static_argnames=("n_steps", "record_every", "axes", "chunk_size", "remat"))
+@functools.partial(jax.jit, static_argnames=("n_steps", "record_every", "axes", "chunk_size", "remat", "noise"))
 def _simulate_batch_jit(params, controller, rho0, v0, keys, nominal, n_steps: int, record_every: int,
-                        axes: tuple, chunk_size: int = 0, remat: bool = False) -> SimResult:
+                        axes: tuple, chunk_size: int = 0, remat: bool = False,
+                        noise: NoiseReading | None = None) -> SimResult:
     def one(p, c, r, v, k):
-        return _simulate(p, c, r, v, k, nominal, n_steps, record_every, remat)
+        return _simulate(p, c, r, v, k, nominal, n_steps, record_every, remat, noise)
 
     return chunked_vmap(one, (params, controller, rho0, v0, keys), axes, chunk_size)
 

@@ -228,6 +228,8 @@ def simulate_batch(
     The controller is batched only when ``batch_controller`` is set (its settings then carry
     a leading batch axis). ``nominal`` is shared (not batched). At least one input must be batched.
 
+    ``noise`` (static): the ``NoiseReading`` shared by every environment (see ``simulate``).
+
     ``chunk_size`` (static): a batch larger than this runs as a sequential loop over chunks of
     ``chunk_size`` environments, each chunk vmapped over the whole rollout, so that the working
     set of a chunk stays in cache (on a CPU this is 1.5-3x faster for large batches than one

@@ -94,8 +94,9 @@ SCENARIOS = (
              "as alpha_noise, an independent draw at every grid node, each held for 10 s",
              noise_hold_s=10.0, noise_per_node=True),
     Scenario("alpha_noise_model_sees", 4.0, NOISE_STD, ("backstepping", *_L),
-             "as alpha_noise, and backstepping's nominal alpha is the noisy plant alpha (its model sees the "
-             "noise; the target stays the nominal equilibrium); PPO has no model alpha", noise_model_sees=True),
+             "as alpha_noise, and backstepping's nominal alpha is the noisy plant alpha (its model and the "
+             "equilibrium it linearises about follow the noise; rewards and indices keep the nominal target); "
+             "the learned controllers have no model alpha", noise_model_sees=True),
     Scenario("delay_mismatch_3", 3.0, 0.0, ("backstepping", *_L),
              "plant delay D = 3 s, controllers assume 4 s"),
     Scenario("delay_mismatch_5", 5.0, 0.0, ("backstepping", *_L),

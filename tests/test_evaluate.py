@@ -47,7 +47,9 @@ def test_evaluate_end_to_end(tiny_run, tmp_path):
     skipped = {"grad_network"}
     expected = {s.name: set(s.controllers) - skipped for s in SCENARIOS}
     assert "grad_gains" in expected["delay4"]
-    assert set(expected) == {"delay0", "delay4", "alpha_noise", "delay_mismatch_3", "delay_mismatch_5"}
+    assert set(expected) == {"delay0", "delay4", "alpha_noise", "alpha_noise_held_1s", "alpha_noise_held_10s",
+                             "alpha_noise_node_held_10s", "alpha_noise_model_sees", "delay_mismatch_3",
+                             "delay_mismatch_5"}
     for scenario, controllers in expected.items():
         assert set(on_disk[scenario]) == controllers, scenario
         for name in controllers:
@@ -69,3 +71,13 @@ def test_evaluate_end_to_end(tiny_run, tmp_path):
     report = (out / "REPORT.md").read_text()
     assert "Beyond the paper: PPO and gradient-based training" in report
     assert "gradient: 3 constant gains" in report and "gradient-gains" in report
+    # issue 14: both readings with units, the numerical check beside Table 2, claim 5 per reading
+    assert "J_fuel_kmh" in on_disk["units"] and "J_comfort_kmh" in on_disk["delay4"]["open_loop"]
+    rel = on_disk["numerics"]["rel_diff"]
+    assert set(rel) == {"refined", "scheme"} and "J_comfort" in rel["refined"]["backstepping"]
+    assert "Delta refined" in (out / "table2.md").read_text()
+    claims = json.loads((out / "claims.json").read_text())
+    c5 = next(c for c in claims if c["id"] == 5)
+    assert set(c5["readings"]) == {s.name for s in SCENARIOS if s.seeded}
+    assert on_disk["meta"]["fig7_reading"] in c5["readings"]
+    assert "Numerical uncertainty" in report and "alpha_noise_model_sees" in report

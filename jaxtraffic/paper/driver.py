@@ -13,12 +13,14 @@ import jax
 from jaxtraffic.control import Controller, backstepping, lyapunov, open_loop
 from jaxtraffic.learn.checkpoint import to_jsonable
 from jaxtraffic.model.params import equilibrium
-from jaxtraffic.paper.claims import evaluate_claims
+from jaxtraffic.paper.claims import evaluate_claims, paper_like_reading
 from jaxtraffic.paper.figures import make_figures
 from jaxtraffic.paper.learned import comparison_section
-from jaxtraffic.paper.report import robustness_summary, write_report
+from jaxtraffic.paper.numerics import GRID_BOUND, on_coarse_grid, run_numerics
+from jaxtraffic.paper.report import numerics_summary, readings_summary, robustness_summary, write_report
 from jaxtraffic.paper.scenarios import CTRL_DELAY, SCENARIOS, EvalConfig, initial_norms, run_robustness, run_scenarios
-from jaxtraffic.paper.summaries import UNITS, equilibrium_indices, summarise, table2_rows, write_table2
+from jaxtraffic.paper.summaries import UNITS, equilibrium_indices, summarise
+from jaxtraffic.paper.table2 import table2_rows, write_table2
 from jaxtraffic.provenance import provenance
 
 
@@ -33,6 +35,9 @@ def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: s
     ``ppo_delay0``: a separate policy for scenario delay0 (else the D = 4 s one is used).
     ``learned_runs``: controller name -> {"summary", "curve", "run_dir"} of the runs behind the
     learned controllers, for REPORT.md's comparison section (``paper.learned``).
+    On a refined evaluation grid (``cfg.refine`` > 1) the grid-bound policies act through
+    ``numerics.on_coarse_grid`` (they observe their training grid's nodes). With
+    ``cfg.numerics_check`` Table 2's scenario is rerun on a refined grid and with the other scheme.
     """
     t_start = time.perf_counter()
     out_dir = Path(out_dir)
@@ -40,8 +45,11 @@ def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: s
     ctrls = {"open_loop": open_loop(), "lyapunov": lyapunov(1.0),
              "backstepping": backstepping(CTRL_DELAY, 1.0)}
     ctrls.update(controllers)
+    if cfg.refine > 1:
+        ctrls = {k: on_coarse_grid(c, cfg.refine) if k in GRID_BOUND else c for k, c in ctrls.items()}
+        ppo_delay0 = None if ppo_delay0 is None else on_coarse_grid(ppo_delay0, cfg.refine)
     overrides = {("delay0", "ppo"): ppo_delay0} if ppo_delay0 is not None else {}
-    log(f"[1/4] scenarios: {cfg.n_points} points, dt = {cfg.dt} s, {cfg.horizon_s:g} s "
+    log(f"[1/4] scenarios: {cfg.grid_points} points ({cfg.scheme}), dt = {cfg.dt} s, {cfg.horizon_s:g} s "
         f"({cfg.n_steps} steps), {len(cfg.seeds)} noise seeds")
     results = run_scenarios(ctrls, cfg, log, overrides)
     log(f"[2/4] robustness map: {len(cfg.robust_delays)} delays x {len(cfg.robust_alphas)} alphas, "
@@ -52,32 +60,13 @@ def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: s
     metrics: dict[str, Any] = {"units": UNITS}
     for s, per in results.items():
         metrics[s] = {c: summarise(o, init_l2) for c, o in per.items()}
+    numerics = None
+    if cfg.numerics_check:
+        log("  numerical check of Table 2 (delay4): refined grid and the other scheme")
+        numerics = run_numerics(ctrls, cfg, metrics["delay4"], log)
+        metrics["numerics"] = numerics
 
-    log("[3/4] figures")
     lc = Path(learning_curve_csv) if learning_curve_csv else None
-    figures = make_figures(results, robust, cfg, out_dir, lc, log)
-
-    log("[4/4] tables, metrics.json, REPORT.md")
-    rows = table2_rows(metrics, cfg)
-    write_table2(rows, out_dir, cfg.n_steps * cfg.dt)
-    nom = cfg.nominal()
-    meta = dict(meta)
-    meta.update({
-        "seeds": list(cfg.seeds),
-        "grid": {"n_points": cfg.n_points, "dx_m": float(nom.dx), "dt_s": cfg.dt, "horizon_s": cfg.horizon_s,
-                 "n_steps": cfg.n_steps, "record_every": cfg.record_every},
-        "nominal": {"alpha": 0.15, "h_bar_s": float(nom.h_bar),
-                    "rho_bar_veh_per_m": float(equilibrium(nom)[0]),
-                    "v_bar_m_per_s": float(equilibrium(nom)[1])},
-        "initial_L2": {"rho_veh_per_m": init_l2[0], "v_m_per_s": init_l2[1]},
-        "scenarios": {s.name: {"plant_delay_s": s.plant_delay, "alpha_noise": s.alpha_noise,
-                               "controllers": list(s.controllers), "description": s.description,
-                               "controller_assumed_delay_s": CTRL_DELAY} for s in SCENARIOS},
-        "equilibrium_indices": equilibrium_indices(cfg),
-        "robust_grid": {"delays_s": list(cfg.robust_delays), "alphas": list(cfg.robust_alphas),
-                        "horizon_s": cfg.robust_horizon_s},
-        "jax_version": jax.__version__, "backend": jax.default_backend(), "provenance": provenance(),
-    })
     lc_data = None
     if lc is not None and lc.exists():
         from jaxtraffic.paper.plotting import read_learning_curve
@@ -87,6 +76,36 @@ def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: s
             lc_data = None
     d0_label = "a separate D = 0 policy" if ppo_delay0 is not None else "the D = 4 s policy"
     claims = evaluate_claims(metrics, cfg, lc_data, d0_label)
+    fig7 = paper_like_reading(claims)
+
+    log("[3/4] figures")
+    figures = make_figures(results, robust, cfg, out_dir, lc, log, fig7_scenario=fig7)
+
+    log("[4/4] tables, metrics.json, REPORT.md")
+    rows = table2_rows(metrics, cfg, numerics)
+    write_table2(rows, out_dir, cfg.n_steps * cfg.dt, metrics, numerics)
+    nom = cfg.nominal()
+    meta = dict(meta)
+    meta.update({
+        "seeds": list(cfg.seeds),
+        "grid": {"n_points": cfg.grid_points, "dx_m": float(nom.dx), "dt_s": cfg.dt, "horizon_s": cfg.horizon_s,
+                 "n_steps": cfg.n_steps, "record_every": cfg.record_every, "scheme": cfg.scheme,
+                 "refine": cfg.refine, "policy_n_points": cfg.n_points},
+        "fig7_reading": fig7,
+        "nominal": {"alpha": 0.15, "h_bar_s": float(nom.h_bar),
+                    "rho_bar_veh_per_m": float(equilibrium(nom)[0]),
+                    "v_bar_m_per_s": float(equilibrium(nom)[1])},
+        "initial_L2": {"rho_veh_per_m": init_l2[0], "v_m_per_s": init_l2[1]},
+        "scenarios": {s.name: {"plant_delay_s": s.plant_delay, "alpha_noise": s.alpha_noise,
+                               "controllers": list(s.controllers), "description": s.description,
+                               "noise_hold_s": s.noise_hold_s, "noise_per_node": s.noise_per_node,
+                               "noise_model_sees": s.noise_model_sees,
+                               "controller_assumed_delay_s": CTRL_DELAY} for s in SCENARIOS},
+        "equilibrium_indices": equilibrium_indices(cfg),
+        "robust_grid": {"delays_s": list(cfg.robust_delays), "alphas": list(cfg.robust_alphas),
+                        "horizon_s": cfg.robust_horizon_s},
+        "jax_version": jax.__version__, "backend": jax.default_backend(), "provenance": provenance(),
+    })
     robust_json = {"delays_s": list(cfg.robust_delays), "alphas": list(cfg.robust_alphas),
                    "horizon_s": cfg.robust_horizon_s,
                    "units": {"final_rho_L2": "veh/m", "final_v_L2": "m/s", "final_reward": "dimensionless",
@@ -96,13 +115,15 @@ def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: s
     (out_dir / "robustness.json").write_text(json.dumps(to_jsonable(robust_json), indent=1, allow_nan=False))
     meta["runtime_s"] = time.perf_counter() - t_start
     meta["claims"] = {str(c["id"]): c["verdict"] for c in claims}
+    meta["claim5_readings"] = {n: r["verdict"] for c in claims if c["id"] == 5 for n, r in c["readings"].items()}
     metrics["meta"] = meta
     metrics = to_jsonable(metrics)
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=1, allow_nan=False))
     notes = []
     if lc_data is None:
         notes.append("- No learning curve was available, so figure 3a is missing.")
-    sections = robustness_summary(robust, cfg) + comparison_section(
+    sections = readings_summary(claims, metrics, cfg) + numerics_summary(numerics, metrics, cfg)
+    sections += robustness_summary(robust, cfg) + comparison_section(
         metrics, learned_runs or {}, robust, tuple(cfg.robust_alphas), tuple(cfg.robust_delays))
     write_report(out_dir / "REPORT.md", claims, metrics, meta, figures, notes, sections=sections)
     (out_dir / "claims.json").write_text(json.dumps(to_jsonable(

@@ -10,6 +10,11 @@ on the evaluation grid, MODEL.md section 12):
     delay0            plant D = 0                         open_loop, lyapunov, ppo
     delay4            plant D = 4 s                       open_loop, lyapunov, backstepping, ppo
     alpha_noise       plant D = 4 s, alpha + N(0, 0.15^2) backstepping, ppo   (several seeds)
+                      one road-wide draw per step, plant only
+    alpha_noise_held_1s / _held_10s   the same, one draw held for 1 s / 10 s
+    alpha_noise_node_held_10s         an independent draw per grid node, held 10 s
+    alpha_noise_model_sees            per step, and the model-based controllers' nominal alpha is
+                                      the noisy plant alpha (``MODEL_BASED``; target fixed)
     delay_mismatch_3  plant D = 3 s                       backstepping, ppo   (both assume 4 s)
     delay_mismatch_5  plant D = 5 s                       backstepping, ppo   (both assume 4 s)
 
@@ -40,11 +45,13 @@ from jaxtraffic.control import Controller, backstepping
 from jaxtraffic.model.params import TrafficParams, equilibrium, steps_for
 from jaxtraffic.sim import metrics as M
 from jaxtraffic.sim.initial import paper_initial_condition
+from jaxtraffic.sim.plant import NoiseReading
 from jaxtraffic.sim.rollout import simulate_batch, stack_params
 
 CTRL_DELAY = 4.0  # s, the delay the controllers (backstepping, PPO) are designed / trained for
 NOISE_STD = 0.15  # std of the Gaussian noise on the plant's alpha (alpha_noise scenario)
 SETTLE_FRACTION = 0.1  # settling: L2 norm stays below this fraction of its initial value
+MODEL_BASED = ("lyapunov", "backstepping")  # controllers with a model alpha (PPO only normalises by the target)
 
 
 @dataclass(frozen=True)
@@ -56,10 +63,19 @@ class Scenario:
     alpha_noise: float
     controllers: tuple[str, ...]
     description: str
+    noise_hold_s: float = 0.0  # each draw held this long (0: redrawn every step)
+    noise_per_node: bool = False  # an independent draw per grid node
+    noise_model_sees: bool = False  # the model-based controllers' nominal alpha is the plant's
 
     @property
     def seeded(self) -> bool:
         return self.alpha_noise > 0
+
+    def reading(self, dt: float, controller: str) -> NoiseReading | None:
+        """The ``NoiseReading`` of this scenario for ``controller`` (None: the default reading)."""
+        r = NoiseReading(hold_steps=max(1, int(round(self.noise_hold_s / dt))), per_node=self.noise_per_node,
+                         model_sees=self.noise_model_sees and controller in MODEL_BASED)
+        return None if r == NoiseReading() else r
 
 
 # learned controllers beyond the paper's PPO, evaluated wherever PPO is when they are given
@@ -70,12 +86,24 @@ SCENARIOS = (
     Scenario("delay4", 4.0, 0.0, ("open_loop", "lyapunov", "backstepping", *_L), "plant delay D = 4 s"),
     Scenario("alpha_noise", 4.0, NOISE_STD, ("backstepping", *_L),
              f"plant delay D = 4 s, plant alpha = clip(0.15 + N(0, {NOISE_STD}^2), 0, 1) redrawn every step"),
+    Scenario("alpha_noise_held_1s", 4.0, NOISE_STD, ("backstepping", *_L),
+             "as alpha_noise, each draw held for 1 s", noise_hold_s=1.0),
+    Scenario("alpha_noise_held_10s", 4.0, NOISE_STD, ("backstepping", *_L),
+             "as alpha_noise, each draw held for 10 s", noise_hold_s=10.0),
+    Scenario("alpha_noise_node_held_10s", 4.0, NOISE_STD, ("backstepping", *_L),
+             "as alpha_noise, an independent draw at every grid node, each held for 10 s",
+             noise_hold_s=10.0, noise_per_node=True),
+    Scenario("alpha_noise_model_sees", 4.0, NOISE_STD, ("backstepping", *_L),
+             "as alpha_noise, and backstepping's nominal alpha is the noisy plant alpha (its model and the "
+             "equilibrium it linearises about follow the noise; rewards and indices keep the nominal target); "
+             "the learned controllers have no model alpha", noise_model_sees=True),
     Scenario("delay_mismatch_3", 3.0, 0.0, ("backstepping", *_L),
              "plant delay D = 3 s, controllers assume 4 s"),
     Scenario("delay_mismatch_5", 5.0, 0.0, ("backstepping", *_L),
              "plant delay D = 5 s, controllers assume 4 s"),
 )
 SCENARIO_BY_NAME = {s.name: s for s in SCENARIOS}
+NOISE_SCENARIOS = tuple(s.name for s in SCENARIOS if s.seeded)  # the readings of the alpha noise (claim 5)
 ROBUST_CONTROLLERS = ("open_loop", "lyapunov", "backstepping", "ppo", *EXTRA_LEARNED, "grad_robust")
 
 
@@ -97,6 +125,14 @@ class EvalConfig:
     robust_alphas: tuple[float, ...] = tuple(np.round(np.linspace(0.05, 0.6, 12), 6))
     record_every_target: int = 10
     robust_horizon_s: float = 600.0
+    scheme: str = "upwind"
+    refine: int = 1
+    numerics_check: bool = True
+
+    @property
+    def grid_points(self) -> int:
+        """Nodes of the evaluation grid: ``n_points`` (the policy's grid) refined ``refine`` times."""
+        return (self.n_points - 1) * self.refine + 1
 
     @property
     def n_steps(self) -> int:
@@ -114,7 +150,7 @@ class EvalConfig:
         return max(100, int(math.ceil(round(worst / self.dt, 6))))
 
     def nominal(self, **changes: Any) -> TrafficParams:
-        return TrafficParams(alpha=0.15, n_points=self.n_points, dt=self.dt,
+        return TrafficParams(alpha=0.15, n_points=self.grid_points, dt=self.dt, scheme=self.scheme,
                              max_delay_steps=self.max_delay_steps, **changes)
 
 
@@ -146,7 +182,7 @@ class Outcome:
 
 
 def run_batch(controller: Controller, envs: list[TrafficParams], keys: list[int], cfg: EvalConfig,
-              record: bool = True, batch_controller: bool = False):
+              record: bool = True, batch_controller: bool = False, noise: NoiseReading | None = None):
     """One vmapped rollout of ``controller`` over ``envs`` from the paper's initial condition
     (computed on the nominal equilibrium). Returns the SimResult with numpy leaves."""
     nom = cfg.nominal()
@@ -157,7 +193,7 @@ def run_batch(controller: Controller, envs: list[TrafficParams], keys: list[int]
         params, controller, n_steps=cfg.n_steps, nominal=nom,
         rho0=jnp.broadcast_to(rho0, (b, nom.n_points)), v0=jnp.broadcast_to(v0, (b, nom.n_points)),
         keys=jnp.stack([jax.random.PRNGKey(k) for k in keys]),
-        record_every=cfg.record_every if record else 0, batch_controller=batch_controller,
+        record_every=cfg.record_every if record else 0, batch_controller=batch_controller, noise=noise,
     )
     return jax.tree_util.tree_map(np.asarray, res)
 
@@ -179,26 +215,27 @@ def run_scenarios(controllers: dict[str, Controller], cfg: EvalConfig,
     ``controllers``: name -> Controller for the names used in SCENARIOS ("ppo" included; the
     ``EXTRA_LEARNED`` ones are evaluated when given, skipped otherwise).
     ``scenario_controllers``: (scenario, name) -> Controller overrides (e.g. a separate D = 0 PPO
-    policy for "delay0"); each distinct override runs as its own batch.
+    policy for "delay0"); each distinct override runs as its own batch, and so does each reading
+    of the alpha noise other than the default one (``Scenario.reading``).
     Returns {scenario: {controller name: Outcome}}.
     """
     overrides = scenario_controllers or {}
-    groups: dict[tuple[str, str], list[tuple[str, int]]] = {}
+    groups: dict[tuple[str, str, NoiseReading | None], list[tuple[str, int]]] = {}
     for sc in SCENARIOS:
         for name in sc.controllers:
             if name in EXTRA_LEARNED and name not in controllers:
                 continue
-            gid = (name, sc.name) if (sc.name, name) in overrides else (name, "")
+            gid = (name, sc.name if (sc.name, name) in overrides else "", sc.reading(cfg.dt, name))
             seeds = cfg.seeds if sc.seeded else (0,)
             groups.setdefault(gid, []).extend((sc.name, s) for s in seeds)
     nom = cfg.nominal()
     results: dict[str, dict[str, Outcome]] = {sc.name: {} for sc in SCENARIOS}
-    for (name, override_scenario), members in groups.items():
+    for (name, override_scenario, reading), members in groups.items():
         ctrl = overrides[(override_scenario, name)] if override_scenario else controllers[name]
         envs = [nom.replace(delay=SCENARIO_BY_NAME[s].plant_delay,
                             alpha_noise=SCENARIO_BY_NAME[s].alpha_noise) for s, _ in members]
         t0 = time.perf_counter()
-        res = run_batch(ctrl, envs, [seed for _, seed in members], cfg)
+        res = run_batch(ctrl, envs, [seed for _, seed in members], cfg, noise=reading)
         scen = sorted({s for s, _ in members}, key=[x.name for x in SCENARIOS].index)
         log(f"  {name:<13s} {len(envs):3d} envs x {cfg.n_steps} steps ({', '.join(scen)})"
             f"  {time.perf_counter() - t0:6.1f} s")

@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import csv
 import math
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -35,6 +33,22 @@ UNITS = {
     "n_seeds": "number of noise seeds averaged (values are means; 'std' holds the standard deviations)",
     "diverged_fraction": "fraction of seeds that diverged",
     "targets": "every norm, reward and index is measured against the nominal equilibrium (alpha = 0.15)",
+    "J_comfort_a2": "the a^2 part of J_comfort (SI, as J_comfort)",
+    "J_comfort_at2": "the a_t^2 part of J_comfort (SI); J_comfort_a2 + J_comfort_at2 = J_comfort",
+    "J_comfort_switch_on": "the a_t^2 part of the switch-on step n = D/dt, when the first controlled input reaches "
+                           "the plant (SI; 0 at D = 0, where a_t(0) := 0)",
+    "J_comfort_no_switch_on": "J_comfort - J_comfort_switch_on (SI): J_comfort without the switch-on jerk spike, "
+                              "defined the same way for every controller and delay",
+    "J_TTT_kmh": "the paper's reading (km/h inside the integrands): equal to J_TTT (rho in veh/km in both)",
+    "J_fuel_kmh": "the paper's reading: int int xi(3.6 v, 3.6 a) rho dx dt, i.e. v in km/h and a in km/h/s in the "
+                  "b_i terms of xi; xi in ml/s per vehicle, rho in veh/km, x in m, t in s",
+    "J_comfort_kmh": "the paper's reading: int int (a^2 + a_t^2) rho dx dt with a in km/h/s, a_t in km/h/s^2 "
+                     "(= 3.6^2 x J_comfort); rho in veh/km, x in m, t in s",
+    "J_comfort_a2_kmh": "a^2 part of J_comfort_kmh", "J_comfort_at2_kmh": "a_t^2 part of J_comfort_kmh",
+    "J_comfort_switch_on_kmh": "J_comfort_switch_on in the km/h reading",
+    "J_comfort_no_switch_on_kmh": "J_comfort_no_switch_on in the km/h reading",
+    "numerics": "Table 2's scenario (delay4) on a refined grid and with the other scheme; rel_diff = "
+                "(J_variant - J) / |J|",
 }
 
 # The paper's Table 2 (D = 4 s, first 300 s), quoted as printed in the paper.
@@ -81,8 +95,9 @@ def summarise(out: Outcome, init_l2: tuple[float, float]) -> dict[str, Any]:
         return None if any(v is None for v in vals) else float(np.mean(vals))
 
     entry: dict[str, Any] = {}
-    for k in ("J_TTT", "J_fuel", "J_comfort", "final_rho_L2", "final_v_L2", "final_reward"):
-        entry[k] = float(np.mean(m[k]))
+    for k in ("J_TTT", "J_fuel", "J_comfort", "final_rho_L2", "final_v_L2", "final_reward", *M.EXTRA_INDICES):
+        if k in m:
+            entry[k] = float(np.mean(m[k]))
     entry["time_to_reward_-0.1_s"] = mean_time(list(np.asarray(m["time_to_reward_target_s"], float)))
     entry["diverged"] = bool(div.any())
     entry["control_effort"] = float(np.mean(m["control_effort"]))
@@ -107,14 +122,16 @@ def summarise(out: Outcome, init_l2: tuple[float, float]) -> dict[str, Any]:
 
 
 def equilibrium_indices(cfg: EvalConfig) -> dict[str, float]:
-    """J_TTT and J_fuel of the uniform nominal equilibrium over the horizon (rho in veh/km)."""
+    """J_TTT and J_fuel of the uniform nominal equilibrium over the horizon (rho in veh/km), in
+    both readings (suffix _kmh: the paper's)."""
     nom = cfg.nominal()
     rho_bar, v_bar = (float(x) for x in equilibrium(nom))
     T = cfg.n_steps * cfg.dt
     rho_km = M.VEH_PER_KM * rho_bar
     return {"J_TTT": rho_km * nom.L * T,
             "J_fuel": float(M.fuel_rate(v_bar, 0.0)) * rho_km * nom.L * T,
-            "J_comfort": 0.0}
+            "J_comfort": 0.0, "J_TTT_kmh": rho_km * nom.L * T,
+            "J_fuel_kmh": float(M.fuel_rate_kmh(v_bar, 0.0)) * rho_km * nom.L * T, "J_comfort_kmh": 0.0}
 
 
 # ----------------------------------------------------------------------------- Table 2
@@ -123,25 +140,6 @@ def improvement(ol: float | None, c: float | None) -> float | None:
     if ol is None or c is None or ol == 0:
         return None
     return 100.0 * (ol - c) / ol
-
-
-def table2_rows(metrics: dict, cfg: EvalConfig) -> list[dict[str, Any]]:
-    """Rows of Table 2 at D = 4 s: ours, improvement %, the paper's value and improvement."""
-    d4 = metrics["delay4"]
-    eq = equilibrium_indices(cfg)
-    rows = []
-    for idx in INDICES:
-        row: dict[str, Any] = {"index": idx, "equilibrium": eq[idx] if idx != "J_comfort" else None}
-        ol = d4.get("open_loop", {}).get(idx)
-        for c in TABLE_CONTROLLERS:
-            val = d4.get(c, {}).get(idx)
-            row[f"{c}_ours"] = val
-            row[f"{c}_paper"] = PAPER_TABLE2[idx][c]
-            if c != "open_loop":
-                row[f"{c}_improvement_pct_ours"] = improvement(ol, val)
-                row[f"{c}_improvement_pct_paper"] = PAPER_IMPROVEMENT[idx][c]
-        rows.append(row)
-    return rows
 
 
 def _fmt(x: Any, pct: bool = False, digits: int = 4) -> str:
@@ -160,37 +158,3 @@ def _fmt_paper(x: Any, pct: bool = False) -> str:
     if x is None:
         return "n/a"
     return f"{x:g} %" if pct else _fmt(x, digits=2)
-
-
-def write_table2(rows: list[dict[str, Any]], out_dir: Path, horizon_s: float) -> None:
-    """table2.csv (all columns) and table2.md (ours next to the paper's, clearly labelled)."""
-    cols = list(rows[0])
-    with open(out_dir / "table2.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=cols)
-        w.writeheader()
-        for r in rows:
-            w.writerow({k: ("" if r[k] is None else r[k]) for k in cols})
-    lines = [
-        f"# Table 2: performance indices, plant delay D = 4 s, first {horizon_s:g} s",
-        "",
-        "Ours = this reproduction (rho in veh/km, x in m, t in s). **Paper** = the values printed in",
-        "the paper's Table 2, quoted for comparison (2 significant digits). Improvement = (J_open_loop",
-        "- J) / J_open_loop in %. Equilibrium = the index of the uniform nominal equilibrium over the",
-        "same horizon (a lower bound for J_TTT reached only at equilibrium).",
-        "",
-        "| index | equilibrium | open loop (ours) | open loop (**paper**) | backstepping (ours) "
-        "| improvement (ours) | backstepping (**paper**) | improvement (**paper**) | PPO (ours) "
-        "| improvement (ours) | PPO (**paper**) | improvement (**paper**) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    for r in rows:
-        lines.append(
-            f"| {r['index']} | {_fmt(r['equilibrium'])} | {_fmt(r['open_loop_ours'])} "
-            f"| {_fmt_paper(r['open_loop_paper'])} "
-            f"| {_fmt(r['backstepping_ours'])} | {_fmt(r['backstepping_improvement_pct_ours'], True)} "
-            f"| {_fmt_paper(r['backstepping_paper'])} "
-            f"| {_fmt_paper(r['backstepping_improvement_pct_paper'], True)} "
-            f"| {_fmt(r['ppo_ours'])} | {_fmt(r['ppo_improvement_pct_ours'], True)} "
-            f"| {_fmt_paper(r['ppo_paper'])} | {_fmt_paper(r['ppo_improvement_pct_paper'], True)} |")
-    (out_dir / "table2.md").write_text("\n".join(lines) + "\n")
-

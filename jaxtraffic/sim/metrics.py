@@ -7,6 +7,14 @@ uniform state of density rho over T seconds gives J_TTT = 1000 rho L T (to round
 sums are kept per node during the rollout and integrated in space once at the end.
 The acceleration at t_n uses the forward difference (v^{n+1} - v^n)/dt; a_t at t_n is
 (a^n - a^{n-1})/dt with a^{-1} := a^0.
+
+Two readings of the integrands (docs/model.md section 10): **SI** (above; the library's own) and
+the **paper's** (speeds in km/h inside the integrands: a and a_t x 3.6, so the comfort parts are
+KMH^2 = 12.96 x the SI ones, and xi(3.6 v, 3.6 a) with the same b_i; rho in veh/km, x in m, t in s
+in both). J_comfort is also kept as its parts a^2 and a_t^2, and the a_t^2 contribution of the
+*switch-on step* (the step n = d = D/dt at which the first controlled input reaches the plant;
+at D = 0 it is step 0, whose a_t is 0 by the a^{-1} := a^0 rule), so that J_comfort without the
+switch-on spike is defined the same way for every controller and delay.
 """
 
 from __future__ import annotations
@@ -21,6 +29,7 @@ Array = jax.Array
 
 VEH_PER_KM = 1000.0  # veh/m -> veh/km
 FUEL_B0, FUEL_B1, FUEL_B3, FUEL_B4 = 25e-3, 24.5e-6, 32.5e-9, 125e-6  # Treiber & Kesting
+KMH = 3.6  # m/s -> km/h
 REWARD_TARGET = -0.1  # the paper's stop rule on the reward
 
 
@@ -65,6 +74,12 @@ def fuel_rate(v: Array, a: Array) -> Array:
     return jnp.maximum(0.0, FUEL_B0 + FUEL_B1 * v + FUEL_B3 * v**3 + FUEL_B4 * v * a)
 
 
+def fuel_rate_kmh(v: Array, a: Array) -> Array:
+    """The paper's reading of xi: ``fuel_rate`` with the speed in km/h and the acceleration in
+    km/h/s (v, a given in SI: m/s, m/s^2)."""
+    return fuel_rate(KMH * v, KMH * a)
+
+
 @struct.dataclass
 class MetricsAccumulator:
     """Running sums of one rollout, kept *per grid node* (shape (n,)) so that the streaming
@@ -76,6 +91,9 @@ class MetricsAccumulator:
     effort_sq: sum over steps of (h_sent - h_bar)^2, s^2.
     max_cfl: max over steps of the CFL number max(|lambda1|, |lambda2|) dt/dx at each node.
     a_prev: the previous step's acceleration, m/s^2.
+    J_comfort_a2, J_comfort_at2: the a^2 and a_t^2 parts of J_comfort (SI).
+    J_comfort_switch: the a_t^2 part at the switch-on step (``switch_step``; SI).
+    J_fuel_kmh: J_fuel with ``fuel_rate_kmh`` (the paper's reading).
     n_active (scalar): number of accumulated (healthy) steps.
     last_bad_step (scalar): last step index whose reward was below REWARD_TARGET (-1: none).
     """
@@ -88,6 +106,10 @@ class MetricsAccumulator:
     a_prev: Array
     n_active: Array
     last_bad_step: Array
+    J_comfort_a2: Array
+    J_comfort_at2: Array
+    J_comfort_switch: Array
+    J_fuel_kmh: Array
 
 
 def init_metrics(n_points: int, dtype=jnp.float32) -> MetricsAccumulator:
@@ -95,6 +117,7 @@ def init_metrics(n_points: int, dtype=jnp.float32) -> MetricsAccumulator:
     return MetricsAccumulator(
         J_TTT=z, J_fuel=z, J_comfort=z, effort_sq=z, max_cfl=z, a_prev=z,
         n_active=jnp.zeros((), jnp.int32), last_bad_step=jnp.full((), -1, jnp.int32),
+        J_comfort_a2=z, J_comfort_at2=z, J_comfort_switch=z, J_fuel_kmh=z,
     )
 
 
@@ -102,6 +125,7 @@ def update_metrics(
     acc: MetricsAccumulator, *, step: Array, rho: Array, v: Array, v_next: Array, h_sent: Array,
     rho_bar: Array, v_bar: Array, h_bar: Array | float, dx: Array | float, dt: Array | float,
     cfl: Array | float, active: Array, reward_next: Array | None = None,
+    switch_step: Array | int = 0,
 ) -> MetricsAccumulator:
     """Add the contribution of step ``step`` (state at t_n, speed at t_{n+1}) if ``active``.
 
@@ -112,6 +136,8 @@ def update_metrics(
     ``cfl`` is the CFL number max(|lambda1|, |lambda2|) dt/dx of the step, per node (or a
     scalar). Inactive steps add exactly zero (``where``, not a multiplication, so a non-finite
     value never enters).
+
+    ``switch_step``: the step whose a_t^2 is the switch-on spike (the plant's delay in steps).
     """
     inv_dt = 1.0 / dt
     a = material_acceleration(v, v_next, dx, dt)
@@ -126,6 +152,8 @@ def update_metrics(
     def add(total, inc):
         return total + jnp.where(active, inc, 0.0)
 
+    at2 = a_t * a_t * w
+
     return MetricsAccumulator(
         J_TTT=add(acc.J_TTT, w),
         J_fuel=add(acc.J_fuel, fuel_rate(v, a) * w),
@@ -135,16 +163,36 @@ def update_metrics(
         a_prev=jnp.where(active, a, acc.a_prev),
         n_active=acc.n_active + active.astype(jnp.int32),
         last_bad_step=jnp.where(active & (r < REWARD_TARGET), r_step, acc.last_bad_step),
+        J_comfort_a2=add(acc.J_comfort_a2, a * a * w),
+        J_comfort_at2=add(acc.J_comfort_at2, at2),
+        J_comfort_switch=add(acc.J_comfort_switch, jnp.where(step == switch_step, at2, 0.0)),
+        J_fuel_kmh=add(acc.J_fuel_kmh, fuel_rate_kmh(v, a) * w),
     )
 
 
 def totals(acc: MetricsAccumulator, dx: Array | float) -> dict[str, Array]:
     """Scalar indices from the per-node sums: J_TTT, J_fuel, J_comfort (trapezoid in space),
-    control_effort (RMS of h_sent - h_bar over space and active steps, s) and max_cfl."""
+    control_effort (RMS of h_sent - h_bar over space and active steps, s) and max_cfl, then
+    the comfort parts and the paper's (km/h) reading (``INDEX_READINGS``)."""
+    a2, at2, sw = (trapezoid(x, dx) for x in (acc.J_comfort_a2, acc.J_comfort_at2, acc.J_comfort_switch))
+    k2 = KMH * KMH
     return {
         "J_TTT": trapezoid(acc.J_TTT, dx),
         "J_fuel": trapezoid(acc.J_fuel, dx),
         "J_comfort": trapezoid(acc.J_comfort, dx),
         "control_effort": jnp.sqrt(jnp.mean(acc.effort_sq) / jnp.maximum(acc.n_active, 1)),
         "max_cfl": jnp.max(acc.max_cfl),
+        "J_comfort_a2": a2, "J_comfort_at2": at2, "J_comfort_switch_on": sw,
+        "J_comfort_no_switch_on": a2 + at2 - sw,
+        "J_TTT_kmh": trapezoid(acc.J_TTT, dx),
+        "J_fuel_kmh": trapezoid(acc.J_fuel_kmh, dx),
+        "J_comfort_kmh": k2 * (a2 + at2),
+        "J_comfort_a2_kmh": k2 * a2, "J_comfort_at2_kmh": k2 * at2, "J_comfort_switch_on_kmh": k2 * sw,
+        "J_comfort_no_switch_on_kmh": k2 * (a2 + at2 - sw),
     }
+
+
+# The extra indices of ``totals`` (besides J_TTT, J_fuel, J_comfort, control_effort, max_cfl).
+EXTRA_INDICES = ("J_comfort_a2", "J_comfort_at2", "J_comfort_switch_on", "J_comfort_no_switch_on",
+                 "J_TTT_kmh", "J_fuel_kmh", "J_comfort_kmh", "J_comfort_a2_kmh", "J_comfort_at2_kmh",
+                 "J_comfort_switch_on_kmh", "J_comfort_no_switch_on_kmh")

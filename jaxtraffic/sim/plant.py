@@ -8,7 +8,7 @@ learning environment (``learn.env``) and every trainer are scans of it. Order of
   2. h^n is pushed into the plant's ring buffer; the plant applies the input sent d = D/dt steps
      ago (h_bar before t = D);
   3. the plant advances with this step's alpha (``plant_alpha``: alpha + alpha_noise N(0, 1),
-     clipped to [0, 1]);
+     clipped to [0, 1]; other readings of the noise: ``NoiseReading``);
   4. a state that leaves 0 < rho < 1/l, v >= 0 (or is not finite) is not accepted: the plant is
      flagged ``diverged`` and frozen at its last physical state. So is a step whose controller
      output is not finite (NaN/inf anywhere in h^n): the saturated field is still defined
@@ -22,6 +22,7 @@ finite or not physical; only reachable with traced inputs, concrete ones are rej
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import chex
@@ -103,6 +104,44 @@ def plant_alpha_sequence(p: TrafficParams, key: Array, n_steps: int, dtype: Any 
     return jnp.clip(p.alpha + p.alpha_noise * z, 0.0, 1.0).astype(dtype)
 
 
+@dataclasses.dataclass(frozen=True)
+class NoiseReading:
+    """How the plant's alpha noise is drawn and who sees it (static; docs/model.md section 13.7).
+
+    hold_steps: one draw is held for this many steps (1: redrawn every step, the default reading).
+    per_node: an independent draw at every grid node (alpha then has shape (n,)) instead of one
+        for the whole road.
+    model_sees: the controller's nominal alpha is this step's plant alpha (its model follows the
+        noisy plant; the target of the metrics and rewards stays the nominal one). Needs a
+        road-wide alpha (not ``per_node``).
+    The default ``NoiseReading()`` draws exactly what ``plant_alpha_sequence`` draws.
+    """
+
+    hold_steps: int = 1
+    per_node: bool = False
+    model_sees: bool = False
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.hold_steps, int) or self.hold_steps < 1:
+            raise ValueError(f"hold_steps must be an int >= 1, got {self.hold_steps!r}")
+        if self.per_node and self.model_sees:
+            raise ValueError("model_sees needs one alpha for the whole road (per_node=False)")
+
+
+def noise_alpha_sequence(p: TrafficParams, key: Array, n_steps: int, reading: NoiseReading | None,
+                         dtype: Any = jnp.float32) -> Array:
+    """Plant alphas of ``n_steps`` steps under ``reading``: shape (n_steps,), or (n_steps, n) per
+    node. Each draw z ~ N(0, 1) gives clip(alpha + alpha_noise z, 0, 1) and is held for
+    ``hold_steps`` steps (steps k*hold .. (k+1)*hold - 1 share draw k). ``None`` or the default
+    reading: ``plant_alpha_sequence`` itself (the same numbers)."""
+    if reading is None or (reading.hold_steps == 1 and not reading.per_node):
+        return plant_alpha_sequence(p, key, n_steps, dtype)
+    n_draws = -(-n_steps // reading.hold_steps)
+    shape = (n_draws, p.n_points) if reading.per_node else (n_draws,)
+    z = jnp.repeat(jax.random.normal(key, shape, dtype), reading.hold_steps, axis=0)[:n_steps]
+    return jnp.clip(p.alpha + p.alpha_noise * z, 0.0, 1.0).astype(dtype)
+
+
 def plant_step(state: PlantState, h_sent: Array, p: TrafficParams, key: Array) -> PlantState:
     """Send ``h_sent`` (already saturated), apply the delayed input and advance the plant.
 
@@ -160,15 +199,18 @@ class StepInfo:
 
 
 def closed_loop_step(plant: PlantState, cstate: Any, controller: Controller, plant_params: TrafficParams,
-                     nominal: TrafficParams, alpha: Array, key: Array, target: tuple[Array, Array]
-                     ) -> tuple[PlantState, Any, Array, StepInfo]:
+                     nominal: TrafficParams, alpha: Array, key: Array, target: tuple[Array, Array],
+                     model_sees_noise: bool = False) -> tuple[PlantState, Any, Array, StepInfo]:
     """One control step: observe, act, saturate, send, advance. Returns (plant, cstate, h_sent, info).
 
     ``plant_params``: the true plant (its delay, alpha noise); ``nominal``: the parameters the
     controller believes in; ``alpha``: this step's plant alpha (``plant_alpha``); ``key``: the
     controller's PRNG key; ``target`` = (rho_bar, v_bar) of the nominal equilibrium (computed once
-    by the caller), against which ``info.reward`` is measured.
+    by the caller), against which ``info.reward`` is measured. ``model_sees_noise`` (static): the
+    controller is handed ``nominal`` with this step's plant alpha (``NoiseReading.model_sees``).
     """
+    if model_sees_noise:
+        nominal = nominal.replace(alpha=alpha)
     h, cstate = controller.act(cstate, plant.observation(plant_params), nominal, key)
     bad_input = ~jnp.all(jnp.isfinite(h))  # NaN/inf from the controller: refused, not clipped into range
     h = saturate(h, plant_params).astype(plant.rho.dtype)

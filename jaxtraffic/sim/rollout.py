@@ -24,12 +24,20 @@ from jaxtraffic.model.fundamental import in_physical_region
 from jaxtraffic.model.params import TrafficParams, check_nominal, check_steps, equilibrium
 from jaxtraffic.sim import metrics as M
 from jaxtraffic.sim.initial import equilibrium_state, paper_initial_condition
-from jaxtraffic.sim.plant import PlantState, closed_loop_step, initial_state, plant_alpha_sequence, plant_step
+from jaxtraffic.sim.plant import (
+    NoiseReading,
+    PlantState,
+    closed_loop_step,
+    initial_state,
+    noise_alpha_sequence,
+    plant_step,
+)
 
 Array = jax.Array
 
-__all__ = ["PlantState", "SimResult", "Trajectory", "chunked_vmap", "equilibrium_state", "finalize_metrics",
-           "initial_state", "paper_initial_condition", "plant_step", "simulate", "simulate_batch", "stack_params"]
+__all__ = ["NoiseReading", "PlantState", "SimResult", "Trajectory", "chunked_vmap", "equilibrium_state",
+           "finalize_metrics", "initial_state", "paper_initial_condition", "plant_step", "simulate",
+           "simulate_batch", "stack_params"]
 
 
 @struct.dataclass
@@ -67,7 +75,8 @@ def finalize_metrics(acc: M.MetricsAccumulator, final: PlantState, target: Traff
     (``sim.plant.DIVERGED_*``: 0 healthy, 1 state left the physical region, 2 controller output
     not finite, 3 initial state not finite/physical), control_effort
     (RMS over space and time of h_sent - h_bar, s), max_cfl (largest CFL number of the steps
-    taken, with the applied input and the plant's alpha).
+    taken, with the applied input and the plant's alpha); then ``metrics.EXTRA_INDICES`` (the
+    comfort parts, the switch-on step and the paper's km/h reading).
     """
     dx = target.dx if dx is None else dx
     rho_bar, v_bar = equilibrium(target)
@@ -89,12 +98,14 @@ def finalize_metrics(acc: M.MetricsAccumulator, final: PlantState, target: Traff
         "diverged_reason": final.diverged_reason,
         "control_effort": tot["control_effort"],
         "max_cfl": tot["max_cfl"],
+        **{k: tot[k] for k in M.EXTRA_INDICES},
     }
 
 
 def _simulate(params: TrafficParams, controller: Controller | None, rho0: Array | None,
               v0: Array | None, key: Array | None, nominal: TrafficParams | None,
-              n_steps: int, record_every: int, remat: bool = False) -> SimResult:
+              n_steps: int, record_every: int, remat: bool = False,
+              noise: NoiseReading | None = None) -> SimResult:
     p = params
     nominal = p if nominal is None else nominal
     controller = open_loop() if controller is None else controller
@@ -111,17 +122,20 @@ def _simulate(params: TrafficParams, controller: Controller | None, rho0: Array 
     r0 = M.reward(rho0, v0, rho_bar, v_bar)
     acc = acc.replace(last_bad_step=jnp.where(r0 < M.REWARD_TARGET, 0, -1).astype(jnp.int32))
     # the plant's alpha of every step, drawn at once (cheaper than a draw inside the loop)
-    alphas = plant_alpha_sequence(p, k_plant, n_steps, rho0.dtype)
+    alphas = noise_alpha_sequence(p, k_plant, n_steps, noise, rho0.dtype)
+    sees = noise is not None and noise.model_sees
+    switch_step = p.delay_steps
 
     def one_step(carry, alpha_n):
         state, cstate, acc = carry
         n = state.step
         new, cstate, h, info = closed_loop_step(state, cstate, controller, p, nominal, alpha_n,
-                                                jax.random.fold_in(k_ctrl, n), (rho_bar, v_bar))
+                                                jax.random.fold_in(k_ctrl, n), (rho_bar, v_bar), sees)
         active = ~new.diverged
         acc = M.update_metrics(acc, step=n, rho=state.rho, v=state.v, v_next=new.v, h_sent=h,
                                rho_bar=rho_bar, v_bar=v_bar, h_bar=nominal.h_bar, dx=p.dx, dt=p.dt,
-                               cfl=info.cfl, active=active, reward_next=info.reward)
+                               cfl=info.cfl, active=active, reward_next=info.reward,
+                               switch_step=switch_step)
         return (new, cstate, acc), h
 
     carry = (state, cstate, acc)
@@ -140,7 +154,8 @@ def _simulate(params: TrafficParams, controller: Controller | None, rho0: Array 
         # remat: reverse-mode differentiation keeps only the carry at chunk boundaries and recomputes
         # the steps of one chunk at a time (memory O(n_steps / record_every + record_every))
         chunk_fn = jax.checkpoint(chunk) if remat else chunk
-        carry, rec = jax.lax.scan(chunk_fn, carry, alphas.reshape(n_steps // record_every, record_every))
+        chunks = alphas.reshape((n_steps // record_every, record_every) + alphas.shape[1:])
+        carry, rec = jax.lax.scan(chunk_fn, carry, chunks)
         traj = Trajectory(*rec)
     else:
         carry, _ = jax.lax.scan(lambda c, x: (one_step(c, x)[0], None), carry, alphas)
@@ -149,7 +164,7 @@ def _simulate(params: TrafficParams, controller: Controller | None, rho0: Array 
                      controller_state=cstate, trajectory=traj)
 
 
-_simulate_jit = jax.jit(_simulate, static_argnames=("n_steps", "record_every", "remat"))
+_simulate_jit = jax.jit(_simulate, static_argnames=("n_steps", "record_every", "remat", "noise"))
 
 
 def _check_initial_condition(params: TrafficParams, rho0: Array | None, v0: Array | None) -> None:
@@ -174,6 +189,7 @@ def simulate(
     params: TrafficParams, controller: Controller | None = None, *, n_steps: int,
     rho0: Array | None = None, v0: Array | None = None, key: Array | None = None,
     nominal: TrafficParams | None = None, record_every: int = 0, remat: bool = False,
+    noise: NoiseReading | None = None,
 ) -> SimResult:
     """Closed-loop rollout of one freeway for ``n_steps`` steps of ``params.dt``.
 
@@ -189,6 +205,8 @@ def simulate(
         record_every: record the fields every k-th step (0: no trajectory, metrics only).
         remat: checkpoint every recording chunk for reverse-mode differentiation (see
             ``simulate_batch``).
+        noise: how the alpha noise is drawn and whether the controller sees it (``NoiseReading``;
+            default: one road-wide draw per step, plant only).
     """
     if remat and not record_every:
         raise ValueError("remat needs record_every > 0 (the checkpointed chunk length)")
@@ -197,14 +215,14 @@ def simulate(
     check_steps(n_steps, record_every)
     check_nominal(params, nominal)
     _check_initial_condition(params, rho0, v0)
-    return _simulate_jit(params, controller, rho0, v0, key, nominal, int(n_steps), int(record_every), remat)
+    return _simulate_jit(params, controller, rho0, v0, key, nominal, int(n_steps), int(record_every), remat, noise)
 
 
 def simulate_batch(
     params: TrafficParams, controller: Controller | None = None, *, n_steps: int,
     rho0: Array | None = None, v0: Array | None = None, keys: Array | None = None,
     nominal: TrafficParams | None = None, record_every: int = 0, batch_controller: bool = False,
-    chunk_size: int | None = 64, remat: bool = False,
+    chunk_size: int | None = 64, remat: bool = False, noise: NoiseReading | None = None,
 ) -> SimResult:
     """``simulate`` vmapped over a batch; every returned leaf gets a leading batch axis.
 
@@ -212,6 +230,8 @@ def simulate_batch(
     them with ``stack_params``), ``rho0``/``v0`` of shape (B, n_points), ``keys`` of shape (B, 2).
     The controller is batched only when ``batch_controller`` is set (its settings then carry
     a leading batch axis). ``nominal`` is shared (not batched). At least one input must be batched.
+
+    ``noise`` (static): the ``NoiseReading`` shared by every environment (see ``simulate``).
 
     ``chunk_size`` (static): a batch larger than this runs as a sequential loop over chunks of
     ``chunk_size`` environments, each chunk vmapped over the whole rollout, so that the working
@@ -237,14 +257,15 @@ def simulate_batch(
     check_nominal(params, nominal)
     _check_initial_condition(params, rho0, v0)
     return _simulate_batch_jit(params, controller, rho0, v0, keys, nominal, int(n_steps), int(record_every),
-                               (p_axis, c_axis, r_axis, r_axis, k_axis), chunk_size or 0, remat)
+                               (p_axis, c_axis, r_axis, r_axis, k_axis), chunk_size or 0, remat, noise)
 
 
-@functools.partial(jax.jit, static_argnames=("n_steps", "record_every", "axes", "chunk_size", "remat"))
+@functools.partial(jax.jit, static_argnames=("n_steps", "record_every", "axes", "chunk_size", "remat", "noise"))
 def _simulate_batch_jit(params, controller, rho0, v0, keys, nominal, n_steps: int, record_every: int,
-                        axes: tuple, chunk_size: int = 0, remat: bool = False) -> SimResult:
+                        axes: tuple, chunk_size: int = 0, remat: bool = False,
+                        noise: NoiseReading | None = None) -> SimResult:
     def one(p, c, r, v, k):
-        return _simulate(p, c, r, v, k, nominal, n_steps, record_every, remat)
+        return _simulate(p, c, r, v, k, nominal, n_steps, record_every, remat, noise)
 
     return chunked_vmap(one, (params, controller, rho0, v0, keys), axes, chunk_size)
 

@@ -1,0 +1,144 @@
+"""Numerical uncertainty of Table 2 (issue 14): the D = 4 s scenario on a refined grid and with the
+other scheme, and the relative change of every index.
+
+A learned policy is tied to its training grid (its observation has 3 n + 3 entries). On a grid
+refined by an integer factor r the training grid's nodes are every r-th node, so
+``on_coarse_grid`` gives the policy the refined state *at its own nodes* (the refined fields
+sampled there, i.e. interpolated exactly where the nodes coincide) and interpolates the time-gap
+field it returns linearly back to the refined grid. The baselines (open loop, backstepping) act on
+the refined grid directly, with their nominal model there.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import replace
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+
+from jaxtraffic.control import Controller
+from jaxtraffic.paper.scenarios import CTRL_DELAY, EvalConfig, run_batch
+
+NUMERICS_CONTROLLERS = ("open_loop", "backstepping", "ppo")
+NUMERICS_INDICES = ("J_TTT", "J_fuel", "J_comfort", "J_comfort_a2", "J_comfort_at2", "J_comfort_no_switch_on",
+                    "J_TTT_kmh", "J_fuel_kmh", "J_comfort_kmh", "J_comfort_no_switch_on_kmh", "J_comfort_switch_on",
+                    "final_rho_L2", "final_v_L2")
+GRID_BOUND = ("ppo", "grad_network", "grad_robust")  # learned policies whose input is tied to the training grid
+
+
+def on_coarse_grid(controller: Controller, factor: int) -> Controller:
+    """``controller`` (built for a grid of n nodes) acting on a grid refined ``factor`` times:
+    it observes rho, v, h_prev at every ``factor``-th node, is handed the nominal parameters on its
+    own grid, and its time gap is linearly interpolated back to the refined nodes."""
+    if factor == 1:
+        return controller
+    inner = controller
+
+    def coarse(obs, nominal):
+        n = (nominal.n_points - 1) // factor + 1
+        sub = obs.replace(rho=obs.rho[::factor], v=obs.v[::factor], h_prev=obs.h_prev[::factor], sent=None)
+        return sub, nominal.replace(n_points=n)
+
+    def act(settings, cstate, obs, nominal, key):
+        sub, nom = coarse(obs, nominal)
+        h, cstate = inner.act_fn(settings, cstate, sub, nom, key)
+        x_fine = jnp.arange(obs.rho.shape[0], dtype=obs.rho.dtype)
+        return jnp.interp(x_fine, x_fine[::factor], h), cstate
+
+    def init(settings, obs, nominal):
+        sub, nom = coarse(obs, nominal)
+        return inner.init_fn(settings, sub, nom)
+
+    return Controller(settings=inner.settings, act_fn=act, init_fn=init,
+                      name=f"{getattr(inner, 'name', 'controller')} (training grid, x{factor})")
+
+
+def variants(cfg: EvalConfig) -> dict[str, EvalConfig]:
+    """The two numerical variants of ``cfg``: its grid refined twice, and its other scheme."""
+    other = "muscl" if cfg.scheme == "upwind" else "upwind"
+    return {"refined": replace(cfg, refine=2 * cfg.refine), "scheme": replace(cfg, scheme=other)}
+
+
+def describe(cfg: EvalConfig) -> dict[str, Any]:
+    nom = cfg.nominal()
+    return {"scheme": cfg.scheme, "n_points": cfg.grid_points, "dx_m": float(nom.dx), "dt_s": cfg.dt}
+
+
+def _rel(a: float, b: float) -> float | None:
+    """(a - b) / |b|, None if b is 0 or either is not finite."""
+    if not (np.isfinite(a) and np.isfinite(b)) or b == 0:
+        return None
+    return float((a - b) / abs(b))
+
+
+def run_numerics(controllers: dict[str, Controller], cfg: EvalConfig, base: dict[str, dict[str, float]],
+                 log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Scenario delay4 for ``NUMERICS_CONTROLLERS`` under each of ``variants(cfg)``.
+
+    ``controllers``: as evaluated on ``cfg`` (a grid-bound one already wrapped for cfg's grid, i.e.
+    ``on_coarse_grid(policy, cfg.refine)``); ``base``: metrics.json's delay4 entries on ``cfg``.
+    Returns {"base": description, "variants": {name: description}, "delay4": {variant: {controller:
+    {index: value}}}, "rel_diff": {variant: {controller: {index: (variant - base) / |base|}}}}.
+    """
+    out: dict[str, Any] = {"base": describe(cfg), "variants": {}, "delay4": {}, "rel_diff": {},
+                           "note": "rel_diff = (J_variant - J) / |J|; PPO on a refined grid observes the "
+                                   "training grid's nodes and its time gap is interpolated back (paper.numerics)"}
+    for vname, vcfg in variants(cfg).items():
+        out["variants"][vname] = describe(vcfg)
+        out["delay4"][vname], out["rel_diff"][vname] = {}, {}
+        factor = vcfg.refine // cfg.refine
+        nom = vcfg.nominal(delay=CTRL_DELAY)
+        for c in NUMERICS_CONTROLLERS:
+            if c not in controllers or c not in base:
+                continue
+            ctrl = controllers[c]
+            if c in GRID_BOUND:
+                ctrl = on_coarse_grid(ctrl, factor)
+            res = run_batch(ctrl, [nom], [0], vcfg, record=False)
+            vals = {k: float(np.asarray(res.metrics[k])[0]) for k in NUMERICS_INDICES}
+            out["delay4"][vname][c] = vals
+            out["rel_diff"][vname][c] = {k: _rel(vals[k], base[c][k]) for k in NUMERICS_INDICES if k in base[c]}
+        log(f"  numerics {vname:<8s} ({vcfg.scheme}, {vcfg.grid_points} points): "
+            + ", ".join(f"{c} J_comfort {v['J_comfort']:.4g}" for c, v in out["delay4"][vname].items()))
+    return out
+
+
+def survives(numerics: dict[str, Any], metrics: dict, cfg: EvalConfig) -> list[tuple[str, dict[str, bool]]]:
+    """Which of the Table 2 conclusions hold on the base grid and under each variant:
+    (conclusion, {"base": bool, variant: bool, ...})."""
+    from jaxtraffic.paper.summaries import equilibrium_indices
+
+    eq = equilibrium_indices(cfg)
+    tables = {"base": {c: metrics["delay4"][c] for c in NUMERICS_CONTROLLERS if c in metrics["delay4"]}}
+    tables.update(numerics.get("delay4", {}))
+    checks: list[tuple[str, Callable[[dict], bool]]] = [
+        ("open loop worse than backstepping and PPO on J_TTT, J_fuel, J_comfort",
+         lambda t: all(t["open_loop"][i] > max(t["backstepping"][i], t["ppo"][i])
+                       for i in ("J_TTT", "J_fuel", "J_comfort"))),
+        ("backstepping and PPO J_TTT, J_fuel within 3 % of the equilibrium values",
+         lambda t: all(abs(t[c][i] - eq[i]) <= 0.03 * eq[i] for c in ("backstepping", "ppo")
+                       for i in ("J_TTT", "J_fuel"))),
+        ("PPO less comfortable than backstepping (J_comfort)",
+         lambda t: t["ppo"]["J_comfort"] > t["backstepping"]["J_comfort"]),
+        ("PPO less comfortable than backstepping without the switch-on step",
+         lambda t: t["ppo"]["J_comfort_no_switch_on"] > t["backstepping"]["J_comfort_no_switch_on"]),
+        ("fuel improvement below the TTT improvement (km/h reading), as in the paper",
+         lambda t: all(_impr(t, c, "J_fuel_kmh") < _impr(t, c, "J_TTT") for c in ("backstepping", "ppo"))),
+    ]
+    rows = []
+    for text, fn in checks:
+        res = {}
+        for name, t in tables.items():
+            try:
+                res[name] = bool(fn(t))
+            except (KeyError, TypeError):
+                continue
+        rows.append((text, res))
+    return rows
+
+
+def _impr(t: dict, c: str, idx: str) -> float:
+    return (t["open_loop"][idx] - t[c][idx]) / t["open_loop"][idx]
+

@@ -242,9 +242,11 @@ def test_make_train_rejects_indivisible_batch():
 
 def test_learning_rate_schedule():
     cfg = TOY_CFG.replace(lr_decay_steps=5.0 * TOY_CFG.steps_per_update, lr_final=0.2)
-    lrs = [float(ppo.learning_rate(cfg, jnp.asarray(u))) for u in range(8)]
-    np.testing.assert_allclose(lrs, 1e-2 * np.array([1.0, 0.84, 0.68, 0.52, 0.36, 0.2, 0.2, 0.2]), rtol=1e-5)
-    assert float(ppo.learning_rate(TOY_CFG, jnp.asarray(1000))) == pytest.approx(1e-2)  # 0: constant
+    per_update = cfg.update_epochs * cfg.num_minibatches  # optimiser steps per PPO update
+    sched = ppo.lr_schedule(cfg)
+    lrs = [float(sched(jnp.asarray(u * per_update + j))) for u in range(8) for j in (0, per_update - 1)]
+    np.testing.assert_allclose(lrs, 1e-2 * np.repeat([1.0, 0.84, 0.68, 0.52, 0.36, 0.2, 0.2, 0.2], 2), rtol=1e-5)
+    assert float(ppo.lr_schedule(TOY_CFG)(jnp.asarray(1000))) == pytest.approx(1e-2)  # 0: constant
     with pytest.raises(ValueError, match="lr_final"):
         ppo.validate_config(TOY_CFG.replace(lr_final=1.5))
 

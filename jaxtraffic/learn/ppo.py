@@ -55,7 +55,9 @@ class PPOConfig:
     vf_coef: float = 0.5
     max_grad_norm: float = 0.5
     reward_scale: float = 0.01
-    lr_decay_steps: float = 0.0  # env steps (per seed) over which lr falls linearly to lr * lr_final; 0: constant
+    # env steps (per seed) over which lr falls linearly to lr * lr_final; 0: constant. Static: it sets the
+    # schedule's length (optax.linear_schedule's transition_steps is a Python number)
+    lr_decay_steps: float = struct.field(pytree_node=False, default=0.0)
     lr_final: float = 0.1
 
     def network(self, n_actions: int = 3) -> ActorCritic:
@@ -69,7 +71,12 @@ class PPOConfig:
 
 @struct.dataclass
 class RunningStats:
-    """Running mean / variance of observations (parallel Welford update)."""
+    """Running mean / variance of observations (parallel Welford update).
+
+    Kept rather than a library's normaliser (gymnasium's ``NormalizeObservation``, SB3's
+    ``VecNormalize``, which live outside the compiled program in numpy): it is a pytree inside the
+    jit-compiled chunk, averaged across devices with ``lax.pmean``, saved in the checkpoint, and
+    shipped with the deployed policy (``policy_controller`` takes its mean and variance)."""
 
     mean: Array
     var: Array
@@ -119,6 +126,10 @@ def compute_gae(rewards: Array, values: Array, dones: Array, last_value: Array, 
     ``dones[t]`` marks that the episode ended after step t (so V(s_{t+1}) is not used); a
     truncated step must already carry the bootstrap gamma V(terminal obs) in ``rewards[t]``.
     Returns (advantages, value targets = advantages + values).
+
+    Kept rather than taken from a library: it is a dozen tested lines, and it handles truncation
+    correctly (the bootstrap of a truncated episode enters through the reward, while ``dones`` cuts
+    the trace), where e.g. rejax's GAE treats a time-limit truncation like a termination.
     """
     def body(carry, xs):
         gae, next_value = carry
@@ -158,24 +169,21 @@ def validate_config(cfg: PPOConfig) -> None:
         raise ValueError(f"need lr_decay_steps >= 0 and lr_final in [0, 1], got {cfg.lr_decay_steps}, {cfg.lr_final}")
 
 
-def learning_rate(cfg: PPOConfig, update: Array) -> Array:
-    """Adam step size of update number ``update`` (0-based): ``lr``, falling linearly to
-    ``lr * lr_final`` over ``lr_decay_steps`` env steps (constant when that is 0)."""
-    done = update * cfg.steps_per_update / jnp.maximum(cfg.lr_decay_steps, 1.0)
-    frac = jnp.where(cfg.lr_decay_steps > 0, jnp.clip(done, 0.0, 1.0), 0.0)
-    return cfg.lr * (1.0 - frac * (1.0 - cfg.lr_final))
-
-
-def set_learning_rate(opt_state, lr: Array):
-    """``opt_state`` of ``make_optimizer`` with its injected learning rate replaced."""
-    clip_state, adam_state = opt_state
-    hyper = dict(adam_state.hyperparams, learning_rate=jnp.asarray(lr, adam_state.hyperparams["learning_rate"].dtype))
-    return clip_state, adam_state._replace(hyperparams=hyper)
+def lr_schedule(cfg: PPOConfig) -> optax.Schedule:
+    """The Adam step size as a function of the optimiser's step count (``optax.linear_schedule``):
+    ``lr``, falling linearly to ``lr * lr_final`` over ``lr_decay_steps`` env steps (constant when that
+    is 0). The count advances once per minibatch; the rate is held for a whole PPO update
+    (``update_epochs * num_minibatches`` optimiser steps), so it is a function of the update number,
+    and resuming from a checkpoint (which holds the count) continues it exactly."""
+    per_update = cfg.update_epochs * cfg.num_minibatches
+    by_update = optax.linear_schedule(init_value=cfg.lr, end_value=cfg.lr * cfg.lr_final,
+                                      transition_steps=cfg.lr_decay_steps / cfg.steps_per_update)
+    return lambda count: by_update(count // per_update)
 
 
 def make_optimizer(cfg: PPOConfig) -> optax.GradientTransformation:
     return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm),
-                       optax.inject_hyperparams(optax.adam)(learning_rate=cfg.lr, eps=1e-5))
+                       optax.inject_hyperparams(optax.adam)(learning_rate=lr_schedule(cfg), eps=1e-5))
 
 
 # --------------------------------------------------------------------------- training
@@ -288,8 +296,7 @@ def _update_seed(cfg: PPOConfig, env, env_params, runner: Runner, axis_name: str
 
         return jax.lax.scan(minibatch, (params, opt_state), shuffled)
 
-    opt_state = set_learning_rate(runner.opt_state, learning_rate(cfg, runner.update))
-    (params, opt_state), aux = jax.lax.scan(epoch, (runner.params, opt_state),
+    (params, opt_state), aux = jax.lax.scan(epoch, (runner.params, runner.opt_state),
                                             jax.random.split(k_perm, cfg.update_epochs))
     metrics = {k: v.mean() for k, v in aux.items()}
     metrics.update({"mean_reward": traj["raw_reward"].mean(), "terminated_frac": traj["terminated"].mean()})

@@ -15,6 +15,7 @@ Public API (see README.md for a module map):
     open_loop, lyapunov, backstepping, constant_gains, Controller, Observation -- controllers
 """
 
+from jaxtraffic._version import __version__
 from jaxtraffic.control import (
     Controller,
     Observation,
@@ -36,10 +37,8 @@ from jaxtraffic.sim import (
     stack_params,
 )
 
-__version__ = "0.1.0"
-
 __all__ = [
-    "Controller", "Observation", "SimResult", "TrafficParams", "Trajectory", "backstepping",
+    "__version__", "Controller", "Observation", "SimResult", "TrafficParams", "Trajectory", "backstepping",
     "cfl_number", "constant_gains", "equilibrium", "equilibrium_state", "gain_law", "lyapunov",
     "open_loop", "paper_initial_condition", "saturate", "simulate", "simulate_batch",
     "stack_params", "steps_for",

@@ -40,7 +40,7 @@ def _many(kind):
 
 GROUPS = {"run": "run", "plant": "plant and grid", "env": "episodes and domain randomisation", "algo": "PPO",
           "grad": "gradient-based training (--algo gradient)"}
-_PARSERS = {"int": int, "float": float, "str": str, "float | None": float, "int | None": int,
+_PARSERS = {"int": int, "float": float, "str": str, "float | None": float, "int | None": int, "str | None": str,
             "tuple[float, float]": _pair(float), "tuple[float, float] | None": _pair(float),
             "tuple[int, int]": _pair(int), "tuple[float, ...]": _many(float), "tuple[float, ...] | None": _many(float),
             "tuple[int, ...]": _many(int)}

@@ -169,10 +169,12 @@ class RunConfig:
     stop_patience: int = _f(2, "consecutive evaluations that must meet the stop rule before stopping")
     eval_horizon_s: float = _f(300.0, "evaluation rollout length, s")
     quiet: bool = _f(False, "no progress lines")
+    tensorboard: str | None = _f(None, "also write the learning-curve rows as TensorBoard scalars to this directory "
+                                 "(needs tensorboardX: pip install 'jaxtraffic[tb]')")
 
 
 RUN_CONTROL = ("out_dir", "total_steps", "max_wall_s", "keep_going", "resume", "quiet", "stop_patience",
-               "target_reward", "min_wave_speed")
+               "target_reward", "min_wave_speed", "tensorboard")
 
 
 @dataclass(frozen=True)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import os
 from pathlib import Path
 
 import matplotlib
@@ -32,6 +33,18 @@ def write_curve(path: Path, rows: list[dict], fields: list[str] = CURVE_FIELDS) 
     w.writeheader()
     w.writerows(rows)
     atomic_write_text(path, buf.getvalue())
+
+
+def append_curve(path: Path, row: dict) -> None:
+    """Append one row to learning_curve.csv (whose header ``write_curve`` wrote), flushed and fsynced.
+    The trainer appends a row per chunk after saving the checkpoint; on resume it rewrites the file
+    once from the checkpoint's rows, so the CSV always matches the checkpoint."""
+    buf = io.StringIO()
+    csv.DictWriter(buf, fieldnames=CURVE_FIELDS, extrasaction="ignore").writerow(row)
+    with open(path, "a", newline="") as f:
+        f.write(buf.getvalue())
+        f.flush()
+        os.fsync(f.fileno())
 
 
 def save_figure(fig: plt.Figure, png_path: str | Path) -> Path:

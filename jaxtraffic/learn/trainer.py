@@ -2,8 +2,8 @@
 
 ``train(settings)`` runs jit-compiled chunks of PPO updates. Between chunks it evaluates the
 deterministic policy of every seed on the paper's initial condition (``eval_horizon_s``, the
-training plant without randomisation), prints a progress line, rewrites ``learning_curve.csv``
-and the checkpoint atomically, and applies the paper's stop rule (evaluation reward, i.e. the
+training plant without randomisation), prints a progress line, appends to ``learning_curve.csv``
+and rewrites the checkpoint atomically, and applies the paper's stop rule (evaluation reward, i.e. the
 reward at the end of the evaluation rollout, >= ``target_reward`` for every seed) unless
 ``keep_going``. With ``min_wave_speed`` set, the rule also asks that the closed loop under the
 gains each policy settles to at the equilibrium carries density waves downstream at least that
@@ -37,6 +37,7 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import jax
@@ -48,7 +49,8 @@ from jaxtraffic.learn import checkpoint as ckpt
 from jaxtraffic.learn import env as E
 from jaxtraffic.learn import ppo
 from jaxtraffic.learn.config import RUN_CONTROL, TrainConfig, config_json, load_config
-from jaxtraffic.learn.curve import CURVE_FIELDS, plot_learning_curve, write_curve
+from jaxtraffic.learn.curve import CURVE_FIELDS, append_curve, plot_learning_curve, write_curve
+from jaxtraffic.learn.metrics_writer import TensorBoardWriter
 from jaxtraffic.learn.validate import check_devices
 from jaxtraffic.model.linear import gain_law_wave_speed, linearize
 from jaxtraffic.provenance import provenance
@@ -228,9 +230,14 @@ def open_run_dir(run_dir: Path, say) -> None:
         say(f"removed {len(stale)} temporary file(s) left by an interrupted write: {', '.join(p.name for p in stale)}")
 
 
-def train(s: TrainConfig) -> Path:
+def train(s: TrainConfig, callbacks: Sequence[Callable[[dict], None]] = ()) -> Path:
     """Train (or resume) and return the run directory. Raises ``TrainingInterrupted`` after SIGINT or
-    SIGTERM (the checkpoint of the last completed chunk is on disk)."""
+    SIGTERM (the checkpoint of the last completed chunk is on disk).
+
+    ``callbacks``: callables given each learning-curve row (a dict with the ``CURVE_FIELDS``) as
+    soon as its chunk is evaluated; ``--tensorboard DIR`` adds a ``metrics_writer.TensorBoardWriter``.
+    The progress line's steps/s and ETA are measured from the end of this session's first chunk, so
+    they exclude compilation (the first line shows "?")."""
     run_dir = Path(s.run.out_dir)
     check_out_dir(run_dir)
     if s.run.resume:
@@ -242,13 +249,19 @@ def train(s: TrainConfig) -> Path:
         state, saved_meta = ckpt.load_checkpoint(run_dir)
         ckpt.check_device_count(state, len(jax.devices()), run_dir / ckpt.CHECKPOINT)
     say = (lambda *a: None) if s.run.quiet else (lambda *a: print(*a, flush=True))
+    owned = [TensorBoardWriter(s.run.tensorboard)] if s.run.tensorboard else []  # ValueError without tensorboardX
     open_run_dir(run_dir, say)
-    with StopSignals(say) as stop:
-        return _train(s, cfg, env_params, run_dir, state, saved_meta if state is not None else None, say, stop)
+    try:
+        with StopSignals(say) as stop:
+            return _train(s, cfg, env_params, run_dir, state, saved_meta if state is not None else None, say, stop,
+                          [*callbacks, *owned])
+    finally:
+        for writer in owned:
+            writer.close()
 
 
 def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: E.EnvParams, run_dir: Path, state: dict | None,
-           saved_meta: dict | None, say, stop: StopSignals) -> Path:
+           saved_meta: dict | None, say, stop: StopSignals, callbacks: list) -> Path:
     eval_steps = max(1, round(s.run.eval_horizon_s / s.plant.dt))
     say("compiling (Ctrl-C or SIGTERM from now on stops at the next safe point) ...")
     init, train_chunk = ppo.make_train(cfg, env_params, env=E.GainEnv)
@@ -267,7 +280,10 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: E.EnvParams, run_dir:
         say(f"resumed {run_dir} at {meta['env_steps']} env steps ({meta['wall_s']:.1f} s)")
     else:
         ckpt.write_json(run_dir / ckpt.CONFIG, config_dict(s, cfg, env_params))
+    curve_csv = run_dir / "learning_curve.csv"
+    write_curve(curve_csv, meta["rows"])  # header (+ the checkpoint's rows on resume) once; rows appended below
     wall0 = float(meta["wall_s"])
+    rate_from: tuple[float, int] | None = None  # (time, env steps) after this session's first chunk
     steps_per_chunk = cfg.steps_per_update * cfg.updates_per_chunk
     say(f"training PPO: {cfg.num_envs} envs x {cfg.num_steps} steps/update, {cfg.updates_per_chunk} updates/chunk,"
         f" {s.run.seeds} seed(s), {len(jax.devices())} device(s), plant D = {s.plant.delay:g} s, "
@@ -292,6 +308,8 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: E.EnvParams, run_dir:
             row.update({k: float(m[k][:, -1].mean()) for k in ("eta1", "eta2", "eta3", "entropy", "approx_kl",
                                                                "value_loss")})
             meta["rows"].append(row)
+            for callback in callbacks:
+                callback(row)
             paper_rule = bool(np.all(ev >= s.run.target_reward)) and not bool(np.any(last_eval["diverged"]))
             if paper_rule and meta.get("seconds_to_paper_rule") is None:
                 meta["seconds_to_paper_rule"] = meta["wall_s"]
@@ -304,16 +322,20 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: E.EnvParams, run_dir:
             meta["streak"] = meta.get("streak", 0) + 1 if reached else 0
             if meta["streak"] >= s.run.stop_patience and not s.run.keep_going:
                 meta["stopped"] = True
-            rate = steps_per_chunk / max(1e-9, (meta["wall_s"] - (meta["rows"][-2]["wall_s"] if len(meta["rows"]) > 1
-                                                                  else wall0)))
-            eta = (s.run.total_steps - meta["env_steps"]) / max(rate, 1e-9)
-            say(f"[{meta['env_steps']:>9d} steps] {rate:8.0f} steps/s | reward {row['mean_reward']:9.3f} | "
+            now = time.perf_counter()
+            if rate_from is None:  # the first chunk compiles: no rate yet
+                rate, rate_from = math.nan, (now, meta["env_steps"])
+            else:
+                rate = (meta["env_steps"] - rate_from[1]) / max(1e-9, now - rate_from[0])
+            eta = (s.run.total_steps - meta["env_steps"]) / rate if rate > 0 else math.nan
+            rate_txt = f"{rate:8.0f}" if math.isfinite(rate) else "       ?"
+            say(f"[{meta['env_steps']:>9d} steps] {rate_txt} steps/s | reward {row['mean_reward']:9.3f} | "
                 f"eval {row['eval_reward']:9.4f} (min {row['eval_reward_min']:.4f}) | gains "
                 f"({row['eta1']:+.2f}, {row['eta2']:+.2f}, {row['eta3']:+.2f}) | s {row['eval_wave_speed']:+.2f} m/s | "
                 f"{_fmt_time(meta['wall_s'])} | "
                 f"ETA {_fmt_time(eta)}" + (" | stop rule reached" if reached else ""))
             ckpt.save_checkpoint(run_dir, runner, meta)
-            write_curve(run_dir / "learning_curve.csv", meta["rows"])
+            append_curve(curve_csv, row)
             if meta["wall_s"] > s.run.max_wall_s:
                 say(f"stopping: wall-clock budget {s.run.max_wall_s:g} s reached")
                 break
@@ -328,7 +350,6 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: E.EnvParams, run_dir:
         return run_dir
     if not interrupted:
         ckpt.save_checkpoint(run_dir, runner, meta)
-    write_curve(run_dir / "learning_curve.csv", meta["rows"])
     _plot_curve(run_dir)
     if not last_eval:
         last_eval = evaluate(runner)

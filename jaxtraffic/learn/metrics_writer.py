@@ -1,0 +1,33 @@
+"""Optional metrics writers for ``trainer.train``'s callback hook (each receives a learning-curve row).
+
+``TensorBoardWriter(logdir)`` writes every numeric field of a row as a scalar ``train/<field>``
+against ``env_steps`` (tensorboardX, ``pip install 'jaxtraffic[tb]'``; ``jaxtraffic-train
+--tensorboard DIR``). View with ``tensorboard --logdir DIR``.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+
+class TensorBoardWriter:
+    """A training callback writing the learning-curve rows as TensorBoard scalars."""
+
+    def __init__(self, logdir: str | Path):
+        try:
+            from tensorboardX import SummaryWriter
+        except ImportError as err:
+            raise ValueError("--tensorboard needs tensorboardX: pip install 'jaxtraffic[tb]'") from err
+        self.logdir = Path(logdir)
+        self._writer = SummaryWriter(str(self.logdir))
+
+    def __call__(self, row: dict) -> None:
+        step = int(row["env_steps"])
+        for name, value in row.items():
+            if name != "env_steps" and isinstance(value, (int, float)) and math.isfinite(value):
+                self._writer.add_scalar(f"train/{name}", value, step)
+        self._writer.flush()
+
+    def close(self) -> None:
+        self._writer.close()

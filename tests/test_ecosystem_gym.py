@@ -1,0 +1,109 @@
+"""jaxtraffic.ecosystem.gym_env / sb3 on a tiny grid: gymnasium's check_env on the single env, the
+batched vector env (same-step autoreset, final observations, seeding), the registered id, the SB3
+VecEnv adapter and examples/sb3_ppo.py. Skipped without gymnasium (``pip install -e ".[gym]"``);
+the SB3 tests also need stable-baselines3 (``[sb3]``)."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+gym = pytest.importorskip("gymnasium")
+from gymnasium.utils.env_checker import check_env  # noqa: E402
+
+import jaxtraffic.ecosystem  # noqa: E402,F401  (registers jaxtraffic/Gain-v0)
+from jaxtraffic.ecosystem import ENV_ID  # noqa: E402
+from jaxtraffic.ecosystem.gym_env import GainEnv, GainVectorEnv  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+N = 21
+CONFIG = {"n_points": N, "delay": 0.5, "max_delay_steps": 20, "horizon_s": 1.0, "delay_spread": 0.0}
+OBS = 3 * N + 3
+
+
+def test_check_env_and_make():
+    env = gym.make(ENV_ID, **CONFIG)
+    assert isinstance(env.unwrapped, GainEnv)
+    check_env(env.unwrapped, skip_render_check=True)
+    assert env.action_space == gym.spaces.Box(-1.0, 1.0, (3,), np.float32)
+    assert env.observation_space.shape == (OBS,) and env.observation_space.dtype == np.float32
+    obs, info = env.reset(seed=3)
+    assert obs.shape == (OBS,) and obs.dtype == np.float32
+    for t in range(10):
+        obs, r, term, trunc, info = env.step(env.action_space.sample())
+        assert isinstance(r, float) and not term and trunc == (t == 9)
+    assert np.abs(obs[-3:]).max() > 0  # the episode's last observation (gains applied), not a reset one
+    # the module-prefixed id needs no import of jaxtraffic first
+    other = gym.make("jaxtraffic.ecosystem:" + ENV_ID, **CONFIG)
+    np.testing.assert_array_equal(other.reset(seed=3)[0], env.reset(seed=3)[0])
+
+
+def test_vector_env_same_step_autoreset_and_seeding():
+    venv = gym.make_vec(ENV_ID, num_envs=4, vectorization_mode="vector_entry_point", **CONFIG)
+    assert isinstance(venv, GainVectorEnv) and venv.num_envs == 4
+    assert venv.metadata["autoreset_mode"] == gym.vector.AutoresetMode.SAME_STEP
+    assert venv.single_action_space == gym.spaces.Box(-1.0, 1.0, (3,), np.float32)
+    obs, _ = venv.reset(seed=0)
+    assert obs.shape == (4, OBS) and obs.dtype == np.float32 and venv.observation_space.contains(obs)
+    np.testing.assert_array_equal(venv.reset(seed=0)[0], obs)
+    venv.action_space.seed(0)
+    acts = [venv.action_space.sample() for _ in range(12)]
+
+    def run():
+        venv.reset(seed=0)
+        return [venv.step(a) for a in acts]
+
+    first, second = run(), run()
+    for a, b in zip(first, second, strict=True):  # same seed, same actions: same trajectory
+        np.testing.assert_array_equal(a[0], b[0])
+        np.testing.assert_array_equal(a[1], b[1])
+    for t, (obs, r, term, trunc, info) in enumerate(first):
+        assert r.shape == (4,) and r.dtype == np.float32 and np.isfinite(r).all()
+        assert obs.shape == (4, OBS) and not term.any() and trunc.all() == (t == 9) and trunc.any() == (t == 9)
+        assert info["gains"].shape == (4, 3)
+        if t == 9:
+            assert info["_final_obs"].all() and info["final_obs"].dtype == object
+            final = np.stack(info["final_obs"])
+            assert final.shape == (4, OBS) and np.abs(final[:, -3:]).max() > 0
+            np.testing.assert_array_equal(obs[:, -3:], 0.0)  # reset in the same step: no gains applied yet
+        else:
+            assert "final_obs" not in info
+    venv.reset(seed=1)
+    assert not np.array_equal(venv.step(acts[0])[0], first[0][0])
+    venv.close()
+
+
+def test_vector_env_step_matches_single_env_spaces():
+    venv = GainVectorEnv(num_envs=2, **CONFIG)
+    env = GainEnv(**CONFIG)
+    assert venv.single_observation_space == env.observation_space
+    with pytest.raises(gym.error.ResetNeeded):
+        venv.step(np.zeros((2, 3), np.float32))
+
+
+def test_sb3_vec_env_adapter_and_example():
+    pytest.importorskip("stable_baselines3")
+    from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+    from jaxtraffic.ecosystem.sb3 import SB3VecEnv
+
+    sb3_check_env(GainEnv(**CONFIG))
+    venv = SB3VecEnv(num_envs=3, **CONFIG)
+    venv.seed(5)
+    obs = venv.reset()
+    assert obs.shape == (3, OBS)
+    for t in range(10):
+        obs, rew, dones, infos = venv.step(np.zeros((3, 3), np.float32))
+        assert dones.all() == (t == 9) and len(infos) == 3
+    assert all(i["TimeLimit.truncated"] and i["terminal_observation"].shape == (OBS,) for i in infos)
+    assert venv.get_attr("render_mode") == [None] * 3 and venv.env_is_wrapped(object) == [False] * 3
+
+    spec = importlib.util.spec_from_file_location("sb3_ppo", REPO / "examples" / "sb3_ppo.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    res = mod.main(["--n-points", str(N), "--horizon-s", "1", "--num-envs", "8", "--n-steps", "16",
+                    "--total-timesteps", "256"])
+    assert res["num_timesteps"] >= 256 and len(res["returns"]) > 0 and np.isfinite(res["returns"]).all()

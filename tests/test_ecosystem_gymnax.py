@@ -1,0 +1,83 @@
+"""jaxtraffic.ecosystem.gymnax_env on a tiny grid: a real gymnax Environment, gymnax's wrappers under
+vmap + scan, and examples/gymnax_ppo.py (a third-party-style PPO) for a few updates. Skipped
+without gymnax (``pip install -e ".[gymnax]"``)."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+pytest.importorskip("gymnax")
+from gymnax.environments import environment, spaces  # noqa: E402
+from gymnax.wrappers.purerl import FlattenObservationWrapper, LogWrapper  # noqa: E402
+
+from jaxtraffic.ecosystem.gymnax_env import GainGymnaxEnv  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+N = 21
+CONFIG = {"n_points": N, "delay": 0.5, "max_delay_steps": 20, "horizon_s": 1.0, "delay_spread": 0.0}
+
+
+def test_is_a_gymnax_environment():
+    env = GainGymnaxEnv(gain_filter=1.0, **CONFIG)
+    p = env.default_params
+    assert isinstance(env, environment.Environment)
+    assert env.name == "jaxtraffic/Gain-v0" and env.num_actions == 3 and int(p.horizon) == 10
+    obs_space, act_space = env.observation_space(p), env.action_space(p)
+    assert isinstance(obs_space, spaces.Box) and obs_space.shape == (3 * N + 3,)
+    assert isinstance(act_space, spaces.Box) and act_space.shape == (3,)
+    assert float(act_space.low[0]) == -1.0 and float(act_space.high[0]) == 1.0
+    obs, st = env.reset(jax.random.PRNGKey(0), p)
+    assert obs.shape == obs_space.shape and bool(obs_space.contains(obs))
+    out = env.step(jax.random.PRNGKey(1), st, jnp.array([0.5, -1.0, 2.0]), p)
+    assert len(out) == 6  # gymnax 1.0: obs, state, reward, terminated, truncated, info
+    obs2, st2, r, term, trunc, info = out
+    assert r.shape == () and not bool(term) and not bool(trunc)
+    np.testing.assert_allclose(info["final_observation"], obs2, atol=1e-6)  # no reset: the same observation
+    # normalised gains (clipped to the box) times gain_max; gain_filter 1: applied directly
+    np.testing.assert_allclose(info["gains"], p.gain_max * np.array([0.5, -1.0, 1.0]), rtol=1e-5)
+
+
+def test_wrappers_under_vmap_and_scan():
+    env = GainGymnaxEnv(**CONFIG)
+    wenv = LogWrapper(FlattenObservationWrapper(env))
+    p, n, T = env.default_params, 4, 25
+    obs, st = jax.vmap(wenv.reset, (0, None))(jax.random.split(jax.random.PRNGKey(0), n), p)
+
+    def body(carry, k):
+        obs, st = carry
+        ks = jax.random.split(k, n)
+        a = jax.vmap(env.action_space(p).sample)(ks)
+        obs2, st, r, term, trunc, info = jax.vmap(wenv.step, (0, 0, 0, None))(ks, st, a, p)
+        return (obs2, st), {"obs": obs2, "r": r, "trunc": trunc, "term": term, "final": info["final_observation"],
+                            "ret": info["returned_episode_returns"], "ended": info["returned_episode"]}
+
+    _, out = jax.jit(lambda c: jax.lax.scan(body, c, jax.random.split(jax.random.PRNGKey(1), T)))((obs, st))
+    out = jax.tree.map(np.asarray, out)
+    assert out["obs"].shape == (T, n, 3 * N + 3) and np.isfinite(out["r"]).all()
+    ends = out["trunc"] | out["term"]
+    assert ends[9].all() and ends[19].all() and ends.sum() == 2 * n  # horizon 10 steps, every env
+    np.testing.assert_array_equal(ends, out["ended"])
+    # LogWrapper's episode return = the sum of the episode's rewards
+    np.testing.assert_allclose(out["ret"][9], out["r"][:10].sum(0), rtol=1e-5)
+    # at an episode end, the returned observation is the new episode's (no gains yet), the final one is not
+    np.testing.assert_array_equal(out["obs"][9][:, -3:], 0.0)
+    assert np.abs(out["final"][9][:, -3:]).max() > 0
+    np.testing.assert_allclose(out["final"][8], out["obs"][8], atol=1e-6)
+
+
+def test_example_purejaxrl_style_ppo_trains():
+    spec = importlib.util.spec_from_file_location("gymnax_ppo", REPO / "examples" / "gymnax_ppo.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    res = mod.main(["--n-points", str(N), "--horizon-s", "1", "--num-envs", "8", "--num-steps", "16",
+                    "--num-updates", "3", "--update-epochs", "2", "--num-minibatches", "2", "--seeds", "2"])
+    m = res["metrics"]
+    assert m["loss"].shape == (2, 3) and np.isfinite(m["loss"]).all()
+    assert (m["episodes"] > 0).all() and np.isfinite(m["episode_return"]).all()
+    assert res["env_steps"] == 2 * 3 * 8 * 16

@@ -29,12 +29,16 @@ TESTS = ["tests/test_solver.py", "tests/test_delay.py", "tests/test_env.py", "te
          "tests/test_gain_policy.py"]
 
 
+def dependencies() -> list[str]:
+    """The ``[project] dependencies`` of pyproject.toml."""
+    text = (REPO / "pyproject.toml").read_text()
+    return re.findall(r'"([^"]+)"', re.search(r"^dependencies = \[(.*?)\]", text, re.S | re.M).group(1))
+
+
 def floors() -> dict[str, str]:
     """{package: lowest allowed version} of the checked packages, from pyproject.toml."""
-    text = (REPO / "pyproject.toml").read_text()
-    deps = re.search(r"^dependencies = \[(.*?)\]", text, re.S | re.M).group(1)
-    return {m.group(1).lower(): m.group(2) for m in re.finditer(r'"([A-Za-z0-9_.-]+)\s*>=\s*([0-9][^,;"\s]*)', deps)
-            if m.group(1).lower() in CHECKED}
+    found = (re.match(r"([A-Za-z0-9_.-]+)\s*>=\s*([0-9][^,;\s]*)", d) for d in dependencies())
+    return {m.group(1).lower(): m.group(2) for m in found if m and m.group(1).lower() in CHECKED}
 
 
 def run(cmd: list[str], **kw) -> subprocess.CompletedProcess:
@@ -59,10 +63,11 @@ def main(argv: list[str] | None = None) -> int:
     if not (args.keep and py.exists()):
         if run([sys.executable, "-m", "venv", "--clear", str(args.venv)]).returncode:
             return 1
-    if run([str(py), "-m", "pip", "install", "-q", *pins.values(), "pytest"]).returncode:
+    others = [d for d in dependencies() if re.match(r"[A-Za-z0-9_.-]+", d).group(0).lower() not in pins]
+    if run([str(py), "-m", "pip", "install", "-q", *pins.values(), *others, "pytest"]).returncode:
         print("the pinned versions cannot be installed together", file=sys.stderr)
         return 1
-    if run([str(py), "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation", str(REPO)]).returncode:
+    if run([str(py), "-m", "pip", "install", "-q", "--no-deps", str(REPO)]).returncode:
         return 1
     names = ("jaxlib",) + CHECKED + ("numpy", "scipy", "matplotlib")
     got = run([str(py), "-c", "import importlib.metadata as m; print(' '.join(f'{p}=={m.version(p)}' for p in "

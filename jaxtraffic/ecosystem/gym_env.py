@@ -78,7 +78,7 @@ class GainEnv(gym.Env):
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         self._key, obs, self._state = self._reset_fn(_key_from(self.np_random), self.env_params)
-        return np.asarray(obs), {}
+        return np.array(obs), {}
 
     def step(self, action):
         if self._state is None:
@@ -86,7 +86,7 @@ class GainEnv(gym.Env):
         action = jnp.asarray(np.asarray(action, np.float32).reshape(N_GAINS))
         self._key, _, self._state, r, term, trunc, final_obs, gains = self._step_fn(
             self._key, self._state, action, self.env_params)
-        return np.asarray(final_obs), float(r), bool(term), bool(trunc), {"gains": np.asarray(gains)}
+        return np.array(final_obs), float(r), bool(term), bool(trunc), {"gains": np.array(gains)}
 
 
 class GainVectorEnv(gym.vector.VectorEnv):
@@ -128,7 +128,7 @@ class GainVectorEnv(gym.vector.VectorEnv):
             seed = None if seed[0] is None else int(seed[0])
         super().reset(seed=seed)
         self._key, obs, self._state = self._reset_fn(_key_from(self.np_random), self.env_params)
-        return np.asarray(obs), {}
+        return np.array(obs), {}
 
     def step(self, actions):
         if self._state is None:
@@ -136,7 +136,7 @@ class GainVectorEnv(gym.vector.VectorEnv):
         actions = jnp.asarray(np.asarray(actions, np.float32).reshape(self.num_envs, N_GAINS))
         self._key, obs, self._state, r, term, trunc, final_obs, gains = self._step_fn(
             self._key, self._state, actions, self.env_params)
-        term, trunc = np.asarray(term), np.asarray(trunc)
+        term, trunc = np.array(term), np.array(trunc)  # np.array: writable copies (SB3 edits rewards in place)
         infos: dict[str, Any] = {"gains": np.asarray(gains), "_gains": np.ones(self.num_envs, bool)}
         done = term | trunc
         if done.any():
@@ -145,7 +145,7 @@ class GainVectorEnv(gym.vector.VectorEnv):
             for i in np.flatnonzero(done):
                 fo[i] = final[i]
             infos.update(final_obs=fo, _final_obs=done, final_info={}, _final_info=done)
-        return np.asarray(obs), np.asarray(r, np.float32), term, trunc, infos
+        return np.array(obs), np.array(r, np.float32), term, trunc, infos
 
     def close_extras(self, **kwargs):
         self._state = None

@@ -2,8 +2,10 @@
 """Train jaxtraffic's gain environment with a third-party-style JAX PPO, through gymnax alone.
 
 The PPO below is a purejaxrl-style loop (continuous actions, one jit-compiled ``train`` function,
-``vmap`` over seeds) written against gymnax's interface only: it knows nothing of jaxtraffic but
-the environment's constructor. It runs the environment under gymnax's wrappers
+``lax.map`` over seeds: a ``vmap`` would batch the orthogonal initialisers' QR decompositions, which
+can deadlock XLA:CPU's thread pool on small machines, see ``learn/ppo.py``) written against
+gymnax's interface only: it knows nothing of jaxtraffic but the environment's constructor. It
+runs the environment under gymnax's wrappers
 (``LogWrapper(FlattenObservationWrapper(env))``), samples Gaussian actions that the environment
 clips to its [-1, 1]^3 normalised-gain box, and bootstraps truncated episodes from
 ``info["final_observation"]`` (gymnax 1.0's six-value step).
@@ -136,13 +138,13 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--update-epochs", type=int, default=4)
     ap.add_argument("--num-minibatches", type=int, default=4)
     ap.add_argument("--lr", type=float, default=1e-3)
-    ap.add_argument("--seeds", type=int, default=2, help="independent seeds, one jit(vmap(train))")
+    ap.add_argument("--seeds", type=int, default=2, help="independent seeds, one jit(lax.map(train))")
     args = ap.parse_args(argv)
     cfg = {"num_envs": args.num_envs, "num_steps": args.num_steps, "num_updates": args.num_updates,
            "update_epochs": args.update_epochs, "num_minibatches": args.num_minibatches, "lr": args.lr,
            "gamma": 0.995, "gae_lambda": 0.95, "clip_eps": 0.2, "reward_scale": 0.01}
     env = GainGymnaxEnv(n_points=args.n_points, horizon_s=args.horizon_s)
-    train = jax.jit(jax.vmap(make_train(cfg, env, env.default_params)))
+    train = jax.jit(lambda keys: jax.lax.map(make_train(cfg, env, env.default_params), keys))
     keys = jax.random.split(jax.random.PRNGKey(0), args.seeds)
     t0 = time.perf_counter()
     compiled = train.lower(keys).compile()

@@ -35,12 +35,12 @@ def write_curve(path: Path, rows: list[dict], fields: list[str] = CURVE_FIELDS) 
     atomic_write_text(path, buf.getvalue())
 
 
-def append_curve(path: Path, row: dict) -> None:
+def append_curve(path: Path, row: dict, fields: list[str] = CURVE_FIELDS) -> None:
     """Append one row to learning_curve.csv (whose header ``write_curve`` wrote), flushed and fsynced.
     The trainer appends a row per chunk after saving the checkpoint; on resume it rewrites the file
     once from the checkpoint's rows, so the CSV always matches the checkpoint."""
     buf = io.StringIO()
-    csv.DictWriter(buf, fieldnames=CURVE_FIELDS, extrasaction="ignore").writerow(row)
+    csv.DictWriter(buf, fieldnames=fields, extrasaction="ignore").writerow(row)
     with open(path, "a", newline="") as f:
         f.write(buf.getvalue())
         f.flush()

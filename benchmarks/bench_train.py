@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""PPO training benchmark (issue 4 targets), at the paper grid (201 points, dt = 0.1 s, D = 4 s).
+"""PPO training benchmark (the training targets below), at the paper grid (201 points, dt = 0.1 s, D = 4 s).
 
 (a) throughput: environment steps per second of ``train_chunk`` with the default network and
     the default ``train.py`` settings, for each ``--num-envs`` (compile excluded; the first chunk,

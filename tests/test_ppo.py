@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from flax import struct
 
-from jaxtraffic.learn import env as E
+from jaxtraffic.learn import env as learn_env
 from jaxtraffic.learn import ppo
 from jaxtraffic.model.params import TrafficParams
 
@@ -237,7 +237,7 @@ def test_ppo_updates_move_policy_toward_target(toy_run):
 def test_make_train_rejects_indivisible_batch():
     cfg = ppo.PPOConfig(num_envs=3, num_steps=5, num_minibatches=4)
     with pytest.raises(ValueError, match="num_minibatches"):
-        ppo.make_train(cfg, E.make_env_params(TrafficParams(n_points=21, delay=0.5)), env=E.GainEnv)
+        ppo.make_train(cfg, learn_env.make_env_params(TrafficParams(n_points=21, delay=0.5)), env=learn_env.GainEnv)
 
 
 def test_learning_rate_schedule():

@@ -1,4 +1,8 @@
-"""End to end: train a tiny policy, run evaluate.py on a tiny grid and short horizon, check outputs."""
+"""End to end: evaluate.py on the tiny trained policy, a tiny grid and a short horizon; check outputs.
+
+The policy is run ``A`` of the suite's one tiny training session (``tiny_runs.py``, fixture
+``tiny_run_a`` in ``conftest.py``), which ``test_train.py`` checks in detail.
+"""
 
 from __future__ import annotations
 
@@ -10,17 +14,12 @@ import pytest
 import evaluate
 from jaxtraffic.learn.config import TrainConfig
 from jaxtraffic.learn.gradient_trainer import train_gradient
-from jaxtraffic.learn.trainer import train
 from jaxtraffic.paper import REQUIRED_KEYS, SCENARIOS
 
 
 @pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("run")
-    settings = TrainConfig.from_flat(out_dir=str(out), n_points=21, num_envs=4, num_steps=8, num_minibatches=2,
-                             update_epochs=1, updates_per_chunk=2, total_steps=64, horizon_s=3.0,
-                             eval_horizon_s=2.0, quiet=True)
-    return train(settings)
+def tiny_run(tiny_run_a):
+    return tiny_run_a
 
 
 def _walk_numbers(obj):

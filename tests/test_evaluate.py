@@ -1,7 +1,8 @@
 """End to end: evaluate.py on the tiny trained policy, a tiny grid and a short horizon; check outputs.
 
-The policy is run ``A`` of the suite's one tiny training session (``tiny_runs.py``, fixture
-``tiny_run_a`` in ``conftest.py``), which ``test_train.py`` checks in detail.
+The policies are run ``A`` of the suite's one tiny training session (``tiny_runs.py``, fixture
+``tiny_run_a`` in ``conftest.py``), which ``test_train.py`` checks in detail, and the tiny
+gradient-trained run that the same session writes next to it.
 """
 
 from __future__ import annotations
@@ -10,10 +11,9 @@ import json
 import math
 
 import pytest
+from tiny_runs import GRADIENT_ROOT
 
 import evaluate
-from jaxtraffic.learn.config import TrainConfig
-from jaxtraffic.learn.gradient_trainer import train_gradient
 from jaxtraffic.paper import REQUIRED_KEYS, SCENARIOS
 
 
@@ -35,12 +35,11 @@ def _walk_numbers(obj):
 
 def test_evaluate_end_to_end(tiny_run, tmp_path):
     out = tmp_path / "results"
-    # a tiny gradient-trained gains run where evaluate.py looks for it (the other gradient runs are absent)
-    train_gradient(TrainConfig.from_flat(algo="gradient", out_dir=str(tmp_path / "runs" / "gradient-gains"),
-                                         n_points=21, train_delays=(4.0,), train_horizon_s=6.0, steps_per_chunk=1,
-                                         grad_steps=1, eval_horizon_s=6.0, quiet=True))
+    # the tiny gradient-trained gains run is where evaluate.py looks for it (the other gradient runs are absent)
+    runs_root = tiny_run.parent / GRADIENT_ROOT
+    assert (runs_root / "gradient-gains" / "config.json").is_file()
     metrics = evaluate.main(["--run", str(tiny_run), "--out", str(out), "--horizon", "6", "--seeds", "2",
-                             "--robust-grid", "2x2", "--gradient", "existing", "--runs-root", str(tmp_path / "runs")])
+                             "--robust-grid", "2x2", "--gradient", "existing", "--runs-root", str(runs_root)])
     on_disk = json.loads((out / "metrics.json").read_text())
     assert "units" in on_disk and "meta" in on_disk
     skipped = {"grad_network"}

@@ -31,6 +31,8 @@ from jaxtraffic.control import Observation
 from jaxtraffic.control.gain_policy import policy_controller
 from jaxtraffic.learn import ppo
 from jaxtraffic.learn.checkpoint import load_policy
+from jaxtraffic.learn.config import TrainConfig
+from jaxtraffic.learn.gradient_trainer import train_gradient
 from jaxtraffic.learn.trainer import build
 from jaxtraffic.sim import initial_state, paper_initial_condition
 
@@ -40,6 +42,7 @@ TINY = ["--n-points", "21", "--delay", "0.5", "--max-delay-steps", "20", "--num-
         "--eval-horizon-s", "2", "--quiet"]
 CHUNK = 4 * 8 * 2  # env steps per chunk
 RUNS = ("A", "B", "I", "C", "S", "W")
+GRADIENT_ROOT = "runs"  # root/runs/gradient-gains: the tiny gradient-trained run (evaluate.py --runs-root)
 
 
 class SharedCompile:
@@ -76,12 +79,17 @@ def train_runs(root: Path) -> None:
     C: seed 1, 1 chunk; S: the paper's rule alone (--min-wave-speed=-inf), always met (target -1e9),
     patience 2, no --keep-going;
     W: like S, but the rule also asks for a wave speed no policy has (--min-wave-speed 1e9).
-    Also compares, right after A, the in-memory policy with ``load_policy(A)``."""
+    Also compares, right after A, the in-memory policy with ``load_policy(A)``, and trains the tiny
+    gradient run ``GRADIENT_ROOT/gradient-gains`` that test_evaluate.py evaluates beside A."""
     shared = SharedCompile(ppo.make_train)
     ppo.make_train = shared
     a = _cli(root / "A", "--total-steps", str(4 * CHUNK), "--keep-going")
     write_json(root / "roundtrip.json", _round_trip(a, jax.device_get(shared.last_runner)))
-    (root / "A.done").touch()  # run A is complete: test_evaluate.py can start while the others train
+    # a tiny gradient-trained gains run where evaluate.py looks for it (the other gradient runs are absent)
+    train_gradient(TrainConfig.from_flat(algo="gradient", out_dir=str(root / GRADIENT_ROOT / "gradient-gains"),
+                                         n_points=21, train_delays=(4.0,), train_horizon_s=6.0, steps_per_chunk=1,
+                                         grad_steps=1, eval_horizon_s=6.0, quiet=True))
+    (root / "A.done").touch()  # run A (and the gradient run) complete: test_evaluate.py can start
     b = _cli(root / "B", "--total-steps", str(2 * CHUNK), "--keep-going")
     shutil.copytree(b, root / "B_first")
     train_cli.main(["--out-dir", str(b), "--resume", "--total-steps", str(4 * CHUNK), "--keep-going", "--quiet"])

@@ -69,7 +69,7 @@ def test_evaluate_end_to_end(tiny_run, tmp_path):
     report = (out / "REPORT.md").read_text()
     assert "Beyond the paper: PPO and gradient-based training" in report
     assert "gradient: 3 constant gains" in report and "gradient-gains" in report
-    # issue 14: both readings with units, the numerical check beside Table 2, claim 5 per reading
+    # both readings with units, the numerical check beside Table 2, claim 5 per reading
     assert "J_fuel_kmh" in on_disk["units"] and "J_comfort_kmh" in on_disk["delay4"]["open_loop"]
     rel = on_disk["numerics"]["rel_diff"]
     assert set(rel) == {"refined", "scheme"} and "J_comfort" in rel["refined"]["backstepping"]

@@ -17,6 +17,7 @@ import pytest
 from jaxtraffic.paper import claims as C
 from jaxtraffic.paper import summaries as S
 from jaxtraffic.paper.scenarios import SETTLE_FRACTION, EvalConfig, Outcome
+from jaxtraffic.paper.table2 import table2_rows
 
 CFG = EvalConfig()  # the paper's 1 km road and 300 s: equilibrium J_TTT = 3.2208e7, J_fuel = 8.077e5
 CURVE = {"eval_reward": np.array([-5.0, -0.5, -0.05])}
@@ -109,8 +110,11 @@ def test_paper_like_metrics_reproduce_every_claim(metrics):
     out = claims_of(metrics)
     assert sorted(out) == [1, 2, 3, 4, 5, 6]
     for cid, c in out.items():
-        failed = [k.text for k in c["checks"] if k.passed is not True]
-        assert c["verdict"] == "reproduced", (cid, failed)
+        # claim 4 also has km/h-reading checks (no km/h indices in these dicts) and information-only ones
+        failed = [k.text for k in c["checks"] if k.passed is not True
+                  and not k.text.startswith(("km/h reading", "information only"))]
+        assert not failed, (cid, failed)
+        assert c["verdict"] == ("partly" if cid == 4 else "reproduced"), cid
     json.dumps([{**c, "checks": [vars(k) for k in c["checks"]]} for c in out.values()])  # serialisable
 
 
@@ -169,7 +173,7 @@ def test_claim4_table2_values_and_comfort(metrics):
     d4["open_loop"]["J_TTT"] = 3.5e7
     c4 = claims_of(metrics)[4]
     assert check(c4, "slightly less comfortable") is False
-    assert check(c4, "round to the paper") is False
+    assert check(c4, "SI reading: values round to the paper") is False
     assert check(c4, "open loop worse") is True
     d4["open_loop"]["J_fuel"] = 8.0e5  # the open loop better than both on J_fuel
     assert check(claims_of(metrics)[4], "open loop worse") is False
@@ -178,7 +182,7 @@ def test_claim4_table2_values_and_comfort(metrics):
 def test_claim4_improvements_outside_the_tolerance(metrics):
     metrics["delay4"]["ppo"]["J_comfort"] = 7e5  # 28.6 % improvement vs the paper's 84.3 %
     c4 = claims_of(metrics)[4]
-    assert check(c4, "improvements over the open loop") is False
+    assert check(c4, "SI reading: improvements over the open loop") is False
     assert check(c4, "slightly less comfortable") is True
 
 
@@ -298,22 +302,23 @@ def test_improvement(ol, c, expected):
 
 
 def test_table2_rows(metrics):
-    rows = {r["index"]: r for r in S.table2_rows(metrics, CFG)}
-    assert list(rows) == list(S.INDICES)
-    tt, com = rows["J_TTT"], rows["J_comfort"]
-    assert tt["equilibrium"] == pytest.approx(3.2208e7, rel=1e-4) and com["equilibrium"] is None
-    assert tt["open_loop_ours"] == 3.4e7 and tt["open_loop_paper"] == 3.4e7
-    assert tt["ppo_improvement_pct_ours"] == pytest.approx(100 * (3.4 - 3.2) / 3.4)
-    assert tt["ppo_improvement_pct_paper"] == 5.97
-    assert com["backstepping_improvement_pct_ours"] == pytest.approx(100 * (9.8 - 1.3) / 9.8)
-    assert com["ppo_paper"] == 1.5e5 and com["ppo_improvement_pct_paper"] == 84.3
-    assert "open_loop_improvement_pct_ours" not in tt
+    rows = {(r["index"], r["controller"]): r for r in table2_rows(metrics, CFG)}
+    assert {i for i, _ in rows} == set(S.INDICES)
+    tt, com = rows[("J_TTT", "ppo")], rows[("J_comfort", "ppo")]
+    assert tt["equilibrium_SI"] == pytest.approx(3.2208e7, rel=1e-4) and com["equilibrium_SI"] is None
+    assert rows[("J_TTT", "open_loop")]["ours_SI"] == 3.4e7 and rows[("J_TTT", "open_loop")]["paper"] == 3.4e7
+    assert tt["improvement_pct_SI"] == pytest.approx(100 * (3.4 - 3.2) / 3.4)
+    assert tt["improvement_pct_paper"] == 5.97
+    bs = rows[("J_comfort", "backstepping")]
+    assert bs["improvement_pct_SI"] == pytest.approx(100 * (9.8 - 1.3) / 9.8)
+    assert com["paper"] == 1.5e5 and com["improvement_pct_paper"] == 84.3
+    assert "improvement_pct_si" not in rows[("J_TTT", "open_loop")]
 
 
 def test_table2_rows_with_a_missing_controller(metrics):
     m = copy.deepcopy(metrics)
     del m["delay4"]["ppo"]
-    rows = {r["index"]: r for r in S.table2_rows(m, CFG)}
-    assert rows["J_fuel"]["ppo_ours"] is None and rows["J_fuel"]["ppo_improvement_pct_ours"] is None
-    assert rows["J_fuel"]["backstepping_ours"] == 8.1e5
-    assert math.isclose(rows["J_fuel"]["backstepping_improvement_pct_ours"], 100 * (8.6 - 8.1) / 8.6)
+    rows = {(r["index"], r["controller"]): r for r in table2_rows(m, CFG)}
+    assert rows[("J_fuel", "ppo")]["ours_SI"] is None and rows[("J_fuel", "ppo")]["improvement_pct_SI"] is None
+    assert rows[("J_fuel", "backstepping")]["ours_SI"] == 8.1e5
+    assert math.isclose(rows[("J_fuel", "backstepping")]["improvement_pct_SI"], 100 * (8.6 - 8.1) / 8.6)

@@ -1,4 +1,4 @@
-"""Acceptance figures of the model-based baselines (issue 3) on the paper's grid.
+"""Acceptance figures of the model-based baselines (Lyapunov, backstepping) on the paper's grid.
 
 Paper grid (201 points, dx = 5 m, dt = 0.1 s), paper initial condition, 300 s, nonlinear ARZ
 plant (first-order upwind). For each case: the L2 norms of the density and speed deviations at

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""PPO training benchmark (issue 4 targets), at the paper grid (201 points, dt = 0.1 s, D = 4 s).
+"""PPO training benchmark (the training targets below), at the paper grid (201 points, dt = 0.1 s, D = 4 s).
 
 (a) throughput: environment steps per second of ``train_chunk`` with the default network and
     the default ``train.py`` settings, for each ``--num-envs`` (compile excluded; the first chunk,
@@ -143,10 +143,10 @@ def compare(run_dir: Path) -> dict:
     for name, c in (("ppo", ctrl), ("backstepping", backstepping(4.0)), ("open_loop", open_loop())):
         res = simulate(plant, c, n_steps=SIM_STEPS)
         out[name] = {k: _num(res.metrics[k]) for k in keys}
-    p, b = out["ppo"], out["backstepping"]
-    out["rho_L2_ratio"] = p["final_rho_L2"] / b["final_rho_L2"]
-    out["J_comfort_ratio"] = p["J_comfort"] / b["J_comfort"]
-    out["target_L2_below_baseline"] = bool(p["final_rho_L2"] < b["final_rho_L2"])
+    ppo_row, bs_row = out["ppo"], out["backstepping"]
+    out["rho_L2_ratio"] = ppo_row["final_rho_L2"] / bs_row["final_rho_L2"]
+    out["J_comfort_ratio"] = ppo_row["J_comfort"] / bs_row["J_comfort"]
+    out["target_L2_below_baseline"] = bool(ppo_row["final_rho_L2"] < bs_row["final_rho_L2"])
     out["target_J_comfort_within_20pct"] = bool(abs(out["J_comfort_ratio"] - 1.0) <= 0.2)
     out["load_after"] = load()
     return out
@@ -160,17 +160,17 @@ def _num(x):
 
 
 def main(argv: list[str] | None = None) -> dict:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--num-envs", type=int, nargs="+", default=[64, 256], help="(a) batch sizes")
-    p.add_argument("--chunks", type=int, default=3, help="(a) timed chunks after the compiling one")
-    p.add_argument("--max-wall-s", type=float, default=600.0, help="(b) wall budget of the training run")
-    p.add_argument("--train-dir", default=None, help="(b) run directory (default: a fresh temporary one)")
-    p.add_argument("--train-args", default="", help="(b) extra train.py flags (default: none, the defaults)")
-    p.add_argument("--skip-throughput", action="store_true")
-    p.add_argument("--skip-train", action="store_true", help="skip (b); (c) then needs --policy-run")
-    p.add_argument("--policy-run", default=None, help="(c) run directory to evaluate (default: the run of (b))")
-    p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
-    args = p.parse_args(argv)
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--num-envs", type=int, nargs="+", default=[64, 256], help="(a) batch sizes")
+    parser.add_argument("--chunks", type=int, default=3, help="(a) timed chunks after the compiling one")
+    parser.add_argument("--max-wall-s", type=float, default=600.0, help="(b) wall budget of the training run")
+    parser.add_argument("--train-dir", default=None, help="(b) run directory (default: a fresh temporary one)")
+    parser.add_argument("--train-args", default="", help="(b) extra train.py flags (default: none, the defaults)")
+    parser.add_argument("--skip-throughput", action="store_true")
+    parser.add_argument("--skip-train", action="store_true", help="skip (b); (c) then needs --policy-run")
+    parser.add_argument("--policy-run", default=None, help="(c) run directory to evaluate (default: the run of (b))")
+    parser.add_argument("--json", action="store_true", help="print one JSON object instead of text")
+    args = parser.parse_args(argv)
 
     res: dict = {"machine": {"cpu": cpu_model(), "cores": os.cpu_count(), "jax": jax.__version__,
                              "devices": [str(d) for d in jax.devices()], "python": platform.python_version()},

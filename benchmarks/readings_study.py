@@ -1,4 +1,4 @@
-"""Issue 14 study on the paper's grid (300 s): Table 2's baselines in both readings of the indices
+"""Study, on the paper's grid (300 s): Table 2's baselines in both readings of the indices
 under grid refinement and the MUSCL scheme, the comfort split and its dt dependence, and
 backstepping under every reading of the alpha noise (8 seeds). Prints markdown tables.
 

@@ -3,14 +3,23 @@
 Precision: the library runs in float32 by default. Tests that need float64 (oracle digits, exact
 mass balance, convergence order) use the ``x64`` fixture, which enables x64 only for the duration
 of that test (``jax.enable_x64`` context manager), never globally.
+
+Training: the suite trains once. ``tiny_runs_root`` (session scope) holds the run directories of the
+one tiny training session (``tiny_runs.py``) that ``test_train.py`` reads; ``test_evaluate.py``
+evaluates its run A (``tiny_run_a``). The session starts in the background right after collection.
 """
 
 from __future__ import annotations
+
+import shutil
+import tempfile
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import tiny_runs
 
 from jaxtraffic import TrafficParams, equilibrium
 from jaxtraffic.model.solver import arz_step
@@ -32,6 +41,56 @@ def x64():
 @pytest.fixture
 def small() -> TrafficParams:
     return TrafficParams(**SMALL)
+
+
+# The tiny training session (tiny_runs.py): started once, in the background, as soon as the tests
+# are collected if a collected test needs it, so that it overlaps with the unit tests before it.
+_TRAINING: dict = {}
+_USES_TRAINING = {"two_device_proc", "tiny_runs_root", "tiny_run_a"}
+
+
+def _start_training() -> dict:
+    if not _TRAINING:
+        root = Path(tempfile.mkdtemp(prefix="jaxtraffic-tiny-runs-"))
+        _TRAINING.update(root=root, two_devices=tiny_runs.start_two_devices(),
+                         train=tiny_runs.start_train_runs(root))
+    return _TRAINING
+
+
+def pytest_collection_finish(session):
+    if any(_USES_TRAINING & set(getattr(item, "fixturenames", ())) for item in session.items):
+        _start_training()
+
+
+def pytest_sessionfinish(session, exitstatus):
+    for name in ("two_devices", "train"):
+        proc = _TRAINING.get(name)
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    if "root" in _TRAINING:
+        shutil.rmtree(_TRAINING["root"], ignore_errors=True)
+
+
+@pytest.fixture(scope="session")
+def two_device_proc():
+    """The two-device training, running in a subprocess (``tiny_runs.TWO_DEVICES``)."""
+    return _start_training()["two_devices"]
+
+
+@pytest.fixture(scope="session")
+def tiny_runs_root() -> Path:
+    """Directory holding the run directories ``tiny_runs.RUNS`` (waits until all are written)."""
+    tr = _start_training()
+    tiny_runs.wait_train_runs(tr["train"], tr["root"])
+    return tr["root"]
+
+
+@pytest.fixture(scope="session")
+def tiny_run_a() -> Path:
+    """Run A of the tiny training session, as soon as it is written (the other runs may still train)."""
+    tr = _start_training()
+    return tiny_runs.wait_run_a(tr["train"], tr["root"])
 
 
 def bump_state(p: TrafficParams, amp_rho: float = 0.01, amp_v: float = 0.3, centre: float = 0.5,

@@ -1,4 +1,4 @@
-"""Tests of the baseline controllers (MODEL.md sections 7-9) on tiny grids."""
+"""Tests of the baseline controllers (docs/model.md sections 7-9) on tiny grids."""
 
 from __future__ import annotations
 
@@ -50,7 +50,7 @@ def _obs(p, rho, v, h_prev=None):
 X64_STEPS = 1400  # shared by the two float64 linear-plant tests (one compilation per law)
 
 def test_lyapunov_decay_rate_on_linear_plant():
-    """Linear plant, D = 0: v~ decays at rate k/tau_mix (MODEL.md section 7).
+    """Linear plant, D = 0: v~ decays at rate k/tau_mix (docs/model.md section 7).
 
     Closed loop: v~_t + lambda2 v~_x = -k v~/tau_mix, so v~(x,t) = e^{-kt/tau} v~0(min(x +
     |lambda2| t, L)); once the initial profile has left the road (t > L/|lambda2| = 56 s here)

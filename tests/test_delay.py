@@ -1,4 +1,4 @@
-"""Input delay (MODEL.md section 4): ring buffer, exact d-step delay, h_bar before t = D."""
+"""Input delay (docs/model.md section 4): ring buffer, exact d-step delay, h_bar before t = D."""
 
 from __future__ import annotations
 

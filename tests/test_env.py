@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxtraffic.learn import env as E
+from jaxtraffic.learn import env as learn_env
 from jaxtraffic.model.params import TrafficParams, equilibrium
 from jaxtraffic.sim import equilibrium_state, initial_state
 from jaxtraffic.sim.metrics import reward as paper_reward
@@ -15,27 +15,27 @@ from jaxtraffic.sim.metrics import reward as paper_reward
 N = 21
 TP = TrafficParams(n_points=N, delay=0.5)
 
-step_jit = jax.jit(E.step)
-reset_jit = jax.jit(E.reset)
-reset_batch = jax.jit(jax.vmap(E.reset, (0, None)))
+step_jit = jax.jit(learn_env.step)
+reset_jit = jax.jit(learn_env.reset)
+reset_batch = jax.jit(jax.vmap(learn_env.reset, (0, None)))
 KEYS = jax.random.split(jax.random.PRNGKey(7), 400)
 
 
-def _params(**kw) -> E.EnvParams:
+def _params(**kw) -> learn_env.EnvParams:
     """The paper's environment (gains applied directly, the paper's reward) unless ``kw`` says otherwise."""
     kw.setdefault("horizon", 20)
     kw.setdefault("gain_max", 5.0)
     kw.setdefault("gain_filter", 1.0)
     kw.setdefault("h_rate_weight", 0.0)
-    return E.make_env_params(TP, **kw)
+    return learn_env.make_env_params(TP, **kw)
 
 
 def test_reset_step_shapes_and_reward():
     ep = _params()
     obs, st = reset_jit(jax.random.PRNGKey(0), ep)
-    assert obs.shape == (3 * N + 3,) == (E.obs_size(ep),)
+    assert obs.shape == (3 * N + 3,) == (learn_env.obs_size(ep),)
     np.testing.assert_array_equal(obs[3 * N:], 0.0)  # no gains applied yet
-    assert E.GainEnv.action_size == 3
+    assert learn_env.GainEnv.action_size == 3
     assert int(st.t) == 0 and st.plant.rho.shape == (N,)
     obs2, st2, r, done, info = step_jit(jax.random.PRNGKey(1), st, jnp.array([0.3, -0.2, 0.1]), ep)
     assert obs2.shape == (3 * N + 3,) and r.shape == () and done.shape == () and done.dtype == jnp.bool_
@@ -55,8 +55,8 @@ def test_reset_step_shapes_and_reward():
 def test_equilibrium_gives_zero_observation_and_stays():
     rho, v = equilibrium_state(TP)
     plant = initial_state(TP, rho, v)
-    state = E.EnvState(plant=plant, plant_params=TP, t=jnp.zeros((), jnp.int32), gains=jnp.zeros(3))
-    np.testing.assert_allclose(E.observe(state, _params()), np.zeros(3 * N + 3), atol=1e-6)
+    state = learn_env.EnvState(plant=plant, plant_params=TP, t=jnp.zeros((), jnp.int32), gains=jnp.zeros(3))
+    np.testing.assert_allclose(learn_env.observe(state, _params()), np.zeros(3 * N + 3), atol=1e-6)
     # zero amplitude: reset is the equilibrium; zero gains keep it there with reward ~ 0
     ep = _params(amp_min=0.0, amp_max=0.0)
     obs, st = reset_jit(jax.random.PRNGKey(3), ep)
@@ -144,7 +144,7 @@ def test_no_randomisation_by_default():
 def test_action_to_gains_bounded():
     ep = _params(gain_max=2.5)
     a = jnp.array([-1e6, -3.0, 0.0, 0.7, 40.0, 1e6])
-    g = E.action_to_gains(a, ep)
+    g = learn_env.action_to_gains(a, ep)
     assert float(jnp.max(jnp.abs(g))) <= 2.5
     np.testing.assert_allclose(g, 2.5 * np.tanh(np.asarray(a)), rtol=1e-6)
     assert float(g[0]) == -2.5 and float(g[-1]) == 2.5 and float(g[2]) == 0.0
@@ -165,7 +165,7 @@ def test_action_to_gains_bounded():
 ])
 def test_make_env_params_rejects_bad_ranges(kw, match):
     with pytest.raises(ValueError, match=match):
-        E.make_env_params(TP, **kw)
+        learn_env.make_env_params(TP, **kw)
 
 
 def test_auto_reset_forgets_the_previous_episodes_inputs():
@@ -174,10 +174,10 @@ def test_auto_reset_forgets_the_previous_episodes_inputs():
     from jaxtraffic.model import delay as delay_buffer
 
     tp = TrafficParams(n_points=21, L=500.0, delay=1.0, max_delay_steps=20)
-    ep = E.make_env_params(tp, horizon=15)
+    ep = learn_env.make_env_params(tp, horizon=15)
     d = int(round(1.0 / tp.dt))
-    _, state = E.reset(jax.random.PRNGKey(0), ep)
-    step = jax.jit(E.step)
+    _, state = learn_env.reset(jax.random.PRNGKey(0), ep)
+    step = jax.jit(learn_env.step)
     big = jnp.array([0.0, 0.0, 3.0])  # strong density feedback: sent h differs from h_bar
     for i in range(15):
         _, state, _, done, _ = step(jax.random.PRNGKey(i), state, big, ep)
@@ -203,7 +203,7 @@ def test_gain_filter_is_a_first_order_lag():
     ep = _params(gain_filter=k, horizon=8)
     _, st = reset_jit(jax.random.PRNGKey(0), ep)
     a = jnp.array([0.4, -0.7, 1.1])
-    target = np.asarray(E.action_to_gains(a, ep))
+    target = np.asarray(learn_env.action_to_gains(a, ep))
     for n in range(1, 8):
         obs, st, _, done, info = step_jit(jax.random.PRNGKey(n), st, a, ep)
         np.testing.assert_allclose(info["gains"], target * (1 - (1 - k) ** n), rtol=1e-5)
@@ -235,7 +235,7 @@ def test_h_rate_cost_in_the_reward():
     h_new = np.asarray(st0.plant.h_prev, np.float64)  # the gap commanded at this step
     expected = np.sum(((h_new - np.asarray(st.plant.h_prev)) / float(TP.h_bar)) ** 2)
     assert expected > 0.0
-    np.testing.assert_allclose(float(E.h_rate_cost(st.plant.h_prev, st0.plant.h_prev, TP.h_bar)), expected,
+    np.testing.assert_allclose(float(learn_env.h_rate_cost(st.plant.h_prev, st0.plant.h_prev, TP.h_bar)), expected,
                                rtol=1e-5)
     np.testing.assert_allclose(float(r1), float(r0) - w * expected, rtol=1e-5)
     _, _, r_zero, _, _ = step_jit(jax.random.PRNGKey(1), st, jnp.zeros(3), _params(h_rate_weight=w))

@@ -1,4 +1,9 @@
-"""End to end: train a tiny policy, run evaluate.py on a tiny grid and short horizon, check outputs."""
+"""End to end: evaluate.py on the tiny trained policy, a tiny grid and a short horizon; check outputs.
+
+The policies are run ``A`` of the suite's one tiny training session (``tiny_runs.py``, fixture
+``tiny_run_a`` in ``conftest.py``), which ``test_train.py`` checks in detail, and the tiny
+gradient-trained run that the same session writes next to it.
+"""
 
 from __future__ import annotations
 
@@ -6,21 +11,15 @@ import json
 import math
 
 import pytest
+from tiny_runs import GRADIENT_ROOT
 
 import evaluate
-from jaxtraffic.learn.config import TrainConfig
-from jaxtraffic.learn.gradient_trainer import train_gradient
-from jaxtraffic.learn.trainer import train
 from jaxtraffic.paper import REQUIRED_KEYS, SCENARIOS
 
 
 @pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("run")
-    settings = TrainConfig.from_flat(out_dir=str(out), n_points=21, num_envs=4, num_steps=8, num_minibatches=2,
-                             update_epochs=1, updates_per_chunk=2, total_steps=64, horizon_s=3.0,
-                             eval_horizon_s=2.0, quiet=True)
-    return train(settings)
+def tiny_run(tiny_run_a):
+    return tiny_run_a
 
 
 def _walk_numbers(obj):
@@ -36,12 +35,11 @@ def _walk_numbers(obj):
 
 def test_evaluate_end_to_end(tiny_run, tmp_path):
     out = tmp_path / "results"
-    # a tiny gradient-trained gains run where evaluate.py looks for it (the other gradient runs are absent)
-    train_gradient(TrainConfig.from_flat(algo="gradient", out_dir=str(tmp_path / "runs" / "gradient-gains"),
-                                         n_points=21, train_delays=(4.0,), train_horizon_s=6.0, steps_per_chunk=1,
-                                         grad_steps=1, eval_horizon_s=6.0, quiet=True))
+    # the tiny gradient-trained gains run is where evaluate.py looks for it (the other gradient runs are absent)
+    runs_root = tiny_run.parent / GRADIENT_ROOT
+    assert (runs_root / "gradient-gains" / "config.json").is_file()
     metrics = evaluate.main(["--run", str(tiny_run), "--out", str(out), "--horizon", "6", "--seeds", "2",
-                             "--robust-grid", "2x2", "--gradient", "existing", "--runs-root", str(tmp_path / "runs")])
+                             "--robust-grid", "2x2", "--gradient", "existing", "--runs-root", str(runs_root)])
     on_disk = json.loads((out / "metrics.json").read_text())
     assert "units" in on_disk and "meta" in on_disk
     skipped = {"grad_network"}
@@ -71,7 +69,7 @@ def test_evaluate_end_to_end(tiny_run, tmp_path):
     report = (out / "REPORT.md").read_text()
     assert "Beyond the paper: PPO and gradient-based training" in report
     assert "gradient: 3 constant gains" in report and "gradient-gains" in report
-    # issue 14: both readings with units, the numerical check beside Table 2, claim 5 per reading
+    # both readings with units, the numerical check beside Table 2, claim 5 per reading
     assert "J_fuel_kmh" in on_disk["units"] and "J_comfort_kmh" in on_disk["delay4"]["open_loop"]
     rel = on_disk["numerics"]["rel_diff"]
     assert set(rel) == {"refined", "scheme"} and "J_comfort" in rel["refined"]["backstepping"]

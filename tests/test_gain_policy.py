@@ -9,7 +9,7 @@ import pytest
 
 from jaxtraffic.control.gain_policy import equilibrium_gains, policy_controller
 from jaxtraffic.control.networks import ActorCritic
-from jaxtraffic.learn import env as E
+from jaxtraffic.learn import env as learn_env
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.sim import equilibrium_state, simulate
 
@@ -18,18 +18,18 @@ HIDDEN = (16,)
 STEPS = 40
 
 
-def _random_policy(ep: E.EnvParams, seed: int = 0, scale: float = 0.5):
+def _random_policy(ep: learn_env.EnvParams, seed: int = 0, scale: float = 0.5):
     """Network parameters perturbed away from the (near-zero-output) initialisation, and
     observation statistics that are not the identity, so every part of the input path matters."""
     net = ActorCritic(hidden=HIDDEN, init_sigma=0.3)
     k_init, k_noise, k_mean, k_var = jax.random.split(jax.random.PRNGKey(seed), 4)
-    params = net.init(k_init, jnp.zeros((E.obs_size(ep),)))
+    params = net.init(k_init, jnp.zeros((learn_env.obs_size(ep),)))
     leaves, tree = jax.tree.flatten(params)
     keys = jax.random.split(k_noise, len(leaves))
     noisy = [x + scale * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys, strict=True)]
     params = jax.tree.unflatten(tree, noisy)
-    mean = 0.01 * jax.random.normal(k_mean, (E.obs_size(ep),))
-    var = jax.random.uniform(k_var, (E.obs_size(ep),), minval=0.005, maxval=0.02)
+    mean = 0.01 * jax.random.normal(k_mean, (learn_env.obs_size(ep),))
+    var = jax.random.uniform(k_var, (learn_env.obs_size(ep),), minval=0.005, maxval=0.02)
     return net, params, mean, var
 
 
@@ -38,10 +38,10 @@ def test_policy_controller_replays_the_environment(gain_filter):
     """``simulate`` with the policy controller applies, step for step, the gains the environment
     applies for the policy's deterministic action (same observation, same filter, same law), so
     the evaluation of a trained policy is the rollout it was trained on."""
-    ep = E.make_env_params(TP, horizon=10 * STEPS, gain_max=2.0, gain_filter=gain_filter)
+    ep = learn_env.make_env_params(TP, horizon=10 * STEPS, gain_max=2.0, gain_filter=gain_filter)
     net, params, mean, var = _random_policy(ep)
-    obs, state = E.reset(jax.random.PRNGKey(0), ep)
-    step = jax.jit(E.step)
+    obs, state = learn_env.reset(jax.random.PRNGKey(0), ep)
+    step = jax.jit(learn_env.step)
     rho_env, gains_env = [], []
     for n in range(STEPS):
         mu, _, _ = net.apply(params, jnp.clip((obs - mean) / jnp.sqrt(var + 1e-8), -10.0, 10.0))
@@ -62,7 +62,7 @@ def test_policy_controller_replays_the_environment(gain_filter):
 def test_gain_filter_smooths_the_time_gap():
     """A filtered policy changes the sent time gap less from step to step than the same policy
     applied directly (the filter is a low-pass on the gains)."""
-    ep = E.make_env_params(TP, gain_max=2.0)
+    ep = learn_env.make_env_params(TP, gain_max=2.0)
     net, params, mean, var = _random_policy(ep, seed=3)
 
     def step_changes(k: float) -> float:
@@ -76,7 +76,7 @@ def test_gain_filter_smooths_the_time_gap():
 def test_equilibrium_gains_are_what_the_policy_settles_to():
     """At the equilibrium the filtered gains of a policy converge to a fixed point; a rollout that
     starts there applies exactly those gains after a while (the controller state)."""
-    ep = E.make_env_params(TP, horizon=1000, gain_max=2.0, gain_filter=0.3)
+    ep = learn_env.make_env_params(TP, horizon=1000, gain_max=2.0, gain_filter=0.3)
     _, params, mean, var = _random_policy(ep, seed=1, scale=0.2)
     var = var.at[-3:].set(1.0)  # a weak feedback of the gains on themselves: a stable fixed point
     ctrl = policy_controller(params, mean, var, 2.0, hidden=HIDDEN, init_sigma=0.3, gain_filter=0.3)

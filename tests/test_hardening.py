@@ -1,5 +1,5 @@
-"""Issue 15: every bad input gets a clear error, no wrong result passes silently, no interruption
-loses work. One test (or parametrised case) per case of the issue, on tiny grids.
+"""Hardening: every bad input gets a clear error, no wrong result passes silently, no interruption
+loses work. One test (or parametrised case) per case, on tiny grids.
 
 The trainings run as subprocesses started together when the module's first training test asks for
 them (``procs``): a reference run, a run stopped by SIGINT during its first compile, a run stopped by
@@ -142,10 +142,10 @@ def test_traced_non_finite_initial_condition_is_flagged():
 
 
 def test_nan_action_terminates_the_training_environment():
-    from jaxtraffic.learn import env as E
-    ep = E.make_env_params(TrafficParams(n_points=21, delay=0.5, max_delay_steps=20), horizon=30)
-    _, state = E.reset_env(jax.random.PRNGKey(0), ep)
-    _, _, r, done, info = jax.jit(E.step_env)(jax.random.PRNGKey(1), state, jnp.full((3,), jnp.nan), ep)
+    from jaxtraffic.learn import env as learn_env
+    ep = learn_env.make_env_params(TrafficParams(n_points=21, delay=0.5, max_delay_steps=20), horizon=30)
+    _, state = learn_env.reset_env(jax.random.PRNGKey(0), ep)
+    _, _, r, done, info = jax.jit(learn_env.step_env)(jax.random.PRNGKey(1), state, jnp.full((3,), jnp.nan), ep)
     assert bool(info["terminated"]) and bool(done) and float(r) == -ep.diverge_penalty
 
 

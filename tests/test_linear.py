@@ -1,4 +1,4 @@
-"""Tests of the linearised model (MODEL.md section 6) and of its discrete step."""
+"""Tests of the linearised model (docs/model.md section 6) and of its discrete step."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from jaxtraffic.model.solver import arz_step
 
 
 def test_coefficients_match_model_table():
-    """Oracles of the MODEL.md section 2 table, in float64."""
+    """Oracles of the docs/model.md section 2.4 table, in float64."""
     with jax.enable_x64(True):
         lm = linearize(TrafficParams())
         np.testing.assert_allclose(float(lm.tau), 11.214953, rtol=1e-6)

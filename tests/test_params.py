@@ -1,4 +1,4 @@
-"""Parameters, fundamental diagram oracles (MODEL.md section 2) and parameter validation."""
+"""Parameters, fundamental diagram oracles (docs/model.md section 2) and parameter validation."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import jaxtraffic
 from jaxtraffic import TrafficParams, cfl_number, equilibrium, stack_params, steps_for
 from jaxtraffic.model import fundamental as fd
 
-# MODEL.md section 2 table: (value, decimals shown)
+# docs/model.md section 2.4 table: (value, decimals shown)
 ORACLES = {
     "tau_mix": (11.214953, 6),
     "h_mix(h_bar)": (1.389610, 6),

@@ -94,3 +94,16 @@ def test_robustness_map(tmp_path):
     out = P.plot_robustness_map(tmp_path / "one.png", delays[:1], alphas[:1],
                                 {"PPO": (base[:1, :1], div[:1, :1])}, "one cell", nominal=None)
     assert_png(out)
+
+
+def test_learning_curve_renamed_column(tmp_path):
+    """``eval_rho_L2`` (veh/km) is now ``eval_rho_L2_veh_km``: older CSVs and resumed rows read as it."""
+    from jaxtraffic.learn.curve import CURVE_FIELDS, read_learning_curve, write_curve
+
+    old = tmp_path / "old.csv"
+    old.write_text("update,eval_rho_L2\n1,0.5\n")
+    assert read_learning_curve(old)["eval_rho_L2_veh_km"].tolist() == [0.5]
+    new = tmp_path / "new.csv"
+    write_curve(new, [{"update": 1, "eval_rho_L2": 0.5}])  # a row saved by an older run, then resumed
+    data = read_learning_curve(new)
+    assert list(data) == CURVE_FIELDS and data["eval_rho_L2_veh_km"][0] == 0.5

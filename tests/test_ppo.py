@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from flax import struct
 
-from jaxtraffic.learn import env as E
+from jaxtraffic.learn import env as learn_env
 from jaxtraffic.learn import ppo
 from jaxtraffic.model.params import TrafficParams
 
@@ -237,7 +237,7 @@ def test_ppo_updates_move_policy_toward_target(toy_run):
 def test_make_train_rejects_indivisible_batch():
     cfg = ppo.PPOConfig(num_envs=3, num_steps=5, num_minibatches=4)
     with pytest.raises(ValueError, match="num_minibatches"):
-        ppo.make_train(cfg, E.make_env_params(TrafficParams(n_points=21, delay=0.5)), env=E.GainEnv)
+        ppo.make_train(cfg, learn_env.make_env_params(TrafficParams(n_points=21, delay=0.5)), env=learn_env.GainEnv)
 
 
 def test_learning_rate_schedule():
@@ -268,19 +268,19 @@ def test_decayed_learning_rate_reaches_adam():
 SEVERAL_SEEDS = """
 import json
 import jax, jax.numpy as jnp, numpy as np
-from jaxtraffic.learn import env as E, ppo
+from jaxtraffic.learn import env as learn_env, ppo
 from jaxtraffic.model.params import TrafficParams
 
 cfg = ppo.PPOConfig(num_envs=16, num_steps=8, update_epochs=1, num_minibatches=2, updates_per_chunk=1, num_seeds=2)
-ep = E.make_env_params(TrafficParams(n_points=21, delay=4.0))
-init, train_chunk = ppo.make_train(cfg, ep, env=E.GainEnv)
+ep = learn_env.make_env_params(TrafficParams(n_points=21, delay=4.0))
+init, train_chunk = ppo.make_train(cfg, ep, env=learn_env.GainEnv)
 for seed in range(4):  # the deadlock was a race: give it several chances
     runner = jax.block_until_ready(init(jax.random.PRNGKey(seed)))
 runner, m = train_chunk(runner)
 jax.block_until_ready((runner, m))
 # lax.map over the seeds gives each seed the network the one-seed vmap gives it (bit for bit) and
 # the same environments (a different XLA program: equal to a few float32 ulps)
-one = jax.jit(lambda ks: ppo._init_seeds(lambda k: ppo._init_seed(cfg, E.GainEnv, ep, 16, k, jnp.int32(0)), ks))
+one = jax.jit(lambda ks: ppo._init_seeds(lambda k: ppo._init_seed(cfg, learn_env.GainEnv, ep, 16, k, jnp.int32(0)), ks))
 keys = jax.random.split(jax.random.PRNGKey(3), 2)
 both = init(jax.random.PRNGKey(3))
 alone = [one(keys[i:i + 1]) for i in range(2)]
@@ -321,9 +321,9 @@ def test_several_seeds_init_has_no_batched_lapack_call():
     custom call (the orthogonal initialisers' QRs) works on one matrix, never on a batch, so
     jaxlib cannot split it over the thread pool (the race above needs it to)."""
     cfg = ppo.PPOConfig(num_envs=8, num_seeds=2)
-    ep = E.make_env_params(TrafficParams(n_points=21, delay=4.0))
+    ep = learn_env.make_env_params(TrafficParams(n_points=21, delay=4.0))
     keys = jax.random.split(jax.random.PRNGKey(0), 2)
-    text = jax.jit(lambda ks: ppo._init_seeds(lambda k: ppo._init_seed(cfg, E.GainEnv, ep, 8, k, jnp.int32(0)),
+    text = jax.jit(lambda ks: ppo._init_seeds(lambda k: ppo._init_seed(cfg, learn_env.GainEnv, ep, 8, k, jnp.int32(0)),
                                               ks)).lower(keys).as_text()
     shapes = re.findall(r"custom_call @lapack_\w+\(.*: \(tensor<([0-9x]+)x[a-z]+[0-9]*>", text)
     assert {"66x64", "64x64", "64x3", "64x1"} <= set(shapes), shapes  # geqrf + orgqr per layer shape

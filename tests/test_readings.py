@@ -1,4 +1,4 @@
-"""Readings of the indices and of the alpha noise (issue 14): the paper's km/h units, the comfort
+"""Readings of the indices and of the alpha noise: the paper's km/h units, the comfort
 split and its switch-on step, and the noise readings (held, per node, seen by the model)."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Batched rollouts (MODEL.md sections 3-5, 10): determinism, divergence containment, open-loop
+"""Batched rollouts (docs/model.md sections 3-5, 10): determinism, divergence containment, open-loop
 growth, metrics at equilibrium, one compile for many delays."""
 
 from __future__ import annotations
@@ -192,7 +192,7 @@ def test_open_loop_from_paper_ic_grows(paper_open_loop):
 
 
 def test_metrics_at_equilibrium_paper_grid():
-    """MODEL.md section 10: J_TTT = 3.2208e7 and J_fuel = 8.077e5 over 300 s at equilibrium."""
+    """docs/model.md section 10: J_TTT = 3.2208e7 and J_fuel = 8.077e5 over 300 s at equilibrium."""
     p = TrafficParams()
     rho0, v0 = equilibrium_state(p)
     res = simulate(p, n_steps=3000, rho0=rho0, v0=v0, record_every=10)

@@ -1,4 +1,4 @@
-"""ARZ solver (MODEL.md section 3): fixed point, exact mass balance, CFL, convergence order."""
+"""ARZ solver (docs/model.md section 3): fixed point, exact mass balance, CFL, convergence order."""
 
 from __future__ import annotations
 

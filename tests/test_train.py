@@ -1,13 +1,11 @@
-"""The training loop and CLI (train.py, jaxtraffic/trainer.py), checkpoints and policy loading,
+"""The training loop and CLI (train.py, jaxtraffic/learn/trainer.py), checkpoints and policy loading,
 on a tiny problem (21 nodes, 4 environments x 8 steps, 2 updates per chunk).
 
-The training runs execute in two subprocesses started together (they overlap on the 2 cores):
-``_train_runs`` (one CPU device) and ``TWO_DEVICES`` (two forced host devices). Both compile with
-``--xla_backend_optimization_level=0`` (about half the compile time; every comparison below is
-between runs of the same process). In ``_train_runs`` every run has the same PPO config and
-environment, so ``ppo.make_train`` is memoised (``SharedCompile``): the trainer's own code (init,
-chunks, evaluation, checkpoints, resume) runs unchanged, only the recompilation of an identical
-program per ``train()`` call is saved. The tests then read the run directories.
+The training runs are the suite's one tiny training session (``tiny_runs.py``, started once per
+session by the ``tiny_runs_root`` and ``two_device_proc`` fixtures of ``conftest.py``; the same runs
+serve ``test_evaluate.py``): ``tiny_runs.train_runs`` (one CPU device, one compiled program shared
+by every run) and ``tiny_runs.TWO_DEVICES`` (two forced host devices), in two subprocesses that
+overlap on the 2 cores. The tests here read the run directories.
 """
 
 from __future__ import annotations
@@ -21,56 +19,19 @@ import sys
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
+from tiny_runs import CHUNK, REPO, RUNS
 
 from jaxtraffic.cli import train as train_cli
-from jaxtraffic.control import Observation
-from jaxtraffic.control.gain_policy import policy_controller
 from jaxtraffic.learn import checkpoint as ckpt
-from jaxtraffic.learn import ppo
 from jaxtraffic.learn.checkpoint import load_policy
 from jaxtraffic.learn.config import TrainConfig, load_config
-from jaxtraffic.learn.trainer import CURVE_FIELDS, build
-from jaxtraffic.sim import initial_state, paper_initial_condition
+from jaxtraffic.learn.trainer import CURVE_FIELDS
 
-REPO = Path(__file__).resolve().parents[1]
-TINY = ["--n-points", "21", "--delay", "0.5", "--max-delay-steps", "20", "--num-envs", "4", "--num-steps", "8",
-        "--updates-per-chunk", "2", "--update-epochs", "2", "--num-minibatches", "2", "--horizon-s", "3",
-        "--eval-horizon-s", "2", "--quiet"]
-CHUNK = 4 * 8 * 2  # env steps per chunk
 SUMMARY_KEYS = {"env_steps", "wall_s", "seconds_to_stop_rule", "env_steps_to_stop_rule", "stop_rule_reached",
                 "target_reward", "interrupted", "best_seed", "final_eval", "eval_horizon_s", "seconds_to_paper_rule",
                 "env_steps_to_paper_rule", "min_wave_speed"}
-
-
-class SharedCompile:
-    """Memoised ``make_train`` (by config, env params, devices, env); records the last runner a
-    chunk returned and can raise KeyboardInterrupt at a given chunk call (a simulated Ctrl-C)."""
-
-    def __init__(self, orig):
-        self.orig, self.cache, self.last_runner, self.interrupt_at, self.calls = orig, {}, None, None, 0
-
-    def __call__(self, cfg, env_params, devices=None, *, env):
-        key = (cfg, env_params, None if devices is None else tuple(devices), env)
-        if key not in self.cache:
-            self.cache[key] = self.orig(cfg, env_params, devices, env=env)
-        init, chunk = self.cache[key]
-
-        def train_chunk(runner):
-            self.calls += 1
-            if self.interrupt_at is not None and self.calls == self.interrupt_at:
-                raise KeyboardInterrupt
-            runner, metrics = chunk(runner)
-            self.last_runner = runner
-            return runner, metrics
-
-        return init, train_chunk
-
-
-def _cli(out: Path, *extra: str) -> Path:
-    return train_cli.main(TINY + ["--out-dir", str(out), *extra])
 
 
 def _rows(run: Path) -> list[dict]:
@@ -88,96 +49,10 @@ def _leaves_equal(a, b) -> bool:
                                       for x, y in zip(la, lb, strict=True))
 
 
-def _train_runs(root: Path) -> None:
-    """All the single-device runs (4 chunks = 256 env steps unless noted), in a subprocess:
-    A: one go; B: 2 chunks, then --resume to 4; I: Ctrl-C before chunk 3, then --resume;
-    C: seed 1, 1 chunk; S: the paper's rule alone (--min-wave-speed=-inf), always met (target -1e9),
-    patience 2, no --keep-going;
-    W: like S, but the rule also asks for a wave speed no policy has (--min-wave-speed 1e9).
-    Also compares, right after A, the in-memory policy with ``load_policy(A)``."""
-    shared = SharedCompile(ppo.make_train)
-    ppo.make_train = shared
-    a = _cli(root / "A", "--total-steps", str(4 * CHUNK), "--keep-going")
-    _write_json(root / "roundtrip.json", _round_trip(a, jax.device_get(shared.last_runner)))
-    b = _cli(root / "B", "--total-steps", str(2 * CHUNK), "--keep-going")
-    shutil.copytree(b, root / "B_first")
-    train_cli.main(["--out-dir", str(b), "--resume", "--total-steps", str(4 * CHUNK), "--keep-going", "--quiet"])
-    shared.calls, shared.interrupt_at = 0, 3
-    try:
-        _cli(root / "I", "--total-steps", str(4 * CHUNK), "--keep-going")
-        raise AssertionError("the interrupted run did not exit")
-    except SystemExit as exc:
-        assert exc.code == 130, exc.code  # the convention for SIGINT / Ctrl-C
-    i = root / "I"
-    shared.interrupt_at = None
-    shutil.copytree(i, root / "I_first")
-    train_cli.main(["--out-dir", str(i), "--resume", "--total-steps", str(4 * CHUNK), "--keep-going", "--quiet"])
-    _cli(root / "C", "--seed", "1", "--total-steps", str(CHUNK), "--keep-going")
-    _cli(root / "S", "--total-steps", str(6 * CHUNK), "--target-reward=-1e9", "--min-wave-speed=-inf")
-    _cli(root / "W", "--total-steps", str(3 * CHUNK), "--target-reward=-1e9", "--min-wave-speed", "1e9")
-    _write_json(root / "done.json", {"compiled_programs": len(shared.cache)})
-
-
-def _write_json(path: Path, obj) -> None:
-    path.write_text(json.dumps(obj))
-
-
-def _round_trip(run: Path, runner) -> dict:
-    """Actions of ``load_policy(run)`` vs the in-memory policy (seed 0 of ``runner``) on two states."""
-    ctrl, config = load_policy(run)
-    rep = jax.tree.map(lambda x: x[0, 0], runner)  # device 0, seed 0
-    mem = policy_controller(rep.params, rep.stats.mean, rep.stats.var, config.env.gain_max,
-                            hidden=config.algo.hidden(), init_sigma=config.algo.init_sigma,
-                            gain_filter=config.env.gain_filter)
-    tp = build(config)[1].traffic  # the run's nominal plant
-    out = {"identical": [], "h": [], "stats_trained": bool(np.abs(rep.stats.mean).max() > 0
-                                                           and not np.allclose(rep.stats.var, 1.0))}
-    for amp in (0.004, 0.012):
-        rho, v = paper_initial_condition(tp, amplitude=amp)
-        plant = initial_state(tp, rho, v)
-        obs = Observation(rho=plant.rho, v=plant.v, h_prev=plant.h_prev * 1.01, t=jnp.asarray(0.0), sent=plant.sent)
-        key = jax.random.PRNGKey(0)
-        h_loaded = np.asarray(ctrl.act(ctrl.init(obs, tp), obs, tp, key)[0])
-        h_mem = np.asarray(mem.act(mem.init(obs, tp), obs, tp, key)[0])
-        out["identical"].append(bool(np.array_equal(h_loaded, h_mem)))
-        out["h"].append(h_loaded.tolist())
-    try:
-        load_policy(run, seed=3)
-        out["bad_seed_rejected"] = False
-    except ValueError:
-        out["bad_seed_rejected"] = True
-    return out
-
-
-def _xla_env(**extra) -> dict:
-    flags = " ".join(filter(None, [os.environ.get("XLA_FLAGS", ""), "--xla_backend_optimization_level=0",
-                                   *extra.pop("flags", [])]))
-    return {**os.environ, "XLA_FLAGS": flags, "JAX_PLATFORMS": "cpu", **extra}
-
-
 @pytest.fixture(scope="module")
-def two_device_proc():
-    """The two-device training, started in a subprocess (see ``TWO_DEVICES``)."""
-    argv = TINY[:]
-    argv[argv.index("--num-envs") + 1] = "4"  # 2 environments per device
-    proc = subprocess.Popen([sys.executable, "-c", TWO_DEVICES, json.dumps(argv)], cwd=REPO,
-                            env=_xla_env(flags=["--xla_force_host_platform_device_count=2"]),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    yield proc
-    if proc.poll() is None:
-        proc.kill()
-        proc.communicate()
-
-
-@pytest.fixture(scope="module")
-def runs(tmp_path_factory, two_device_proc):
-    root = tmp_path_factory.mktemp("runs")
-    code = "import sys; from pathlib import Path; sys.path[:0] = ['.', 'tests']; import test_train; " \
-           "test_train._train_runs(Path(sys.argv[1]))"
-    proc = subprocess.run([sys.executable, "-c", code, str(root)], cwd=REPO, env=_xla_env(), capture_output=True,
-                          text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr[-4000:]
-    out = {k: root / k for k in ("A", "B", "I", "C", "S", "W")}
+def runs(tiny_runs_root):
+    root = tiny_runs_root
+    out = {k: root / k for k in RUNS}
     out["B_first_rows"] = _rows(root / "B_first")
     out["B_first_summary"] = json.loads((root / "B_first" / "summary.json").read_text())
     out["I_first_rows"] = _rows(root / "I_first")
@@ -354,42 +229,6 @@ def test_cli_invalid_value_from_the_shell(tmp_path):
     assert proc.returncode == 2, proc.stderr
     assert "train.py: error:" in proc.stderr and "delay" in proc.stderr and "Traceback" not in proc.stderr
     assert not out.exists()
-
-
-TWO_DEVICES = r"""
-import json, sys, tempfile
-import jax, numpy as np
-sys.path.insert(0, ".")
-import train
-from jaxtraffic.learn import checkpoint as ckpt
-from jaxtraffic.learn import ppo
-
-orig, cache = ppo.make_train, {}
-def shared(cfg, env_params, devices=None, *, env):  # resume reuses the compiled program
-    key = (cfg, env_params, env)
-    cache[key] = cache.get(key) or orig(cfg, env_params, devices, env=env)
-    return cache[key]
-ppo.make_train = shared
-
-out = tempfile.mkdtemp()
-argv = json.loads(sys.argv[1]) + ["--out-dir", out, "--keep-going"]
-train.main(argv + ["--total-steps", "128"])
-run = train.main(argv + ["--total-steps", "192", "--resume"])
-r, meta = ckpt.load_checkpoint(run)
-leaves = jax.tree_util.tree_leaves(r["params"]) + jax.tree_util.tree_leaves(r["opt_state"])
-rows = open(f"{run}/learning_curve.csv").read().splitlines()
-summary = json.load(open(f"{run}/summary.json"))
-print("RESULT " + json.dumps({
-    "device_count": jax.device_count(),
-    "leading_axis": [int(np.shape(x)[0]) for x in leaves][:3],
-    "params_replicated": all(np.array_equal(x[0], x[1]) for x in leaves),
-    "stats_replicated": bool(np.array_equal(r["stats"]["mean"][0], r["stats"]["mean"][1])),
-    "envs_differ": not np.array_equal(r["obs"][0], r["obs"][1]),
-    "env_steps": meta["env_steps"], "n_rows": len(rows) - 1,
-    "finite": bool(np.all(np.isfinite([float(x) for row in rows[1:] for x in row.split(",")]))),
-    "final_reward": summary["final_eval"]["final_reward"],
-}))
-"""
 
 
 def test_two_cpu_devices(two_device_proc):

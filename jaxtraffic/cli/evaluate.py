@@ -1,4 +1,4 @@
-"""Reproduce the paper's section 4 (MODEL.md section 11): every scenario, figures, tables, report.
+"""Reproduce the paper's section 4 (docs/model.md section 11): every scenario, figures, tables, report.
 
     python evaluate.py [--run RUN_DIR] [--run-delay0 RUN_DIR] [--out results/]
 

@@ -49,9 +49,9 @@ _PARSERS = {"int": int, "float": float, "str": str, "float | None": float, "int 
 def build_parser() -> argparse.ArgumentParser:
     """One flag per leaf of ``TrainConfig`` (``--n-points`` for ``plant.n_points``), with the field's
     default and help: the flags cannot drift from the library's defaults."""
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     for section in ("run", "plant", "env", "algo", "grad"):
-        g = p.add_argument_group(GROUPS[section])
+        g = parser.add_argument_group(GROUPS[section])
         for f in dataclasses.fields(SECTIONS[section]):
             flag = "--" + f.name.replace("_", "-")
             if f.type == "bool":
@@ -60,7 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
             default = None if f.name == "out_dir" else f.default  # resolved from --algo below
             g.add_argument(flag, type=_PARSERS[f.type], default=default, choices=f.metadata.get("choices"),
                            help=f.metadata["help"])
-    return p
+    return parser
 
 
 def settings_from_args(argv: list[str] | None = None) -> TrainConfig:
@@ -98,11 +98,11 @@ def main(argv: list[str] | None = None) -> Path:
     """Parse flags, train, return the run directory. Exit status 2 for invalid flags or a broken run
     directory, 130 / 143 after SIGINT / SIGTERM (see ``learn.trainer``)."""
     try:
-        settings = settings_from_args(argv)
-        if settings.run.resume:
-            check_resumable(Path(settings.run.out_dir))
-            warn_ignored_on_resume(settings, explicit_flags(argv))
-        return train_gradient(settings) if settings.run.algo == "gradient" else train(settings)
+        config = settings_from_args(argv)
+        if config.run.resume:
+            check_resumable(Path(config.run.out_dir))
+            warn_ignored_on_resume(config, explicit_flags(argv))
+        return train_gradient(config) if config.run.algo == "gradient" else train(config)
     except TrainingInterrupted as exc:  # the trainer has said what is saved
         raise SystemExit(exc.exit_code) from None
     except (ValueError, FileNotFoundError) as err:  # invalid parameters / run directory: a clear message

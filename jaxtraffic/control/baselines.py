@@ -2,7 +2,7 @@
 
 Each is a ``control.base.Controller`` (interface there).
 
-Laws (MODEL.md sections 7-9; see docs/controllers.md for sources and differences):
+Laws (docs/model.md sections 7-9; see docs/controllers.md for sources and differences):
     open_loop:     h = h_bar
     gain_law:      h = h_bar + h_bar (-eta1 h~_prev/h_bar - eta2 v~/v_bar + eta3 rho~/rho_bar)
     lyapunov:      h = h_bar + U,  U = ((1 - k) v~ - V_rho rho~) / V_h  (tildes: deviations)
@@ -98,7 +98,7 @@ def _lyapunov_nonlinear_act(settings, cstate, obs, nominal, key):
 
 
 def lyapunov(k: float | Array = 1.0, nonlinear: bool = False) -> Controller:
-    """Lyapunov in-domain feedback (MODEL.md section 7), gain ``k`` > 0 (dimensionless).
+    """Lyapunov in-domain feedback (docs/model.md section 7), gain ``k`` > 0 (dimensionless).
 
     h = h_bar + ((1 - k) v~ - V_rho rho~)/V_h with the nominal equilibrium coefficients; in the
     linearised closed loop v~ decays at rate k/tau_mix (1/s) along its characteristic.
@@ -160,7 +160,7 @@ def _backstepping_act(settings, cstate, obs, nominal, key):
 
 
 def backstepping(delay: float | Array = 4.0, k: float | Array = 1.0) -> Controller:
-    """Delay-compensated (predictor / backstepping) feedback, MODEL.md section 8.
+    """Delay-compensated (predictor / backstepping) feedback, docs/model.md section 8.
 
     Applies the Lyapunov law with gain ``k`` to the state predicted ``delay`` seconds (D_ctrl)
     ahead by the discrete linearised model with nominal parameters over the inputs already sent

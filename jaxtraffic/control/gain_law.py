@@ -1,4 +1,4 @@
-"""The paper's three-gain law (docs/controllers.md; MODEL.md section 9) and constant gains.
+"""The paper's three-gain law (docs/controllers.md; docs/model.md section 9) and constant gains.
 
     h = h_bar + h_bar (-eta1 h~_prev/h_bar - eta2 v~/v_bar + eta3 rho~/rho_bar)   (tildes: deviations)
 """
@@ -20,7 +20,7 @@ GAIN_NAMES = ("eta1", "eta2", "eta3")
 
 def gain_law(gains: Array, obs: Observation, nominal: TrafficParams,
              eq: tuple[Array, Array] | None = None) -> Array:
-    """The paper's three-gain law on normalised deviations (MODEL.md section 9).
+    """The paper's three-gain law on normalised deviations (docs/model.md section 9).
 
     h = h_bar + h_bar * (-eta1 (h_prev - h_bar)/h_bar - eta2 (v - v_bar)/v_bar
                          + eta3 (rho - rho_bar)/rho_bar),
@@ -41,7 +41,7 @@ def lyapunov_equivalent_gains(k: float | Array, nominal: TrafficParams) -> Array
     Matching h_bar (-eta2 v~/v_bar + eta3 rho~/rho_bar) = ((1 - k) v~ - V_rho rho~)/V_h gives
     eta1 = 0, eta2 = (k - 1) v_bar / (h_bar V_h), eta3 = -V_rho rho_bar / (h_bar V_h)
     (all dimensionless). At the paper's defaults: eta2 = -1.283333 (k - 1), eta3 = -2.770561, so the
-    Lyapunov law is *not* inside the paper's sigmoid range (0, 1) of gains (MODEL.md section 9).
+    Lyapunov law is *not* inside the paper's sigmoid range (0, 1) of gains (docs/model.md sections 7 and 9).
     """
     lm = linearize(nominal)
     k = jnp.asarray(k, lm.V_h.dtype)

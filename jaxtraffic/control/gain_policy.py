@@ -1,6 +1,6 @@
 """The learned gain policy as a controller, and the pieces it shares with the environment.
 
-The policy (MODEL.md section 9) sees ``policy_features``: [rho/rho_bar - 1, v/v_bar - 1,
+The policy (docs/model.md section 9) sees ``policy_features``: [rho/rho_bar - 1, v/v_bar - 1,
 h_prev/h_bar - 1] on the grid (normalised by the nominal equilibrium, dimensionless) followed by
 the gains applied at the previous step / gain_max, shape (3 n + 3,). Its action is three
 unbounded reals ``a``, squashed to gains eta = gain_max tanh(a) (``action_to_gains``). The gains

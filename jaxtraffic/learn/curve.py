@@ -22,8 +22,10 @@ from jaxtraffic.sim.metrics import REWARD_TARGET  # noqa: E402
 
 DPI = 110
 CURVE_FIELDS = ["update", "env_steps", "wall_s", "mean_reward", "eval_reward", "eval_reward_min",
-                "eval_J_comfort", "eval_rho_L2", "eval_wave_speed", "eta1", "eta2", "eta3", "entropy", "approx_kl",
-                "value_loss"]
+                "eval_J_comfort", "eval_rho_L2_veh_km", "eval_wave_speed", "eta1", "eta2", "eta3", "entropy",
+                "approx_kl", "value_loss"]
+# columns renamed since: old name -> new name (rows of a resumed older run, older CSV files)
+RENAMED_FIELDS = {"eval_rho_L2": "eval_rho_L2_veh_km"}
 
 
 def write_curve(path: Path, rows: list[dict], fields: list[str] = CURVE_FIELDS) -> None:
@@ -31,7 +33,7 @@ def write_curve(path: Path, rows: list[dict], fields: list[str] = CURVE_FIELDS) 
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=fields, extrasaction="ignore")
     w.writeheader()
-    w.writerows(rows)
+    w.writerows({RENAMED_FIELDS.get(k, k): v for k, v in r.items()} for r in rows)
     atomic_write_text(path, buf.getvalue())
 
 
@@ -56,7 +58,8 @@ def save_figure(fig: plt.Figure, png_path: str | Path) -> Path:
 
 
 def read_learning_curve(csv_path: str | Path) -> dict[str, np.ndarray]:
-    """Columns of a learning_curve.csv as float arrays (empty cells become NaN)."""
+    """Columns of a learning_curve.csv as float arrays (empty cells become NaN; renamed columns of
+    older files under their current names, ``RENAMED_FIELDS``)."""
     with open(csv_path, newline="") as f:
         rows = list(csv.DictReader(f))
     if not rows:
@@ -69,7 +72,7 @@ def read_learning_curve(csv_path: str | Path) -> dict[str, np.ndarray]:
                 vals.append(float(r[key]))
             except (TypeError, ValueError):
                 vals.append(math.nan)
-        out[key] = np.asarray(vals)
+        out[RENAMED_FIELDS.get(key, key)] = np.asarray(vals)
     return out
 
 

@@ -1,4 +1,4 @@
-"""Gymnax-style environment for learning the paper's three-gain policy (MODEL.md section 9).
+"""Gymnax-style environment for learning the paper's three-gain policy (docs/model.md section 9).
 
 Pure functions ``reset_env(key, params) -> (obs, state)`` and
 ``step_env(key, state, action, params) -> (obs, state, reward, done, info)`` over ``flax.struct``
@@ -21,7 +21,7 @@ controller's target and the environment's ``gains`` (the applied, filtered gains
 * Domain randomisation, drawn at each reset: initial amplitude (veh/m), integer wavenumber and
   phase of the cosine perturbation; plant delay (a multiple of dt) and plant alpha (uniform
   ranges); per-step alpha noise (``traffic.alpha_noise``). Metrics stay relative to the nominal
-  equilibrium of ``traffic`` (MODEL.md section 12).
+  equilibrium of ``traffic`` (docs/model.md section 12).
 """
 
 from __future__ import annotations

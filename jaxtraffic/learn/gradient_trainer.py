@@ -77,7 +77,7 @@ def beats(ev: dict, ref: dict) -> bool:
 
 
 CURVE_FIELDS = ["update", "env_steps", "wall_s", "objective", "grad_norm", "eval_reward", "eval_J_comfort",
-                "eval_rho_L2", "eval_wave_speed", "eta1", "eta2", "eta3"]
+                "eval_rho_L2_veh_km", "eval_wave_speed", "eta1", "eta2", "eta3"]
 
 
 def train_gradient(tc: TrainConfig) -> Path:
@@ -135,7 +135,7 @@ def _train_gradient(tc: TrainConfig, cfg: G.GradientConfig, plant: TrafficParams
             row = {"update": meta["updates"], "env_steps": meta["env_steps"], "wall_s": round(meta["wall_s"], 3),
                    "objective": float(m["objective"][-1]), "grad_norm": float(m["grad_norm"][-1]),
                    "eval_reward": ev["final_reward"], "eval_J_comfort": ev["J_comfort"],
-                   "eval_rho_L2": ev["final_rho_L2"] * 1e3, "eval_wave_speed": ev["wave_speed"],
+                   "eval_rho_L2_veh_km": ev["final_rho_L2"] * 1e3, "eval_wave_speed": ev["wave_speed"],
                    "eta1": g[0], "eta2": g[1], "eta3": g[2]}
             meta["rows"].append(row)
             paper_rule = (not ev["diverged"]) and ev["final_reward"] >= REWARD_TARGET
@@ -144,7 +144,7 @@ def _train_gradient(tc: TrainConfig, cfg: G.GradientConfig, plant: TrafficParams
                     meta[f"seconds_to_{key}"] = meta["wall_s"]
                     meta[f"updates_to_{key}"] = meta["updates"]
             say(f"[update {meta['updates']:>4d}] objective {row['objective']:.4f} | |grad| {row['grad_norm']:.3g} | "
-                f"eval reward {row['eval_reward']:.4f} | rho L2 {row['eval_rho_L2']:.3f} veh/km | "
+                f"eval reward {row['eval_reward']:.4f} | rho L2 {row['eval_rho_L2_veh_km']:.3f} veh/km | "
                 f"J_comfort {row['eval_J_comfort']:.4g} | gains ({g[0]:+.2f}, {g[1]:+.2f}, {g[2]:+.2f}) | "
                 f"{_fmt_time(meta['wall_s'])} ({meta['wall_s'] - t_prev:.1f} s/chunk)"
                 + (" | beats backstepping" if beats(ev, ref) else ""))

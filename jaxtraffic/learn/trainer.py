@@ -1,6 +1,6 @@
 """Training loop around ``ppo.make_train``: chunks, evaluation, stop rule, checkpoints, outputs.
 
-``train(settings)`` runs jit-compiled chunks of PPO updates. Between chunks it evaluates the
+``train(config)`` runs jit-compiled chunks of PPO updates. Between chunks it evaluates the
 deterministic policy of every seed on the paper's initial condition (``eval_horizon_s``, the
 training plant without randomisation), prints a progress line, appends to ``learning_curve.csv``
 and rewrites the checkpoint atomically, and applies the paper's stop rule (evaluation reward, i.e. the
@@ -24,8 +24,9 @@ when training starts.
 
 Run directory: config.json, checkpoint.msgpack, learning_curve.csv, learning_curve.png,
 summary.json. The curve's evaluation columns are means over seeds of the deterministic rollout:
-eval_reward (the paper's reward at its end, dimensionless), eval_J_comfort, eval_rho_L2 (final
-density L2 deviation, veh/km) and eval_wave_speed (m/s, see above).
+eval_reward (the paper's reward at its end, dimensionless), eval_J_comfort, eval_rho_L2_veh_km
+(final density L2 deviation in veh/km; the metrics' ``final_rho_L2`` is in veh/m) and
+eval_wave_speed (m/s, see above).
 """
 
 from __future__ import annotations
@@ -46,7 +47,7 @@ import numpy as np
 
 from jaxtraffic.control.gain_policy import equilibrium_gains, policy_controller
 from jaxtraffic.learn import checkpoint as ckpt
-from jaxtraffic.learn import env as E
+from jaxtraffic.learn import env as learn_env
 from jaxtraffic.learn import ppo
 from jaxtraffic.learn.config import RUN_CONTROL, TrainConfig, config_json, load_config
 from jaxtraffic.learn.curve import CURVE_FIELDS, append_curve, plot_learning_curve, write_curve
@@ -55,6 +56,7 @@ from jaxtraffic.learn.validate import check_devices
 from jaxtraffic.model.linear import gain_law_wave_speed, linearize
 from jaxtraffic.provenance import provenance
 from jaxtraffic.sim.initial import paper_initial_condition
+from jaxtraffic.sim.metrics import VEH_PER_KM
 from jaxtraffic.sim.rollout import simulate_batch
 
 __all__ = ["CURVE_FIELDS", "TrainConfig", "TrainingInterrupted", "build", "config_dict", "make_evaluator", "train"]
@@ -113,14 +115,14 @@ def check_out_dir(run_dir: Path) -> None:
         raise ValueError(f"--out-dir {run_dir}: {parent} is not writable")
 
 
-def build(s: TrainConfig) -> tuple[ppo.PPOConfig, E.EnvParams]:
+def build(s: TrainConfig) -> tuple[ppo.PPOConfig, learn_env.EnvParams]:
     """PPO config and environment parameters from a ``TrainConfig`` (validated)."""
     traffic = s.plant.traffic()
     pl, en = s.plant, s.env
     d_lo, d_hi = en.delay_range or (max(0.0, pl.delay - en.delay_spread), pl.delay + en.delay_spread)
     d_lo, d_hi = (round(d / pl.dt) * pl.dt for d in (d_lo, d_hi))
     a_lo, a_hi = en.alpha_range or (pl.alpha, pl.alpha)
-    env_params = E.make_env_params(
+    env_params = learn_env.make_env_params(
         traffic, horizon=max(1, round(en.horizon_s / pl.dt)), gain_max=en.gain_max, amp_min=en.amp_range[0],
         amp_max=en.amp_range[1], wavenumber_min=int(en.wavenumber_range[0]),
         wavenumber_max=int(en.wavenumber_range[1]), phase_max=en.phase_max, delay_min=d_lo, delay_max=d_hi,
@@ -133,14 +135,14 @@ def build(s: TrainConfig) -> tuple[ppo.PPOConfig, E.EnvParams]:
     return cfg, env_params
 
 
-def config_dict(s: TrainConfig, cfg: ppo.PPOConfig, env_params: E.EnvParams) -> dict:
+def config_dict(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams) -> dict:
     """The run's config.json content (``config.config_json``): the config tree, plus the facts of the
     run that the tree does not hold (the episode length in steps, the devices, the jax version)."""
     return config_json(s, horizon_steps=int(env_params.horizon), devices=[str(d) for d in jax.devices()],
                        jax_version=jax.__version__)
 
 
-def make_evaluator(cfg: ppo.PPOConfig, env_params: E.EnvParams, eval_steps: int):
+def make_evaluator(cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, eval_steps: int):
     """Deterministic evaluation of every seed's policy on the paper's initial condition.
 
     Returns ``evaluate(runner) -> dict`` of per-seed metrics (final_reward, J's, ...), plus the
@@ -183,7 +185,7 @@ def _fmt_time(sec: float) -> str:
     return f"{m}m{s:02d}s"
 
 
-def _settings_for_resume(s: TrainConfig, run_dir: Path) -> TrainConfig:
+def _config_for_resume(s: TrainConfig, run_dir: Path) -> TrainConfig:
     """The run's saved config, with only the run-control fields (``config.RUN_CONTROL``) taken from ``s``."""
     flat = s.flat()
     return load_config(run_dir).replace(**{k: flat[k] for k in RUN_CONTROL})
@@ -242,7 +244,7 @@ def train(s: TrainConfig, callbacks: Sequence[Callable[[dict], None]] = ()) -> P
     check_out_dir(run_dir)
     if s.run.resume:
         check_resumable(run_dir)
-        s = _settings_for_resume(s, run_dir)
+        s = _config_for_resume(s, run_dir)
     cfg, env_params = build(s)  # validates: fail before creating the run directory
     state = None
     if s.run.resume:  # read (and verify) the checkpoint before compiling anything
@@ -260,11 +262,11 @@ def train(s: TrainConfig, callbacks: Sequence[Callable[[dict], None]] = ()) -> P
             writer.close()
 
 
-def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: E.EnvParams, run_dir: Path, state: dict | None,
+def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, run_dir: Path, state: dict | None,
            saved_meta: dict | None, say, stop: StopSignals, callbacks: list) -> Path:
     eval_steps = max(1, round(s.run.eval_horizon_s / s.plant.dt))
     say("compiling (Ctrl-C or SIGTERM from now on stops at the next safe point) ...")
-    init, train_chunk = ppo.make_train(cfg, env_params, env=E.GainEnv)
+    init, train_chunk = ppo.make_train(cfg, env_params, env=learn_env.GainEnv)
     evaluate = make_evaluator(cfg, env_params, eval_steps)
 
     t_start = time.perf_counter()
@@ -303,7 +305,7 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: E.EnvParams, run_dir:
                    "wall_s": round(meta["wall_s"], 3), "mean_reward": float(m["mean_reward"][:, -1].mean()),
                    "eval_reward": float(ev.mean()), "eval_reward_min": float(ev.min()),
                    "eval_J_comfort": float(last_eval["J_comfort"].mean()),
-                   "eval_rho_L2": float(last_eval["final_rho_L2"].mean()) * 1000.0,
+                   "eval_rho_L2_veh_km": float(last_eval["final_rho_L2"].mean()) * VEH_PER_KM,
                    "eval_wave_speed": float(last_eval["wave_speed"].mean())}
             row.update({k: float(m[k][:, -1].mean()) for k in ("eta1", "eta2", "eta3", "entropy", "approx_kl",
                                                                "value_loss")})

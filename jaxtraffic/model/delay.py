@@ -1,4 +1,4 @@
-"""Ring buffer of sent ACC time gaps implementing the input delay (MODEL.md section 4).
+"""Ring buffer of sent ACC time gaps implementing the input delay (docs/model.md section 4).
 
 The capacity is static (``max_delay_steps``); the delay read from it is a traced integer, so one
 compiled rollout serves a batch of different delays. Entry ``read(buf, k)`` is the input sent

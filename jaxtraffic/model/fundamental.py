@@ -1,4 +1,4 @@
-"""Fundamental diagram of the mixed ACC/manual ARZ model (MODEL.md section 2).
+"""Fundamental diagram of the mixed ACC/manual ARZ model (docs/model.md section 2).
 
 Every function is pure and elementwise, so it broadcasts over grids and ``vmap``s over
 parameters. Units: density ``rho`` in veh/m, speed in m/s, time gaps in s.

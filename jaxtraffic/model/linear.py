@@ -1,4 +1,4 @@
-"""Linearisation of the ARZ model about its equilibrium (MODEL.md section 6).
+"""Linearisation of the ARZ model about its equilibrium (docs/model.md section 6).
 
 With tildes for deviations, U = h - h_bar, V_rho = dV/drho and V_h = dV/dh at equilibrium:
 

@@ -1,4 +1,4 @@
-"""Model parameters, numerical grid and the uniform equilibrium (MODEL.md sections 1-2, 4).
+"""Model parameters, numerical grid and the uniform equilibrium (docs/model.md sections 1-2, 4).
 
 ``TrafficParams`` is a ``flax.struct`` pytree. Its float fields (physical constants, the plant's
 input delay, the time step) are *traced*: a batch of scenarios is a ``vmap`` over a batched
@@ -48,7 +48,7 @@ class TrafficParams:
         scheme: ``"upwind"`` (first order, the paper's method) or ``"muscl"`` (second order,
             minmod-limited reconstruction with SSP-RK2 time stepping) (static).
         model: plant model, ``"arz"`` (nonlinear, the default) or ``"linear"`` (the
-            linearisation of MODEL.md section 6 on the same grid, for tests and design) (static).
+            linearisation of docs/model.md section 6 on the same grid, for tests and design) (static).
     """
 
     L: float = 1000.0

@@ -1,4 +1,4 @@
-"""Explicit finite-volume step of the nonlinear ARZ model (MODEL.md sections 2-3).
+"""Explicit finite-volume step of the nonlinear ARZ model (docs/model.md sections 2-3).
 
 Grid: ``n_points`` nodes x_i = i dx, i = 0..N. Node 0 is the inlet, where the density
 characteristic enters: rho_0 = q_in / v_0 with v_0 advanced from the interior. Nodes 1..N carry

@@ -43,8 +43,9 @@ Definitions used by the checks:
   {COMPARABLE_RATIO:g}. *A little slower*: slower, with ratio <= 2.
 - Table 2 values *match the paper* when they round to the paper's printed 2 significant digits;
   improvements match when within +-{100 * MATCH_PAPER_REL:.0f} % (relative) of the paper's percentage.
-- Acceptance (issue 5): J_TTT and J_fuel of backstepping and PPO within {100 * EQUILIBRIUM_TOL:.0f} % of the
-  equilibrium values; the open loop worse than both on all three indices.
+- Acceptance (this project's own criterion, not a claim of the paper): J_TTT and J_fuel of
+  backstepping and PPO within {100 * EQUILIBRIUM_TOL:.0f} % of the equilibrium values; the open loop worse than both
+  on all three indices.
 """
 
 
@@ -137,7 +138,7 @@ def _stab_text(e: dict) -> str:
 
 def evaluate_claims(metrics: dict, cfg: EvalConfig, learning_curve: dict[str, np.ndarray] | None,
                     ppo_d0_label: str) -> list[dict[str, Any]]:
-    """Each claim of MODEL.md section 11 with its checks and the computed verdict."""
+    """Each claim of docs/model.md section 11 with its checks and the computed verdict."""
     d0, d4 = metrics["delay0"], metrics["delay4"]
     m3, m5 = metrics["delay_mismatch_3"], metrics["delay_mismatch_5"]
     claims = []

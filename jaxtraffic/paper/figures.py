@@ -35,9 +35,9 @@ def make_figures(results: dict[str, dict[str, Outcome]], robust: dict[str, dict[
     lab = P.LABELS
     written: list[str] = []
 
-    def done(p: Path) -> None:
-        written.append(p.name)
-        log(f"  wrote {p.name}")
+    def done(path: Path) -> None:
+        written.append(path.name)
+        log(f"  wrote {path.name}")
 
     if learning_curve_csv is not None and Path(learning_curve_csv).exists():
         try:

@@ -1,4 +1,4 @@
-"""Numerical uncertainty of Table 2 (issue 14): the D = 4 s scenario on a refined grid and with the
+"""Numerical uncertainty of Table 2: the D = 4 s scenario on a refined grid and with the
 other scheme, and the relative change of every index.
 
 A learned policy is tied to its training grid (its observation has 3 n + 3 entries). On a grid

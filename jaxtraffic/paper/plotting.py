@@ -1,4 +1,4 @@
-"""Figures of the paper's section 4 (MODEL.md section 11) from plain numpy arrays.
+"""Figures of the paper's section 4 (docs/model.md section 11) from plain numpy arrays.
 
 Every function takes numpy arrays (no rollout objects), writes one PNG and returns its path, so
 it can be smoke-tested on synthetic data. Units on the axes: x in m, t in s, density in veh/km,

@@ -112,7 +112,7 @@ def robustness_summary(robust: dict[str, dict[str, np.ndarray]], cfg: EvalConfig
              f"{cfg.n_steps * cfg.dt:g} s. "
              "Backstepping assumes the true plant delay; PPO and Lyapunov ignore the delay. The L2 deviation "
              "is measured from the nominal target (alpha = 0.15), so it includes the steady offset a "
-             "proportional law keeps when the plant alpha differs (MODEL.md section 12); the spatial std "
+             "proportional law keeps when the plant alpha differs (docs/model.md section 12); the spatial std "
              "of rho measures only the remaining waves (the horizon is longer than the paper's because "
              "such a plant needs about L / v_bar ~ 320 s to settle to its own steady state). "
              "Initial ||rho~||_L2 = "

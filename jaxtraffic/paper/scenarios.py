@@ -1,11 +1,11 @@
-"""The paper's experiments (MODEL.md sections 10-12): scenarios, batched evaluation, outputs.
+"""The paper's experiments (docs/model.md sections 10-12): scenarios, batched evaluation, outputs.
 
 ``evaluate.py`` (``cli.evaluate``) is a thin command line around ``paper.driver.evaluate_all``.
 Everything here works on a given set of controllers, so it is independent of how the PPO policy
 was obtained.
 
 Scenarios (all: the paper's initial condition, nominal model and target = TrafficParams(alpha=0.15)
-on the evaluation grid, MODEL.md section 12):
+on the evaluation grid, docs/model.md section 12):
 
     delay0            plant D = 0                         open_loop, lyapunov, ppo
     delay4            plant D = 4 s                       open_loop, lyapunov, backstepping, ppo

@@ -1,4 +1,4 @@
-"""Per-(scenario, controller) summaries for metrics.json, settling times, Table 2 (MODEL.md section 10)."""
+"""Per-(scenario, controller) summaries for metrics.json, settling times, Table 2 (docs/model.md sections 10-11)."""
 
 from __future__ import annotations
 

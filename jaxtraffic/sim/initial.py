@@ -1,4 +1,4 @@
-"""Initial conditions (MODEL.md section 5): the paper's cosine perturbation and the equilibrium."""
+"""Initial conditions (docs/model.md section 5): the paper's cosine perturbation and the equilibrium."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ def paper_initial_condition(
     p: TrafficParams, amplitude: float | Array = 0.010, wavenumber: float | Array = 4.0,
     phase: float | Array = 0.0, dtype: Any = jnp.float32, rho_bar: Array | None = None,
 ) -> tuple[Array, Array]:
-    """Initial state of MODEL.md section 5 (shapes (n_points,)).
+    """Initial state of docs/model.md section 5 (shapes (n_points,)).
 
     rho(x, 0) = rho_bar + amplitude cos(2 pi wavenumber x / L + phase) (amplitude in veh/m; the
     paper's: 10 veh/km, wavenumber 4), v(x, 0) = q_in / rho(x, 0). ``rho_bar``: the equilibrium

@@ -1,4 +1,4 @@
-"""Performance indices and norms (MODEL.md section 10), accumulated while a rollout streams.
+"""Performance indices and norms (docs/model.md section 10), accumulated while a rollout streams.
 
 Units: the J's use rho in veh/km, x in m, t in s (the paper's Table 2 magnitudes); speed in m/s,
 acceleration a = v_t + v v_x in m/s^2. Space integrals use the trapezoidal rule over the nodes;

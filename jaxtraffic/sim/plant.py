@@ -1,4 +1,4 @@
-"""The plant state and ONE closed-loop step (MODEL.md sections 4-5), shared by every loop.
+"""The plant state and ONE closed-loop step (docs/model.md sections 3-5), shared by every loop.
 
 ``closed_loop_step`` is the single definition of a control step; ``sim.rollout.simulate``, the
 learning environment (``learn.env``) and every trainer are scans of it. Order of step n

@@ -1,4 +1,4 @@
-"""Batched closed-loop rollouts in ``lax.scan`` (MODEL.md sections 4, 5, 10).
+"""Batched closed-loop rollouts in ``lax.scan`` (docs/model.md sections 4, 5, 10).
 
 ``simulate`` runs one environment; ``simulate_batch`` vmaps it over a batch of parameters,
 initial states, keys and (optionally) controller settings. Both are jit-compiled; the number of
@@ -200,8 +200,8 @@ def simulate(
         rho0, v0: initial fields, shape (n_points,) (default: the paper's initial condition).
         key: PRNG key for alpha noise and stochastic controllers (default PRNGKey(0)).
         nominal: the parameters the controller and the metrics use as model and target
-            (default: ``params``). MODEL.md section 12: keep the nominal target when the plant's
-            alpha differs. It must be on the plant's grid (same n_points, dt, L), else ValueError.
+            (default: ``params``). docs/model.md section 12: keep the nominal target when the
+            plant's alpha differs. It must be on the plant's grid (same n_points, dt, L), else ValueError.
         record_every: record the fields every k-th step (0: no trajectory, metrics only).
         remat: checkpoint every recording chunk for reverse-mode differentiation (see
             ``simulate_batch``).

@@ -7,7 +7,14 @@ of that test (``jax.enable_x64`` context manager), never globally.
 
 from __future__ import annotations
 
-import jax
+import os
+
+# The suite runs on ONE XLA device (as a user's program would with JAXTRAFFIC_NO_DEVICE_SPLIT=1),
+# so that its figures do not depend on the machine's core count; the multi-device paths are tested
+# in subprocesses that set their device count explicitly (tests/test_sharding.py, test_train.py).
+os.environ.setdefault("JAXTRAFFIC_NO_DEVICE_SPLIT", "1")
+
+import jax  # noqa: E402
 import jax.numpy as jnp
 import numpy as np
 import pytest

@@ -1,8 +1,10 @@
 """Batches split over every device: one code path for one device, many, and many processes.
 
 ``sharded_batch(fn, args, axes)`` runs ``fn`` (a function of a batch) with its batch axis split
-over a one-axis ``Mesh`` of ``jax.devices()`` (``shard_map``: each device runs ``fn`` on its own
-contiguous block; no communication). A batch that is not a multiple of the device count is
+over a one-axis ``Mesh`` of ``jax.devices()`` (``shard_map``: each device runs ``fn`` on its share;
+no communication). Entries are dealt out like cards (entry i to device i mod n_devices, in
+order), so that a batch ordered by cost (the robustness map, by delay) loads every device alike
+and each device's share keeps the order. A batch that is not a multiple of the device count is
 padded with copies of its last entry, whose results are dropped. Entries are independent, so a
 result depends on the device count only through the per-device batch size XLA compiles for
 (float rounding only: a vectorised and a scalar loop may round differently; tests/test_sharding.py
@@ -47,7 +49,16 @@ def sharded_batch(fn, args: tuple, axes: tuple, mesh: Mesh | None = None) -> Any
         x = jnp.asarray(x)
         return jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]) if pad else x
 
-    args = tuple(jax.tree.map(padded, a) if ax is not None else a for a, ax in zip(args, axes, strict=True))
+    def deal(x):  # entry i -> block (i mod n_dev), position i // n_dev
+        x = padded(x)
+        return jnp.swapaxes(x.reshape((-1, n_dev) + x.shape[1:]), 0, 1).reshape(x.shape)
+
+    def undeal(y):
+        y = jnp.swapaxes(y.reshape((n_dev, -1) + y.shape[1:]), 0, 1).reshape(y.shape)
+        return y[:size]
+
+    if n_dev > 1:
+        args = tuple(jax.tree.map(deal, a) if ax is not None else a for a, ax in zip(args, axes, strict=True))
     specs = tuple(PartitionSpec(AXIS) if ax is not None else PartitionSpec() for ax in axes)
     out = jax.shard_map(fn, mesh=mesh, in_specs=specs, out_specs=PartitionSpec(AXIS), check_vma=False)(*args)
-    return jax.tree.map(lambda y: y[:size], out) if pad else out
+    return jax.tree.map(undeal, out) if n_dev > 1 else out

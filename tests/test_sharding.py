@@ -18,6 +18,9 @@ REPO = Path(__file__).resolve().parents[1]
 
 def test_split_host_rules(monkeypatch):
     monkeypatch.setattr(_devices, "host_cores", lambda: 4)
+    monkeypatch.setattr(_devices, "_backends_initialised", lambda: True)
+    assert _devices.split_host({}) is None  # too late: jax already started
+    monkeypatch.setattr(_devices, "_backends_initialised", lambda: False)
     env = {}
     assert _devices.split_host(env) == 4 and env["XLA_FLAGS"] == "--xla_force_host_platform_device_count=4"
     env = {"XLA_FLAGS": "--xla_cpu_foo=1"}

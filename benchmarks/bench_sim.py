@@ -11,8 +11,18 @@ Also measured: the compile time of a 3000-step single-environment rollout (``sim
 in a fresh subprocess, the peak resident memory (VmHWM) of a batch of 4096 environments over
 300 s (3000 steps) with the Lyapunov controller, without trajectories.
 
-``--devices N`` splits the host CPU into N XLA devices (``--xla_force_host_platform_device_count``)
-and shards the batch over them (each device runs its share on its own thread).
+Devices: by default nothing is set here: ``import jaxtraffic`` splits the host into one XLA CPU
+device per core and ``simulate_batch`` shards the batch over them (what a user gets with no flags).
+``--devices N`` sets ``--xla_force_host_platform_device_count=N`` instead (1: one device).
+
+Ratio to numpy: every row also times the same closed loop (Lyapunov law + upwind ARZ step) written
+as plain batched numpy (``benchmarks/numpy_ref.py``) at the same batch size, in the same process,
+interleaved with the JAX calls, and prints jax / numpy (best of each), a figure that survives a
+noisy machine better than either throughput alone. ``--numpy-steps`` sets its (shorter) rollout.
+
+Limit: the estimated per-core limit for this step (``FLOPS_PER_CELL`` vector operations per cell
+update, counted in numpy_ref, on 2 vector ALUs x SIMD lanes x clock; divisions are pipelined on
+their own unit and are not the bound), and the fraction of (limit x cores) reached.
 
 Usage:
     python benchmarks/bench_sim.py                 # table
@@ -40,8 +50,9 @@ def _parse() -> argparse.Namespace:
     ap.add_argument("--steps", type=int, default=600, help="steps per timed rollout (dt = 0.1 s)")
     ap.add_argument("--repeats", type=int, default=3, help="timed calls per configuration")
     ap.add_argument("--controllers", default="open_loop,lyapunov", help="open_loop and/or lyapunov")
-    ap.add_argument("--devices", type=int, default=os.cpu_count() or 1,
-                    help="XLA host devices to shard the batch over (default: one per CPU core; 1: no sharding)")
+    ap.add_argument("--devices", type=int, default=0,
+                    help="force N XLA host devices (default 0: the library's default, one per core)")
+    ap.add_argument("--numpy-steps", type=int, default=100, help="steps of each timed numpy rollout")
     ap.add_argument("--chunk-size", type=int, default=64,
                     help="simulate_batch chunk_size (environments per sequential chunk; 0: one vmap)")
     ap.add_argument("--json", action="store_true", help="print JSON instead of a table")
@@ -53,7 +64,7 @@ def _parse() -> argparse.Namespace:
 
 
 ARGS = _parse()
-if ARGS.devices > 1:
+if ARGS.devices:
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
                                + f" --xla_force_host_platform_device_count={ARGS.devices}")
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
@@ -61,8 +72,8 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
-from machine import cpu_model  # noqa: E402  (benchmarks/machine.py)
+import numpy_ref  # noqa: E402  (benchmarks/numpy_ref.py)
+from machine import cpu_ghz, cpu_model, simd_lanes_f32  # noqa: E402  (benchmarks/machine.py)
 
 import jaxtraffic  # noqa: E402
 from jaxtraffic import TrafficParams, paper_initial_condition, simulate, simulate_batch  # noqa: E402
@@ -75,10 +86,30 @@ def _batch_inputs(batch: int, p: TrafficParams):
     amps = jnp.linspace(0.005, 0.015, batch)
     rho0, v0 = jax.vmap(lambda a: paper_initial_condition(p, amplitude=a))(amps)
     keys = jax.random.split(jax.random.PRNGKey(0), batch)
-    if ARGS.devices > 1 and batch % ARGS.devices == 0:
-        sh = NamedSharding(Mesh(np.array(jax.devices()), ("b",)), PartitionSpec("b"))
-        rho0, v0, keys = (jax.device_put(x, sh) for x in (rho0, v0, keys))
     return rho0, v0, keys
+
+
+# vector operations per cell update of the closed loop (numpy_ref.make_step: Lyapunov law 9,
+# upwind step 24, of which 2 divisions); the simulator also accumulates the metrics (~15 more)
+FLOPS_PER_CELL = 33
+BYTES_PER_CELL = 16  # rho and v read and written once (in cache); the delay buffer adds 8 when D > 0
+
+
+def core_limit() -> dict:
+    """Estimated cell updates/s per core: 2 vector ALUs x lanes x clock / FLOPS_PER_CELL."""
+    lanes, ghz = simd_lanes_f32(), cpu_ghz()
+    ops = 2 * lanes * ghz * 1e9
+    return {"simd_lanes_f32": lanes, "ghz": ghz, "vector_ops_per_s": ops, "flops_per_cell": FLOPS_PER_CELL,
+            "bytes_per_cell": BYTES_PER_CELL, "cell_updates_per_s_per_core": ops / FLOPS_PER_CELL}
+
+
+def _numpy_time(batch: int, steps: int) -> float:
+    p = TrafficParams()
+    rho0, v0, _ = _batch_inputs(batch, p)
+    rho0, v0 = np.asarray(rho0), np.asarray(v0)
+    t0, c0 = time.perf_counter(), time.process_time()
+    numpy_ref.run(p, rho0, v0, steps)
+    return time.perf_counter() - t0, time.process_time() - c0
 
 
 def _timed(fn, *args, repeats: int) -> tuple[list[float], list[float]]:
@@ -104,9 +135,17 @@ def bench_throughput(controller_name: str, batch: int, steps: int, repeats: int)
     t0 = time.perf_counter()
     compiled = jax.jit(run).lower(rho0, v0, keys).compile()
     compile_s = time.perf_counter() - t0
-    times, cpu = _timed(compiled, rho0, v0, keys, repeats=repeats)
+    times, cpu, np_times, np_cpu = [], [], [], []
+    for _ in range(repeats):  # interleaved, so that both see the same machine
+        t, c = _timed(compiled, rho0, v0, keys, repeats=1)
+        times += t
+        cpu += c
+        t_np, c_np = (x * steps / ARGS.numpy_steps for x in _numpy_time(batch, ARGS.numpy_steps))
+        np_times.append(t_np)
+        np_cpu.append(c_np)
     best, med = min(times), statistics.median(times)
     env_steps = batch * steps
+    limit = core_limit()["cell_updates_per_s_per_core"] * len(os.sched_getaffinity(0))
     return {
         "controller": controller_name, "batch": batch, "steps": steps, "compile_s": compile_s,
         "best_s": best, "median_s": med, "env_steps_per_s": env_steps / best,
@@ -115,6 +154,11 @@ def bench_throughput(controller_name: str, batch: int, steps: int, repeats: int)
         # efficiency per core: cell updates per second of process CPU time (insensitive to other
         # processes taking turns on the cores; wall-clock figures above are what a user sees)
         "cell_updates_per_cpu_s": env_steps * N_POINTS / min(cpu),
+        "numpy_cell_updates_per_s": env_steps * N_POINTS / min(np_times),
+        "ratio_vs_numpy": min(np_times) / best,
+        # per CPU-second (both): what each busy core does; x cores = the ratio on an idle machine
+        "ratio_vs_numpy_per_cpu_s": min(np_cpu) / min(cpu), "fraction_of_limit": env_steps * N_POINTS / best / limit,
+        "loadavg": os.getloadavg()[0],
     }
 
 
@@ -179,7 +223,7 @@ def main() -> None:
         "jax": jax.__version__, "jaxtraffic": jaxtraffic.__version__, "cpu": cpu_model(),
         "cpu_count": os.cpu_count(), "devices": len(jax.devices()), "backend": jax.default_backend(),
         "dtype": "float32", "n_points": N_POINTS, "dt_s": 0.1, "chunk_size": ARGS.chunk_size,
-        "loadavg_at_start": os.getloadavg(), "nice": os.nice(0),
+        "loadavg_at_start": os.getloadavg(), "nice": os.nice(0), "limit": core_limit(),
     }
     memory = None if ARGS.no_memory else bench_memory()  # first, while this process is small
     rows = []
@@ -188,7 +232,8 @@ def main() -> None:
             rows.append(bench_throughput(name, b, ARGS.steps, ARGS.repeats))
             if not ARGS.json:
                 r = rows[-1]
-                print(f"  {name:9s} batch {b:5d}: {r['cell_updates_per_s']:.3g} cell updates/s", file=sys.stderr)
+                print(f"  {name:9s} batch {b:5d}: {r['cell_updates_per_s']:.3g} cell updates/s,"
+                      f" {r['ratio_vs_numpy']:.1f}x numpy", file=sys.stderr)
     result = {"info": info, "throughput": rows, "compile_3000_steps": bench_compile_3000()}
     if memory is not None:
         result["memory"] = memory
@@ -201,13 +246,21 @@ def main() -> None:
           f" chunk_size {ARGS.chunk_size}")
     print(f"load average at start / end: {info['loadavg_at_start']} / {result['info']['loadavg_at_end']}")
     print()
+    lim = info["limit"]
+    print(f"estimated limit: {lim['flops_per_cell']} vector ops and {lim['bytes_per_cell']} B per cell update;"
+          f" {lim['simd_lanes_f32']} float32 lanes x 2 ALUs x {lim['ghz']:.2f} GHz ="
+          f" {lim['cell_updates_per_s_per_core']:.3g} cell updates/s per core")
+    print()
     print("| controller | batch | env steps/s | cell updates/s (best) | cell updates/s (median)"
-          " | cell updates per CPU-s | compile s |")
-    print("|---|---:|---:|---:|---:|---:|---:|")
+          " | cell updates per CPU-s | numpy cell updates/s | x numpy | x numpy per CPU-s | of limit | load"
+          " | compile s |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         print(f"| {r['controller']} | {r['batch']} | {r['env_steps_per_s']:.3g} | {r['cell_updates_per_s']:.3g}"
               f" | {r['cell_updates_per_s_median']:.3g} | {r['cell_updates_per_cpu_s']:.3g}"
-              f" | {r['compile_s']:.2f} |")
+              f" | {r['numpy_cell_updates_per_s']:.3g} | {r['ratio_vs_numpy']:.1f}"
+              f" | {r['ratio_vs_numpy_per_cpu_s']:.1f} | {r['fraction_of_limit']:.0%}"
+              f" | {r['loadavg']:.1f} | {r['compile_s']:.2f} |")
     print()
     for name, c in result["compile_3000_steps"].items():
         print(f"compile of a 3000-step rollout ({name}): {c['compile_s']:.2f} s"

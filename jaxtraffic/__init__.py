@@ -8,6 +8,10 @@ Layers (imports flow one way, model <- control <- sim <- learn <- paper <- cli):
     paper/    the paper's scenarios, summaries, claims, report and figures
     cli/      the train and evaluate command lines
 
+Devices: on a CPU-only machine ``import jaxtraffic`` splits the host into one XLA device per core
+(unless XLA_FLAGS already chooses, jax already started, or JAXTRAFFIC_NO_DEVICE_SPLIT=1; see
+``jaxtraffic._devices``), and the batched entry points shard their batch over ``jax.devices()``.
+
 Public API (see README.md for a module map):
     TrafficParams, equilibrium                      -- parameters and equilibrium
     simulate, simulate_batch, stack_params          -- jit-compiled, vmappable rollouts
@@ -15,6 +19,7 @@ Public API (see README.md for a module map):
     open_loop, lyapunov, backstepping, constant_gains, Controller, Observation -- controllers
 """
 
+from jaxtraffic import _devices  # noqa: F401  (first: one XLA CPU device per core, see _devices)
 from jaxtraffic._version import __version__
 from jaxtraffic.control import (
     Controller,

@@ -11,11 +11,17 @@ evaluates its run A (``tiny_run_a``). The session starts in the background right
 
 from __future__ import annotations
 
+import os
 import shutil
 import tempfile
 from pathlib import Path
 
-import jax
+# The suite runs on ONE XLA device (as a user's program would with JAXTRAFFIC_NO_DEVICE_SPLIT=1),
+# so that its figures do not depend on the machine's core count; the multi-device paths are tested
+# in subprocesses that set their device count explicitly (tests/test_sharding.py, test_train.py).
+os.environ.setdefault("JAXTRAFFIC_NO_DEVICE_SPLIT", "1")
+
+import jax  # noqa: E402
 import jax.numpy as jnp
 import numpy as np
 import pytest

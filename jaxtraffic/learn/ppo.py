@@ -331,9 +331,16 @@ def make_train(cfg: PPOConfig, env_params: Any, devices: list | None = None, *, 
     Every leaf of the returned ``Runner`` has a leading device axis and then a seed axis; the
     network, optimiser state, statistics and key are identical across devices (kept so by
     ``lax.pmean``), the environments are split between devices. ``num_envs`` (the total) must
-    be divisible by the number of devices. ``cfg`` and ``env_params`` are traced arguments.
+    be divisible by the number of devices. ``devices=None``: the most of ``jax.devices()`` that
+    ``num_envs`` and the minibatches divide (all of them for the defaults). ``cfg`` and
+    ``env_params`` are traced arguments.
     """
-    devices = list(jax.devices()) if devices is None else list(devices)
+    if devices is None:  # every device the batch splits over (one per core by default, jaxtraffic._devices)
+        devices = list(jax.devices())
+        k = max(k for k in range(1, len(devices) + 1) if cfg.num_envs % k == 0
+                and ((cfg.num_envs // k) * cfg.num_steps) % cfg.num_minibatches == 0 or k == 1)
+        devices = devices[:k]
+    devices = list(devices)
     n_dev = len(devices)
     if cfg.num_envs % n_dev:
         raise ValueError(f"num_envs={cfg.num_envs} is not divisible by the {n_dev} devices")

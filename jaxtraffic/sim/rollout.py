@@ -32,6 +32,7 @@ from jaxtraffic.sim.plant import (
     noise_alpha_sequence,
     plant_step,
 )
+from jaxtraffic.sim.sharding import sharded_batch
 
 Array = jax.Array
 
@@ -267,17 +268,22 @@ def _simulate_batch_jit(params, controller, rho0, v0, keys, nominal, n_steps: in
     def one(p, c, r, v, k):
         return _simulate(p, c, r, v, k, nominal, n_steps, record_every, remat, noise)
 
-    return chunked_vmap(one, (params, controller, rho0, v0, keys), axes, chunk_size)
+    def local(*args):  # this device's block of the batch
+        return chunked_vmap(one, args, axes, chunk_size)
+
+    return sharded_batch(local, (params, controller, rho0, v0, keys), axes)
 
 
 def chunked_vmap(fn, args: tuple, axes: tuple, chunk_size: int) -> Any:
-    """``jax.vmap(fn, in_axes=axes)(*args)`` computed as a sequential ``lax.map`` over chunks of
-    ``chunk_size`` batch entries (``axes`` entries are 0 or None; outputs get a leading batch axis).
+    """``jax.vmap(fn, in_axes=axes)(*args)`` computed as a sequential ``lax.map`` over chunks of at
+    most ``chunk_size`` batch entries (``axes`` entries are 0 or None; outputs get a leading batch
+    axis).
 
-    Chunk j holds the entries j, j + n_chunks, j + 2 n_chunks, ... (a strided split), so that a
-    batch sharded in contiguous blocks over several devices gives every device its share of
-    every chunk. A batch that is not a multiple of ``chunk_size`` is padded with copies of its
-    last entry, whose results are dropped. ``chunk_size`` <= 0 or >= the batch: a plain vmap.
+    The batch is cut into n = ceil(size / chunk_size) chunks of ceil(size / n) consecutive
+    entries (so at most n - 1 padded entries, copies of the last one, whose results are dropped).
+    Consecutive entries: a batch ordered by cost (e.g. the assumed delay of a predictor, whose
+    loop under ``vmap`` runs as long as the chunk's largest delay) keeps similar entries together.
+    ``chunk_size`` <= 0 or >= the batch: a plain vmap.
     """
     idx = [i for i, ax in enumerate(axes) if ax is not None]
     batched = [args[i] for i in idx]
@@ -285,25 +291,22 @@ def chunked_vmap(fn, args: tuple, axes: tuple, chunk_size: int) -> Any:
     if chunk_size <= 0 or size <= chunk_size:
         return jax.vmap(fn, in_axes=axes)(*args)
     n_chunks = -(-size // chunk_size)
-    pad = n_chunks * chunk_size - size
+    chunk = -(-size // n_chunks)
+    pad = n_chunks * chunk - size
 
     def split(x):
         if pad:
             x = jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)])
-        return jnp.swapaxes(x.reshape((chunk_size, n_chunks) + x.shape[1:]), 0, 1)
+        return x.reshape((n_chunks, chunk) + x.shape[1:])
 
-    def run_chunk(chunk):
+    def run_chunk(part):
         full = list(args)
-        for i, a in zip(idx, chunk, strict=True):
+        for i, a in zip(idx, part, strict=True):
             full[i] = a
         return jax.vmap(fn, in_axes=axes)(*full)
 
     out = jax.lax.map(run_chunk, jax.tree.map(split, batched))
-
-    def merge(y):
-        return jnp.swapaxes(y, 0, 1).reshape((n_chunks * chunk_size,) + y.shape[2:])[:size]
-
-    return jax.tree.map(merge, out)
+    return jax.tree.map(lambda y: y.reshape((n_chunks * chunk,) + y.shape[2:])[:size], out)
 
 
 _STATIC_FIELDS = ("n_points", "max_delay_steps", "scheme", "model")

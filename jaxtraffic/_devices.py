@@ -1,0 +1,62 @@
+"""One XLA CPU device per core, opt-in for now (run at ``import jaxtraffic``, before jax starts).
+
+XLA's CPU backend presents the whole host as ONE device, and a jit-compiled batched rollout on
+one device keeps about one core busy. When
+
+  * ``JAXTRAFFIC_DEVICE_SPLIT=1`` is set (opt-in: the default PPO recipe has not yet been measured
+    with its environments split over several devices, which changes its floating-point path),
+  * ``JAXTRAFFIC_NO_DEVICE_SPLIT`` is not set to a non-empty value other than ``0``,
+  * the user's ``XLA_FLAGS`` do not already contain ``--xla_force_host_platform_device_count``
+    (and ``JAX_NUM_CPU_DEVICES`` is not set), and
+  * jax's backends have not been initialised yet (importing jax first is fine; having called
+    ``jax.devices()`` or run a computation is not: the flag would be ignored),
+
+``import jaxtraffic`` appends ``--xla_force_host_platform_device_count=<cores>`` to ``XLA_FLAGS``
+(cores: the CPUs this process may run on, ``os.sched_getaffinity``). The flag only shapes the
+CPU platform: on a GPU/TPU machine ``jax.devices()`` still lists the accelerators. Nothing is
+changed on a one-core machine. ``DEVICE_SPLIT`` records what was done (None: nothing).
+
+The batched entry points (``simulate_batch``, the evaluation, the trainers) shard their batch
+over ``jax.devices()``; see ``jaxtraffic.sim.sharding``.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+FLAG = "--xla_force_host_platform_device_count"
+OPT_OUT = "JAXTRAFFIC_NO_DEVICE_SPLIT"
+OPT_IN = "JAXTRAFFIC_DEVICE_SPLIT"
+
+
+def host_cores() -> int:
+    """CPUs this process may run on (its affinity mask), else ``os.cpu_count()``."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def _backends_initialised() -> bool:
+    xb = sys.modules.get("jax._src.xla_bridge")
+    return bool(getattr(xb, "_backends", None)) if xb is not None else False
+
+
+def split_host(env: dict | None = None) -> int | None:
+    """Add the device-count flag to ``env`` (default ``os.environ``) where allowed (see the module
+    docstring); return the device count set, or None when nothing was changed."""
+    env = os.environ if env is None else env
+    if env.get(OPT_IN, "") in ("", "0") or env.get(OPT_OUT, "") not in ("", "0"):
+        return None
+    flags = env.get("XLA_FLAGS", "")
+    if FLAG in flags or env.get("JAX_NUM_CPU_DEVICES") or _backends_initialised():
+        return None
+    n = host_cores()
+    if n <= 1:
+        return None
+    env["XLA_FLAGS"] = f"{flags} {FLAG}={n}".strip()
+    return n
+
+
+DEVICE_SPLIT = split_host()

@@ -1,0 +1,69 @@
+"""Devices: the default split of the host into one XLA device per core (``jaxtraffic._devices``) and
+batches sharded over the devices (``sim.sharding``): results independent of the device count."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from jaxtraffic import _devices
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_split_host_rules(monkeypatch):
+    monkeypatch.setattr(_devices, "host_cores", lambda: 4)
+    monkeypatch.setattr(_devices, "_backends_initialised", lambda: True)
+    on = {"JAXTRAFFIC_DEVICE_SPLIT": "1"}
+    assert _devices.split_host(dict(on)) is None  # too late: jax already started
+    monkeypatch.setattr(_devices, "_backends_initialised", lambda: False)
+    assert _devices.split_host({}) is None  # opt-in
+    env = dict(on)
+    assert _devices.split_host(env) == 4 and env["XLA_FLAGS"] == "--xla_force_host_platform_device_count=4"
+    env = {**on, "XLA_FLAGS": "--xla_cpu_foo=1"}
+    assert _devices.split_host(env) == 4 and env["XLA_FLAGS"].endswith("device_count=4")
+    for env in ({**on, "XLA_FLAGS": "--xla_force_host_platform_device_count=3"},
+                {**on, "JAXTRAFFIC_NO_DEVICE_SPLIT": "1"}, {**on, "JAX_NUM_CPU_DEVICES": "2"}):
+        before = dict(env)
+        assert _devices.split_host(env) is None and env == before  # the user's choice wins
+    monkeypatch.setattr(_devices, "host_cores", lambda: 1)
+    assert _devices.split_host(dict(on)) is None
+
+
+CHILD = r"""
+import json, sys
+import jax, jax.numpy as jnp, numpy as np
+import jaxtraffic
+from jaxtraffic import TrafficParams, backstepping, lyapunov, simulate_batch, stack_params
+p = TrafficParams(n_points=41, dt=0.5, max_delay_steps=8)
+envs = stack_params(n_points=41, dt=0.5, max_delay_steps=8, delay=[0.0, 0.5, 1.0, 2.0, 3.0],
+                    alpha=[0.5, 0.4, 0.6, 0.5, 0.3])
+keys = jax.random.split(jax.random.PRNGKey(1), 5)
+out = {"devices": jax.device_count()}
+for name, c in (("lyap", lyapunov()), ("bs", backstepping(delay=2.0))):
+    m = simulate_batch(envs, c, n_steps=60, keys=keys, nominal=p, chunk_size=2).metrics
+    out[name] = {k: np.asarray(v, np.float64).tolist() for k, v in m.items() if k != "diverged"}
+print("RESULT " + json.dumps(out))
+"""
+
+
+def _child(env_extra: dict) -> dict:
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAXTRAFFIC_NO_DEVICE_SPLIT")}
+    env.update(env_extra, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO))
+    out = subprocess.run([sys.executable, "-c", CHILD], env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return json.loads(next(x for x in out.stdout.splitlines() if x.startswith("RESULT "))[7:])
+
+
+def test_batch_independent_of_device_count():
+    one = _child({"JAXTRAFFIC_NO_DEVICE_SPLIT": "1"})
+    two = _child({"XLA_FLAGS": "--xla_force_host_platform_device_count=2"})  # 5 envs: padded to 6
+    assert one["devices"] == 1 and two["devices"] == 2
+    for c in ("lyap", "bs"):
+        for k, v in one[c].items():
+            np.testing.assert_allclose(two[c][k], v, rtol=1e-6, atol=0, err_msg=f"{c} {k}")

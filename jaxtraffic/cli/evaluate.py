@@ -31,6 +31,9 @@ from jaxtraffic.learn.checkpoint import load_policy
 from jaxtraffic.learn.config import TrainConfig
 
 DEFAULT_RUN = Path("runs/default")
+# wall-clock cap of the PPO training the main job starts when runs/default is missing: a run that has
+# not met its stop rule by then keeps its best checkpoint so far (the main job stays bounded)
+MAIN_JOB_PPO_WALL_S = 600.0
 # the gradient-trained controllers evaluated beside PPO: name -> (run directory under --runs-root,
 # train.py flags)
 GRADIENT_RUNS = {
@@ -97,8 +100,10 @@ def find_or_train_run(run: Path | None, n_points: int | None) -> Path:
     if (DEFAULT_RUN / "config.json").exists() and (DEFAULT_RUN / "checkpoint.msgpack").exists():
         _log(f"using the existing run {DEFAULT_RUN}")
         return DEFAULT_RUN
-    _log(f"no trained run at {DEFAULT_RUN}: training one with train.py's defaults first")
-    targv = ["--out-dir", str(DEFAULT_RUN)] + (["--n-points", str(n_points)] if n_points else [])
+    _log(f"no trained run at {DEFAULT_RUN}: training one with train.py's defaults first "
+         f"(at most {MAIN_JOB_PPO_WALL_S:g} s)")
+    targv = ["--out-dir", str(DEFAULT_RUN), "--max-wall-s", str(MAIN_JOB_PPO_WALL_S)] + (
+        ["--n-points", str(n_points)] if n_points else [])
     return Path(train_cli.main(targv))
 
 

@@ -73,8 +73,8 @@ class EnvConfig:
                             "each step (first-order filter, time constant ~ dt/k); 1: applied directly (the paper)")
     h_rate_weight: float = _f(_EP.h_rate_weight, "training reward -= w * sum_i ((h_i - h_prev_i)/h_bar)^2, the "
                               "squared step change of the commanded time gap (dimensionless); 0: the paper's reward")
-    wave_weight: float = _f(_EP.wave_weight, "training reward -= w * env.backward_wave_cost(applied gains): 0 when "
-                            "their closed-loop wave speed (linear.gain_law_wave_speed) is >= --wave-speed-min, "
+    wave_weight: float = _f(_EP.wave_weight, "training reward -= w * learn.env.backward_wave_cost(applied gains): "
+                            "0 when their closed-loop wave speed (linear.gain_law_wave_speed) is >= --wave-speed-min, "
                             "rising to 1 at 5 m/s below it; 0: the paper's reward")
     wave_speed_min: float = _f(_EP.wave_speed_min, "m/s, see --wave-weight")
     obs_segments: int = _f(_EP.obs_segments, "observation: each normalised field (rho, v, h_prev) averaged over "
@@ -144,7 +144,8 @@ class GradConfig:
                                      "--gain-max)")
 
     def gradient_config(self, env: EnvConfig, hidden: tuple[int, ...]) -> GradientConfig:
-        """The algorithm's ``GradientConfig`` (gain bound and filter from ``env``, network from ``algo``)."""
+        """The algorithm's ``GradientConfig`` (gain filter from ``env``, network from ``algo``; the gain bound is
+        ``grad_gain_max``, not PPO's ``env.gain_max``: the gradient results were measured with 3)."""
         given = {"steps": self.grad_steps, "lr": self.grad_lr, "delays": self.train_delays,
                  "gain_max": self.grad_gain_max}
         return GradientConfig.for_policy(

@@ -342,7 +342,7 @@ def test_load_policy_rejects_a_run_from_an_older_version(runs, tmp_path):
     (old / "config.json").write_text(json.dumps({"config": tree}))
     before = load_config(old)
     assert (before.env.obs_segments, before.env.wave_weight, before.run.val_horizon_s) == (0, 0.0, 0.0)
-    with pytest.raises(ValueError, match="older jaxtraffic"):  # its checkpoint has the pooled observation
+    with pytest.raises(ValueError, match="do not belong together"):  # its checkpoint has the pooled observation
         load_policy(old)
     del flat["gain_filter"]
     (old / "config.json").write_text(json.dumps({"settings": flat}))

@@ -4,7 +4,7 @@ Layers (imports flow one way, model <- control <- sim <- learn <- paper <- cli):
     model/    parameters, fundamental diagram, ARZ solver, delay buffer, linearisation
     control/  controller interface, baselines, three-gain law, learned gain policy
     sim/      plant state and the one closed-loop step, rollouts, initial conditions, metrics
-    learn/    environment, PPO, trainer, checkpoints and load_policy
+    learn/    environment, PPO, validation suite, trainer, checkpoints and load_policy
     paper/    the paper's scenarios, summaries, claims, report and figures
     cli/      the train and evaluate command lines
 

@@ -15,13 +15,15 @@ gym = pytest.importorskip("gymnasium")
 from gymnasium.utils.env_checker import check_env  # noqa: E402
 
 import jaxtraffic.ecosystem  # noqa: E402,F401  (registers jaxtraffic/Gain-v0)
+from jaxtraffic.control.gain_policy import feature_size  # noqa: E402
 from jaxtraffic.ecosystem import ENV_ID  # noqa: E402
 from jaxtraffic.ecosystem.gym_env import GainEnv, GainVectorEnv  # noqa: E402
+from jaxtraffic.learn.env import EnvParams  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 N = 21
 CONFIG = {"n_points": N, "delay": 0.5, "max_delay_steps": 20, "horizon_s": 1.0, "delay_spread": 0.0}
-OBS = 3 * N + 3
+OBS = feature_size(N, EnvParams().obs_segments)  # the training default: the pooled observation
 
 
 def test_check_env_and_make():

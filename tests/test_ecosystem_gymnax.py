@@ -18,11 +18,14 @@ pytest.importorskip("gymnax")
 from gymnax.environments import environment, spaces  # noqa: E402
 from gymnax.wrappers.purerl import FlattenObservationWrapper, LogWrapper  # noqa: E402
 
+from jaxtraffic.control.gain_policy import feature_size  # noqa: E402
 from jaxtraffic.ecosystem.gymnax_env import GainGymnaxEnv  # noqa: E402
+from jaxtraffic.learn.env import EnvParams  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 N = 21
 CONFIG = {"n_points": N, "delay": 0.5, "max_delay_steps": 20, "horizon_s": 1.0, "delay_spread": 0.0}
+OBS = feature_size(N, EnvParams().obs_segments)  # the training default: the pooled observation
 
 
 def test_is_a_gymnax_environment():
@@ -31,7 +34,7 @@ def test_is_a_gymnax_environment():
     assert isinstance(env, environment.Environment)
     assert env.name == "jaxtraffic/Gain-v0" and env.num_actions == 3 and int(p.horizon) == 10
     obs_space, act_space = env.observation_space(p), env.action_space(p)
-    assert isinstance(obs_space, spaces.Box) and obs_space.shape == (3 * N + 3,)
+    assert isinstance(obs_space, spaces.Box) and obs_space.shape == (OBS,)
     assert isinstance(act_space, spaces.Box) and act_space.shape == (3,)
     assert np.all(np.asarray(act_space.low) == -1.0) and np.all(np.asarray(act_space.high) == 1.0)
     obs, st = env.reset(jax.random.PRNGKey(0), p)
@@ -61,7 +64,7 @@ def test_wrappers_under_vmap_and_scan():
 
     _, out = jax.jit(lambda c: jax.lax.scan(body, c, jax.random.split(jax.random.PRNGKey(1), T)))((obs, st))
     out = jax.tree.map(np.asarray, out)
-    assert out["obs"].shape == (T, n, 3 * N + 3) and np.isfinite(out["r"]).all()
+    assert out["obs"].shape == (T, n, OBS) and np.isfinite(out["r"]).all()
     ends = out["trunc"] | out["term"]
     assert ends[9].all() and ends[19].all() and ends.sum() == 2 * n  # horizon 10 steps, every env
     np.testing.assert_array_equal(ends, out["ended"])

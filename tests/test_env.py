@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxtraffic.control import gain_policy as gp
 from jaxtraffic.learn import env as learn_env
 from jaxtraffic.model.params import TrafficParams, equilibrium
 from jaxtraffic.sim import equilibrium_state, initial_state
@@ -22,11 +23,14 @@ KEYS = jax.random.split(jax.random.PRNGKey(7), 400)
 
 
 def _params(**kw) -> learn_env.EnvParams:
-    """The paper's environment (gains applied directly, the paper's reward) unless ``kw`` says otherwise."""
+    """The paper's environment (full observation, one gain bound, gains applied directly, the paper's
+    reward) unless ``kw`` says otherwise."""
     kw.setdefault("horizon", 20)
     kw.setdefault("gain_max", 5.0)
     kw.setdefault("gain_filter", 1.0)
     kw.setdefault("h_rate_weight", 0.0)
+    kw.setdefault("wave_weight", 0.0)
+    kw.setdefault("obs_segments", 0)
     return learn_env.make_env_params(TP, **kw)
 
 
@@ -50,6 +54,23 @@ def test_reset_step_shapes_and_reward():
     np.testing.assert_allclose(r, paper_reward(st2.plant.rho, st2.plant.v, rho_bar, v_bar), rtol=1e-6)
     np.testing.assert_allclose(r, -np.sum(np.asarray(obs2[: 2 * N]) ** 2), rtol=1e-4)
     assert float(r) < 0.0
+
+
+def test_pooled_observation_averages_segments():
+    """obs_segments K: each normalised field is averaged over K equal road segments; one bound per gain."""
+    ep = _params(obs_segments=4, gain_max=(1.0, 3.0, 3.0))
+    assert learn_env.obs_size(ep) == 3 * 4 + 3 and ep.gain_max == (1.0, 3.0, 3.0)
+    obs, st = reset_jit(jax.random.PRNGKey(0), ep)
+    full = np.asarray(gp.policy_features(st.plant.observation(TP), st.gains, TP, 1.0))[:3 * N].reshape(3, N)
+    idx = np.minimum(np.arange(N) * 4 // (N - 1), 3)
+    expected = np.stack([[full[f, idx == k].mean() for k in range(4)] for f in range(3)]).reshape(-1)
+    np.testing.assert_allclose(obs[:12], expected, rtol=1e-5, atol=1e-7)
+    _, _, _, _, info = step_jit(jax.random.PRNGKey(1), st, jnp.array([5.0, 5.0, -5.0]), ep)
+    np.testing.assert_allclose(info["gains"], np.tanh([5.0, 5.0, -5.0]) * [1.0, 3.0, 3.0], rtol=1e-5)
+    with pytest.raises(ValueError, match="obs_segments"):
+        _params(obs_segments=N + 1)
+    with pytest.raises(ValueError, match="gain_max"):
+        _params(gain_max=(1.0, 0.0, 3.0))
 
 
 def test_equilibrium_gives_zero_observation_and_stays():
@@ -243,3 +264,28 @@ def test_h_rate_cost_in_the_reward():
     np.testing.assert_allclose(float(r_zero), float(r_zero_ref), rtol=1e-6)
     with pytest.raises(ValueError, match="h_rate_weight"):
         _params(h_rate_weight=-1.0)
+
+
+def test_backward_wave_cost():
+    """0 at or above the speed threshold, linear below it down to 1 at 5 m/s below (the open loop,
+    s = lambda2 = -3.6 m/s, costs 0.92 at a 1 m/s threshold), 1 across the singular surface; in the
+    reward it is charged on the applied gains."""
+    from jaxtraffic.control.gain_law import lyapunov_equivalent_gains
+    from jaxtraffic.model.linear import gain_law_wave_speed, linearize
+
+    lm = linearize(TP)
+    cost = lambda g, smin=1.0: float(learn_env.backward_wave_cost(jnp.asarray(g, jnp.float32), lm, smin))  # noqa: E731
+    lyap = np.asarray(lyapunov_equivalent_gains(1.0, TP))  # s = v_bar ~ 3.1 m/s
+    assert cost(lyap) == 0.0
+    assert cost(np.zeros(3)) == pytest.approx((1.0 - float(lm.lam2)) / 5.0, rel=1e-5)  # open loop, ramp 5 m/s
+    assert cost(np.zeros(3), smin=3.0) == 1.0
+    s_lyap = float(gain_law_wave_speed(jnp.asarray(lyap), lm))
+    assert cost(lyap, smin=s_lyap + 2.5) == pytest.approx(0.5, abs=1e-5)  # 2.5 m/s short of the threshold, scale 5
+    assert cost([0.0, 1.3 * 1.283333, 0.0]) == 1.0  # denominator < 0: s flipped through infinity
+    w = 0.4
+    st, st0, r0, r1 = _step_with_and_without(wave_weight=w, wave_speed_min=1.0)
+    gains = gp.filter_gains(st.gains, learn_env.action_to_gains(jnp.array([0.2, 0.1, -0.3]), _params()), 1.0)
+    np.testing.assert_allclose(float(r1), float(r0) - w * cost(gains), rtol=1e-5, atol=1e-7)
+    assert cost(gains) > 0.0
+    with pytest.raises(ValueError, match="wave_weight"):
+        _params(wave_weight=-1.0)

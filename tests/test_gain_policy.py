@@ -33,12 +33,18 @@ def _random_policy(ep: learn_env.EnvParams, seed: int = 0, scale: float = 0.5):
     return net, params, mean, var
 
 
-@pytest.mark.parametrize("gain_filter", [1.0, 0.3])
-def test_policy_controller_replays_the_environment(gain_filter):
+def _env(**kw) -> learn_env.EnvParams:
+    """Full observation and one gain bound unless ``kw`` says otherwise."""
+    return learn_env.make_env_params(TP, **{"gain_max": 2.0, "obs_segments": 0, **kw})
+
+
+@pytest.mark.parametrize("gain_filter,segments,gain_max", [(1.0, 0, 2.0), (0.3, 0, 2.0), (0.3, 4, (0.9, 2.0, 2.5))])
+def test_policy_controller_replays_the_environment(gain_filter, segments, gain_max):
     """``simulate`` with the policy controller applies, step for step, the gains the environment
     applies for the policy's deterministic action (same observation, same filter, same law), so
-    the evaluation of a trained policy is the rollout it was trained on."""
-    ep = learn_env.make_env_params(TP, horizon=10 * STEPS, gain_max=2.0, gain_filter=gain_filter)
+    the evaluation of a trained policy is the rollout it was trained on; also with a pooled
+    observation and one bound per gain."""
+    ep = _env(horizon=10 * STEPS, gain_max=gain_max, gain_filter=gain_filter, obs_segments=segments)
     net, params, mean, var = _random_policy(ep)
     obs, state = learn_env.reset(jax.random.PRNGKey(0), ep)
     step = jax.jit(learn_env.step)
@@ -52,7 +58,8 @@ def test_policy_controller_replays_the_environment(gain_filter):
     gains_env = np.array(gains_env)
     assert np.ptp(gains_env, axis=0).min() > 1e-3  # the gains really vary along the rollout
 
-    ctrl = policy_controller(params, mean, var, 2.0, hidden=HIDDEN, init_sigma=0.3, gain_filter=gain_filter)
+    ctrl = policy_controller(params, mean, var, gain_max, hidden=HIDDEN, init_sigma=0.3, gain_filter=gain_filter,
+                             obs_segments=segments)
     res = simulate(TP, ctrl, n_steps=STEPS, record_every=1)
     np.testing.assert_allclose(res.trajectory.rho[1:], np.array(rho_env[:-1]), rtol=1e-5, atol=1e-8)
     np.testing.assert_allclose(res.final.rho, rho_env[-1], rtol=1e-5, atol=1e-8)
@@ -62,7 +69,7 @@ def test_policy_controller_replays_the_environment(gain_filter):
 def test_gain_filter_smooths_the_time_gap():
     """A filtered policy changes the sent time gap less from step to step than the same policy
     applied directly (the filter is a low-pass on the gains)."""
-    ep = learn_env.make_env_params(TP, gain_max=2.0)
+    ep = _env()
     net, params, mean, var = _random_policy(ep, seed=3)
 
     def step_changes(k: float) -> float:
@@ -76,7 +83,7 @@ def test_gain_filter_smooths_the_time_gap():
 def test_equilibrium_gains_are_what_the_policy_settles_to():
     """At the equilibrium the filtered gains of a policy converge to a fixed point; a rollout that
     starts there applies exactly those gains after a while (the controller state)."""
-    ep = learn_env.make_env_params(TP, horizon=1000, gain_max=2.0, gain_filter=0.3)
+    ep = _env(horizon=1000, gain_filter=0.3)
     _, params, mean, var = _random_policy(ep, seed=1, scale=0.2)
     var = var.at[-3:].set(1.0)  # a weak feedback of the gains on themselves: a stable fixed point
     ctrl = policy_controller(params, mean, var, 2.0, hidden=HIDDEN, init_sigma=0.3, gain_filter=0.3)

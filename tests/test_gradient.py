@@ -100,3 +100,6 @@ def test_train_cli_gradient_defaults_come_from_the_library():
     assert tc.run.out_dir == "runs/gradient-network"
     assert cfg == G.GradientConfig.for_policy("network")
     assert gradient_setup(settings_from_args(["--algo", "gradient"]))[0] == G.GradientConfig()
+    # the gain bound is the gradient trainer's own (PPO's --gain-max, per gain, does not apply)
+    assert gradient_setup(settings_from_args(["--algo", "gradient", "--gain-max", "1,2,2"]))[0] == G.GradientConfig()
+    assert gradient_setup(settings_from_args(["--algo", "gradient", "--grad-gain-max", "2"]))[0].gain_max == 2.0

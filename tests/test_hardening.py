@@ -39,7 +39,7 @@ from jaxtraffic.sim.plant import DIVERGED_CONTROL, DIVERGED_INITIAL, DIVERGED_NO
 REPO = Path(__file__).resolve().parents[1]
 TINY = ["--n-points", "21", "--delay", "0.5", "--max-delay-steps", "20", "--num-envs", "4", "--num-steps", "8",
         "--updates-per-chunk", "2", "--update-epochs", "2", "--num-minibatches", "2", "--horizon-s", "3",
-        "--eval-horizon-s", "2", "--keep-going", "--quiet"]
+        "--eval-horizon-s", "2", "--keep-going", "--quiet", "--obs-segments", "0", "--val-horizon-s", "2"]
 CHUNK = 4 * 8 * 2
 N_CHUNKS = 8
 P21 = TrafficParams(n_points=21, delay=4.0)
@@ -460,19 +460,23 @@ def _config(run: Path) -> dict:
 
 
 def _damage_ckpt(kind: str):
-    def damage(run: Path) -> None:
-        p = run / ckpt.CHECKPOINT
-        data = bytearray(p.read_bytes())
-        if kind == "truncated":
-            p.write_bytes(bytes(data[: len(data) // 2]))
-        elif kind == "empty":
-            p.write_bytes(b"")
-        else:  # 50 flipped bytes in the middle
-            rng = np.random.default_rng(0)
-            for i in rng.choice(np.arange(100, len(data) - 100), 50, replace=False):
-                data[i] ^= 0xFF
-            p.write_bytes(bytes(data))
+    def damage(run: Path) -> None:  # both the last state (resume) and the best checkpoint (load_policy)
+        for name in (ckpt.CHECKPOINT, ckpt.BEST):
+            _damage_file(run / name, kind)
     return damage
+
+
+def _damage_file(p: Path, kind: str) -> None:
+    data = bytearray(p.read_bytes())
+    if kind == "truncated":
+        p.write_bytes(bytes(data[: len(data) // 2]))
+    elif kind == "empty":
+        p.write_bytes(b"")
+    else:  # 50 flipped bytes in the middle
+        rng = np.random.default_rng(0)
+        for i in rng.choice(np.arange(100, len(data) - 100), 50, replace=False):
+            data[i] ^= 0xFF
+        p.write_bytes(bytes(data))
 
 
 def _edit_config(edit):
@@ -488,9 +492,9 @@ def _set(section: str, key: str, value):
 
 
 BROKEN = {
-    "truncated": (_damage_ckpt("truncated"), "checkpoint.msgpack: truncated or not msgpack"),
-    "empty": (_damage_ckpt("empty"), "checkpoint.msgpack: empty file"),
-    "flipped": (_damage_ckpt("flipped"), "checkpoint.msgpack: checksum mismatch"),
+    "truncated": (_damage_ckpt("truncated"), ".msgpack: truncated or not msgpack"),
+    "empty": (_damage_ckpt("empty"), ".msgpack: empty file"),
+    "flipped": (_damage_ckpt("flipped"), ".msgpack: checksum mismatch"),
     "no_env": (_edit_config(lambda c: c["config"].pop("env")), "config.json: the config tree lacks the section(s) "
                                                               "['env']"),
     "foreign": (lambda run: (run / ckpt.CONFIG).write_text('{"name": "something else"}'),

@@ -31,7 +31,8 @@ from jaxtraffic.learn.trainer import CURVE_FIELDS
 
 SUMMARY_KEYS = {"env_steps", "wall_s", "seconds_to_stop_rule", "env_steps_to_stop_rule", "stop_rule_reached",
                 "target_reward", "interrupted", "best_seed", "final_eval", "eval_horizon_s", "seconds_to_paper_rule",
-                "env_steps_to_paper_rule", "min_wave_speed"}
+                "env_steps_to_paper_rule", "min_wave_speed", "stopped", "best_val_score", "best_env_steps",
+                "validation"}
 
 
 def _rows(run: Path) -> list[dict]:
@@ -110,6 +111,7 @@ def test_resume_is_bit_identical(runs):
     state_a, meta_a = ckpt.load_checkpoint(a)
     state_b, meta_b = ckpt.load_checkpoint(b)
     assert _leaves_equal(state_a, state_b)  # params, Adam state, environments, obs statistics, keys
+    assert _leaves_equal(ckpt.load_best(a), ckpt.load_best(b))  # the kept best checkpoints too
     assert meta_a["env_steps"] == meta_b["env_steps"] == 4 * CHUNK
     sa, sb = (json.loads((r / "summary.json").read_text()) for r in (a, b))
     assert sa["final_eval"] == sb["final_eval"] and sa["env_steps"] == sb["env_steps"]
@@ -168,6 +170,36 @@ def test_checkpoint_round_trip_gives_identical_actions(runs):
     assert rt["bad_seed_rejected"]
 
 
+def test_load_policy_loads_the_best_checkpoint(runs):
+    """By default ``load_policy`` returns the best-scoring checkpoint that the trainer kept
+    (best.msgpack), whose score and step match the learning curve."""
+    run = runs["A"]
+    summary = json.loads((run / "summary.json").read_text())
+    best = ckpt.load_best(run)
+    rows = _rows(run)
+    scores = [float(r["val_score"]) for r in rows]
+    assert summary["best_val_score"][0] == pytest.approx(min(scores)) == pytest.approx(float(best["score"][0]))
+    assert summary["best_env_steps"][0] == int(rows[int(np.argmin(scores))]["env_steps"])
+    ctrl, _ = load_policy(run)
+    assert _leaves_equal(ctrl.settings.params, jax.tree.map(lambda x: x[0], best["params"]))
+    np.testing.assert_array_equal(ctrl.settings.obs_mean, best["mean"][0])
+    assert float(rows[-1]["best_val_score"]) == pytest.approx(min(scores))
+    with pytest.raises(ValueError, match="checkpoint"):
+        load_policy(run, checkpoint="first")
+
+
+def test_validation_scores_the_candidates(runs):
+    """Run S meets the paper's rule at every evaluation: each checkpoint is validated (a finite score
+    below the unvalidated rank) and the summary records the suite (delays at the ends and the middle of
+    the training range)."""
+    summary = json.loads((runs["S"] / "summary.json").read_text())
+    val = summary["validation"]
+    assert val["delays"] == [0.0, 0.5, 1.5] and val["horizon_s"] == 2.0 and val["target"] is None  # inf
+    assert len(val["reference"]["labels"]) == 6
+    assert all(float(r["val_score"]) < 1e7 for r in _rows(runs["S"]))
+    assert load_config(runs["S"]).run.val_target == float("inf")
+
+
 def test_load_policy_rejects_a_run_from_an_older_version(runs, tmp_path):
     """A run whose config predates the gain filter (flat "settings", observation without the applied
     gains) gives a clear error instead of a shape error deep inside the network; one written before
@@ -178,6 +210,13 @@ def test_load_policy_rejects_a_run_from_an_older_version(runs, tmp_path):
     flat = {k: v for section in tree.values() for k, v in section.items()}
     (old / "config.json").write_text(json.dumps({"settings": {**flat, "offset_range": [0, 0]}}))
     assert load_policy(old)[1] == load_policy(runs["A"])[1]  # a pre-tree run loads (removed options ignored)
+    # a run written before the pooled observation / wave shaping / validation suite: loaded as it was trained
+    del tree["env"]["obs_segments"], tree["env"]["wave_weight"], tree["run"]["val_horizon_s"]
+    (old / "config.json").write_text(json.dumps({"config": tree}))
+    before = load_config(old)
+    assert (before.env.obs_segments, before.env.wave_weight, before.run.val_horizon_s) == (0, 0.0, 0.0)
+    with pytest.raises(ValueError, match="do not belong together"):  # its checkpoint has the pooled observation
+        load_policy(old)
     del flat["gain_filter"]
     (old / "config.json").write_text(json.dumps({"settings": flat}))
     with pytest.raises(ValueError, match="older jaxtraffic"):

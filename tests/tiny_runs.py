@@ -39,7 +39,7 @@ from jaxtraffic.sim import initial_state, paper_initial_condition
 REPO = Path(__file__).resolve().parents[1]
 TINY = ["--n-points", "21", "--delay", "0.5", "--max-delay-steps", "20", "--num-envs", "4", "--num-steps", "8",
         "--updates-per-chunk", "2", "--update-epochs", "2", "--num-minibatches", "2", "--horizon-s", "3",
-        "--eval-horizon-s", "2", "--quiet"]
+        "--eval-horizon-s", "2", "--val-horizon-s", "2", "--quiet"]
 CHUNK = 4 * 8 * 2  # env steps per chunk
 RUNS = ("A", "B", "I", "C", "S", "W")
 GRADIENT_ROOT = "runs"  # root/runs/gradient-gains: the tiny gradient-trained run (evaluate.py --runs-root)
@@ -76,8 +76,8 @@ def _cli(out: Path, *extra: str) -> Path:
 def train_runs(root: Path) -> None:
     """All the single-device runs (4 chunks = 256 env steps unless noted), in a subprocess:
     A: one go; B: 2 chunks, then --resume to 4; I: Ctrl-C before chunk 3, then --resume;
-    C: seed 1, 1 chunk; S: the paper's rule alone (--min-wave-speed=-inf), always met (target -1e9),
-    patience 2, no --keep-going;
+    C: seed 1, 1 chunk; S: the paper's rule alone (--min-wave-speed=-inf, no validation target), always
+    met (target -1e9), patience 2, no --keep-going;
     W: like S, but the rule also asks for a wave speed no policy has (--min-wave-speed 1e9).
     Also compares, right after A, the in-memory policy with ``load_policy(A)``, and trains the tiny
     gradient run ``GRADIENT_ROOT/gradient-gains`` that test_evaluate.py evaluates beside A."""
@@ -104,7 +104,8 @@ def train_runs(root: Path) -> None:
     shutil.copytree(i, root / "I_first")
     train_cli.main(["--out-dir", str(i), "--resume", "--total-steps", str(4 * CHUNK), "--keep-going", "--quiet"])
     _cli(root / "C", "--seed", "1", "--total-steps", str(CHUNK), "--keep-going")
-    _cli(root / "S", "--total-steps", str(6 * CHUNK), "--target-reward=-1e9", "--min-wave-speed=-inf")
+    _cli(root / "S", "--total-steps", str(6 * CHUNK), "--target-reward=-1e9", "--min-wave-speed=-inf",
+         "--val-target", "inf", "--stop-patience", "2")
     _cli(root / "W", "--total-steps", str(3 * CHUNK), "--target-reward=-1e9", "--min-wave-speed", "1e9")
     write_json(root / "done.json", {"compiled_programs": len(shared.cache)})
 
@@ -114,12 +115,13 @@ def write_json(path: Path, obj) -> None:
 
 
 def _round_trip(run: Path, runner) -> dict:
-    """Actions of ``load_policy(run)`` vs the in-memory policy (seed 0 of ``runner``) on two states."""
-    ctrl, config = load_policy(run)
+    """Actions of ``load_policy(run, checkpoint="last")`` vs the in-memory policy (seed 0 of ``runner``)
+    on two states."""
+    ctrl, config = load_policy(run, checkpoint="last")
     rep = jax.tree.map(lambda x: x[0, 0], runner)  # device 0, seed 0
     mem = policy_controller(rep.params, rep.stats.mean, rep.stats.var, config.env.gain_max,
                             hidden=config.algo.hidden(), init_sigma=config.algo.init_sigma,
-                            gain_filter=config.env.gain_filter)
+                            gain_filter=config.env.gain_filter, obs_segments=config.env.obs_segments)
     tp = build(config)[1].traffic  # the run's nominal plant
     out = {"identical": [], "h": [], "stats_trained": bool(np.abs(rep.stats.mean).max() > 0
                                                            and not np.allclose(rep.stats.var, 1.0))}

@@ -38,12 +38,23 @@ def _many(kind):
     return parse
 
 
+def _gain_bounds(text: str):
+    """One bound for every gain, or one per gain: ETA1,ETA2,ETA3."""
+    try:
+        parts = [float(p) for p in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number or ETA1,ETA2,ETA3, got {text!r}") from None
+    if len(parts) not in (1, 3):
+        raise argparse.ArgumentTypeError(f"expected one bound or three (ETA1,ETA2,ETA3), got {text!r}")
+    return parts[0] if len(parts) == 1 else tuple(parts)
+
+
 GROUPS = {"run": "run", "plant": "plant and grid", "env": "episodes and domain randomisation", "algo": "PPO",
           "grad": "gradient-based training (--algo gradient)"}
 _PARSERS = {"int": int, "float": float, "str": str, "float | None": float, "int | None": int, "str | None": str,
             "tuple[float, float]": _pair(float), "tuple[float, float] | None": _pair(float),
             "tuple[int, int]": _pair(int), "tuple[float, ...]": _many(float), "tuple[float, ...] | None": _many(float),
-            "tuple[int, ...]": _many(int)}
+            "tuple[int, ...]": _many(int), "float | tuple[float, float, float]": _gain_bounds}
 
 
 def build_parser() -> argparse.ArgumentParser:

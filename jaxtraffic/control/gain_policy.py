@@ -1,9 +1,12 @@
 """The learned gain policy as a controller, and the pieces it shares with the environment.
 
 The policy (docs/model.md section 9) sees ``policy_features``: [rho/rho_bar - 1, v/v_bar - 1,
-h_prev/h_bar - 1] on the grid (normalised by the nominal equilibrium, dimensionless) followed by
-the gains applied at the previous step / gain_max, shape (3 n + 3,). Its action is three
-unbounded reals ``a``, squashed to gains eta = gain_max tanh(a) (``action_to_gains``). The gains
+h_prev/h_bar - 1] on the grid (normalised by the nominal equilibrium, dimensionless), or with
+``segments`` = K > 0 each of these fields averaged over K equal road segments (a pooled
+observation, ``pool_segments``), followed by the gains applied at the previous step / gain_max:
+shape (3 m + 3,), m = n or K (``feature_size``). Its action is three unbounded reals ``a``,
+squashed to gains eta = gain_max tanh(a) (``action_to_gains``; ``gain_max`` a scalar or one
+bound per gain, shape (3,)). The gains
 applied move a fraction ``gain_filter`` of the way from the previous step's gains to them
 (``filter_gains``; 1: applied directly, as in the paper; they start at 0, i.e. h = h_bar) and act
 on normalised deviations through ``control.gain_law``.
@@ -21,6 +24,7 @@ from typing import Any
 import chex
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from jaxtraffic.control.base import Controller, Observation
@@ -32,24 +36,50 @@ Array = jax.Array
 N_GAINS = 3
 
 
+def _bound(gain_max: Array | float | tuple) -> Array | float:
+    """The gain bound as an operand: a per-gain tuple (as ``EnvParams`` holds it) becomes an array."""
+    return jnp.asarray(gain_max) if isinstance(gain_max, (tuple, list)) else gain_max
+
+
+@functools.cache
+def _segment_matrix(n_points: int, segments: int) -> np.ndarray:
+    """(segments, n_points) averaging matrix: row k is the mean over the grid points whose position
+    x / L lies in [k / segments, (k + 1) / segments) (the outlet point joins the last segment)."""
+    if not 1 <= segments <= n_points:
+        raise ValueError(f"obs_segments must lie in [1, n_points={n_points}], got {segments}")
+    idx = np.minimum((np.arange(n_points) * segments) // (n_points - 1), segments - 1)
+    w = (idx[None, :] == np.arange(segments)[:, None]).astype(np.float32)
+    return w / w.sum(axis=1, keepdims=True)
+
+
+def pool_segments(fields: Array, segments: int) -> Array:
+    """Each row of ``fields`` (shape (k, n)) averaged over ``segments`` equal road segments, shape
+    (k, segments); ``segments`` = 0: unchanged."""
+    if not segments:
+        return fields
+    return fields @ jnp.asarray(_segment_matrix(fields.shape[-1], segments)).T
+
+
 def policy_features(obs: Observation, gains_prev: Array, nominal: TrafficParams, gain_max: Array | float,
-                    eq: tuple[Array, Array] | None = None) -> Array:
-    """The policy's observation vector, shape (3 n + 3,): [rho/rho_bar - 1, v/v_bar - 1,
-    h_prev/h_bar - 1, gains_prev / gain_max]. ``eq``: (rho_bar, v_bar) of ``nominal`` if known."""
+                    eq: tuple[Array, Array] | None = None, segments: int = 0) -> Array:
+    """The policy's observation vector, shape (``feature_size(n, segments)``,): [rho/rho_bar - 1,
+    v/v_bar - 1, h_prev/h_bar - 1] (each pooled over ``segments`` road segments when > 0, static),
+    then gains_prev / gain_max. ``eq``: (rho_bar, v_bar) of ``nominal`` if known."""
     chex.assert_shape(gains_prev, (N_GAINS,))
     rho_bar, v_bar = equilibrium(nominal) if eq is None else eq
-    return jnp.concatenate([obs.rho / rho_bar - 1.0, obs.v / v_bar - 1.0, obs.h_prev / nominal.h_bar - 1.0,
-                            gains_prev / gain_max])
+    fields = jnp.stack([obs.rho / rho_bar - 1.0, obs.v / v_bar - 1.0, obs.h_prev / nominal.h_bar - 1.0])
+    return jnp.concatenate([pool_segments(fields, segments).reshape(-1), gains_prev / _bound(gain_max)])
 
 
-def feature_size(n_points: int) -> int:
-    """Length of ``policy_features`` on a grid of ``n_points``."""
-    return 3 * n_points + N_GAINS
+def feature_size(n_points: int, segments: int = 0) -> int:
+    """Length of ``policy_features`` on a grid of ``n_points`` (pooled over ``segments`` if > 0)."""
+    return 3 * (segments or n_points) + N_GAINS
 
 
 def action_to_gains(action: Array, gain_max: Array | float) -> Array:
-    """The policy's gains eta = gain_max * tanh(action), shape (3,)."""
-    return gain_max * jnp.tanh(action)
+    """The policy's gains eta = gain_max * tanh(action), shape (3,); ``gain_max``: a scalar or one
+    bound per gain."""
+    return _bound(gain_max) * jnp.tanh(action)
 
 
 def filter_gains(gains_prev: Array, target: Array, gain_filter: Array | float) -> Array:
@@ -104,7 +134,8 @@ def gain_target_controller(target: Array, gain_filter: Array | float = 1.0,
 @struct.dataclass
 class PolicySettings:
     """Traced settings of a policy controller: network parameters, observation mean/variance
-    (shape (3 n + 3,)), the gain bound and the gain filter (dimensionless, ``filter_gains``)."""
+    (shape (``feature_size``,)), the gain bound(s) and the gain filter (dimensionless,
+    ``filter_gains``; broadcast to the bound's shape)."""
 
     params: Any
     obs_mean: Array
@@ -114,12 +145,12 @@ class PolicySettings:
 
 
 @functools.cache
-def _policy_act_fn(hidden: tuple, init_sigma: float):
+def _policy_act_fn(hidden: tuple, init_sigma: float, obs_segments: int):
     network = ActorCritic(hidden=hidden, init_sigma=init_sigma)
 
     def act(settings: PolicySettings, gains_prev, obs, nominal, key):
         eq = equilibrium(nominal)  # once per step: the features and the law share it
-        x = policy_features(obs, gains_prev, nominal, settings.gain_max, eq)
+        x = policy_features(obs, gains_prev, nominal, settings.gain_max, eq, obs_segments)
         mean, _, _ = network.apply(settings.params, normalize_obs(x, settings.obs_mean, settings.obs_var))
         target = action_to_gains(mean, settings.gain_max)
         return filtered_gain_law(gains_prev, target, settings.gain_filter, obs, nominal, eq)
@@ -127,15 +158,19 @@ def _policy_act_fn(hidden: tuple, init_sigma: float):
     return act
 
 
-def policy_controller(params: Any, obs_mean: Array, obs_var: Array, gain_max: float, *,
-                      hidden: tuple, init_sigma: float = 0.5, gain_filter: float | Array = 1.0) -> Controller:
+def policy_controller(params: Any, obs_mean: Array, obs_var: Array, gain_max: float | Array, *,
+                      hidden: tuple, init_sigma: float = 0.5, gain_filter: float | Array = 1.0,
+                      obs_segments: int = 0) -> Controller:
     """Controller applying the policy's deterministic gains (the mean of its Gaussian, squashed,
     then filtered like in the environment) through the three-gain law; its state is the gains
-    applied at the previous step (zero at the start)."""
+    applied at the previous step (zero at the start). ``gain_max``: a scalar or one bound per
+    gain (with a leading member axis for batched settings); ``obs_segments``: the observation's
+    pooling (``policy_features``), as in training."""
+    gain_max = jnp.asarray(gain_max, float)
     settings = PolicySettings(params=params, obs_mean=jnp.asarray(obs_mean), obs_var=jnp.asarray(obs_var),
-                              gain_max=jnp.asarray(gain_max, float),
-                              gain_filter=jnp.broadcast_to(jnp.asarray(gain_filter, float), jnp.shape(gain_max)))
-    act = _policy_act_fn(tuple(hidden), float(init_sigma))
+                              gain_max=gain_max,
+                              gain_filter=jnp.broadcast_to(jnp.asarray(gain_filter, float), gain_max.shape))
+    act = _policy_act_fn(tuple(hidden), float(init_sigma), int(obs_segments))
     return Controller(settings=settings, act_fn=act, init_fn=zero_gains, name="ppo")
 
 

@@ -1,5 +1,5 @@
 """The learning layer (imports ``model``, ``control``, ``sim``): the gymnax-style environment,
-PPO, the training loop, checkpoints and ``load_policy``, the learning curve. Other submodules
+PPO, the validation suite, the training loop, checkpoints and ``load_policy``, the learning curve. Other submodules
 are imported explicitly (``from jaxtraffic.learn import ppo``)."""
 
 from jaxtraffic.learn.checkpoint import load_policy

@@ -3,8 +3,10 @@
 
 A checkpoint file is a msgpack map ``{"format": "jaxtraffic-checkpoint", "version": 1, "sha256":
 <hex digest of payload>, "payload": <bytes>}`` whose payload is the flax-msgpack encoding of
-``{"runner": <state dict of the PPO Runner>, "meta": <progress>}``; ``load_checkpoint`` checks the
-digest, so a truncated, empty or corrupted file is an error naming it, never a silent load (files
+``{"runner": <state dict of the PPO Runner>, "meta": <progress>}``; a PPO run's best.msgpack
+(same format) holds each member's best-scoring policy (``params``, observation ``mean`` / ``var``,
+``score``, ``env_steps``; ``learn.selection``), which ``load_policy`` loads by default. The loaders
+check the digest, so a truncated, empty or corrupted file is an error naming it, never a silent load (files
 written before the checksum, a bare payload, still load). Every write goes to a temporary file in
 the same directory (mode 0666 less the umask, like any other file), is flushed and fsynced, then
 ``os.replace``d over the target, so an interruption never leaves a half-written file; a temporary
@@ -39,6 +41,8 @@ from jaxtraffic.learn.config import TrainConfig, load_config
 CHECKPOINT = "checkpoint.msgpack"
 CONFIG = "config.json"
 SUMMARY = "summary.json"
+BEST = "best.msgpack"
+_BEST_ARRAYS = ("mean", "var", "score", "env_steps")
 FORMAT = "jaxtraffic-checkpoint"
 FORMAT_VERSION = 1
 
@@ -112,14 +116,19 @@ def write_json(path: str | Path, obj: Any) -> None:
     atomic_write_text(path, json.dumps(to_jsonable(obj), indent=2, sort_keys=False, allow_nan=False) + "\n")
 
 
+def _write_checked(path: Path, state: dict) -> None:
+    """Write a state dict atomically in the checksummed format (module docstring)."""
+    payload = serialization.msgpack_serialize(state)
+    wrapped = msgpack.packb({"format": FORMAT, "version": FORMAT_VERSION,
+                             "sha256": hashlib.sha256(payload).hexdigest(), "payload": payload}, use_bin_type=True)
+    atomic_write_bytes(path, wrapped)
+
+
 def save_checkpoint(run_dir: str | Path, runner: Any, meta: dict) -> None:
     """Write the runner (all devices and seeds) and the progress ``meta`` atomically, with the
     sha256 of the payload."""
     state = {"runner": serialization.to_state_dict(jax.device_get(runner)), "meta": to_jsonable(meta)}
-    payload = serialization.msgpack_serialize(state)
-    wrapped = msgpack.packb({"format": FORMAT, "version": FORMAT_VERSION,
-                             "sha256": hashlib.sha256(payload).hexdigest(), "payload": payload}, use_bin_type=True)
-    atomic_write_bytes(Path(run_dir) / CHECKPOINT, wrapped)
+    _write_checked(Path(run_dir) / CHECKPOINT, state)
 
 
 def _broken(path: Path, why: str) -> ValueError:
@@ -133,6 +142,16 @@ def load_checkpoint(run_dir: str | Path) -> tuple[dict, dict]:
     path = Path(run_dir) / CHECKPOINT
     if not path.exists():
         raise FileNotFoundError(f"no checkpoint at {path}")
+    state = _read_checked(path, legacy_key="runner")
+    if not (isinstance(state, dict) and isinstance(state.get("runner"), dict) and isinstance(state.get("meta"), dict)
+            and isinstance(state["meta"].get("env_steps"), int)):
+        raise _broken(path, "not a jaxtraffic checkpoint (no runner state and progress)")
+    return state["runner"], state["meta"]
+
+
+def _read_checked(path: Path, legacy_key: str) -> Any:
+    """The state dict of a file in the checksummed format (or, written before the checksum, a bare
+    payload holding ``legacy_key``); ``ValueError`` naming the file if it is broken."""
     data = path.read_bytes()
     if not data:
         raise _broken(path, "empty file")
@@ -149,18 +168,39 @@ def load_checkpoint(run_dir: str | Path) -> tuple[dict, dict]:
                                 f"{FORMAT_VERSION}")
         if hashlib.sha256(payload).hexdigest() != outer["sha256"]:
             raise _broken(path, "checksum mismatch (the file is corrupted)")
-    elif isinstance(outer, dict) and "runner" in outer:
+    elif isinstance(outer, dict) and legacy_key in outer:
         payload = data  # written before the checksum
     else:
         raise _broken(path, "not a jaxtraffic checkpoint")
     try:
-        state = serialization.msgpack_restore(payload)
+        return serialization.msgpack_restore(payload)
     except Exception as err:  # noqa: BLE001
         raise _broken(path, f"payload cannot be decoded ({type(err).__name__}: {err})") from None
-    if not (isinstance(state, dict) and isinstance(state.get("runner"), dict) and isinstance(state.get("meta"), dict)
-            and isinstance(state["meta"].get("env_steps"), int)):
-        raise _broken(path, "not a jaxtraffic checkpoint (no runner state and progress)")
-    return state["runner"], state["meta"]
+
+
+def save_best(run_dir: str | Path, best: dict) -> None:
+    """Write the per-member best checkpoints (params, obs mean/var, score, env_steps) atomically."""
+    state = {"params": serialization.to_state_dict(jax.device_get(best["params"])),
+             **{k: np.asarray(best[k]) for k in _BEST_ARRAYS}}
+    _write_checked(Path(run_dir) / BEST, state)
+
+
+def load_best(run_dir: str | Path) -> dict | None:
+    """The state dict of ``run_dir``'s best.msgpack, or None if the run has none."""
+    path = Path(run_dir) / BEST
+    if not path.exists():
+        return None
+    state = _read_checked(path, legacy_key="params")
+    if not (isinstance(state, dict) and isinstance(state.get("params"), dict)
+            and all(k in state for k in _BEST_ARRAYS)):
+        raise _broken(path, "not a best-checkpoint file (no params, statistics and scores)")
+    return state
+
+
+def restore_best(template: dict, state: dict) -> dict:
+    """Fill ``template`` (a best-checkpoint dict of the right structure) with a loaded state dict."""
+    return {"params": serialization.from_state_dict(template["params"], state["params"]),
+            **{k: np.asarray(state[k]) for k in _BEST_ARRAYS}}
 
 
 def restore_runner(template: Any, state: dict, path: str | Path = CHECKPOINT) -> Any:
@@ -216,22 +256,31 @@ class SavedPolicy:
     obs_var: np.ndarray
 
 
-def load_run(run_dir: str | Path) -> tuple[dict, SavedPolicy, dict]:
+def load_run(run_dir: str | Path, checkpoint: str = "best") -> tuple[dict, SavedPolicy, dict]:
     """(config.json content, saved policy, summary or {}) of a run directory (``learn.config.load_config``
-    turns the first into a ``TrainConfig``)."""
+    turns the first into a ``TrainConfig``). ``checkpoint``: "best" (each member's best-scoring
+    checkpoint, best.msgpack, when the run has one; else the last) or "last" (the state training
+    stopped in, checkpoint.msgpack)."""
+    if checkpoint not in ("best", "last"):
+        raise ValueError(f"checkpoint must be 'best' or 'last', got {checkpoint!r}")
     run_dir = Path(run_dir)
     cfg_path = run_dir / CONFIG
     if not cfg_path.exists():
         raise FileNotFoundError(f"{run_dir} is not a run directory (no {CONFIG})")
     config = _read_json(cfg_path)
-    runner, _ = load_checkpoint(run_dir)
-    first = lambda x: np.asarray(x)[0]  # noqa: E731 - replicated across devices
-    try:
-        policy = SavedPolicy(params=jax.tree.map(first, runner["params"]),
-                             obs_mean=first(runner["stats"]["mean"]), obs_var=first(runner["stats"]["var"]))
-    except (KeyError, IndexError, TypeError) as err:
-        raise ValueError(f"{run_dir / CHECKPOINT}: no policy in the saved state "
-                         f"({type(err).__name__}: {err})") from None
+    best = load_best(run_dir) if checkpoint == "best" else None
+    if best is not None:  # the best checkpoint of each member (the trainer's selection)
+        policy = SavedPolicy(params=jax.tree.map(np.asarray, best["params"]), obs_mean=np.asarray(best["mean"]),
+                             obs_var=np.asarray(best["var"]))
+    else:
+        runner, _ = load_checkpoint(run_dir)
+        first = lambda x: np.asarray(x)[0]  # noqa: E731 - replicated across devices
+        try:
+            policy = SavedPolicy(params=jax.tree.map(first, runner["params"]),
+                                 obs_mean=first(runner["stats"]["mean"]), obs_var=first(runner["stats"]["var"]))
+        except (KeyError, IndexError, TypeError) as err:
+            raise ValueError(f"{run_dir / CHECKPOINT}: no policy in the saved state "
+                             f"({type(err).__name__}: {err})") from None
     summary_path = run_dir / SUMMARY
     summary = from_jsonable(_read_json(summary_path)) if summary_path.exists() else {}
     if not isinstance(summary, dict):
@@ -246,12 +295,15 @@ def _read_json(path: Path) -> Any:
         raise ValueError(f"{path}: unreadable or not valid JSON ({err})") from None
 
 
-def load_policy(run_dir: str | Path, seed: int | None = None) -> tuple[Controller, TrainConfig]:
+def load_policy(run_dir: str | Path, seed: int | None = None, checkpoint: str = "best"
+                ) -> tuple[Controller, TrainConfig]:
     """Controller and ``TrainConfig`` of a run directory written by ``train.py``.
 
-    ``seed`` selects one of the run's seeds (default: the best one by final evaluation reward,
-    as recorded in ``summary.json``, else 0). A run trained by gradient (``"algo": "gradient"`` in
-    its config.json) loads through ``gradient_trainer.load_gradient_run``.
+    ``checkpoint``: "best" (default: the best-scoring checkpoint of each member, which the PPO
+    trainer keeps in best.msgpack) or "last" (the state training stopped in). ``seed`` selects one
+    of the run's members (default: the best one, ``best_seed`` of ``summary.json``, else 0). A run
+    trained by gradient (``"algo": "gradient"`` in its config.json) loads through
+    ``gradient_trainer.load_gradient_policy``.
     """
     run_dir = Path(run_dir)
     config = load_config(run_dir)
@@ -259,7 +311,7 @@ def load_policy(run_dir: str | Path, seed: int | None = None) -> tuple[Controlle
         from jaxtraffic.learn.gradient_trainer import load_gradient_policy  # it imports this module
 
         return load_gradient_policy(run_dir, config), config
-    _, saved, summary = load_run(run_dir)
+    _, saved, summary = load_run(run_dir, checkpoint)
     if seed is None:
         seed = summary.get("best_seed", 0) if summary else 0
         if not isinstance(seed, int):
@@ -267,15 +319,16 @@ def load_policy(run_dir: str | Path, seed: int | None = None) -> tuple[Controlle
     n_seeds = saved.obs_mean.shape[0]
     if not 0 <= seed < n_seeds:
         raise ValueError(f"seed {seed} not in run with {n_seeds} seeds")
-    expected = feature_size(config.plant.n_points)
+    segments = config.env.obs_segments
+    expected = feature_size(config.plant.n_points, segments)
     got = saved.obs_mean.shape[-1]
     if got != expected:  # (a run from before the applied gains is recognised by its config.json, see config)
-        raise ValueError(f"{run_dir}: {CONFIG} says n_points = {config.plant.n_points} (an observation of {expected} "
-                         f"values) but {CHECKPOINT} holds an observation of {got} values"
-                         + (f" (n_points = {got // 3 - 1})" if got % 3 == 0 else "")
+        raise ValueError(f"{run_dir}: {CONFIG} says n_points = {config.plant.n_points}, obs_segments = {segments} (an "
+                         f"observation of {expected} values) but the checkpoint holds an observation of {got} values"
+                         + (f" ({got // 3 - 1} per field)" if got % 3 == 0 else "")
                          + ": the two files do not belong together")
     controller = policy_controller(
         jax.tree.map(lambda x: jnp.asarray(x[seed]), saved.params), saved.obs_mean[seed], saved.obs_var[seed],
         config.env.gain_max, hidden=config.algo.hidden(), init_sigma=config.algo.init_sigma,
-        gain_filter=config.env.gain_filter)
+        gain_filter=config.env.gain_filter, obs_segments=segments)
     return controller, config

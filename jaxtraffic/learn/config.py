@@ -66,11 +66,19 @@ class EnvConfig:
     wavenumber_range: tuple[int, int] = _f((_EP.wavenumber_min, _EP.wavenumber_max),
                                            "initial wavenumber LO,HI (integers)")
     phase_max: float = _f(_EP.phase_max, "initial phase ~ U(0, phase_max) rad")
-    gain_max: float = _f(_EP.gain_max, "|eta_i| bound (normalised gains)")
+    gain_max: float | tuple[float, float, float] = _f(
+        _EP.gain_max, "|eta_i| bound of PPO's gains (normalised): one value, or ETA1,ETA2,ETA3 (gradient "
+        "training: --grad-gain-max)")
     gain_filter: float = _f(_EP.gain_filter, "applied gains move this fraction of the way to the policy's gains "
                             "each step (first-order filter, time constant ~ dt/k); 1: applied directly (the paper)")
     h_rate_weight: float = _f(_EP.h_rate_weight, "training reward -= w * sum_i ((h_i - h_prev_i)/h_bar)^2, the "
                               "squared step change of the commanded time gap (dimensionless); 0: the paper's reward")
+    wave_weight: float = _f(_EP.wave_weight, "training reward -= w * learn.env.backward_wave_cost(applied gains): "
+                            "0 when their closed-loop wave speed (linear.gain_law_wave_speed) is >= --wave-speed-min, "
+                            "rising to 1 at 5 m/s below it; 0: the paper's reward")
+    wave_speed_min: float = _f(_EP.wave_speed_min, "m/s, see --wave-weight")
+    obs_segments: int = _f(_EP.obs_segments, "observation: each normalised field (rho, v, h_prev) averaged over "
+                           "this many equal road segments; 0: the full fields (3 x n-points values)")
 
 
 @dataclass(frozen=True)
@@ -132,15 +140,19 @@ class GradConfig:
     scenario_clip: float = _f(_GRAD.scenario_clip, "> 0: clip each scenario's gradient to this norm before "
                               "averaging; 0: off")
     init_gains: tuple[float, ...] = _f(_GRAD.init_gains, "initial gains eta1,eta2,eta3")
+    grad_gain_max: float | None = _f(None, f"network policy: |eta_i| bound (default {_GRAD.gain_max}; PPO's is "
+                                     "--gain-max)")
 
     def gradient_config(self, env: EnvConfig, hidden: tuple[int, ...]) -> GradientConfig:
-        """The algorithm's ``GradientConfig`` (gain bound and filter from ``env``, network from ``algo``)."""
-        given = {"steps": self.grad_steps, "lr": self.grad_lr, "delays": self.train_delays}
+        """The algorithm's ``GradientConfig`` (gain filter from ``env``, network from ``algo``; the gain bound is
+        ``grad_gain_max``, not PPO's ``env.gain_max``: the gradient results were measured with 3)."""
+        given = {"steps": self.grad_steps, "lr": self.grad_lr, "delays": self.train_delays,
+                 "gain_max": self.grad_gain_max}
         return GradientConfig.for_policy(
             self.policy, **{k: v for k, v in given.items() if v is not None}, alphas=self.train_alphas,
             amplitudes=self.train_amplitudes, wavenumbers=self.train_wavenumbers, phases=self.train_phases,
             horizon_s=self.train_horizon_s, record_every=self.record_every, steps_per_chunk=self.steps_per_chunk,
-            hidden=hidden, gain_max=env.gain_max, gain_filter=env.gain_filter, reward_weight=self.reward_weight,
+            hidden=hidden, gain_filter=env.gain_filter, reward_weight=self.reward_weight,
             wave_weight=self.waves_weight, comfort_weight=self.comfort_weight, effort_weight=self.effort_weight,
             scenario_clip=self.scenario_clip, init_gains=tuple(self.init_gains))
 
@@ -155,7 +167,7 @@ class RunConfig:
                       "runs/gradient-POLICY)")
     resume: bool = _f(False, "continue from the run directory's checkpoint (its saved config is used; only the "
                       "run-control flags --total-steps/--max-wall-s/--keep-going/--stop-patience/--target-reward/"
-                      "--min-wave-speed apply)")
+                      "--min-wave-speed/--val-target apply)")
     seed: int = _f(0, "PRNG seed")
     seeds: int = _f(1, "independent seeds trained at once (vmap)")
     total_steps: int = _f(10_000_000, "environment steps (all envs, per seed)")
@@ -166,7 +178,17 @@ class RunConfig:
     min_wave_speed: float | None = _f(0.5, "stop rule also requires the closed loop's kinematic wave speed at the "
                                       "policy's equilibrium gains (linear.gain_law_wave_speed, m/s) >= this; -inf: the "
                                       "paper's rule alone")
-    stop_patience: int = _f(2, "consecutive evaluations that must meet the stop rule before stopping")
+    stop_patience: int = _f(1, "consecutive evaluations that must meet the stop rule (per population member) "
+                            "before stopping")
+    val_horizon_s: float = _f(600.0, "validation suite (learn.validation): every member's deterministic policy from "
+                              "two initial conditions x the plant delays at the ends and the middle of the training "
+                              "range, over this many seconds, scored against backstepping; the best-scoring "
+                              "checkpoint of each member is kept (best.msgpack) and the best member is the run's "
+                              "policy; 0: no suite")
+    val_target: float = _f(1.0, "stop rule also requires a validation score <= this (1: at the nominal delay the "
+                           "density L2 at half the suite horizon is below backstepping's and J_comfort within 20 %% "
+                           "of its, and at every delay of the suite the plant does not diverge and is still "
+                           "converging); inf: no such condition")
     eval_horizon_s: float = _f(300.0, "evaluation rollout length, s")
     quiet: bool = _f(False, "no progress lines")
     tensorboard: str | None = _f(None, "also write the learning-curve rows as TensorBoard scalars to this directory "
@@ -174,7 +196,10 @@ class RunConfig:
 
 
 RUN_CONTROL = ("out_dir", "total_steps", "max_wall_s", "keep_going", "resume", "quiet", "stop_patience",
-               "target_reward", "min_wave_speed", "tensorboard")
+               "target_reward", "min_wave_speed", "tensorboard", "val_target")
+# fields absent from a run's config.json because it was written before they existed: their value then
+# (the run is loaded and resumed as it was trained, not with today's defaults)
+BEFORE_FIELD = {"obs_segments": 0, "wave_weight": 0.0, "val_horizon_s": 0.0}
 
 
 @dataclass(frozen=True)
@@ -251,10 +276,12 @@ def config_from_json(data: dict[str, Any], where: str = "config.json") -> TrainC
         raise ValueError(f"{where}: neither a config tree nor settings; not written by train.py")
     if not isinstance(flat, dict):
         raise ValueError(f"{where}: \"settings\" is not an object; not written by train.py")
-    # JSON has no inf: a null stands for the default where the field cannot be None (max_wall_s = inf)
+    # JSON has no inf: a null float that cannot be None stands for inf (max_wall_s, val_target), any other for the
+    # default
+    values = {k: math.inf if v is None and _TYPES[k] == "float" else _tuples(v) for k, v in flat.items()
+              if k in _OWNER and (v is not None or "None" in _TYPES[k] or _TYPES[k] == "float")}
     try:
-        return TrainConfig.from_flat(**{k: _tuples(v) for k, v in flat.items()
-                                        if k in _OWNER and (v is not None or "None" in _TYPES[k])})
+        return TrainConfig.from_flat(**{**{k: v for k, v in BEFORE_FIELD.items() if k not in flat}, **values})
     except (TypeError, ValueError) as err:
         raise ValueError(f"{where}: {err}") from None
 

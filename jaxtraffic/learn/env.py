@@ -8,11 +8,13 @@ under ``control.gain_policy.gain_target_controller``: the action, squashed to ga
 controller's target and the environment's ``gains`` (the applied, filtered gains) are its state.
 
 * Observation: ``control.gain_policy.policy_features`` of the plant state and the applied gains,
-  shape (3 n + 3,) (the deployed ``policy_controller`` computes the same).
-* Action: three unbounded reals; target gains gain_max * tanh(action) (``action_to_gains``),
-  filtered with ``gain_filter`` (``filter_gains``).
+  pooled over ``obs_segments`` road segments (0: the full fields, shape (3 n + 3,)); the deployed
+  ``policy_controller`` computes the same.
+* Action: three unbounded reals; target gains gain_max * tanh(action) (``action_to_gains``;
+  ``gain_max`` a scalar or one bound per gain), filtered with ``gain_filter`` (``filter_gains``).
 * Reward: the paper's r = -sum_i [(rho~_i/rho_bar)^2 + (v~_i/v_bar)^2] of the state after the
-  step (dimensionless), minus ``h_rate_weight`` times ``h_rate_cost`` (0: the paper's reward).
+  step (dimensionless), minus ``h_rate_weight`` times ``h_rate_cost`` and ``wave_weight`` times
+  ``backward_wave_cost`` of the applied gains (both weights 0: the paper's reward).
   The defaults of ``EnvParams`` are the training defaults (``learn.config``, ``train.py``).
 * Episodes last ``horizon`` steps and end by *truncation* (``info["truncated"]``: bootstrap the
   value of ``info["terminal_obs"]``). A plant that leaves the physical region *terminates* with
@@ -29,9 +31,11 @@ from __future__ import annotations
 import chex
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from jaxtraffic.control import gain_policy as gp
+from jaxtraffic.model.linear import LinearModel, gain_law_is_regular, gain_law_wave_speed, linearize
 from jaxtraffic.model.params import TrafficParams, equilibrium
 from jaxtraffic.sim.initial import paper_initial_condition
 from jaxtraffic.sim.plant import PlantState, closed_loop_step, initial_state, plant_alpha, select_state
@@ -48,7 +52,8 @@ class EnvParams:
 
     traffic: TrafficParams = TrafficParams(delay=4.0)
     horizon: int = 1000  # steps per episode (100 s)
-    gain_max: float = 3.0  # |eta_i| <= gain_max (dimensionless)
+    # |eta_i| <= gain_max_i (dimensionless): one bound for all gains or one per gain (a 3-tuple)
+    gain_max: float | tuple[float, float, float] = (1.0, 3.0, 3.0)
     amp_min: float = 0.010  # veh/m
     amp_max: float = 0.010
     wavenumber_min: int = 4
@@ -61,6 +66,10 @@ class EnvParams:
     diverge_penalty: float = 100.0
     gain_filter: float = 0.2  # in (0, 1]; 1: the policy's gains are applied directly (the paper)
     h_rate_weight: float = 0.2  # dimensionless; 0: the paper's reward
+    wave_weight: float = 0.5  # dimensionless, times backward_wave_cost; 0: the paper's reward
+    wave_speed_min: float = 1.0  # m/s, backward_wave_cost's threshold
+    # observation: 0: the full normalised fields (3 n values); K > 0: each field averaged over K equal segments
+    obs_segments: int = struct.field(pytree_node=False, default=16)
 
 
 @struct.dataclass
@@ -78,6 +87,8 @@ def make_env_params(traffic: TrafficParams | None = None, **kwargs) -> EnvParams
     kwargs.setdefault("delay_max", float(traffic.delay))
     kwargs.setdefault("alpha_min", float(traffic.alpha))
     kwargs.setdefault("alpha_max", float(traffic.alpha))
+    if np.ndim(kwargs.get("gain_max", 0.0)):  # one bound per gain: a tuple of floats (hashable, traced leaves)
+        kwargs["gain_max"] = tuple(float(g) for g in np.asarray(kwargs["gain_max"], float).reshape(gp.N_GAINS))
     ep = EnvParams(traffic=traffic, **kwargs)
     for lo, hi in (("amp_min", "amp_max"), ("wavenumber_min", "wavenumber_max"),
                    ("delay_min", "delay_max"), ("alpha_min", "alpha_max")):
@@ -89,21 +100,25 @@ def make_env_params(traffic: TrafficParams | None = None, **kwargs) -> EnvParams
         raise ValueError("alpha range must lie in [0, 1]")
     if not 0.0 < ep.gain_filter <= 1.0:
         raise ValueError(f"gain_filter must lie in (0, 1], got {ep.gain_filter}")
-    if ep.h_rate_weight < 0.0:
-        raise ValueError("h_rate_weight must be >= 0")
+    if ep.h_rate_weight < 0.0 or ep.wave_weight < 0.0:
+        raise ValueError("h_rate_weight and wave_weight must be >= 0")
+    if not np.all(np.asarray(ep.gain_max) > 0):
+        raise ValueError(f"gain_max must be > 0, got {ep.gain_max}")
+    if not 0 <= ep.obs_segments <= traffic.n_points:
+        raise ValueError(f"obs_segments must lie in [0, n_points={traffic.n_points}], got {ep.obs_segments}")
     if ep.horizon < 1:
         raise ValueError(f"horizon must be >= 1 step, got {ep.horizon}")
     return ep
 
 
 def obs_size(params: EnvParams) -> int:
-    return gp.feature_size(params.traffic.n_points)
+    return gp.feature_size(params.traffic.n_points, params.obs_segments)
 
 
 def observe(state: EnvState, params: EnvParams, eq: tuple[Array, Array] | None = None) -> Array:
-    """The policy's observation of ``state`` (``policy_features``), shape (3 n + 3,)."""
+    """The policy's observation of ``state`` (``policy_features``), shape (``obs_size``,)."""
     tp = params.traffic
-    return gp.policy_features(state.plant.observation(tp), state.gains, tp, params.gain_max, eq)
+    return gp.policy_features(state.plant.observation(tp), state.gains, tp, params.gain_max, eq, params.obs_segments)
 
 
 def action_to_gains(action: Array, params: EnvParams) -> Array:
@@ -116,6 +131,16 @@ def h_rate_cost(h_prev: Array, h: Array, h_bar: Array | float) -> Array:
     (dimensionless). Unlike the acceleration, which the delay D postpones, it depends on this
     step's action alone, so its credit is immediate."""
     return jnp.sum(((h - h_prev) / h_bar) ** 2, axis=-1)
+
+
+def backward_wave_cost(gains: Array, lm: LinearModel, speed_min: Array | float, scale: float = 5.0) -> Array:
+    """0 when the gains' closed-loop wave speed s (``model.linear.gain_law_wave_speed``) is >= speed_min
+    (m/s), rising linearly to 1 at speed_min - scale and beyond; 1 also where the relaxed relation
+    v~ = c rho~ breaks down (its denominator <= 0, s changes sign through infinity). Dimensionless.
+    The stop rule's ``min_wave_speed`` asks the same of the gains a policy settles to; this charges
+    it on the applied gains at every step, so the policy learns it instead of stumbling on it."""
+    s = gain_law_wave_speed(gains, lm)
+    return jnp.where(gain_law_is_regular(gains, lm), jnp.clip((speed_min - s) / scale, 0.0, 1.0), 1.0)
 
 
 def _new_episode(key: Array, params: EnvParams, rho_bar: Array,
@@ -158,7 +183,8 @@ def step_env(key: Array, state: EnvState, action: Array, params: EnvParams):
     plant, gains, h, info = closed_loop_step(state.plant, state.gains, ctrl, state.plant_params, tp,
                                              plant_alpha(state.plant_params, k_plant), k_plant, eq)
     terminated = plant.diverged
-    r = info.reward - params.h_rate_weight * h_rate_cost(state.plant.h_prev, h, tp.h_bar)
+    r = (info.reward - params.h_rate_weight * h_rate_cost(state.plant.h_prev, h, tp.h_bar)
+         - params.wave_weight * backward_wave_cost(gains, linearize(tp), params.wave_speed_min))
     r = jnp.where(terminated, -params.diverge_penalty, r)
     t = state.t + 1
     truncated = (t >= params.horizon) & ~terminated

@@ -81,10 +81,10 @@ CURVE_FIELDS = ["update", "env_steps", "wall_s", "objective", "grad_norm", "eval
 
 
 def train_gradient(tc: TrainConfig) -> Path:
-    """Train (or resume) and return the run directory. Uses ``tc.grad``, ``tc.plant`` (the nominal
-    plant), ``tc.env.gain_max`` / ``gain_filter`` and ``tc.algo.network`` (network policy) and the
-    run-control fields of ``tc.run``; on resume, the saved config with the new ``RUN_CONTROL``
-    fields and ``grad_steps``."""
+    """Train (or resume) and return the run directory. Uses ``tc.grad`` (with its own gain bound,
+    ``grad_gain_max``), ``tc.plant`` (the nominal plant), ``tc.env.gain_filter`` and
+    ``tc.algo.network`` (network policy) and the run-control fields of ``tc.run``; on resume, the
+    saved config with the new ``RUN_CONTROL`` fields and ``grad_steps``."""
     run_dir = Path(tc.run.out_dir)
     check_out_dir(run_dir)
     if tc.run.resume:

@@ -1,19 +1,25 @@
 """Training loop around ``ppo.make_train``: chunks, evaluation, stop rule, checkpoints, outputs.
 
 ``train(config)`` runs jit-compiled chunks of PPO updates. Between chunks it evaluates the
-deterministic policy of every seed on the paper's initial condition (``eval_horizon_s``, the
-training plant without randomisation), prints a progress line, appends to ``learning_curve.csv``
-and rewrites the checkpoint atomically, and applies the paper's stop rule (evaluation reward, i.e. the
-reward at the end of the evaluation rollout, >= ``target_reward`` for every seed) unless
-``keep_going``. With ``min_wave_speed`` set, the rule also asks that the closed loop under the
-gains each policy settles to at the equilibrium carries density waves downstream at least that
-fast (``linear.gain_law_wave_speed``, m/s): a policy with a backward wave speed leaves a slow mode
-that enters at the outlet and never decays, which the 300 s evaluation reward hardly sees. The
-rule must hold at ``stop_patience`` consecutive evaluations (default 2: the deterministic
-evaluation is noisy early on, and a single lucky evaluation gave fragile policies);
-``seconds_to_stop_rule`` records the first time it held, ``seconds_to_paper_rule`` the first time
-the paper's reward condition alone held. ``resume`` continues exactly from the checkpoint (and
-refuses a directory that has none).
+deterministic policy of every member (seed) on the paper's initial condition (``eval_horizon_s``,
+the training plant without randomisation), prints a progress line, appends to ``learning_curve.csv``
+and rewrites the checkpoints atomically, and applies the stop rule unless ``keep_going``. A member meets the
+rule at an evaluation when (1) the paper's rule holds (evaluation reward, i.e. the reward at the
+end of the evaluation rollout, >= ``target_reward``, no divergence); (2) with ``min_wave_speed``
+set, the closed loop under the gains its policy settles to at the equilibrium carries density
+waves downstream at least that fast (``linear.gain_law_wave_speed``, m/s: a backward wave speed
+leaves a slow mode that enters at the outlet and never decays, which the 300 s evaluation reward
+hardly sees); (3) with a validation suite (``val_horizon_s`` > 0, ``learn.validation``), its
+validation score is <= ``val_target``. The suite is rolled out only for evaluations that pass (1)
+and (2). The run stops when one member has met the rule at ``stop_patience`` consecutive
+evaluations (default 1: the suite is strict, and good policies come in windows of one to three
+chunks). ``seconds_to_stop_rule`` records the first time it held, ``seconds_to_paper_rule`` the
+first time (1) alone held.
+
+Each member's best checkpoint (lowest validation score; checkpoints that fail (1)-(2) rank below
+every validated one, by evaluation reward) is kept in ``best.msgpack``; the member with the best
+score is ``summary.json``'s ``best_seed`` and the policy ``load_policy`` returns. ``resume`` continues
+exactly from the checkpoint, best checkpoints included (and refuses a directory that has none).
 
 Signals: SIGINT (Ctrl-C) and SIGTERM (what a cluster scheduler sends before killing a job) only
 set a flag; the loop stops at the next safe point, after the chunk in progress, with a consistent
@@ -22,16 +28,18 @@ checkpoint (or says that none exists yet), writes the summary and raises ``Train
 are always complete: every write is atomic). Temporary files left by a killed run are removed
 when training starts.
 
-Run directory: config.json, checkpoint.msgpack, learning_curve.csv, learning_curve.png,
-summary.json. The curve's evaluation columns are means over seeds of the deterministic rollout:
-eval_reward (the paper's reward at its end, dimensionless), eval_J_comfort, eval_rho_L2_veh_km
-(final density L2 deviation in veh/km; the metrics' ``final_rho_L2`` is in veh/m) and
-eval_wave_speed (m/s, see above).
+Run directory: config.json, checkpoint.msgpack, best.msgpack, learning_curve.csv,
+learning_curve.png, summary.json. The curve's evaluation columns are means over members of the
+deterministic rollout: eval_reward (the paper's reward at its end, dimensionless), eval_J_comfort,
+eval_rho_L2_veh_km (final density L2 deviation in veh/km; the metrics' ``final_rho_L2`` is in veh/m)
+and eval_wave_speed (m/s, see above); val_score and best_val_score are the lowest over members (1e7
+and above: not validated, 1e6: rejected).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import os
 import signal
@@ -49,6 +57,7 @@ from jaxtraffic.control.gain_policy import equilibrium_gains, policy_controller
 from jaxtraffic.learn import checkpoint as ckpt
 from jaxtraffic.learn import env as learn_env
 from jaxtraffic.learn import ppo
+from jaxtraffic.learn import validation
 from jaxtraffic.learn.config import RUN_CONTROL, TrainConfig, config_json, load_config
 from jaxtraffic.learn.curve import CURVE_FIELDS, append_curve, plot_learning_curve, write_curve
 from jaxtraffic.learn.metrics_writer import TensorBoardWriter
@@ -126,7 +135,8 @@ def build(s: TrainConfig) -> tuple[ppo.PPOConfig, learn_env.EnvParams]:
         traffic, horizon=max(1, round(en.horizon_s / pl.dt)), gain_max=en.gain_max, amp_min=en.amp_range[0],
         amp_max=en.amp_range[1], wavenumber_min=int(en.wavenumber_range[0]),
         wavenumber_max=int(en.wavenumber_range[1]), phase_max=en.phase_max, delay_min=d_lo, delay_max=d_hi,
-        alpha_min=a_lo, alpha_max=a_hi, gain_filter=en.gain_filter, h_rate_weight=en.h_rate_weight)
+        alpha_min=a_lo, alpha_max=a_hi, gain_filter=en.gain_filter, h_rate_weight=en.h_rate_weight,
+        wave_weight=en.wave_weight, wave_speed_min=en.wave_speed_min, obs_segments=en.obs_segments)
     algo = dataclasses.asdict(s.algo)
     cfg = ppo.PPOConfig(num_seeds=s.run.seeds, hidden=s.algo.hidden(),
                         **{f.name: algo[f.name] for f in dataclasses.fields(ppo.PPOConfig) if f.name in algo})
@@ -140,6 +150,15 @@ def config_dict(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvPar
     run that the tree does not hold (the episode length in steps, the devices, the jax version)."""
     return config_json(s, horizon_steps=int(env_params.horizon), devices=[str(d) for d in jax.devices()],
                        jax_version=jax.__version__)
+
+
+def member_controller(cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, params, obs_mean, obs_var):
+    """Deterministic policy controller whose parameters carry a leading member (seed) axis."""
+    n = obs_mean.shape[0]
+    gain_max = jnp.asarray(env_params.gain_max, float)
+    return policy_controller(params, obs_mean, obs_var, jnp.broadcast_to(gain_max, (n,) + gain_max.shape),
+                             hidden=tuple(cfg.hidden), init_sigma=cfg.init_sigma, gain_filter=env_params.gain_filter,
+                             obs_segments=env_params.obs_segments)
 
 
 def make_evaluator(cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, eval_steps: int):
@@ -161,10 +180,7 @@ def make_evaluator(cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, eval_ste
 
     def evaluate(runner: ppo.Runner) -> dict:
         rep = ppo.replicated(runner)  # settings with a leading seed axis: one batched rollout
-        ctrl = policy_controller(rep.params, rep.stats.mean, rep.stats.var,
-                                 jnp.full((cfg.num_seeds,), env_params.gain_max), hidden=tuple(cfg.hidden),
-                                 init_sigma=cfg.init_sigma,
-                                 gain_filter=env_params.gain_filter)
+        ctrl = member_controller(cfg, env_params, rep.params, rep.stats.mean, rep.stats.var)
         res = simulate_batch(plant, ctrl, n_steps=eval_steps, rho0=rho0, v0=v0, batch_controller=True)
         out = {k: np.asarray(v) for k, v in res.metrics.items()}
         gains, speed = equilibrium_diagnostics(ctrl)
@@ -270,13 +286,26 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
     evaluate = make_evaluator(cfg, env_params, eval_steps)
 
     t_start = time.perf_counter()
+    validate = None
+    if s.run.val_horizon_s > 0:
+        val_steps = 2 * max(1, round(s.run.val_horizon_s / s.plant.dt / 2))
+        validate = validation.make_validator(env_params.traffic, val_steps, validation.validation_delays(env_params))
     runner = init(jax.random.PRNGKey(s.run.seed))
     meta = {"env_steps": 0, "wall_s": 0.0, "rows": [], "seconds_to_stop_rule": None, "stopped": False}
+
+    def policy():  # the current (params, obs mean, obs var), leading member axis
+        rep = jax.device_get(ppo.replicated(runner))
+        return rep.params, np.asarray(rep.stats.mean), np.asarray(rep.stats.var)
+
+    best = validation.new_best(*policy())
     if state is not None:
         meta = saved_meta
         # place every leaf like the fresh runner's (pmap-sharded): uncommitted arrays would recompile
         restored = ckpt.restore_runner(runner, state, run_dir / ckpt.CHECKPOINT)
         runner = jax.tree.map(lambda t, x: jax.device_put(x, t.sharding), runner, restored)
+        saved_best = ckpt.load_best(run_dir)
+        if saved_best is not None:
+            best = ckpt.restore_best(best, saved_best)
         if s.run.keep_going:
             meta["stopped"] = False
         say(f"resumed {run_dir} at {meta['env_steps']} env steps ({meta['wall_s']:.1f} s)")
@@ -299,31 +328,42 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
             jax.block_until_ready(m)
             last_eval = evaluate(runner)
             meta["env_steps"] += steps_per_chunk
-            meta["wall_s"] = wall0 + time.perf_counter() - t_start
             ev = last_eval["final_reward"]
-            row = {"update": int(np.asarray(ppo.replicated(runner).update).max()), "env_steps": meta["env_steps"],
+            paper = (ev >= s.run.target_reward) & ~np.asarray(last_eval["diverged"])
+            candidate = paper & (True if s.run.min_wave_speed is None
+                                 else last_eval["wave_speed"] >= s.run.min_wave_speed)
+            rep = ppo.replicated(runner)
+            score = validation.scores(ev, candidate, validate, functools.partial(
+                member_controller, cfg, env_params, rep.params, rep.stats.mean, rep.stats.var))
+            best = validation.update_best(best, score, meta["env_steps"], policy)
+            meta["wall_s"] = wall0 + time.perf_counter() - t_start
+            row = {"update": int(np.asarray(rep.update).max()), "env_steps": meta["env_steps"],
                    "wall_s": round(meta["wall_s"], 3), "mean_reward": float(m["mean_reward"][:, -1].mean()),
                    "eval_reward": float(ev.mean()), "eval_reward_min": float(ev.min()),
                    "eval_J_comfort": float(last_eval["J_comfort"].mean()),
                    "eval_rho_L2_veh_km": float(last_eval["final_rho_L2"].mean()) * VEH_PER_KM,
-                   "eval_wave_speed": float(last_eval["wave_speed"].mean())}
+                   "eval_wave_speed": float(last_eval["wave_speed"].mean()),
+                   "val_score": float(np.min(score)), "best_val_score": float(np.min(best["score"]))}
             row.update({k: float(m[k][:, -1].mean()) for k in ("eta1", "eta2", "eta3", "entropy", "approx_kl",
                                                                "value_loss")})
             meta["rows"].append(row)
             for callback in callbacks:
                 callback(row)
-            paper_rule = bool(np.all(ev >= s.run.target_reward)) and not bool(np.any(last_eval["diverged"]))
-            if paper_rule and meta.get("seconds_to_paper_rule") is None:
+            if bool(paper.any()) and meta.get("seconds_to_paper_rule") is None:
                 meta["seconds_to_paper_rule"] = meta["wall_s"]
                 meta["env_steps_to_paper_rule"] = meta["env_steps"]
-            reached = paper_rule and (s.run.min_wave_speed is None
-                                      or bool(np.all(last_eval["wave_speed"] >= s.run.min_wave_speed)))
+            ok = candidate & ((score <= s.run.val_target) if validate is not None else True)
+            reached = bool(ok.any())
             if reached and meta["seconds_to_stop_rule"] is None:
                 meta["seconds_to_stop_rule"] = meta["wall_s"]
                 meta["env_steps_to_stop_rule"] = meta["env_steps"]
-            meta["streak"] = meta.get("streak", 0) + 1 if reached else 0
+            # per member: consecutive evaluations meeting the rule; a population stops on its first member
+            streak = np.where(ok, np.asarray(meta.get("member_streak", [0] * cfg.num_seeds)) + 1, 0)
+            meta["member_streak"] = streak.tolist()
+            meta["streak"] = int(streak.max())
             if meta["streak"] >= s.run.stop_patience and not s.run.keep_going:
                 meta["stopped"] = True
+                meta["stop_member"] = int(np.argmax(streak))
             now = time.perf_counter()
             if rate_from is None:  # the first chunk compiles: no rate yet
                 rate, rate_from = math.nan, (now, meta["env_steps"])
@@ -334,9 +374,10 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
             say(f"[{meta['env_steps']:>9d} steps] {rate_txt} steps/s | reward {row['mean_reward']:9.3f} | "
                 f"eval {row['eval_reward']:9.4f} (min {row['eval_reward_min']:.4f}) | gains "
                 f"({row['eta1']:+.2f}, {row['eta2']:+.2f}, {row['eta3']:+.2f}) | s {row['eval_wave_speed']:+.2f} m/s | "
-                f"{_fmt_time(meta['wall_s'])} | "
+                f"val {validation.format_scores(score)} | {_fmt_time(meta['wall_s'])} | "
                 f"ETA {_fmt_time(eta)}" + (" | stop rule reached" if reached else ""))
             ckpt.save_checkpoint(run_dir, runner, meta)
+            ckpt.save_best(run_dir, best)
             append_curve(curve_csv, row)
             if meta["wall_s"] > s.run.max_wall_s:
                 say(f"stopping: wall-clock budget {s.run.max_wall_s:g} s reached")
@@ -352,10 +393,12 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
         return run_dir
     if not interrupted:
         ckpt.save_checkpoint(run_dir, runner, meta)
+        ckpt.save_best(run_dir, best)
     _plot_curve(run_dir)
     if not last_eval:
         last_eval = evaluate(runner)
     ev = last_eval["final_reward"]
+    best_member = int(np.argmin(best["score"]))
     summary = {
         "provenance": provenance(),
         "env_steps": meta["env_steps"], "wall_s": meta["wall_s"],
@@ -364,9 +407,13 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
         "seconds_to_paper_rule": meta.get("seconds_to_paper_rule"),
         "env_steps_to_paper_rule": meta.get("env_steps_to_paper_rule"),
         "min_wave_speed": s.run.min_wave_speed,
-        "stop_rule_reached": meta["seconds_to_stop_rule"] is not None,
+        "stop_rule_reached": meta["seconds_to_stop_rule"] is not None, "stopped": bool(meta["stopped"]),
         "target_reward": s.run.target_reward, "interrupted": interrupted,
-        "best_seed": int(np.argmax(ev)),
+        "best_seed": best_member,
+        "best_val_score": best["score"], "best_env_steps": best["env_steps"],
+        "validation": None if validate is None else {"delays": validation.validation_delays(env_params),
+                                                     "horizon_s": s.run.val_horizon_s, "target": s.run.val_target,
+                                                     "reference": validate.reference},
         "final_eval": {k: v for k, v in last_eval.items()},
         "eval_horizon_s": s.run.eval_horizon_s,
     }
@@ -374,7 +421,8 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
     rule = (f"first reached after {meta['seconds_to_stop_rule']:.1f} s" if summary["stop_rule_reached"]
             else "not reached")
     say(f"done: {meta['env_steps']} env steps in {meta['wall_s']:.1f} s; eval reward per seed {np.round(ev, 4)};"
-        f" stop rule {rule}; outputs in {run_dir}")
+        f" stop rule {rule}; best checkpoint: member {best_member}, score {best['score'][best_member]:.3g} at "
+        f"{best['env_steps'][best_member]} env steps; outputs in {run_dir}")
     if interrupted:
         raise TrainingInterrupted(signum, msg)
     return run_dir

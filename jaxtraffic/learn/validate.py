@@ -26,6 +26,7 @@ RULES: dict[str, tuple[float | None, bool, float | None, bool]] = {
     "horizon_s": (0.0, False, None, False), "delay_spread": (0.0, True, None, False),
     "phase_max": (0.0, True, None, False), "gain_max": (0.0, False, None, False),
     "gain_filter": (0.0, False, 1.0, True), "h_rate_weight": (0.0, True, None, False),
+    "wave_weight": (0.0, True, None, False), "obs_segments": (0, True, None, False),
     # algo
     "num_envs": (1, True, None, False), "num_steps": (1, True, None, False), "update_epochs": (1, True, None, False),
     "num_minibatches": (1, True, None, False), "updates_per_chunk": (1, True, None, False),
@@ -37,15 +38,17 @@ RULES: dict[str, tuple[float | None, bool, float | None, bool]] = {
     # run
     "seed": (0, True, 2**32 - 1, True), "seeds": (1, True, None, False), "total_steps": (1, True, None, False),
     "max_wall_s": (0.0, False, None, False), "stop_patience": (1, True, None, False),
-    "eval_horizon_s": (0.0, False, None, False),
+    "eval_horizon_s": (0.0, False, None, False), "val_horizon_s": (0.0, True, None, False),
+    "val_target": (0.0, False, None, False),
     # grad (gradient-based training)
     "grad_steps": (1, True, None, False), "grad_lr": (0.0, False, None, False),
     "train_horizon_s": (0.0, False, None, False), "record_every": (1, True, None, False),
     "steps_per_chunk": (1, True, None, False), "reward_weight": (0.0, True, None, False),
     "waves_weight": (0.0, True, None, False), "comfort_weight": (0.0, True, None, False),
     "effort_weight": (0.0, True, None, False), "scenario_clip": (0.0, True, None, False),
+    "grad_gain_max": (0.0, False, None, False),
 }
-ALLOW_INF = {"max_wall_s"}  # inf: no wall-clock limit
+ALLOW_INF = {"max_wall_s", "val_target"}  # inf: no wall-clock limit / no validation condition
 PAIR_RULES = {"delay_range": (0.0, None), "alpha_range": (0.0, 1.0), "amp_range": (0.0, None),
               "wavenumber_range": (0, None)}  # (lo bound, hi bound) of LO,HI pairs, with LO <= HI
 
@@ -103,6 +106,8 @@ def _typed(name: str, annotation: str, value: Any) -> Any:
         if value is None:
             return None
         kind = kind[: -len("|None")]
+    if kind.startswith("float|tuple["):  # one value or a fixed-length tuple of them (gain_max)
+        kind = "float" if isinstance(value, numbers.Real) else kind[len("float|"):]
     if kind.startswith("tuple["):
         inner = kind[len("tuple["):-1].split(",")
         if isinstance(value, (str, bytes)) or not hasattr(value, "__len__"):
@@ -112,7 +117,8 @@ def _typed(name: str, annotation: str, value: Any) -> Any:
                 raise _fail(name, value, f"must hold at least one {inner[0]}")
             return tuple(_scalar(name, inner[0], v) for v in value)
         if len(value) != len(inner):
-            raise _fail(name, value, f"must be a pair LO,HI of {inner[0]}s")
+            raise _fail(name, value, f"must be a pair LO,HI of {inner[0]}s" if len(inner) == 2
+                        else f"must be one value or {len(inner)} {inner[0]}s")
         return tuple(_scalar(name, k, v) for k, v in zip(inner, value, strict=True))
     if kind in ("int", "float", "bool", "str"):
         return _scalar(name, kind, value)
@@ -153,7 +159,10 @@ def check_section(section: Any) -> None:
         choices = f.metadata.get("choices")
         if choices and typed not in choices:
             raise _fail(f.name, typed, f"must be one of {tuple(choices)}")
-        if isinstance(typed, tuple):
+        if isinstance(typed, tuple) and f.name in RULES:  # each element in range (gain_max)
+            for x in typed:
+                _check_range(f.name, x)
+        elif isinstance(typed, tuple):
             _check_pair(f.name, typed)
         else:
             _check_range(f.name, typed)

@@ -1,0 +1,142 @@
+"""Validation suite for PPO checkpoints: a few initial conditions x plant delays, long horizon.
+
+Each member's deterministic policy (``control.gain_policy.policy_controller``) is rolled out on every scenario
+of the suite (the cosine initial conditions ``ics`` = (amplitude veh/m, wavenumber, phase rad) x
+the plant delays ``delays`` s; alpha and the rest as the training plant, no noise) for ``steps``
+steps, in one batched ``simulate_batch``. The reference is ``backstepping`` assuming the nominal
+delay on the same scenarios. Per scenario i (rho L2 at half the horizon and at its end, J_comfort
+over the whole horizon):
+
+    s_i = max(L2_half_i / L2_half_ref_i, J_i / (j_slack * J_ref_i))   (scenarios at the nominal delay)
+    s_i = 0                                                             (the other delays)
+
+and ``score = max_i s_i`` (the worst case; smaller is better), set to ``BAD`` when any rollout
+diverged or its density L2 at the end is not below the value at half the horizon (a slow mode
+that grows or does not decay). So the nominal delay measures performance and the other delays
+only stability (backstepping assuming the nominal delay is not a fair bar there: at 3 s it settles
+twice as fast as at 4 s). ``score <= 1`` means: at the nominal delay the density at half the
+horizon is below backstepping's and J_comfort within ``j_slack`` of its, and at every delay the
+plant does not diverge and is still converging.
+
+The trainer's checkpoint selection (below): ``scores`` of one evaluation per member, and the best
+checkpoint kept per member (``new_best``, ``update_best``; saved as best.msgpack by
+``learn.checkpoint``). Not to be confused with ``learn.validate``, which checks config values.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxtraffic.control.baselines import backstepping
+from jaxtraffic.sim.initial import paper_initial_condition
+from jaxtraffic.sim.rollout import simulate_batch
+
+BAD = 1e6
+DEFAULT_ICS = ((0.010, 4.0, 0.0), (0.010, 4.0, math.pi))  # the paper's, and the same shifted by half a wave
+
+
+def scenarios(nominal, delays, ics):
+    """(plants stacked over scenarios, rho0 (S, n), v0 (S, n), labels)."""
+    rows = [(d, ic) for ic in ics for d in delays]
+    plant = nominal.replace(alpha_noise=0.0)
+    init = [paper_initial_condition(plant, a, k, ph) for _, (a, k, ph) in rows]
+    rho0 = jnp.stack([r for r, _ in init])
+    v0 = jnp.stack([v for _, v in init])
+    plants = jax.tree.map(lambda x: jnp.broadcast_to(jnp.asarray(x, float), (len(rows),)), plant)
+    plants = plants.replace(delay=jnp.asarray([d for d, _ in rows], float))
+    labels = [f"D={d:g} amp={a:g} k={k:g} phase={ph:.2f}" for d, (a, k, ph) in rows]
+    return plants, rho0, v0, labels
+
+
+def _half_and_end(res):
+    """(rho L2 at half the horizon, at the end, J_comfort, diverged) of a batched rollout."""
+    return res.trajectory.rho_L2[:, 1], res.metrics["final_rho_L2"], res.metrics["J_comfort"], res.metrics["diverged"]
+
+
+def make_validator(nominal, steps: int, delays, ics=DEFAULT_ICS, j_slack: float = 1.2):
+    """``validate(controller, n_members) -> dict`` of numpy arrays: ``score`` (members,) and the
+    per-scenario ``rho_L2_half``, ``rho_L2_end`` (veh/km), ``J_comfort``, ``ratio`` (members, S).
+    ``controller``: a policy controller whose settings carry a leading member axis."""
+    if steps % 2:
+        raise ValueError("the validation horizon needs an even number of steps")
+    plants, rho0, v0, labels = scenarios(nominal, delays, ics)
+    n_s = len(labels)
+    nominal_delay = np.isclose(np.asarray(plants.delay), float(nominal.delay))
+    ref = simulate_batch(plants, backstepping(float(nominal.delay)), n_steps=steps, rho0=rho0, v0=v0,
+                         nominal=nominal, record_every=steps // 2)
+    ref_half, ref_end, ref_j, ref_div = (np.asarray(x) for x in _half_and_end(ref))
+    if ref_div.any():
+        raise ValueError("backstepping diverged on the validation suite")
+
+    def validate(controller, n_members: int) -> dict:
+        ctrl = jax.tree.map(lambda x: jnp.repeat(x, n_s, axis=0), controller)  # member-major
+        tile = lambda x: jnp.tile(x, (n_members,) + (1,) * (x.ndim - 1))  # noqa: E731
+        res = simulate_batch(jax.tree.map(tile, plants), ctrl, n_steps=steps, rho0=tile(rho0), v0=tile(v0),
+                             nominal=nominal, record_every=steps // 2, batch_controller=True)
+        half, end, jc, div = (np.asarray(x).reshape(n_members, n_s) for x in _half_and_end(res))
+        with np.errstate(invalid="ignore", over="ignore"):
+            ratio = np.maximum(half / ref_half, jc / (j_slack * ref_j))
+            bad = div | ~(end < half) | ~np.isfinite(ratio)
+        ratio = np.where(bad, BAD, np.where(nominal_delay, ratio, 0.0))
+        return {"score": ratio.max(axis=1), "ratio": ratio, "rho_L2_half": half * 1e3, "rho_L2_end": end * 1e3,
+                "J_comfort": jc, "labels": labels}
+
+    validate.reference = {"rho_L2_half": ref_half * 1e3, "rho_L2_end": ref_end * 1e3, "J_comfort": ref_j,
+                          "labels": labels}
+    return validate
+
+
+# ----------------------------------------------------------------------------- checkpoint selection
+UNVALIDATED = 1e7  # score of a checkpoint that failed the cheap rule (not validated); BAD: validated and rejected
+
+
+def validation_delays(env_params) -> tuple[float, ...]:
+    """Plant delays of the suite: the ends of the training range and the nominal delay (s)."""
+    return tuple(sorted({round(float(x), 6) for x in (env_params.delay_min, env_params.traffic.delay,
+                                                      env_params.delay_max)}))
+
+
+def scores(reward: np.ndarray, candidate: np.ndarray, validate, controller) -> np.ndarray:
+    """Per-member score of one evaluation (lower is better): the suite's score of the ``candidate``
+    members (``controller()``: their policy controller with a leading member axis, built only if
+    needed); the others rank below every candidate, by evaluation reward ``reward``. Without a suite
+    (``validate`` None) the evaluation reward ranks the candidates too."""
+    score = UNVALIDATED - np.where(np.isfinite(reward), np.maximum(reward, -1e6), -1e6)
+    if validate is None:
+        return np.where(candidate, -reward, score)
+    if candidate.any():
+        score = np.where(candidate, validate(controller(), len(reward))["score"], score)
+    return score
+
+
+def new_best(params, mean, var) -> dict:
+    """The best-checkpoint record of members that have none yet (score inf)."""
+    n = np.shape(mean)[0]
+    return {"params": params, "mean": np.asarray(mean), "var": np.asarray(var), "score": np.full((n,), np.inf),
+            "env_steps": np.zeros((n,), np.int64)}
+
+
+def update_best(best: dict, score: np.ndarray, env_steps: int, policy) -> dict:
+    """Keep, per member, the checkpoint (params + observation statistics) with the lowest score;
+    ``policy()``: the current (params, mean, var) with a leading member axis, read only if needed."""
+    better = score < best["score"]
+    if not better.any():
+        return best
+    params, mean, var = policy()
+
+    def pick(old, new):
+        mask = better.reshape((-1,) + (1,) * (np.ndim(new) - 1))
+        return np.where(mask, np.asarray(new), np.asarray(old))
+
+    return {"params": jax.tree.map(pick, best["params"], params), "mean": pick(best["mean"], mean),
+            "var": pick(best["var"], var), "score": np.where(better, score, best["score"]),
+            "env_steps": np.where(better, env_steps, best["env_steps"])}
+
+
+def format_scores(score: np.ndarray) -> str:
+    """Scores for a progress line: "-" not validated, "bad" rejected."""
+    return ",".join("-" if x >= UNVALIDATED else "bad" if x >= BAD else f"{x:.2f}" for x in np.asarray(score))

@@ -326,6 +326,6 @@ def test_several_seeds_init_has_no_batched_lapack_call():
     text = jax.jit(lambda ks: ppo._init_seeds(lambda k: ppo._init_seed(cfg, learn_env.GainEnv, ep, 8, k, jnp.int32(0)),
                                               ks)).lower(keys).as_text()
     shapes = re.findall(r"custom_call @lapack_\w+\(.*: \(tensor<([0-9x]+)x[a-z]+[0-9]*>", text)
-    n_in = E.obs_size(ep)  # the first layer's QR is of its kernel or of its transpose, the taller of the two
+    n_in = learn_env.obs_size(ep)  # the first layer's QR is of its kernel or of its transpose, the taller of the two
     assert {f"{max(n_in, 64)}x{min(n_in, 64)}", "64x64", "64x3", "64x1"} <= set(shapes), shapes  # geqrf + orgqr
     assert all(s.count("x") == 1 for s in shapes), shapes

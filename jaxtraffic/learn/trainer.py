@@ -56,8 +56,7 @@ import numpy as np
 from jaxtraffic.control.gain_policy import equilibrium_gains, policy_controller
 from jaxtraffic.learn import checkpoint as ckpt
 from jaxtraffic.learn import env as learn_env
-from jaxtraffic.learn import ppo
-from jaxtraffic.learn import validation
+from jaxtraffic.learn import ppo, validation
 from jaxtraffic.learn.config import RUN_CONTROL, TrainConfig, config_json, load_config
 from jaxtraffic.learn.curve import CURVE_FIELDS, append_curve, plot_learning_curve, write_curve
 from jaxtraffic.learn.metrics_writer import TensorBoardWriter

@@ -8,6 +8,9 @@ Layers (imports flow one way, model <- control <- sim <- learn <- paper <- cli):
     paper/    the paper's scenarios, summaries, claims, report and figures
     cli/      the train and evaluate command lines
 
+Gymnasium: when gymnasium is installed, ``import jaxtraffic`` registers ``"jaxtraffic/Gain-v0"``
+(``jaxtraffic._registration``; the environment module is imported only by ``gymnasium.make``).
+
 Devices: on a CPU-only machine ``import jaxtraffic`` splits the host into one XLA device per core
 (unless XLA_FLAGS already chooses, jax already started, or JAXTRAFFIC_NO_DEVICE_SPLIT=1; see
 ``jaxtraffic._devices``), and the batched entry points shard their batch over ``jax.devices()``.
@@ -20,6 +23,7 @@ Public API (see README.md for a module map):
 """
 
 from jaxtraffic import _devices  # noqa: F401  (first: one XLA CPU device per core, see _devices)
+from jaxtraffic._registration import register_gymnasium
 from jaxtraffic._version import __version__
 from jaxtraffic.control import (
     Controller,
@@ -41,6 +45,8 @@ from jaxtraffic.sim import (
     simulate_batch,
     stack_params,
 )
+
+register_gymnasium()  # gymnasium.make("jaxtraffic/Gain-v0") when gymnasium is installed (_registration)
 
 __all__ = [
     "__version__", "Controller", "Observation", "SimResult", "TrafficParams", "Trajectory", "backstepping",

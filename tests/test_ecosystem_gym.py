@@ -1,11 +1,16 @@
 """jaxtraffic.ecosystem.gym_env / sb3 on a tiny grid: gymnasium's check_env on the single env, the
-batched vector env (same-step autoreset, final observations, seeding), the registered id, the SB3
+batched vector env (same-step autoreset, final observations, seeding), the id registered by plain
+``import jaxtraffic`` (and the module-prefixed id), the SB3
 VecEnv adapter and examples/sb3_ppo.py. Skipped without gymnasium (``pip install -e ".[gym]"``);
 the SB3 tests also need stable-baselines3 (``[sb3]``)."""
 
 from __future__ import annotations
 
 import importlib.util
+import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +19,6 @@ import pytest
 gym = pytest.importorskip("gymnasium")
 from gymnasium.utils.env_checker import check_env  # noqa: E402
 
-import jaxtraffic.ecosystem  # noqa: E402,F401  (registers jaxtraffic/Gain-v0)
 from jaxtraffic.control.gain_policy import feature_size  # noqa: E402
 from jaxtraffic.ecosystem import ENV_ID  # noqa: E402
 from jaxtraffic.ecosystem.gym_env import GainEnv, GainVectorEnv  # noqa: E402
@@ -38,9 +42,39 @@ def test_check_env_and_make():
         obs, r, term, trunc, info = env.step(env.action_space.sample())
         assert isinstance(r, float) and not term and trunc == (t == 9)
     assert np.abs(obs[-3:]).max() > 0  # the episode's last observation (gains applied), not a reset one
-    # the module-prefixed id needs no import of jaxtraffic first
-    other = gym.make("jaxtraffic.ecosystem:" + ENV_ID, **CONFIG)
+    other = gym.make("jaxtraffic:" + ENV_ID, **CONFIG)  # the module-prefixed id
     np.testing.assert_array_equal(other.reset(seed=3)[0], env.reset(seed=3)[0])
+
+
+# a fresh interpreter: gymnasium first, then plain ``import jaxtraffic`` registers the id (lazily:
+# the environment module is imported by make); or the module-prefixed id with no import at all
+FRESH = r"""
+import json, sys
+import gymnasium as gym
+cfg = json.loads(sys.argv[1])
+out = {"before": "jaxtraffic/Gain-v0" in gym.registry}
+if sys.argv[2] == "import":
+    import jaxtraffic
+    out["registered"] = "jaxtraffic/Gain-v0" in gym.registry
+    out["lazy"] = "jaxtraffic.ecosystem.gym_env" not in sys.modules and "jaxtraffic.learn.env" not in sys.modules
+    env = gym.make("jaxtraffic/Gain-v0", **cfg)
+else:
+    env = gym.make("jaxtraffic:jaxtraffic/Gain-v0", **cfg)
+out["cls"] = type(env.unwrapped).__module__ + "." + type(env.unwrapped).__name__
+print("RESULT " + json.dumps(out))
+"""
+
+
+@pytest.mark.parametrize("how", ["import", "prefix"])
+def test_make_after_plain_import_or_with_module_prefix(how):
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]),
+           "JAX_PLATFORMS": "cpu"}
+    out = subprocess.run([sys.executable, "-c", FRESH, json.dumps(CONFIG), how], env=env, capture_output=True,
+                         text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    res = json.loads(next(x for x in out.stdout.splitlines() if x.startswith("RESULT "))[7:])
+    assert res.pop("before") is False and res.pop("cls") == "jaxtraffic.ecosystem.gym_env.GainEnv"
+    assert all(res.values()), res
 
 
 def test_vector_env_same_step_autoreset_and_seeding():

@@ -4,12 +4,13 @@
   gymnax's ``Environment`` for JAX trainers (purejaxrl-style loops, rejax) and gymnax's wrappers.
 * ``ecosystem.gym_env.GainEnv`` / ``GainVectorEnv`` (``[gym]``): a ``gymnasium.Env`` and a batched
   ``gymnasium.vector.VectorEnv`` (one jit-compiled, vmapped step for all environments; numpy in and
-  out), registered as ``"jaxtraffic/Gain-v0"`` when this package is imported::
+  out), registered as ``"jaxtraffic/Gain-v0"`` by ``import jaxtraffic`` when gymnasium is installed
+  (``jaxtraffic._registration``)::
 
-      import gymnasium, jaxtraffic.ecosystem
+      import gymnasium, jaxtraffic
       env = gymnasium.make("jaxtraffic/Gain-v0", n_points=51)
       venv = gymnasium.make_vec("jaxtraffic/Gain-v0", num_envs=256, vectorization_mode="vector_entry_point")
-      # without importing jaxtraffic first: gymnasium.make("jaxtraffic.ecosystem:jaxtraffic/Gain-v0")
+      # without importing jaxtraffic first: gymnasium.make("jaxtraffic:jaxtraffic/Gain-v0")
 
 * ``ecosystem.sb3.SB3VecEnv`` (``[sb3]``): the vector environment as a Stable-Baselines3 ``VecEnv``.
 
@@ -30,15 +31,14 @@ Common to all of them:
 
 from __future__ import annotations
 
-import importlib.util
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 
+from jaxtraffic._registration import ENV_ID, register_gymnasium
 from jaxtraffic.learn import env as E
 
-ENV_ID = "jaxtraffic/Gain-v0"
 N_GAINS = E.GainEnv.action_size
 # a = +-1 would be an infinite pre-tanh action; the largest |a| used is 1 - ACTION_EPS
 ACTION_EPS = 1e-6
@@ -64,19 +64,3 @@ def normalised_to_action(a: jax.Array) -> jax.Array:
     in [-1, 1]^3 (clipped): target gains = gain_max * a, up to float rounding."""
     a = jnp.clip(jnp.asarray(a, jnp.float32), -1.0, 1.0)
     return jnp.arctanh(a * (1.0 - ACTION_EPS))
-
-
-def register_gymnasium() -> bool:
-    """Register ``ENV_ID`` with gymnasium (entry point ``gym_env.GainEnv``, vector entry point
-    ``gym_env.GainVectorEnv``); False when gymnasium is not installed. Idempotent."""
-    if importlib.util.find_spec("gymnasium") is None:
-        return False
-    import gymnasium
-
-    if ENV_ID not in gymnasium.registry:
-        gymnasium.register(ENV_ID, entry_point="jaxtraffic.ecosystem.gym_env:GainEnv",
-                           vector_entry_point="jaxtraffic.ecosystem.gym_env:GainVectorEnv")
-    return True
-
-
-register_gymnasium()

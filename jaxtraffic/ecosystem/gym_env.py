@@ -1,6 +1,6 @@
 """The gain environment for Gymnasium (``pip install jaxtraffic[gym]``): ``GainEnv`` (a
 ``gymnasium.Env``) and ``GainVectorEnv`` (a batched ``gymnasium.vector.VectorEnv``), registered as
-``"jaxtraffic/Gain-v0"`` (entry point and vector entry point) when ``jaxtraffic.ecosystem`` is imported.
+``"jaxtraffic/Gain-v0"`` (entry point and vector entry point) by ``import jaxtraffic``.
 
 Both are numpy in, numpy out, over ``learn.env``'s pure functions:
 

@@ -24,15 +24,17 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 CHECKED = ("jax", "flax", "optax", "chex")  # pinned to their floors; numpy, matplotlib: resolved by pip
 # fast tests that touch every layer: the solver and delay buffer (jax), the environment (flax struct,
-# chex), PPO maths and a short training (optax, flax.linen), the policy round trip
+# chex), PPO maths and a short training (optax, flax.linen), the policy round trip, batches sharded
+# over 1 and 2 devices (jax.shard_map), gradient training (optax.tree, checkpoints)
 TESTS = ["tests/test_solver.py", "tests/test_delay.py", "tests/test_env.py", "tests/test_ppo.py",
-         "tests/test_gain_policy.py"]
+         "tests/test_gain_policy.py", "tests/test_sharding.py", "tests/test_gradient.py"]
 
 
 def dependencies() -> list[str]:
     """The ``[project] dependencies`` of pyproject.toml."""
     text = (REPO / "pyproject.toml").read_text()
-    return re.findall(r'"([^"]+)"', re.search(r"^dependencies = \[(.*?)\]", text, re.S | re.M).group(1))
+    block = re.search(r"^dependencies = \[(.*?)\]", text, re.S | re.M).group(1)
+    return re.findall(r'"([^"]+)"', re.sub(r"#[^\n]*", "", block))  # comments dropped
 
 
 def floors() -> dict[str, str]:

@@ -117,6 +117,23 @@ def test_resume_is_bit_identical(runs):
     assert sa["final_eval"] == sb["final_eval"] and sa["env_steps"] == sb["env_steps"]
 
 
+def test_random_restarts_reinitialise_and_resume_exactly(runs):
+    """Run R never meets its rule: every 2 chunks (``--restart-steps``) its member is re-initialised
+    from a new key (the observation statistics start afresh, the learning curve jumps), not at the
+    run's last chunk; the same run interrupted after 3 chunks and resumed restarts at the same steps
+    and ends bit-identical (checkpoint, best checkpoint, curve)."""
+    r, half = runs["R"], runs["R_half"]
+    summary = json.loads((r / "summary.json").read_text())
+    assert summary["restarts"] == [{"env_steps": 2 * CHUNK, "members": [0]}, {"env_steps": 4 * CHUNK, "members": [0]}]
+    assert [int(row["restarts"]) for row in _rows(r)] == [0, 1, 1, 2, 2, 2]
+    state_r, meta_r = ckpt.load_checkpoint(r)
+    state_h, meta_h = ckpt.load_checkpoint(half)
+    assert _leaves_equal(state_r, state_h) and _leaves_equal(ckpt.load_best(r), ckpt.load_best(half))
+    assert _no_wall(_rows(r)) == _no_wall(_rows(half)) and meta_r["restarts"] == meta_h["restarts"]
+    assert meta_r["member_start_steps"] == [4 * CHUNK]
+    assert int(np.asarray(state_r["update"]).max()) == 2 * 2  # 2 chunks x 2 updates since the last restart
+
+
 def test_ctrl_c_saves_and_resume_loses_nothing(runs):
     a, i = runs["A"], runs["I"]
     first = runs["I_first_summary"]

@@ -41,7 +41,7 @@ TINY = ["--n-points", "21", "--delay", "0.5", "--max-delay-steps", "20", "--num-
         "--updates-per-chunk", "2", "--update-epochs", "2", "--num-minibatches", "2", "--horizon-s", "3",
         "--eval-horizon-s", "2", "--val-horizon-s", "2", "--quiet"]
 CHUNK = 4 * 8 * 2  # env steps per chunk
-RUNS = ("A", "B", "I", "C", "S", "W")
+RUNS = ("A", "B", "I", "C", "S", "W", "R", "R_half")
 GRADIENT_ROOT = "runs"  # root/runs/gradient-gains: the tiny gradient-trained run (evaluate.py --runs-root)
 
 
@@ -78,7 +78,8 @@ def train_runs(root: Path) -> None:
     A: one go; B: 2 chunks, then --resume to 4; I: Ctrl-C before chunk 3, then --resume;
     C: seed 1, 1 chunk; S: the paper's rule alone (--min-wave-speed=-inf, no validation target), always
     met (target -1e9), patience 2, no --keep-going;
-    W: like S, but the rule also asks for a wave speed no policy has (--min-wave-speed 1e9).
+    W: like S, but the rule also asks for a wave speed no policy has (--min-wave-speed 1e9);
+    R: a rule never met, random restarts every 2 chunks, 6 chunks; R_half: R's first 3 chunks, then --resume.
     Also compares, right after A, the in-memory policy with ``load_policy(A)``, and trains the tiny
     gradient run ``GRADIENT_ROOT/gradient-gains`` that test_evaluate.py evaluates beside A."""
     shared = SharedCompile(ppo.make_train)
@@ -107,6 +108,11 @@ def train_runs(root: Path) -> None:
     _cli(root / "S", "--total-steps", str(6 * CHUNK), "--target-reward=-1e9", "--min-wave-speed=-inf",
          "--val-target", "inf", "--stop-patience", "2")
     _cli(root / "W", "--total-steps", str(3 * CHUNK), "--target-reward=-1e9", "--min-wave-speed", "1e9")
+    # R: random restarts every 2 chunks (the rule is never met); R_half: its first 3 chunks, then --resume
+    restart = ["--target-reward=1e9", "--restart-steps", str(2 * CHUNK)]
+    _cli(root / "R", "--total-steps", str(6 * CHUNK), *restart)
+    _cli(root / "R_half", "--total-steps", str(3 * CHUNK), *restart)
+    train_cli.main(["--out-dir", str(root / "R_half"), "--resume", "--total-steps", str(6 * CHUNK), "--quiet"])
     write_json(root / "done.json", {"compiled_programs": len(shared.cache)})
 
 

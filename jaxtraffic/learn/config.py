@@ -180,6 +180,9 @@ class RunConfig:
                                       "paper's rule alone")
     stop_patience: int = _f(1, "consecutive evaluations that must meet the stop rule (per population member) "
                             "before stopping")
+    restart_steps: int = _f(1_500_000, "a member that has not met the stop rule within this many env steps of its "
+                            "start is re-initialised from a new key (network, optimiser, environments, observation "
+                            "statistics; its best checkpoint is kept); 0: never (also with --keep-going)")
     val_horizon_s: float = _f(600.0, "validation suite (learn.validation): every member's deterministic policy from "
                               "two initial conditions x the plant delays at the ends and the middle of the training "
                               "range, over this many seconds, scored against backstepping; the best-scoring "
@@ -199,7 +202,7 @@ RUN_CONTROL = ("out_dir", "total_steps", "max_wall_s", "keep_going", "resume", "
                "target_reward", "min_wave_speed", "tensorboard", "val_target")
 # fields absent from a run's config.json because it was written before they existed: their value then
 # (the run is loaded and resumed as it was trained, not with today's defaults)
-BEFORE_FIELD = {"obs_segments": 0, "wave_weight": 0.0, "val_horizon_s": 0.0}
+BEFORE_FIELD = {"obs_segments": 0, "wave_weight": 0.0, "val_horizon_s": 0.0, "restart_steps": 0}
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,7 @@ from jaxtraffic.sim.metrics import REWARD_TARGET  # noqa: E402
 DPI = 110
 CURVE_FIELDS = ["update", "env_steps", "wall_s", "mean_reward", "eval_reward", "eval_reward_min",
                 "eval_J_comfort", "eval_rho_L2_veh_km", "eval_wave_speed", "val_score", "best_val_score", "eta1",
-                "eta2", "eta3", "entropy", "approx_kl", "value_loss"]
+                "eta2", "eta3", "entropy", "approx_kl", "value_loss", "restarts"]
 # columns renamed since: old name -> new name (rows of a resumed older run, older CSV files)
 RENAMED_FIELDS = {"eval_rho_L2": "eval_rho_L2_veh_km"}
 

@@ -28,15 +28,8 @@ from jaxtraffic.learn import checkpoint as ckpt
 from jaxtraffic.learn import gradient as G
 from jaxtraffic.learn.config import RUN_CONTROL, TrainConfig, config_json, load_config
 from jaxtraffic.learn.curve import plot_learning_curve, write_curve
-from jaxtraffic.learn.trainer import (
-    StopSignals,
-    TrainingInterrupted,
-    _fmt_time,
-    check_out_dir,
-    check_resumable,
-    open_run_dir,
-    report_interruption,
-)
+from jaxtraffic.learn.signals import StopSignals, TrainingInterrupted, report_interruption
+from jaxtraffic.learn.trainer import _fmt_time, check_out_dir, check_resumable, open_run_dir
 from jaxtraffic.model.linear import gain_law_wave_speed, linearize
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.provenance import provenance

@@ -24,6 +24,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from flax import struct
 
@@ -369,6 +370,20 @@ def make_train(cfg: PPOConfig, env_params: Any, devices: list | None = None, *, 
         return runner, jax.tree.map(lambda x: x[0], metrics)
 
     return init, train_chunk
+
+
+def restart_members(runner: Runner, fresh: Runner, members: np.ndarray) -> Runner:
+    """``runner`` with the seeds (members) where ``members`` (shape (num_seeds,), bool) is True
+    replaced by those of ``fresh`` (e.g. ``init`` of a new key): network, optimiser state,
+    environments, observation statistics, key and update count. Leaves keep ``runner``'s placement."""
+    members = np.asarray(members, bool)
+
+    def pick(old, new):
+        old_h, new_h = np.asarray(jax.device_get(old)), np.asarray(jax.device_get(new))
+        mask = members.reshape((1, -1) + (1,) * (old_h.ndim - 2))  # (device, seed, ...)
+        return jax.device_put(np.where(mask, new_h, old_h), old.sharding)
+
+    return jax.tree.map(pick, runner, fresh)
 
 
 def replicated(runner: Runner):

@@ -43,8 +43,6 @@ import functools
 import math
 import os
 import signal
-import sys
-import threading
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -60,6 +58,7 @@ from jaxtraffic.learn import ppo, validation
 from jaxtraffic.learn.config import RUN_CONTROL, TrainConfig, config_json, load_config
 from jaxtraffic.learn.curve import CURVE_FIELDS, append_curve, plot_learning_curve, write_curve
 from jaxtraffic.learn.metrics_writer import TensorBoardWriter
+from jaxtraffic.learn.signals import StopSignals, TrainingInterrupted, report_interruption
 from jaxtraffic.learn.validate import check_devices
 from jaxtraffic.model.linear import gain_law_wave_speed, linearize
 from jaxtraffic.provenance import provenance
@@ -68,46 +67,6 @@ from jaxtraffic.sim.metrics import VEH_PER_KM
 from jaxtraffic.sim.rollout import simulate_batch
 
 __all__ = ["CURVE_FIELDS", "TrainConfig", "TrainingInterrupted", "build", "config_dict", "make_evaluator", "train"]
-
-
-class TrainingInterrupted(KeyboardInterrupt):
-    """Training stopped by SIGINT/SIGTERM (or a KeyboardInterrupt) after saving what it could;
-    ``exit_code`` is 128 + the signal number (130 for SIGINT, 143 for SIGTERM)."""
-
-    def __init__(self, signum: int, message: str):
-        super().__init__(message)
-        self.signum, self.exit_code, self.message = signum, 128 + signum, message
-
-
-class StopSignals:
-    """While active (main thread only), SIGINT and SIGTERM set ``signum`` instead of raising inside
-    XLA; a second one exits at once (exit 128 + signal, nothing more is written). The previous
-    handlers are restored on exit."""
-
-    SIGNALS = (signal.SIGINT, signal.SIGTERM)
-
-    def __init__(self, say):
-        self.signum: int | None = None
-        self.say, self.old = say, {}
-
-    def _handle(self, signum, frame):
-        if self.signum is not None:
-            print(f"\n{signal.Signals(signum).name} again: exiting now without saving", file=sys.stderr, flush=True)
-            os._exit(128 + signum)
-        self.signum = signum
-        print(f"\n{signal.Signals(signum).name} received: stopping after the current chunk (send it again to "
-              "quit without saving)", file=sys.stderr, flush=True)
-
-    def __enter__(self):
-        if threading.current_thread() is threading.main_thread():
-            for sig in self.SIGNALS:
-                self.old[sig] = signal.signal(sig, self._handle)
-        return self
-
-    def __exit__(self, *exc):
-        for sig, handler in self.old.items():
-            signal.signal(sig, handler)
-        return False
 
 
 def check_out_dir(run_dir: Path) -> None:
@@ -189,6 +148,30 @@ def make_evaluator(cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, eval_ste
     return evaluate
 
 
+def _maybe_restart(s: TrainConfig, meta: dict, ok: np.ndarray, runner, init, say):
+    """Random restarts: re-initialise every member that has not met the stop rule (``ok``) within
+    ``run.restart_steps`` env steps of its (re)start, from the key ``fold_in(seed key, restart
+    number)``; the best checkpoints are kept. Bookkeeping in ``meta`` (saved with the checkpoint,
+    so a resumed run restarts exactly where an uninterrupted one would): ``member_start_steps``,
+    ``member_met``, ``restarts`` (one ``{"env_steps", "members"}`` entry per restart)."""
+    n = ok.shape[0]
+    start = np.asarray(meta.get("member_start_steps", [0] * n))
+    met = np.asarray(meta.get("member_met", [False] * n)) | ok
+    due = (~met) & (meta["env_steps"] - start >= s.run.restart_steps)
+    if (not s.run.restart_steps or s.run.keep_going or meta["stopped"] or meta["env_steps"] >= s.run.total_steps
+            or not due.any()):
+        meta["member_start_steps"], meta["member_met"] = start.tolist(), met.tolist()
+        return runner
+    restarts = meta.setdefault("restarts", [])
+    restarts.append({"env_steps": meta["env_steps"], "members": np.flatnonzero(due).tolist()})
+    fresh = init(jax.random.fold_in(jax.random.PRNGKey(s.run.seed), len(restarts)))
+    meta["member_start_steps"] = np.where(due, meta["env_steps"], start).tolist()
+    meta["member_met"] = np.where(due, False, met).tolist()
+    say(f"restart {len(restarts)}: member(s) {restarts[-1]['members']} re-initialised (stop rule not met within "
+        f"{s.run.restart_steps} env steps of their start; best checkpoints kept)")
+    return ppo.restart_members(runner, fresh, due)
+
+
 def _plot_curve(run_dir: Path) -> None:
     plot_learning_curve(run_dir / "learning_curve.csv", run_dir / "learning_curve.png")
 
@@ -215,25 +198,6 @@ def check_resumable(run_dir: Path) -> None:
     if not (run_dir / ckpt.CONFIG).exists():
         raise ValueError(f"--resume: {run_dir / ckpt.CONFIG} is missing (the checkpoint alone does not say how it "
                          "was trained)")
-
-
-def report_interruption(signum: int, run_dir: Path, any_chunk: bool, new_chunk: bool, progress: str) -> str:
-    """Say what an interruption left on disk and return the message; raise ``TrainingInterrupted``
-    if it left nothing new (otherwise the caller writes its summary first, then raises it)."""
-    name = signal.Signals(signum).name
-    if not any_chunk:
-        msg = (f"interrupted ({name}) before the first chunk completed: no checkpoint exists yet (only config.json "
-               f"in {run_dir}); run again without --resume")
-    elif not new_chunk:
-        msg = (f"interrupted ({name}) before a new chunk completed: the checkpoint at {progress} in {run_dir} is "
-               "unchanged; continue with --resume")
-    else:
-        msg = (f"interrupted ({name}): the checkpoint of the last completed chunk ({progress}) is saved in "
-               f"{run_dir}; continue with --resume")
-    print(msg, file=sys.stderr, flush=True)
-    if not any_chunk or not new_chunk:
-        raise TrainingInterrupted(signum, msg)
-    return msg
 
 
 def open_run_dir(run_dir: Path, say) -> None:
@@ -346,8 +310,6 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
             row.update({k: float(m[k][:, -1].mean()) for k in ("eta1", "eta2", "eta3", "entropy", "approx_kl",
                                                                "value_loss")})
             meta["rows"].append(row)
-            for callback in callbacks:
-                callback(row)
             if bool(paper.any()) and meta.get("seconds_to_paper_rule") is None:
                 meta["seconds_to_paper_rule"] = meta["wall_s"]
                 meta["env_steps_to_paper_rule"] = meta["env_steps"]
@@ -363,6 +325,8 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
             if meta["streak"] >= s.run.stop_patience and not s.run.keep_going:
                 meta["stopped"] = True
                 meta["stop_member"] = int(np.argmax(streak))
+            runner = _maybe_restart(s, meta, ok, runner, init, say)
+            row["restarts"] = len(meta.get("restarts", []))
             now = time.perf_counter()
             if rate_from is None:  # the first chunk compiles: no rate yet
                 rate, rate_from = math.nan, (now, meta["env_steps"])
@@ -378,6 +342,8 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
             ckpt.save_checkpoint(run_dir, runner, meta)
             ckpt.save_best(run_dir, best)
             append_curve(curve_csv, row)
+            for callback in callbacks:
+                callback(row)
             if meta["wall_s"] > s.run.max_wall_s:
                 say(f"stopping: wall-clock budget {s.run.max_wall_s:g} s reached")
                 break
@@ -410,6 +376,7 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
         "target_reward": s.run.target_reward, "interrupted": interrupted,
         "best_seed": best_member,
         "best_val_score": best["score"], "best_env_steps": best["env_steps"],
+        "restarts": meta.get("restarts", []),
         "validation": None if validate is None else {"delays": validation.validation_delays(env_params),
                                                      "horizon_s": s.run.val_horizon_s, "target": s.run.val_target,
                                                      "reference": validate.reference},

@@ -20,6 +20,12 @@ from pathlib import Path
 # so that its figures do not depend on the machine's core count; the multi-device paths are tested
 # in subprocesses that set their device count explicitly (tests/test_sharding.py, test_train.py).
 os.environ.setdefault("JAXTRAFFIC_NO_DEVICE_SPLIT", "1")
+# XLA's backend (LLVM) optimisation off in the test process unless XLA_FLAGS already chooses a level:
+# it roughly halves compile time, which dominates these tiny-grid tests (-23 % CPU time measured on
+# test_baselines + test_delay); the computed maths is the same programs' (comparisons are between
+# programs of the same process). The training subprocesses of tiny_runs.py use it too.
+if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
 
 import jax  # noqa: E402
 import jax.numpy as jnp

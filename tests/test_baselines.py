@@ -246,6 +246,7 @@ def test_delay_four_seconds_lyapunov_vs_predictor_small_grid():
     assert m["final_reward"][0] < 10 * m["final_reward"][1], m
 
 
+@pytest.mark.slow
 def test_recursive_predictor_matches_exact_one():
     """backstepping(recursive=True): bit for bit the exact controller for D_ctrl = 0, the exact
     prediction to float32 rounding on the linear plant (innovations are rounding), and the same

@@ -18,6 +18,7 @@ TINY = {"n_points": 21, "delay": 0.5, "max_delay_steps": 20, "num_envs": 4, "num
 CHUNK = 4 * 8 * 2
 
 
+@pytest.mark.slow
 def test_callbacks_csv_progress_and_tensorboard(tmp_path, capsys):
     has_tb = importlib.util.find_spec("tensorboardX") is not None
     seen: list[dict] = []

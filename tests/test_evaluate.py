@@ -33,6 +33,7 @@ def _walk_numbers(obj):
         yield obj
 
 
+@pytest.mark.slow
 def test_evaluate_end_to_end(tiny_run, tmp_path):
     out = tmp_path / "results"
     # the tiny gradient-trained gains run is where evaluate.py looks for it (the other gradient runs are absent)

@@ -8,6 +8,7 @@ import json
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from conftest import SMALL
 
 from jaxtraffic import TrafficParams, simulate
@@ -64,6 +65,7 @@ def test_a_few_steps_lower_the_objective():
     assert int(state.update) == 4
 
 
+@pytest.mark.slow
 def test_network_run_lowers_objective_round_trips_and_resumes_exactly(tmp_path):
     tc = TrainConfig.from_flat(algo="gradient", policy="network", out_dir=str(tmp_path / "a"), delay=2.0,
                                n_points=SMALL["n_points"], dt=SMALL["dt"], train_delays=(2.0,), train_horizon_s=30.0,

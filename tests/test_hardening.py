@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from tiny_runs import xla_env
 
 import jaxtraffic as jt
 from jaxtraffic import TrafficParams
@@ -306,8 +307,7 @@ def test_resume_refuses_a_directory_without_checkpoint(tmp_path, capsys):
 
 # ----------------------------------------------------------------------------- the trainings
 def _env() -> dict:
-    flags = " ".join(filter(None, [os.environ.get("XLA_FLAGS", ""), "--xla_backend_optimization_level=0"]))
-    return {**os.environ, "XLA_FLAGS": flags, "JAX_PLATFORMS": "cpu", "PYTHONPATH": str(REPO)}
+    return xla_env(PYTHONPATH=str(REPO))
 
 
 def _start(out: Path, *extra: str, env: dict | None = None, quiet: bool = True) -> subprocess.Popen:
@@ -377,6 +377,7 @@ def ref_run(procs):
     return procs["root"] / "ref"
 
 
+@pytest.mark.slow
 def test_sigint_during_the_first_compile(procs):
     rc, stdout, err = _finish(procs["early"])
     assert rc == 130, (rc, err[-2000:])  # not 139 (segfault), not 0
@@ -385,6 +386,7 @@ def test_sigint_during_the_first_compile(procs):
     assert not (procs["root"] / "early" / ckpt.CHECKPOINT).exists()
 
 
+@pytest.mark.slow
 def test_sigterm_saves_a_checkpoint_and_exits_143(procs):
     term = procs["root"] / "term"
     assert _wait_for(term / ckpt.CHECKPOINT, procs["term"]), procs["term"].communicate()[1][-2000:]
@@ -411,6 +413,7 @@ def _rows(run: Path) -> list[list[str]]:
     return [[x for i, x in enumerate(line.split(",")) if i != wall] for line in lines]
 
 
+@pytest.mark.slow
 def test_sigkill_at_random_points_then_resume_is_bit_identical(procs, ref_run):
     rng = random.Random(int(os.environ.get("HARDENING_SEED", time.time_ns() % 10_000)))
     run = procs["root"] / "killed"
@@ -443,6 +446,7 @@ def test_sigkill_at_random_points_then_resume_is_bit_identical(procs, ref_run):
     assert not list(run.glob(".*.tmp"))
 
 
+@pytest.mark.slow
 def test_run_directory_files_are_0644(ref_run):
     for name in (ckpt.CONFIG, ckpt.CHECKPOINT, ckpt.SUMMARY, "learning_curve.csv"):
         assert stat.S_IMODE((ref_run / name).stat().st_mode) == 0o644, name  # the test process umask is 022
@@ -507,6 +511,7 @@ BROKEN = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", sorted(BROKEN))
 def test_broken_run_directory_gives_one_line_errors(case, ref_run, tmp_path, capsys):
     run = _copy(ref_run, tmp_path)
@@ -526,6 +531,7 @@ def test_broken_run_directory_gives_one_line_errors(case, ref_run, tmp_path, cap
         assert exc.value.code == 2 and match in err and "Traceback" not in err, err
 
 
+@pytest.mark.slow
 def test_restore_rejects_mismatching_shapes(ref_run):
     state, _ = ckpt.load_checkpoint(ref_run)
     template = jax.tree.map(lambda x: np.zeros_like(x), state)
@@ -534,6 +540,7 @@ def test_restore_rejects_mismatching_shapes(ref_run):
         ckpt.restore_runner(template, state, "x/checkpoint.msgpack")
 
 
+@pytest.mark.slow
 def test_resume_with_another_device_count_explains(ref_run, tmp_path):
     run = _copy(ref_run, tmp_path)
     env = _env()
@@ -545,6 +552,7 @@ def test_resume_with_another_device_count_explains(ref_run, tmp_path):
     assert "xla_force_host_platform_device_count=1" in proc.stderr and "Traceback" not in proc.stderr
 
 
+@pytest.mark.slow
 def test_resume_warns_about_ignored_flags(ref_run, capsys):
     cfg = load_config(ref_run).replace(lr=0.5, seeds=3, total_steps=7 * CHUNK, out_dir=str(ref_run), resume=True)
     train_cli.warn_ignored_on_resume(cfg, {"lr": 0.5, "seeds": 3, "total_steps": 7 * CHUNK, "n_points": 21})

@@ -295,6 +295,7 @@ print("RESULT " + json.dumps({"shape": list(m["mean_reward"].shape),
 """
 
 
+@pytest.mark.slow
 def test_several_seeds_do_not_hang():
     """Two seeds, the default (64, 64) networks: ``init`` and one chunk finish .
     Under ``vmap`` the orthogonal initialisers were batched LAPACK QRs, which jaxlib 0.10 splits

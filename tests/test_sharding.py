@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from jaxtraffic import _devices
 
@@ -60,6 +61,7 @@ def _child(env_extra: dict) -> dict:
     return json.loads(next(x for x in out.stdout.splitlines() if x.startswith("RESULT "))[7:])
 
 
+@pytest.mark.slow
 def test_batch_independent_of_device_count():
     one = _child({"JAXTRAFFIC_NO_DEVICE_SPLIT": "1"})
     two = _child({"XLA_FLAGS": "--xla_force_host_platform_device_count=2"})  # 5 envs: padded to 6

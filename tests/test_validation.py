@@ -5,6 +5,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from jaxtraffic.control.baselines import backstepping, open_loop
 from jaxtraffic.learn.validation import BAD, make_validator
@@ -13,6 +14,7 @@ from jaxtraffic.model.params import TrafficParams
 TP = TrafficParams(n_points=21, delay=0.5)
 
 
+@pytest.mark.slow
 def test_validation_score_of_the_reference_and_of_the_open_loop():
     """``make_validator``: backstepping scored against itself gives exactly 1 (its L2 ratio is 1, its
     J_comfort ratio 1 / 1.2); the open loop, which does not converge, is rejected (BAD)."""

@@ -149,8 +149,10 @@ def _round_trip(run: Path, runner) -> dict:
 
 
 def xla_env(**extra) -> dict:
-    flags = " ".join(filter(None, [os.environ.get("XLA_FLAGS", ""), "--xla_backend_optimization_level=0",
-                                   *extra.pop("flags", [])]))
+    """The environment of a training subprocess: CPU, unoptimised XLA backend, ``flags`` added to XLA_FLAGS."""
+    base = os.environ.get("XLA_FLAGS", "")
+    opt = "" if "xla_backend_optimization_level" in base else "--xla_backend_optimization_level=0"
+    flags = " ".join(filter(None, [base, opt, *extra.pop("flags", [])]))
     return {**os.environ, "XLA_FLAGS": flags, "JAX_PLATFORMS": "cpu", **extra}
 
 

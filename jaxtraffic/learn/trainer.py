@@ -332,7 +332,7 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
                 rate, rate_from = math.nan, (now, meta["env_steps"])
             else:
                 rate = (meta["env_steps"] - rate_from[1]) / max(1e-9, now - rate_from[0])
-            eta = (s.run.total_steps - meta["env_steps"]) / rate if rate > 0 else math.nan
+            eta = max(0, s.run.total_steps - meta["env_steps"]) / rate if rate > 0 else math.nan
             rate_txt = f"{rate:8.0f}" if math.isfinite(rate) else "       ?"
             say(f"[{meta['env_steps']:>9d} steps] {rate_txt} steps/s | reward {row['mean_reward']:9.3f} | "
                 f"eval {row['eval_reward']:9.4f} (min {row['eval_reward_min']:.4f}) | gains "

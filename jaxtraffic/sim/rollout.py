@@ -209,6 +209,12 @@ def simulate(
         noise: how the alpha noise is drawn and whether the controller sees it (``NoiseReading``;
             default: one road-wide draw per step, plant only).
     """
+    _check_rollout_args(params, n_steps, rho0, v0, nominal, record_every, remat)
+    return _simulate_jit(params, controller, rho0, v0, key, nominal, int(n_steps), int(record_every), remat, noise)
+
+
+def _check_rollout_args(params, n_steps, rho0, v0, nominal, record_every: int, remat: bool) -> None:
+    """The argument checks ``simulate`` and ``simulate_batch`` share (ValueError with the reason)."""
     if remat and not record_every:
         raise ValueError("remat needs record_every > 0 (the checkpointed chunk length)")
     if (rho0 is None) != (v0 is None):
@@ -216,7 +222,6 @@ def simulate(
     check_steps(n_steps, record_every)
     check_nominal(params, nominal)
     _check_initial_condition(params, rho0, v0)
-    return _simulate_jit(params, controller, rho0, v0, key, nominal, int(n_steps), int(record_every), remat, noise)
 
 
 def simulate_batch(
@@ -244,19 +249,13 @@ def simulate_batch(
     differentiation (``jax.checkpoint``), so that the memory of a gradient grows with
     n_steps / record_every + record_every steps instead of n_steps. Values are unchanged.
     """
-    if remat and not record_every:
-        raise ValueError("remat needs record_every > 0 (the checkpointed chunk length)")
     p_axis = 0 if jnp.ndim(jax.tree_util.tree_leaves(params)[0]) == 1 else None
     r_axis = 0 if rho0 is not None and jnp.ndim(rho0) == 2 else None
     k_axis = 0 if keys is not None and jnp.ndim(keys) == 2 else None
     c_axis = 0 if batch_controller else None
     if (p_axis, r_axis, k_axis, c_axis) == (None,) * 4:
         raise ValueError("simulate_batch: nothing is batched; use simulate")
-    if (rho0 is None) != (v0 is None):
-        raise ValueError("give both rho0 and v0, or neither")
-    check_steps(n_steps, record_every)
-    check_nominal(params, nominal)
-    _check_initial_condition(params, rho0, v0)
+    _check_rollout_args(params, n_steps, rho0, v0, nominal, record_every, remat)
     return _simulate_batch_jit(params, controller, rho0, v0, keys, nominal, int(n_steps), int(record_every),
                                (p_axis, c_axis, r_axis, r_axis, k_axis), chunk_size or 0, remat, noise)
 

@@ -299,7 +299,7 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
     best = validation.new_best(*policy())
     if state is not None:
         meta = saved_meta
-        # place every leaf like the fresh runner's (pmap-sharded): uncommitted arrays would recompile
+        # place every leaf like the fresh runner's (sharded over the mesh): uncommitted arrays would recompile
         restored = ckpt.restore_runner(runner, state, run_dir / ckpt.CHECKPOINT)
         runner = jax.tree.map(lambda t, x: jax.device_put(x, t.sharding), runner, restored)
         saved_best = ckpt.load_best(run_dir)

@@ -41,10 +41,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-import os
 import signal
-import sys
-import threading
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -60,6 +57,15 @@ from jaxtraffic.learn import ppo, validation
 from jaxtraffic.learn.config import RUN_CONTROL, TrainConfig, config_json, load_config
 from jaxtraffic.learn.curve import CURVE_FIELDS, append_curve, plot_learning_curve, write_curve
 from jaxtraffic.learn.metrics_writer import TensorBoardWriter
+from jaxtraffic.learn.session import (
+    StopSignals,
+    TrainingInterrupted,
+    check_out_dir,
+    check_resumable,
+    fmt_time,
+    open_run_dir,
+    report_interruption,
+)
 from jaxtraffic.learn.validate import check_devices
 from jaxtraffic.model.linear import gain_law_wave_speed, linearize
 from jaxtraffic.provenance import provenance
@@ -67,60 +73,8 @@ from jaxtraffic.sim.initial import paper_initial_condition
 from jaxtraffic.sim.metrics import VEH_PER_KM
 from jaxtraffic.sim.rollout import simulate_batch
 
-__all__ = ["CURVE_FIELDS", "TrainConfig", "TrainingInterrupted", "build", "config_dict", "make_evaluator", "train"]
-
-
-class TrainingInterrupted(KeyboardInterrupt):
-    """Training stopped by SIGINT/SIGTERM (or a KeyboardInterrupt) after saving what it could;
-    ``exit_code`` is 128 + the signal number (130 for SIGINT, 143 for SIGTERM)."""
-
-    def __init__(self, signum: int, message: str):
-        super().__init__(message)
-        self.signum, self.exit_code, self.message = signum, 128 + signum, message
-
-
-class StopSignals:
-    """While active (main thread only), SIGINT and SIGTERM set ``signum`` instead of raising inside
-    XLA; a second one exits at once (exit 128 + signal, nothing more is written). The previous
-    handlers are restored on exit."""
-
-    SIGNALS = (signal.SIGINT, signal.SIGTERM)
-
-    def __init__(self, say):
-        self.signum: int | None = None
-        self.say, self.old = say, {}
-
-    def _handle(self, signum, frame):
-        if self.signum is not None:
-            print(f"\n{signal.Signals(signum).name} again: exiting now without saving", file=sys.stderr, flush=True)
-            os._exit(128 + signum)
-        self.signum = signum
-        print(f"\n{signal.Signals(signum).name} received: stopping after the current chunk (send it again to "
-              "quit without saving)", file=sys.stderr, flush=True)
-
-    def __enter__(self):
-        if threading.current_thread() is threading.main_thread():
-            for sig in self.SIGNALS:
-                self.old[sig] = signal.signal(sig, self._handle)
-        return self
-
-    def __exit__(self, *exc):
-        for sig, handler in self.old.items():
-            signal.signal(sig, handler)
-        return False
-
-
-def check_out_dir(run_dir: Path) -> None:
-    """``ValueError`` unless ``run_dir`` is (or can be created as) a writable directory."""
-    if run_dir.exists() and not run_dir.is_dir():
-        raise ValueError(f"--out-dir {run_dir}: exists and is not a directory")
-    parent = run_dir
-    while not parent.exists():
-        parent = parent.parent
-    if not parent.is_dir():
-        raise ValueError(f"--out-dir {run_dir}: {parent} is a file, not a directory")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise ValueError(f"--out-dir {run_dir}: {parent} is not writable")
+__all__ = ["CURVE_FIELDS", "StopSignals", "TrainConfig", "TrainingInterrupted", "build", "check_resumable",
+           "config_dict", "make_evaluator", "train"]
 
 
 def build(s: TrainConfig) -> tuple[ppo.PPOConfig, learn_env.EnvParams]:
@@ -193,58 +147,10 @@ def _plot_curve(run_dir: Path) -> None:
     plot_learning_curve(run_dir / "learning_curve.csv", run_dir / "learning_curve.png")
 
 
-def _fmt_time(sec: float) -> str:
-    if not math.isfinite(sec):
-        return "?"
-    m, s = divmod(int(sec), 60)
-    return f"{m}m{s:02d}s"
-
-
 def _config_for_resume(s: TrainConfig, run_dir: Path) -> TrainConfig:
     """The run's saved config, with only the run-control fields (``config.RUN_CONTROL``) taken from ``s``."""
     flat = s.flat()
     return load_config(run_dir).replace(**{k: flat[k] for k in RUN_CONTROL})
-
-
-def check_resumable(run_dir: Path) -> None:
-    """``ValueError`` unless ``run_dir`` holds a config.json and a checkpoint to resume from."""
-    if not (run_dir / ckpt.CHECKPOINT).exists():
-        why = ("it has a config.json but no checkpoint: the run was stopped before its first chunk completed"
-               if (run_dir / ckpt.CONFIG).exists() else "it is not a run directory (no config.json, no checkpoint)")
-        raise ValueError(f"--resume: nothing to resume in {run_dir}: {why}; run without --resume to start afresh")
-    if not (run_dir / ckpt.CONFIG).exists():
-        raise ValueError(f"--resume: {run_dir / ckpt.CONFIG} is missing (the checkpoint alone does not say how it "
-                         "was trained)")
-
-
-def report_interruption(signum: int, run_dir: Path, any_chunk: bool, new_chunk: bool, progress: str) -> str:
-    """Say what an interruption left on disk and return the message; raise ``TrainingInterrupted``
-    if it left nothing new (otherwise the caller writes its summary first, then raises it)."""
-    name = signal.Signals(signum).name
-    if not any_chunk:
-        msg = (f"interrupted ({name}) before the first chunk completed: no checkpoint exists yet (only config.json "
-               f"in {run_dir}); run again without --resume")
-    elif not new_chunk:
-        msg = (f"interrupted ({name}) before a new chunk completed: the checkpoint at {progress} in {run_dir} is "
-               "unchanged; continue with --resume")
-    else:
-        msg = (f"interrupted ({name}): the checkpoint of the last completed chunk ({progress}) is saved in "
-               f"{run_dir}; continue with --resume")
-    print(msg, file=sys.stderr, flush=True)
-    if not any_chunk or not new_chunk:
-        raise TrainingInterrupted(signum, msg)
-    return msg
-
-
-def open_run_dir(run_dir: Path, say) -> None:
-    """Create the run directory (clear error if impossible) and remove stale temporary files."""
-    try:
-        run_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise ValueError(f"--out-dir {run_dir}: cannot create it ({err.strerror})") from None
-    stale = ckpt.clean_stale_tmp(run_dir)
-    if stale:
-        say(f"removed {len(stale)} temporary file(s) left by an interrupted write: {', '.join(p.name for p in stale)}")
 
 
 def train(s: TrainConfig, callbacks: Sequence[Callable[[dict], None]] = ()) -> Path:
@@ -373,8 +279,8 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
             say(f"[{meta['env_steps']:>9d} steps] {rate_txt} steps/s | reward {row['mean_reward']:9.3f} | "
                 f"eval {row['eval_reward']:9.4f} (min {row['eval_reward_min']:.4f}) | gains "
                 f"({row['eta1']:+.2f}, {row['eta2']:+.2f}, {row['eta3']:+.2f}) | s {row['eval_wave_speed']:+.2f} m/s | "
-                f"val {validation.format_scores(score)} | {_fmt_time(meta['wall_s'])} | "
-                f"ETA {_fmt_time(eta)}" + (" | stop rule reached" if reached else ""))
+                f"val {validation.format_scores(score)} | {fmt_time(meta['wall_s'])} | "
+                f"ETA {fmt_time(eta)}" + (" | stop rule reached" if reached else ""))
             ckpt.save_checkpoint(run_dir, runner, meta)
             ckpt.save_best(run_dir, best)
             append_curve(curve_csv, row)

@@ -1,0 +1,123 @@
+"""Run-directory checks and interruption handling shared by the PPO and gradient trainers.
+
+``StopSignals`` turns SIGINT / SIGTERM into a flag checked between chunks; ``TrainingInterrupted``
+is raised after what could be saved was saved (``exit_code`` 130 / 143); ``check_out_dir``,
+``check_resumable`` and ``open_run_dir`` give clear errors for unusable run directories.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import sys
+import threading
+from pathlib import Path
+
+from jaxtraffic.learn import checkpoint as ckpt
+
+__all__ = ["StopSignals", "TrainingInterrupted", "check_out_dir", "check_resumable", "fmt_time", "open_run_dir",
+           "report_interruption"]
+
+
+class TrainingInterrupted(KeyboardInterrupt):
+    """Training stopped by SIGINT/SIGTERM (or a KeyboardInterrupt) after saving what it could;
+    ``exit_code`` is 128 + the signal number (130 for SIGINT, 143 for SIGTERM)."""
+
+    def __init__(self, signum: int, message: str):
+        super().__init__(message)
+        self.signum, self.exit_code, self.message = signum, 128 + signum, message
+
+
+class StopSignals:
+    """While active (main thread only), SIGINT and SIGTERM set ``signum`` instead of raising inside
+    XLA; a second one exits at once (exit 128 + signal, nothing more is written). The previous
+    handlers are restored on exit."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self, say):
+        self.signum: int | None = None
+        self.say, self.old = say, {}
+
+    def _handle(self, signum, frame):
+        if self.signum is not None:
+            print(f"\n{signal.Signals(signum).name} again: exiting now without saving", file=sys.stderr, flush=True)
+            os._exit(128 + signum)
+        self.signum = signum
+        print(f"\n{signal.Signals(signum).name} received: stopping after the current chunk (send it again to "
+              "quit without saving)", file=sys.stderr, flush=True)
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            for sig in self.SIGNALS:
+                self.old[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def __exit__(self, *exc):
+        for sig, handler in self.old.items():
+            signal.signal(sig, handler)
+        return False
+
+
+def check_out_dir(run_dir: Path) -> None:
+    """``ValueError`` unless ``run_dir`` is (or can be created as) a writable directory."""
+    if run_dir.exists() and not run_dir.is_dir():
+        raise ValueError(f"--out-dir {run_dir}: exists and is not a directory")
+    parent = run_dir
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ValueError(f"--out-dir {run_dir}: {parent} is a file, not a directory")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ValueError(f"--out-dir {run_dir}: {parent} is not writable")
+
+
+def fmt_time(sec: float) -> str:
+    if not math.isfinite(sec):
+        return "?"
+    m, s = divmod(int(sec), 60)
+    return f"{m}m{s:02d}s"
+
+
+def check_resumable(run_dir: Path) -> None:
+    """``ValueError`` unless ``run_dir`` holds a config.json and a checkpoint to resume from."""
+    if not (run_dir / ckpt.CHECKPOINT).exists():
+        why = ("it has a config.json but no checkpoint: the run was stopped before its first chunk completed"
+               if (run_dir / ckpt.CONFIG).exists() else "it is not a run directory (no config.json, no checkpoint)")
+        raise ValueError(f"--resume: nothing to resume in {run_dir}: {why}; run without --resume to start afresh")
+    if not (run_dir / ckpt.CONFIG).exists():
+        raise ValueError(f"--resume: {run_dir / ckpt.CONFIG} is missing (the checkpoint alone does not say how it "
+                         "was trained)")
+
+
+def report_interruption(signum: int, run_dir: Path, any_chunk: bool, new_chunk: bool, progress: str) -> str:
+    """Say what an interruption left on disk and return the message; raise ``TrainingInterrupted``
+    if it left nothing new (otherwise the caller writes its summary first, then raises it)."""
+    name = signal.Signals(signum).name
+    if not any_chunk:
+        msg = (f"interrupted ({name}) before the first chunk completed: no checkpoint exists yet (only config.json "
+               f"in {run_dir}); run again without --resume")
+    elif not new_chunk:
+        msg = (f"interrupted ({name}) before a new chunk completed: the checkpoint at {progress} in {run_dir} is "
+               "unchanged; continue with --resume")
+    else:
+        msg = (f"interrupted ({name}): the checkpoint of the last completed chunk ({progress}) is saved in "
+               f"{run_dir}; continue with --resume")
+    print(msg, file=sys.stderr, flush=True)
+    if not any_chunk or not new_chunk:
+        raise TrainingInterrupted(signum, msg)
+    return msg
+
+
+def open_run_dir(run_dir: Path, say) -> None:
+    """Create the run directory (clear error if impossible) and remove stale temporary files."""
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ValueError(f"--out-dir {run_dir}: cannot create it ({err.strerror})") from None
+    stale = ckpt.clean_stale_tmp(run_dir)
+    if stale:
+        say(f"removed {len(stale)} temporary file(s) left by an interrupted write: {', '.join(p.name for p in stale)}")
+
+

@@ -33,7 +33,7 @@ from jaxtraffic.cli import train as train_cli
 from jaxtraffic.control import Controller, saturate
 from jaxtraffic.learn import checkpoint as ckpt
 from jaxtraffic.learn.config import TrainConfig, load_config
-from jaxtraffic.learn.signals import StopSignals
+from jaxtraffic.learn.session import StopSignals
 from jaxtraffic.learn.validate import check_devices
 from jaxtraffic.sim.plant import DIVERGED_CONTROL, DIVERGED_INITIAL, DIVERGED_NONE
 

@@ -28,8 +28,15 @@ from jaxtraffic.learn import checkpoint as ckpt
 from jaxtraffic.learn import gradient as G
 from jaxtraffic.learn.config import RUN_CONTROL, TrainConfig, config_json, load_config
 from jaxtraffic.learn.curve import plot_learning_curve, write_curve
-from jaxtraffic.learn.signals import StopSignals, TrainingInterrupted, report_interruption
-from jaxtraffic.learn.trainer import _fmt_time, check_out_dir, check_resumable, open_run_dir
+from jaxtraffic.learn.session import (
+    StopSignals,
+    TrainingInterrupted,
+    check_out_dir,
+    check_resumable,
+    fmt_time,
+    open_run_dir,
+    report_interruption,
+)
 from jaxtraffic.model.linear import gain_law_wave_speed, linearize
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.provenance import provenance
@@ -139,7 +146,7 @@ def _train_gradient(tc: TrainConfig, cfg: G.GradientConfig, plant: TrafficParams
             say(f"[update {meta['updates']:>4d}] objective {row['objective']:.4f} | |grad| {row['grad_norm']:.3g} | "
                 f"eval reward {row['eval_reward']:.4f} | rho L2 {row['eval_rho_L2_veh_km']:.3f} veh/km | "
                 f"J_comfort {row['eval_J_comfort']:.4g} | gains ({g[0]:+.2f}, {g[1]:+.2f}, {g[2]:+.2f}) | "
-                f"{_fmt_time(meta['wall_s'])} ({meta['wall_s'] - t_prev:.1f} s/chunk)"
+                f"{fmt_time(meta['wall_s'])} ({meta['wall_s'] - t_prev:.1f} s/chunk)"
                 + (" | beats backstepping" if beats(ev, ref) else ""))
             ckpt.save_checkpoint(run_dir, state, meta)
             write_curve(run_dir / "learning_curve.csv", meta["rows"], CURVE_FIELDS)

@@ -8,10 +8,12 @@
     rollout of ``num_steps`` vmapped environment steps, GAE, and ``update_epochs`` x
     ``num_minibatches`` Adam steps (nested ``lax.scan``). Metrics are reduced per update
     (shape (seeds, updates_per_chunk)); no per-step arrays leave the scan.
-The environment batch is split over ``jax.devices()`` with ``pmap`` (``shard_map`` was measured
-~30x slower on the CPU backend for this program); gradients and observation statistics are
-averaged across devices (``lax.pmean``), so parameters stay replicated. Seeds are a ``vmap``
-inside each device.
+The environment batch is split over a one-axis mesh of devices (``train_mesh``: by default every
+device of every process, ``jax.devices()``): ``init`` and ``train_chunk`` are ``jax.jit`` of
+``jax.shard_map`` with the per-device body, one code path for one device, many devices and many
+processes. Gradients and observation statistics are averaged across devices (``lax.pmean``), so
+parameters stay replicated. Seeds are a ``vmap`` inside each device. (This replaced ``pmap``,
+with bit-identical results on 1 and 2 devices and the same speed: BENCHMARKS.md, issue 16.)
 
 Config is a pytree (rejax style): shape-setting fields are static, float hyperparameters are
 traced leaves, so changing a learning rate or a clip range does not recompile.
@@ -27,6 +29,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 from flax import struct
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
 
 from jaxtraffic.control.gain_policy import normalize_obs
 from jaxtraffic.control.networks import SMALL_HIDDEN, ActorCritic
@@ -329,13 +333,50 @@ def make_train(cfg: PPOConfig, env_params: Any, devices: list | None = None, *, 
     ``terminated``), ``obs_size(params)`` and ``action_size``, e.g. ``learn.env.GainEnv`` (passed
     explicitly: PPO does not depend on the traffic environment).
 
-    Every leaf of the returned ``Runner`` has a leading device axis and then a seed axis; the
-    network, optimiser state, statistics and key are identical across devices (kept so by
-    ``lax.pmean``), the environments are split between devices. ``num_envs`` (the total) must
-    be divisible by the number of devices. ``devices=None``: the most of ``jax.devices()`` that
-    ``num_envs`` and the minibatches divide (all of them for the defaults). ``cfg`` and
-    ``env_params`` are traced arguments.
+    Every leaf of the returned ``Runner`` has a leading device axis (sharded over the mesh,
+    ``P(AXIS)``) and then a seed axis; the network, optimiser state, statistics and key are
+    identical across devices (kept so by ``lax.pmean``), the environments are split between
+    devices. ``num_envs`` (the total) must be divisible by the number of devices.
+    ``devices=None``: the most of ``jax.devices()`` (every process's devices) that ``num_envs``
+    and the minibatches divide (all of them for the defaults). ``cfg`` and ``env_params`` are
+    traced arguments.
     """
+    mesh = train_mesh(cfg, devices)
+    n_dev = mesh.size
+    local_envs = cfg.num_envs // n_dev
+    validate_config(cfg)
+    sharded, replicated_ = NamedSharding(mesh, P(AXIS)), NamedSharding(mesh, P())
+
+    def _init(cfg, env_params, keys):
+        runner = _init_seeds(lambda k: _init_seed(cfg, env, env_params, local_envs, k, _device_index(AXIS)), keys)
+        return jax.tree.map(lambda x: x[None], _strong(runner))  # this device's block of the device axis
+
+    def _chunk(cfg, env_params, runner):
+        runner = jax.tree.map(lambda x: x[0], runner)
+        runner, metrics = jax.vmap(functools.partial(_chunk_seed, cfg, env, env_params, axis_name=AXIS))(runner)
+        return jax.tree.map(lambda x: x[None], _strong(runner)), metrics
+
+    def sharded_fn(fn, in_specs, out_specs, in_shardings, out_shardings):  # jit of the per-device body
+        return jax.jit(jax.shard_map(fn, mesh=mesh, in_specs=in_specs, out_specs=out_specs, check_vma=False),
+                       in_shardings=in_shardings, out_shardings=out_shardings)
+
+    s_init = sharded_fn(_init, (P(), P(), P()), P(AXIS), replicated_, sharded)
+    s_chunk = sharded_fn(_chunk, (P(), P(), P(AXIS)), (P(AXIS), P()), (replicated_, replicated_, sharded),
+                         (sharded, replicated_))
+
+    def init(key: Array) -> Runner:
+        return s_init(cfg, env_params, jax.random.split(key, cfg.num_seeds))
+
+    def train_chunk(runner: Runner) -> tuple[Runner, dict]:
+        """``updates_per_chunk`` updates; metrics have shape (seeds, updates_per_chunk), replicated."""
+        return s_chunk(cfg, env_params, runner)
+
+    return init, train_chunk
+
+
+def train_mesh(cfg: PPOConfig, devices: list | None = None) -> Mesh:
+    """The one-axis (``AXIS``) mesh PPO splits its environments over: ``devices``, or the most of
+    ``jax.devices()`` that ``num_envs`` and the minibatches divide; ``ValueError`` if they do not."""
     if devices is None:  # every device the batch splits over (one per core by default, jaxtraffic._devices)
         devices = list(jax.devices())
         k = max(k for k in range(1, len(devices) + 1) if cfg.num_envs % k == 0
@@ -345,31 +386,9 @@ def make_train(cfg: PPOConfig, env_params: Any, devices: list | None = None, *, 
     n_dev = len(devices)
     if cfg.num_envs % n_dev:
         raise ValueError(f"num_envs={cfg.num_envs} is not divisible by the {n_dev} devices")
-    local_envs = cfg.num_envs // n_dev
-    if (local_envs * cfg.num_steps) % cfg.num_minibatches:
+    if ((cfg.num_envs // n_dev) * cfg.num_steps) % cfg.num_minibatches:
         raise ValueError("num_envs/devices * num_steps must be divisible by num_minibatches")
-    validate_config(cfg)
-
-    def _init(cfg, env_params, keys, dev):
-        return _strong(_init_seeds(lambda k: _init_seed(cfg, env, env_params, local_envs, k, dev), keys))
-
-    def _chunk(cfg, env_params, runner):
-        runner, metrics = jax.vmap(functools.partial(_chunk_seed, cfg, env, env_params, axis_name=AXIS))(runner)
-        return _strong(runner), metrics
-
-    p_init = jax.pmap(_init, axis_name=AXIS, in_axes=(None, None, None, 0), devices=devices)
-    p_chunk = jax.pmap(_chunk, axis_name=AXIS, in_axes=(None, None, 0), devices=devices)
-
-    def init(key: Array) -> Runner:
-        keys = jax.random.split(key, cfg.num_seeds)
-        return p_init(cfg, env_params, keys, jnp.arange(n_dev))
-
-    def train_chunk(runner: Runner) -> tuple[Runner, dict]:
-        """``updates_per_chunk`` updates; metrics have shape (seeds, updates_per_chunk)."""
-        runner, metrics = p_chunk(cfg, env_params, runner)
-        return runner, jax.tree.map(lambda x: x[0], metrics)
-
-    return init, train_chunk
+    return Mesh(np.array(devices), (AXIS,))
 
 
 def restart_members(runner: Runner, fresh: Runner, members: np.ndarray) -> Runner:

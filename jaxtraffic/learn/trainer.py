@@ -41,7 +41,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-import os
 import signal
 import time
 from collections.abc import Callable, Sequence
@@ -58,7 +57,15 @@ from jaxtraffic.learn import ppo, validation
 from jaxtraffic.learn.config import RUN_CONTROL, TrainConfig, config_json, load_config
 from jaxtraffic.learn.curve import CURVE_FIELDS, append_curve, plot_learning_curve, write_curve
 from jaxtraffic.learn.metrics_writer import TensorBoardWriter
-from jaxtraffic.learn.signals import StopSignals, TrainingInterrupted, report_interruption
+from jaxtraffic.learn.session import (
+    StopSignals,
+    TrainingInterrupted,
+    check_out_dir,
+    check_resumable,
+    fmt_time,
+    open_run_dir,
+    report_interruption,
+)
 from jaxtraffic.learn.validate import check_devices
 from jaxtraffic.model.linear import gain_law_wave_speed, linearize
 from jaxtraffic.provenance import provenance
@@ -66,20 +73,8 @@ from jaxtraffic.sim.initial import paper_initial_condition
 from jaxtraffic.sim.metrics import VEH_PER_KM
 from jaxtraffic.sim.rollout import simulate_batch
 
-__all__ = ["CURVE_FIELDS", "TrainConfig", "TrainingInterrupted", "build", "config_dict", "make_evaluator", "train"]
-
-
-def check_out_dir(run_dir: Path) -> None:
-    """``ValueError`` unless ``run_dir`` is (or can be created as) a writable directory."""
-    if run_dir.exists() and not run_dir.is_dir():
-        raise ValueError(f"--out-dir {run_dir}: exists and is not a directory")
-    parent = run_dir
-    while not parent.exists():
-        parent = parent.parent
-    if not parent.is_dir():
-        raise ValueError(f"--out-dir {run_dir}: {parent} is a file, not a directory")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise ValueError(f"--out-dir {run_dir}: {parent} is not writable")
+__all__ = ["CURVE_FIELDS", "StopSignals", "TrainConfig", "TrainingInterrupted", "build", "check_resumable",
+           "config_dict", "make_evaluator", "train"]
 
 
 def build(s: TrainConfig) -> tuple[ppo.PPOConfig, learn_env.EnvParams]:
@@ -176,39 +171,10 @@ def _plot_curve(run_dir: Path) -> None:
     plot_learning_curve(run_dir / "learning_curve.csv", run_dir / "learning_curve.png")
 
 
-def _fmt_time(sec: float) -> str:
-    if not math.isfinite(sec):
-        return "?"
-    m, s = divmod(int(sec), 60)
-    return f"{m}m{s:02d}s"
-
-
 def _config_for_resume(s: TrainConfig, run_dir: Path) -> TrainConfig:
     """The run's saved config, with only the run-control fields (``config.RUN_CONTROL``) taken from ``s``."""
     flat = s.flat()
     return load_config(run_dir).replace(**{k: flat[k] for k in RUN_CONTROL})
-
-
-def check_resumable(run_dir: Path) -> None:
-    """``ValueError`` unless ``run_dir`` holds a config.json and a checkpoint to resume from."""
-    if not (run_dir / ckpt.CHECKPOINT).exists():
-        why = ("it has a config.json but no checkpoint: the run was stopped before its first chunk completed"
-               if (run_dir / ckpt.CONFIG).exists() else "it is not a run directory (no config.json, no checkpoint)")
-        raise ValueError(f"--resume: nothing to resume in {run_dir}: {why}; run without --resume to start afresh")
-    if not (run_dir / ckpt.CONFIG).exists():
-        raise ValueError(f"--resume: {run_dir / ckpt.CONFIG} is missing (the checkpoint alone does not say how it "
-                         "was trained)")
-
-
-def open_run_dir(run_dir: Path, say) -> None:
-    """Create the run directory (clear error if impossible) and remove stale temporary files."""
-    try:
-        run_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise ValueError(f"--out-dir {run_dir}: cannot create it ({err.strerror})") from None
-    stale = ckpt.clean_stale_tmp(run_dir)
-    if stale:
-        say(f"removed {len(stale)} temporary file(s) left by an interrupted write: {', '.join(p.name for p in stale)}")
 
 
 def train(s: TrainConfig, callbacks: Sequence[Callable[[dict], None]] = ()) -> Path:
@@ -263,7 +229,7 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
     best = validation.new_best(*policy())
     if state is not None:
         meta = saved_meta
-        # place every leaf like the fresh runner's (pmap-sharded): uncommitted arrays would recompile
+        # place every leaf like the fresh runner's (sharded over the mesh): uncommitted arrays would recompile
         restored = ckpt.restore_runner(runner, state, run_dir / ckpt.CHECKPOINT)
         runner = jax.tree.map(lambda t, x: jax.device_put(x, t.sharding), runner, restored)
         saved_best = ckpt.load_best(run_dir)
@@ -337,8 +303,8 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
             say(f"[{meta['env_steps']:>9d} steps] {rate_txt} steps/s | reward {row['mean_reward']:9.3f} | "
                 f"eval {row['eval_reward']:9.4f} (min {row['eval_reward_min']:.4f}) | gains "
                 f"({row['eta1']:+.2f}, {row['eta2']:+.2f}, {row['eta3']:+.2f}) | s {row['eval_wave_speed']:+.2f} m/s | "
-                f"val {validation.format_scores(score)} | {_fmt_time(meta['wall_s'])} | "
-                f"ETA {_fmt_time(eta)}" + (" | stop rule reached" if reached else ""))
+                f"val {validation.format_scores(score)} | {fmt_time(meta['wall_s'])} | "
+                f"ETA {fmt_time(eta)}" + (" | stop rule reached" if reached else ""))
             ckpt.save_checkpoint(run_dir, runner, meta)
             ckpt.save_best(run_dir, best)
             append_curve(curve_csv, row)

@@ -1,19 +1,23 @@
-"""Stopping a training run cleanly: SIGINT / SIGTERM become a flag checked between chunks.
+"""Run-directory checks and interruption handling shared by the PPO and gradient trainers.
 
-Shared by the PPO trainer (``learn.trainer``) and the gradient trainer (``learn.gradient_trainer``):
-``StopSignals`` turns the signals into a flag, ``report_interruption`` says what is on disk, and
-``TrainingInterrupted`` carries the exit code (128 + the signal number) to ``train.py``.
+``StopSignals`` turns SIGINT / SIGTERM into a flag checked between chunks; ``TrainingInterrupted``
+is raised after what could be saved was saved (``exit_code`` 130 / 143); ``check_out_dir``,
+``check_resumable`` and ``open_run_dir`` give clear errors for unusable run directories.
 """
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import sys
 import threading
 from pathlib import Path
 
-__all__ = ["StopSignals", "TrainingInterrupted", "report_interruption"]
+from jaxtraffic.learn import checkpoint as ckpt
+
+__all__ = ["StopSignals", "TrainingInterrupted", "check_out_dir", "check_resumable", "fmt_time", "open_run_dir",
+           "report_interruption"]
 
 
 class TrainingInterrupted(KeyboardInterrupt):
@@ -56,6 +60,37 @@ class StopSignals:
         return False
 
 
+def check_out_dir(run_dir: Path) -> None:
+    """``ValueError`` unless ``run_dir`` is (or can be created as) a writable directory."""
+    if run_dir.exists() and not run_dir.is_dir():
+        raise ValueError(f"--out-dir {run_dir}: exists and is not a directory")
+    parent = run_dir
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ValueError(f"--out-dir {run_dir}: {parent} is a file, not a directory")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ValueError(f"--out-dir {run_dir}: {parent} is not writable")
+
+
+def fmt_time(sec: float) -> str:
+    if not math.isfinite(sec):
+        return "?"
+    m, s = divmod(int(sec), 60)
+    return f"{m}m{s:02d}s"
+
+
+def check_resumable(run_dir: Path) -> None:
+    """``ValueError`` unless ``run_dir`` holds a config.json and a checkpoint to resume from."""
+    if not (run_dir / ckpt.CHECKPOINT).exists():
+        why = ("it has a config.json but no checkpoint: the run was stopped before its first chunk completed"
+               if (run_dir / ckpt.CONFIG).exists() else "it is not a run directory (no config.json, no checkpoint)")
+        raise ValueError(f"--resume: nothing to resume in {run_dir}: {why}; run without --resume to start afresh")
+    if not (run_dir / ckpt.CONFIG).exists():
+        raise ValueError(f"--resume: {run_dir / ckpt.CONFIG} is missing (the checkpoint alone does not say how it "
+                         "was trained)")
+
+
 def report_interruption(signum: int, run_dir: Path, any_chunk: bool, new_chunk: bool, progress: str) -> str:
     """Say what an interruption left on disk and return the message; raise ``TrainingInterrupted``
     if it left nothing new (otherwise the caller writes its summary first, then raises it)."""
@@ -73,3 +108,16 @@ def report_interruption(signum: int, run_dir: Path, any_chunk: bool, new_chunk: 
     if not any_chunk or not new_chunk:
         raise TrainingInterrupted(signum, msg)
     return msg
+
+
+def open_run_dir(run_dir: Path, say) -> None:
+    """Create the run directory (clear error if impossible) and remove stale temporary files."""
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ValueError(f"--out-dir {run_dir}: cannot create it ({err.strerror})") from None
+    stale = ckpt.clean_stale_tmp(run_dir)
+    if stale:
+        say(f"removed {len(stale)} temporary file(s) left by an interrupted write: {', '.join(p.name for p in stale)}")
+
+

@@ -1,0 +1,112 @@
+"""Multi-process (multi-host) runs: ``jax.distributed`` set up from flags or environment variables.
+
+One program runs as N processes (JAX's multi-controller model); each sees every device of every
+process in ``jax.devices()`` and its own in ``jax.local_devices()``. ``initialize`` must run before
+any JAX computation (``train.py`` calls it first). The coordinator address, process count and
+process id come from the arguments (``--coordinator-address HOST:PORT --num-processes N
+--process-id I``) or else from ``JAX_COORDINATOR_ADDRESS``, ``JAX_NUM_PROCESSES`` and
+``JAX_PROCESS_ID``; with none of them set, nothing is done (one process). On the CPU backend the
+collectives go through gloo (``jax_cpu_collectives_implementation``; the setting only concerns CPU
+devices, so it is made on every platform).
+
+What the PPO trainer does across processes (``learn.trainer``): its mesh spans ``jax.devices()``,
+gradients and statistics are averaged over every device, everything else (evaluation, validation)
+runs on each process's own devices with identical inputs, the decisions (stop, budget, signals)
+are process 0's (``agree``), and only process 0 writes files (``is_writer``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from typing import Any
+
+import jax
+import numpy as np
+from jax.experimental import multihost_utils
+
+ENV = {"coordinator_address": "JAX_COORDINATOR_ADDRESS", "num_processes": "JAX_NUM_PROCESSES",
+       "process_id": "JAX_PROCESS_ID"}
+FLAGS = tuple(ENV)
+
+__all__ = ["ENV", "FLAGS", "add_flags", "agree", "initialize", "is_writer", "local_copy", "to_host"]
+
+
+def add_flags(parser: argparse.ArgumentParser) -> None:
+    """The three ``jax.distributed`` flags (default: the environment variables of ``ENV``)."""
+    g = parser.add_argument_group("multi-process runs (jax.distributed; default: the JAX_* environment variables)")
+    g.add_argument("--coordinator-address", default=None, metavar="HOST:PORT",
+                   help=f"address of process 0's coordinator service (${ENV['coordinator_address']})")
+    g.add_argument("--num-processes", type=int, default=None, metavar="N",
+                   help=f"number of processes (${ENV['num_processes']})")
+    g.add_argument("--process-id", type=int, default=None, metavar="I",
+                   help=f"this process's id, 0 .. N-1 (${ENV['process_id']})")
+
+
+def settings(coordinator_address: str | None = None, num_processes: int | None = None,
+             process_id: int | None = None, env: dict | None = None) -> dict | None:
+    """The arguments of ``jax.distributed.initialize`` from the given values, else ``env`` (default
+    ``os.environ``); None when nothing asks for several processes. ``ValueError`` when incomplete."""
+    env = os.environ if env is None else env
+    given = {"coordinator_address": coordinator_address, "num_processes": num_processes, "process_id": process_id}
+    out = {k: v if v is not None else env.get(ENV[k]) or None for k, v in given.items()}
+    if all(v is None for v in out.values()):
+        return None
+    missing = [f"--{k.replace('_', '-')} (${ENV[k]})" for k, v in out.items() if v is None]
+    if missing:
+        raise ValueError(f"a multi-process run needs the coordinator address, process count and id; missing: "
+                         f"{', '.join(missing)}")
+    try:
+        n, i = int(out["num_processes"]), int(out["process_id"])
+    except ValueError:
+        raise ValueError(f"num_processes and process_id must be integers, got {out['num_processes']!r}, "
+                         f"{out['process_id']!r}") from None
+    if n < 1 or not 0 <= i < n:
+        raise ValueError(f"need num_processes >= 1 and 0 <= process_id < num_processes, got {n}, {i}")
+    return {"coordinator_address": str(out["coordinator_address"]), "num_processes": n, "process_id": i}
+
+
+def initialize(coordinator_address: str | None = None, num_processes: int | None = None,
+               process_id: int | None = None) -> bool:
+    """Start ``jax.distributed`` when asked (see ``settings``); True if it was started. Call it before
+    any JAX computation."""
+    kwargs = settings(coordinator_address, num_processes, process_id)
+    if kwargs is None:
+        return False
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    jax.distributed.initialize(**kwargs)
+    return True
+
+
+def is_writer() -> bool:
+    """Whether this process writes the outputs (process 0)."""
+    return jax.process_index() == 0
+
+
+def local_copy(tree: Any) -> Any:
+    """Replicated arrays that span several processes replaced by this process's copy (a
+    single-device array); every other leaf unchanged."""
+    def one(x):
+        if isinstance(x, jax.Array) and not x.is_fully_addressable:
+            if not x.is_fully_replicated:
+                raise ValueError("local_copy needs replicated arrays; gather sharded ones with to_host")
+            return x.addressable_data(0)
+        return x
+    return jax.tree.map(one, tree)
+
+
+def to_host(tree: Any) -> Any:
+    """Every leaf as a numpy array holding its global value (collective when arrays span processes:
+    every process must call it)."""
+    if jax.process_count() == 1:
+        return jax.device_get(tree)
+    return multihost_utils.process_allgather(tree, tiled=True)
+
+
+def agree(local: np.ndarray) -> np.ndarray:
+    """Every process's ``local`` (a small integer vector), stacked along a new first axis (process
+    order); a collective, so every process must call it at the same point."""
+    local = np.asarray(local, np.int32)
+    if jax.process_count() == 1:
+        return local[None]
+    return np.asarray(multihost_utils.process_allgather(local, tiled=False))

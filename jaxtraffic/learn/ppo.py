@@ -368,8 +368,10 @@ def make_train(cfg: PPOConfig, env_params: Any, devices: list | None = None, *, 
         return s_init(cfg, env_params, jax.random.split(key, cfg.num_seeds))
 
     def train_chunk(runner: Runner) -> tuple[Runner, dict]:
-        """``updates_per_chunk`` updates; metrics have shape (seeds, updates_per_chunk), replicated."""
-        return s_chunk(cfg, env_params, runner)
+        """``updates_per_chunk`` updates; metrics have shape (seeds, updates_per_chunk), on this
+        process's first device."""
+        runner, metrics = s_chunk(cfg, env_params, runner)
+        return runner, _local(metrics)
 
     return init, train_chunk
 
@@ -391,6 +393,23 @@ def train_mesh(cfg: PPOConfig, devices: list | None = None) -> Mesh:
     return Mesh(np.array(devices), (AXIS,))
 
 
-def replicated(runner: Runner):
-    """The device-0 copy of the replicated leaves (params, stats, ...), per seed."""
-    return jax.tree.map(lambda x: x[0], runner)
+def replicated(runner: Runner) -> Runner:
+    """The device-0 copy of the replicated leaves (params, optimiser state, statistics, key, update
+    count), per seed, as numpy arrays (usable with any devices); ``env_state`` and ``obs``, which
+    differ between devices, are None. With a runner sharded over a mesh this is one small
+    jit-compiled broadcast (a collective when the mesh spans processes: every process calls it)."""
+    shared = runner.replace(env_state=None, obs=None)
+    sharding = getattr(jax.tree_util.tree_leaves(shared)[0], "sharding", None)
+    if not isinstance(sharding, NamedSharding):  # host arrays
+        return jax.tree.map(lambda x: np.asarray(x[0]), shared)
+    return jax.device_get(_local(_first_device_fn(sharding.mesh)(shared)))
+
+
+@functools.cache
+def _first_device_fn(mesh: Mesh):
+    return jax.jit(lambda tree: jax.tree.map(lambda x: x[0], tree), out_shardings=NamedSharding(mesh, P()))
+
+
+def _local(tree):
+    """This process's copy of replicated arrays (a single-device array each)."""
+    return jax.tree.map(lambda x: x.addressable_data(0), tree)

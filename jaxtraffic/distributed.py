@@ -29,7 +29,8 @@ ENV = {"coordinator_address": "JAX_COORDINATOR_ADDRESS", "num_processes": "JAX_N
        "process_id": "JAX_PROCESS_ID"}
 FLAGS = tuple(ENV)
 
-__all__ = ["ENV", "FLAGS", "add_flags", "agree", "initialize", "is_writer", "local_copy", "to_host"]
+__all__ = ["ENV", "FLAGS", "add_flags", "agree", "barrier", "initialize", "is_writer", "put_like", "settings",
+           "to_host"]
 
 
 def add_flags(parser: argparse.ArgumentParser) -> None:
@@ -68,11 +69,13 @@ def settings(coordinator_address: str | None = None, num_processes: int | None =
 
 def initialize(coordinator_address: str | None = None, num_processes: int | None = None,
                process_id: int | None = None) -> bool:
-    """Start ``jax.distributed`` when asked (see ``settings``); True if it was started. Call it before
-    any JAX computation."""
+    """Start ``jax.distributed`` when asked (see ``settings``; once per process); True if this is a
+    multi-process run. Call it before any JAX computation."""
     kwargs = settings(coordinator_address, num_processes, process_id)
     if kwargs is None:
         return False
+    if jax.distributed.is_initialized():  # a second run in the same processes
+        return True
     jax.config.update("jax_cpu_collectives_implementation", "gloo")
     jax.distributed.initialize(**kwargs)
     return True
@@ -83,16 +86,13 @@ def is_writer() -> bool:
     return jax.process_index() == 0
 
 
-def local_copy(tree: Any) -> Any:
-    """Replicated arrays that span several processes replaced by this process's copy (a
-    single-device array); every other leaf unchanged."""
-    def one(x):
-        if isinstance(x, jax.Array) and not x.is_fully_addressable:
-            if not x.is_fully_replicated:
-                raise ValueError("local_copy needs replicated arrays; gather sharded ones with to_host")
-            return x.addressable_data(0)
-        return x
-    return jax.tree.map(one, tree)
+def put_like(template: Any, host: Any) -> Any:
+    """``host`` (numpy arrays holding global values) placed like ``template``'s leaves, arrays that
+    span processes included (each process fills its own shards)."""
+    def one(t, x):
+        x = np.asarray(x)
+        return jax.make_array_from_callback(x.shape, t.sharding, lambda index: x[index])
+    return jax.tree.map(one, template, host)
 
 
 def to_host(tree: Any) -> Any:
@@ -110,3 +110,9 @@ def agree(local: np.ndarray) -> np.ndarray:
     if jax.process_count() == 1:
         return local[None]
     return np.asarray(multihost_utils.process_allgather(local, tiled=False))
+
+
+def barrier(name: str) -> None:
+    """Wait until every process has reached ``barrier(name)`` (nothing to wait for in one process)."""
+    if jax.process_count() > 1:
+        multihost_utils.sync_global_devices(name)

@@ -548,7 +548,7 @@ def test_resume_with_another_device_count_explains(ref_run, tmp_path):
     proc = subprocess.run([sys.executable, str(REPO / "train.py"), "--out-dir", str(run), "--resume", "--quiet"],
                           cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 2, proc.stderr[-2000:]
-    assert "written by a process with 1 device(s), this one has 2" in proc.stderr
+    assert "written by a run with 1 device(s), this one has 2" in proc.stderr
     assert "xla_force_host_platform_device_count=1" in proc.stderr and "Traceback" not in proc.stderr
 
 

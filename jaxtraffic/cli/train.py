@@ -5,6 +5,9 @@
 A default run trains the D = 4 s policy and writes, in ``--out-dir`` (default runs/default):
 config.json, checkpoint.msgpack, learning_curve.csv/.png and summary.json. Ctrl-C or SIGTERM stops
 after the current chunk with its checkpoint saved (exit 130 / 143); ``--resume`` continues from it.
+The same command runs as N cooperating processes (PPO) with ``--coordinator-address HOST:PORT
+--num-processes N --process-id I`` or the ``JAX_*`` variables (``jaxtraffic.distributed``; README,
+"Running on a cluster").
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ import math
 import sys
 from pathlib import Path
 
+from jaxtraffic import distributed
 from jaxtraffic.learn.config import RUN_CONTROL, SECTIONS, RunConfig, TrainConfig, load_config
 from jaxtraffic.learn.gradient_trainer import train_gradient
 from jaxtraffic.learn.trainer import TrainingInterrupted, check_resumable, train
@@ -71,11 +75,16 @@ def build_parser() -> argparse.ArgumentParser:
             default = None if f.name == "out_dir" else f.default  # resolved from --algo below
             g.add_argument(flag, type=_PARSERS[f.type], default=default, choices=f.metadata.get("choices"),
                            help=f.metadata["help"])
+    distributed.add_flags(parser)
     return parser
 
 
 def settings_from_args(argv: list[str] | None = None) -> TrainConfig:
-    args = build_parser().parse_args(argv)
+    return _settings(build_parser().parse_args(argv))
+
+
+def _settings(args: argparse.Namespace) -> TrainConfig:
+    args = argparse.Namespace(**{k: v for k, v in vars(args).items() if k not in distributed.FLAGS})
     if args.min_wave_speed == -math.inf:  # the paper's rule alone (stored as null in the JSON outputs)
         args.min_wave_speed = None
     if args.out_dir is None:
@@ -106,10 +115,16 @@ def warn_ignored_on_resume(settings: TrainConfig, given: dict) -> None:
 
 
 def main(argv: list[str] | None = None) -> Path:
-    """Parse flags, train, return the run directory. Exit status 2 for invalid flags or a broken run
-    directory, 130 / 143 after SIGINT / SIGTERM (see ``learn.trainer``)."""
+    """Parse flags, start ``jax.distributed`` if asked (``jaxtraffic.distributed``: before anything
+    runs on a device), train, return the run directory. Exit status 2 for invalid flags or a broken
+    run directory, 130 / 143 after SIGINT / SIGTERM (see ``learn.trainer``)."""
     try:
-        config = settings_from_args(argv)
+        args = build_parser().parse_args(argv)
+        config = _settings(args)
+        cluster = [getattr(args, k) for k in distributed.FLAGS]
+        if distributed.settings(*cluster) is not None and config.run.algo == "gradient":
+            raise ValueError("--algo gradient runs in one process; multi-process runs train PPO only")
+        distributed.initialize(*cluster)
         if config.run.resume:
             check_resumable(Path(config.run.out_dir))
             warn_ignored_on_resume(config, explicit_flags(argv))

@@ -231,10 +231,10 @@ def check_device_count(state: dict, n_devices: int, path: str | Path = CHECKPOIN
     update = state.get("update") if isinstance(state, dict) else None
     saved = np.shape(update)[0] if update is not None and np.ndim(update) >= 1 else None
     if saved is not None and saved != n_devices:
-        raise ValueError(f"{path} was written by a process with {saved} device(s), this one has {n_devices}: "
-                         f"resume with {saved} device(s) (on CPU: XLA_FLAGS=--xla_force_host_platform_device_count="
-                         f"{saved}); the environments are split between the devices, so the saved state only "
-                         "continues on as many")
+        raise ValueError(f"{path} was written by a run with {saved} device(s), this one has {n_devices}: "
+                         f"resume with {saved} device(s) in all processes together (on CPU, one process: "
+                         f"XLA_FLAGS=--xla_force_host_platform_device_count={saved}); the environments are split "
+                         "between the devices, so the saved state only continues on as many")
 
 
 def _flatten(tree: Any, prefix: str = "") -> list[tuple[str, Any]]:

@@ -50,6 +50,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxtraffic import distributed
 from jaxtraffic.control.gain_policy import equilibrium_gains, policy_controller
 from jaxtraffic.learn import checkpoint as ckpt
 from jaxtraffic.learn import env as learn_env
@@ -153,7 +154,11 @@ def _maybe_restart(s: TrainConfig, meta: dict, ok: np.ndarray, runner, init, say
     start = np.asarray(meta.get("member_start_steps", [0] * n))
     met = np.asarray(meta.get("member_met", [False] * n)) | ok
     due = (~met) & (meta["env_steps"] - start >= s.run.restart_steps)
-    if (not s.run.restart_steps or s.run.keep_going or meta["stopped"] or meta["env_steps"] >= s.run.total_steps
+    stopped = meta["stopped"]
+    if s.run.restart_steps and not s.run.keep_going:  # process 0's decision on every process (a collective)
+        votes = distributed.agree([*due.astype(int), int(stopped)])[0]
+        due, stopped = votes[:-1].astype(bool), bool(votes[-1])
+    if (not s.run.restart_steps or s.run.keep_going or stopped or meta["env_steps"] >= s.run.total_steps
             or not due.any()):
         meta["member_start_steps"], meta["member_met"] = start.tolist(), met.tolist()
         return runner
@@ -165,6 +170,22 @@ def _maybe_restart(s: TrainConfig, meta: dict, ok: np.ndarray, runner, init, say
     say(f"restart {len(restarts)}: member(s) {restarts[-1]['members']} re-initialised (stop rule not met within "
         f"{s.run.restart_steps} env steps of their start; best checkpoints kept)")
     return ppo.restart_members(runner, fresh, due)
+
+
+def _save(run_dir: Path, runner: ppo.Runner, meta: dict, best: dict, writer: bool) -> None:
+    """The checkpoint and the best checkpoints (the runner is gathered on every process: a collective;
+    process 0 writes)."""
+    host = distributed.to_host(runner)
+    if writer:
+        ckpt.save_checkpoint(run_dir, host, meta)
+        ckpt.save_best(run_dir, best)
+
+
+def _agree(stopped: bool, over_budget: bool, stop: StopSignals) -> tuple[bool, bool, int | None]:
+    """Process 0's stop and wall-budget decisions and the largest signal number any process received
+    (None: none), the same on every process (a collective)."""
+    votes = distributed.agree([stopped, over_budget, stop.signum or 0])
+    return bool(votes[0, 0]), bool(votes[0, 1]), int(votes[:, 2].max()) or None
 
 
 def _plot_curve(run_dir: Path) -> None:
@@ -195,16 +216,23 @@ def train(s: TrainConfig, callbacks: Sequence[Callable[[dict], None]] = ()) -> P
     if s.run.resume:  # read (and verify) the checkpoint before compiling anything
         state, saved_meta = ckpt.load_checkpoint(run_dir)
         ckpt.check_device_count(state, len(jax.devices()), run_dir / ckpt.CHECKPOINT)
-    say = (lambda *a: None) if s.run.quiet else (lambda *a: print(*a, flush=True))
-    owned = [TensorBoardWriter(s.run.tensorboard)] if s.run.tensorboard else []  # ValueError without tensorboardX
-    open_run_dir(run_dir, say)
+    writer = distributed.is_writer()  # process 0 prints and writes; the others only compute
+    say = (lambda *a: None) if s.run.quiet or not writer else (lambda *a: print(*a, flush=True))
+    owned = [TensorBoardWriter(s.run.tensorboard)] if s.run.tensorboard and writer else []  # needs tensorboardX
+    if writer:
+        open_run_dir(run_dir, say)
     try:
         with StopSignals(say) as stop:
-            return _train(s, cfg, env_params, run_dir, state, saved_meta if state is not None else None, say, stop,
-                          [*callbacks, *owned])
+            run = _train(s, cfg, env_params, run_dir, state, saved_meta if state is not None else None, say, stop,
+                         [*callbacks, *owned])
+    except TrainingInterrupted:  # every process agreed on it (``_agree``)
+        distributed.barrier("jaxtraffic.train")
+        raise
     finally:
-        for writer in owned:
-            writer.close()
+        for tb in owned:
+            tb.close()
+    distributed.barrier("jaxtraffic.train")  # no process returns before process 0's files are complete
+    return run
 
 
 def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, run_dir: Path, state: dict | None,
@@ -219,29 +247,33 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
     if s.run.val_horizon_s > 0:
         val_steps = 2 * max(1, round(s.run.val_horizon_s / s.plant.dt / 2))
         validate = validation.make_validator(env_params.traffic, val_steps, validation.validation_delays(env_params))
+    writer = distributed.is_writer()
     runner = init(jax.random.PRNGKey(s.run.seed))
+    rep = ppo.replicated(runner)  # the shared leaves on this process: once per chunk (a collective)
     meta = {"env_steps": 0, "wall_s": 0.0, "rows": [], "seconds_to_stop_rule": None, "stopped": False}
 
     def policy():  # the current (params, obs mean, obs var), leading member axis
-        rep = jax.device_get(ppo.replicated(runner))
-        return rep.params, np.asarray(rep.stats.mean), np.asarray(rep.stats.var)
+        host = jax.device_get(rep)
+        return host.params, np.asarray(host.stats.mean), np.asarray(host.stats.var)
 
     best = validation.new_best(*policy())
     if state is not None:
         meta = saved_meta
-        # place every leaf like the fresh runner's (sharded over the mesh): uncommitted arrays would recompile
+        # every leaf placed like the fresh runner's (sharded over the mesh): uncommitted arrays would recompile
         restored = ckpt.restore_runner(runner, state, run_dir / ckpt.CHECKPOINT)
-        runner = jax.tree.map(lambda t, x: jax.device_put(x, t.sharding), runner, restored)
+        runner = distributed.put_like(runner, restored)
+        rep = ppo.replicated(runner)
         saved_best = ckpt.load_best(run_dir)
         if saved_best is not None:
             best = ckpt.restore_best(best, saved_best)
         if s.run.keep_going:
             meta["stopped"] = False
         say(f"resumed {run_dir} at {meta['env_steps']} env steps ({meta['wall_s']:.1f} s)")
-    else:
+    elif writer:
         ckpt.write_json(run_dir / ckpt.CONFIG, config_dict(s, cfg, env_params))
     curve_csv = run_dir / "learning_curve.csv"
-    write_curve(curve_csv, meta["rows"])  # header (+ the checkpoint's rows on resume) once; rows appended below
+    if writer:
+        write_curve(curve_csv, meta["rows"])  # header (+ the checkpoint's rows on resume) once; rows appended below
     wall0 = float(meta["wall_s"])
     rate_from: tuple[float, int] | None = None  # (time, env steps) after this session's first chunk
     steps_per_chunk = cfg.steps_per_update * cfg.updates_per_chunk
@@ -251,9 +283,11 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
     interrupted = False
     last_eval: dict = {}
     steps_at_start = meta["env_steps"]
+    signum = _agree(False, False, stop)[2]
     try:
-        while meta["env_steps"] < s.run.total_steps and not meta["stopped"] and stop.signum is None:
+        while meta["env_steps"] < s.run.total_steps and not meta["stopped"] and signum is None:
             runner, m = train_chunk(runner)
+            rep = ppo.replicated(runner)
             jax.block_until_ready(m)
             last_eval = evaluate(runner)
             meta["env_steps"] += steps_per_chunk
@@ -261,7 +295,6 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
             paper = (ev >= s.run.target_reward) & ~np.asarray(last_eval["diverged"])
             candidate = paper & (True if s.run.min_wave_speed is None
                                  else last_eval["wave_speed"] >= s.run.min_wave_speed)
-            rep = ppo.replicated(runner)
             score = validation.scores(ev, candidate, validate, functools.partial(
                 member_controller, cfg, env_params, rep.params, rep.stats.mean, rep.stats.var))
             best = validation.update_best(best, score, meta["env_steps"], policy)
@@ -305,17 +338,18 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
                 f"({row['eta1']:+.2f}, {row['eta2']:+.2f}, {row['eta3']:+.2f}) | s {row['eval_wave_speed']:+.2f} m/s | "
                 f"val {validation.format_scores(score)} | {fmt_time(meta['wall_s'])} | "
                 f"ETA {fmt_time(eta)}" + (" | stop rule reached" if reached else ""))
-            ckpt.save_checkpoint(run_dir, runner, meta)
-            ckpt.save_best(run_dir, best)
-            append_curve(curve_csv, row)
-            for callback in callbacks:
-                callback(row)
-            if meta["wall_s"] > s.run.max_wall_s:
+            _save(run_dir, runner, meta, best, writer)
+            if writer:
+                append_curve(curve_csv, row)
+                for callback in callbacks:
+                    callback(row)
+            meta["stopped"], over_budget, signum = _agree(meta["stopped"], meta["wall_s"] > s.run.max_wall_s, stop)
+            if over_budget:
                 say(f"stopping: wall-clock budget {s.run.max_wall_s:g} s reached")
                 break
     except KeyboardInterrupt:  # raised by Python code (the handlers above turn signals into a flag)
         interrupted = True
-    signum = signal.SIGINT if interrupted else stop.signum
+    signum = signal.SIGINT if interrupted else signum
     interrupted = signum is not None
     if interrupted:
         msg = report_interruption(signum, run_dir, bool(meta["rows"]), meta["env_steps"] != steps_at_start,
@@ -323,9 +357,9 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
     if not meta["rows"]:
         return run_dir
     if not interrupted:
-        ckpt.save_checkpoint(run_dir, runner, meta)
-        ckpt.save_best(run_dir, best)
-    _plot_curve(run_dir)
+        _save(run_dir, runner, meta, best, writer)
+    if writer:
+        _plot_curve(run_dir)
     if not last_eval:
         last_eval = evaluate(runner)
     ev = last_eval["final_reward"]
@@ -349,7 +383,8 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
         "final_eval": {k: v for k, v in last_eval.items()},
         "eval_horizon_s": s.run.eval_horizon_s,
     }
-    ckpt.write_json(run_dir / ckpt.SUMMARY, summary)
+    if writer:
+        ckpt.write_json(run_dir / ckpt.SUMMARY, summary)
     rule = (f"first reached after {meta['seconds_to_stop_rule']:.1f} s" if summary["stop_rule_reached"]
             else "not reached")
     say(f"done: {meta['env_steps']} env steps in {meta['wall_s']:.1f} s; eval reward per seed {np.round(ev, 4)};"

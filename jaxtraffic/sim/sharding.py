@@ -1,9 +1,11 @@
-"""Batches split over every device: one code path for one device, many, and many processes.
+"""Batches split over every local device: one code path for one device and many.
 
 ``sharded_batch(fn, args, axes)`` runs ``fn`` (a function of a batch) with its batch axis split
-over a one-axis ``Mesh`` of ``jax.devices()`` (``shard_map``: each device runs ``fn`` on its share;
-no communication). Entries are dealt out like cards (entry i to device i mod n_devices, in
-order), so that a batch ordered by cost (the robustness map, by delay) loads every device alike
+over a one-axis ``Mesh`` of this process's devices, ``jax.local_devices()`` (``shard_map``: each
+device runs ``fn`` on its share; no communication). In a multi-process run
+(``jaxtraffic.distributed``) each process simulates the whole batch on its own devices, so its
+results are ordinary local arrays. Entries are dealt out like cards (entry i to device i mod
+n_devices, in order), so that a batch ordered by cost (the robustness map, by delay) loads every device alike
 and each device's share keeps the order. A batch that is not a multiple of the device count is
 padded with copies of its last entry, whose results are dropped. Entries are independent, so a
 result depends on the device count only through the per-device batch size XLA compiles for
@@ -26,8 +28,8 @@ __all__ = ["AXIS", "batch_mesh", "batch_sharding", "sharded_batch"]
 
 
 def batch_mesh(devices: list | None = None) -> Mesh:
-    """A one-axis mesh (``AXIS``) over ``devices`` (default: every device of every process)."""
-    return Mesh(np.array(jax.devices() if devices is None else devices), (AXIS,))
+    """A one-axis mesh (``AXIS``) over ``devices`` (default: this process's, ``jax.local_devices()``)."""
+    return Mesh(np.array(jax.local_devices() if devices is None else devices), (AXIS,))
 
 
 def batch_sharding(mesh: Mesh | None = None) -> NamedSharding:

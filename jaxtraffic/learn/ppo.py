@@ -376,7 +376,7 @@ def make_train(cfg: PPOConfig, env_params: Any, devices: list | None = None, *, 
         """``updates_per_chunk`` updates; metrics have shape (seeds, updates_per_chunk), on this
         process's first device."""
         runner, metrics = s_chunk(cfg, env_params, runner)
-        return runner, _local(metrics)
+        return runner, local_copy(metrics)
 
     return init, train_chunk
 
@@ -398,36 +398,6 @@ def train_mesh(cfg: PPOConfig, devices: list | None = None) -> Mesh:
     return Mesh(np.array(devices), (AXIS,))
 
 
-def restart_members(runner: Runner, fresh: Runner, members: np.ndarray) -> Runner:
-    """``runner`` with the seeds (members) where ``members`` (shape (num_seeds,), bool) is True
-    replaced by those of ``fresh`` (e.g. ``init`` of a new key): network, optimiser state,
-    environments, observation statistics, key and update count. Same placement as ``runner`` (a
-    jit-compiled select: with a mesh over several processes every process calls it)."""
-    mask = jnp.asarray(np.asarray(members, bool))
-
-    def pick(old, new):
-        return jnp.where(mask.reshape((1, -1) + (1,) * (old.ndim - 2)), new, old)  # (device, seed, ...)
-
-    return jax.jit(lambda r, f: jax.tree.map(pick, r, f))(runner, fresh)
-
-
-def replicated(runner: Runner) -> Runner:
-    """The device-0 copy of the replicated leaves (params, optimiser state, statistics, key, update
-    count), per seed, as numpy arrays (usable with any devices); ``env_state`` and ``obs``, which
-    differ between devices, are None. With a runner sharded over a mesh this is one small
-    jit-compiled broadcast (a collective when the mesh spans processes: every process calls it)."""
-    shared = runner.replace(env_state=None, obs=None)
-    sharding = getattr(jax.tree_util.tree_leaves(shared)[0], "sharding", None)
-    if not isinstance(sharding, NamedSharding):  # host arrays
-        return jax.tree.map(lambda x: np.asarray(x[0]), shared)
-    return jax.device_get(_local(_first_device_fn(sharding.mesh)(shared)))
-
-
-@functools.cache
-def _first_device_fn(mesh: Mesh):
-    return jax.jit(lambda tree: jax.tree.map(lambda x: x[0], tree), out_shardings=NamedSharding(mesh, P()))
-
-
-def _local(tree):
+def local_copy(tree):
     """This process's copy of replicated arrays (a single-device array each)."""
     return jax.tree.map(lambda x: x.addressable_data(0), tree)

@@ -54,7 +54,7 @@ from jaxtraffic import distributed
 from jaxtraffic.control.gain_policy import equilibrium_gains, policy_controller
 from jaxtraffic.learn import checkpoint as ckpt
 from jaxtraffic.learn import env as learn_env
-from jaxtraffic.learn import ppo, validation
+from jaxtraffic.learn import members, ppo, validation
 from jaxtraffic.learn.config import RUN_CONTROL, TrainConfig, config_json, load_config
 from jaxtraffic.learn.curve import CURVE_FIELDS, append_curve, plot_learning_curve, write_curve
 from jaxtraffic.learn.metrics_writer import TensorBoardWriter
@@ -133,7 +133,7 @@ def make_evaluator(cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, eval_ste
         return gains, gain_law_wave_speed(gains, lm)
 
     def evaluate(runner: ppo.Runner) -> dict:
-        rep = ppo.replicated(runner)  # settings with a leading seed axis: one batched rollout
+        rep = members.replicated(runner)  # settings with a leading seed axis: one batched rollout
         ctrl = member_controller(cfg, env_params, rep.params, rep.stats.mean, rep.stats.var)
         res = simulate_batch(plant, ctrl, n_steps=eval_steps, rho0=rho0, v0=v0, batch_controller=True)
         out = {k: np.asarray(v) for k, v in res.metrics.items()}
@@ -169,7 +169,7 @@ def _maybe_restart(s: TrainConfig, meta: dict, ok: np.ndarray, runner, init, say
     meta["member_met"] = np.where(due, False, met).tolist()
     say(f"restart {len(restarts)}: member(s) {restarts[-1]['members']} re-initialised (stop rule not met within "
         f"{s.run.restart_steps} env steps of their start; best checkpoints kept)")
-    return ppo.restart_members(runner, fresh, due)
+    return members.restart_members(runner, fresh, due)
 
 
 def _save(run_dir: Path, runner: ppo.Runner, meta: dict, best: dict, writer: bool) -> None:
@@ -249,7 +249,7 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
         validate = validation.make_validator(env_params.traffic, val_steps, validation.validation_delays(env_params))
     writer = distributed.is_writer()
     runner = init(jax.random.PRNGKey(s.run.seed))
-    rep = ppo.replicated(runner)  # the shared leaves on this process: once per chunk (a collective)
+    rep = members.replicated(runner)  # the shared leaves on this process: once per chunk (a collective)
     meta = {"env_steps": 0, "wall_s": 0.0, "rows": [], "seconds_to_stop_rule": None, "stopped": False}
 
     def policy():  # the current (params, obs mean, obs var), leading member axis
@@ -262,7 +262,7 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
         # every leaf placed like the fresh runner's (sharded over the mesh): uncommitted arrays would recompile
         restored = ckpt.restore_runner(runner, state, run_dir / ckpt.CHECKPOINT)
         runner = distributed.put_like(runner, restored)
-        rep = ppo.replicated(runner)
+        rep = members.replicated(runner)
         saved_best = ckpt.load_best(run_dir)
         if saved_best is not None:
             best = ckpt.restore_best(best, saved_best)
@@ -287,7 +287,7 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
     try:
         while meta["env_steps"] < s.run.total_steps and not meta["stopped"] and signum is None:
             runner, m = train_chunk(runner)
-            rep = ppo.replicated(runner)
+            rep = members.replicated(runner)
             jax.block_until_ready(m)
             last_eval = evaluate(runner)
             meta["env_steps"] += steps_per_chunk

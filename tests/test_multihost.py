@@ -98,6 +98,7 @@ def _rows(run) -> list[dict]:
         return list(csv.DictReader(f))
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not _gloo(), reason="this jaxlib has no gloo CPU collectives")
 def test_two_processes_match_two_devices(tmp_path):
     port = _free_port()

@@ -89,7 +89,8 @@ def plot_learning_curve(csv_path: str | Path, png_path: str | Path, title: str |
     """Paper fig. 3a: training reward against environment steps and against wall-clock seconds.
 
     Reads ``csv_path`` (header ``update,env_steps,wall_s,mean_reward,eval_reward,...``) and plots
-    the mean training reward and the deterministic evaluation reward, with the -0.1 stop-rule line.
+    the mean training reward and the deterministic evaluation reward, with the -0.1 stop-rule line
+    and a dotted line where a random restart re-initialised a member.
     """
     data = read_learning_curve(csv_path)
     series = [(k, lab) for k, lab in (("mean_reward", "mean training reward (stochastic policy)"),
@@ -110,6 +111,10 @@ def plot_learning_curve(csv_path: str | Path, png_path: str | Path, title: str |
             ax.plot(data[xk][ok], data[yk][ok], color=col, lw=1.5, marker="." if ok.sum() < 60 else None,
                     label=ylab)
         reward_axis(ax, allv)
+        if "restarts" in data:  # a member re-initialised after the row before (learn.trainer random restarts)
+            count = np.nan_to_num(data["restarts"])
+            for i, x in enumerate(data[xk][1:][np.diff(count) > 0]):
+                ax.axvline(x, color="0.5", ls=":", lw=1, label="random restart" if i == 0 else None)
         if xk == "env_steps":
             ax.xaxis.set_major_formatter(ticker.EngFormatter(sep=""))
         ax.set_xlabel(xlab)

@@ -16,25 +16,23 @@ import shutil
 import tempfile
 from pathlib import Path
 
+import xla_flags
+
 # The suite runs on ONE XLA device (as a user's program would with JAXTRAFFIC_NO_DEVICE_SPLIT=1),
 # so that its figures do not depend on the machine's core count; the multi-device paths are tested
 # in subprocesses that set their device count explicitly (tests/test_sharding.py, test_train.py).
 os.environ.setdefault("JAXTRAFFIC_NO_DEVICE_SPLIT", "1")
-# XLA's backend (LLVM) optimisation off in the test process unless XLA_FLAGS already chooses a level:
-# it roughly halves compile time, which dominates these tiny-grid tests (-23 % CPU time measured on
-# test_baselines + test_delay); the computed maths is the same programs' (comparisons are between
-# programs of the same process). The training subprocesses of tiny_runs.py use it too.
-if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
+# cheaper compilation in the test process and its subprocesses (tests/xla_flags.py)
+xla_flags.apply()
 
 import jax  # noqa: E402
-import jax.numpy as jnp
-import numpy as np
-import pytest
-import tiny_runs
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+import tiny_runs  # noqa: E402
 
-from jaxtraffic import TrafficParams, equilibrium
-from jaxtraffic.model.solver import arz_step
+from jaxtraffic import TrafficParams, equilibrium  # noqa: E402
+from jaxtraffic.model.solver import arz_step  # noqa: E402
 
 # A tiny grid: 41 nodes (dx = 25 m), dt = 0.5 s, CFL ~ 0.072; fast to compile and run.
 # (Coarser grids are not used: with the upwind inlet, node 0's speed obeys the locally unstable
@@ -56,22 +54,37 @@ def small() -> TrafficParams:
 
 
 # The tiny training session (tiny_runs.py): started once, in the background, as soon as the tests
-# are collected if a collected test needs it, so that it overlaps with the unit tests before it.
+# are collected, each part only if a collected test needs it, so that it overlaps with the unit tests.
+# JAXTRAFFIC_TEST_RUNS=DIR keeps its run directories in DIR, and a later pytest invocation with the
+# same DIR reads them instead of training again (.ci/run: the slow tier reuses the default tier's).
 _TRAINING: dict = {}
-_USES_TRAINING = {"two_device_proc", "tiny_runs_root", "tiny_run_a"}
+_NEEDS = {"two_devices": {"two_device_proc"}, "train": {"tiny_runs_root", "tiny_run_a"}}
+_SHARED_ROOT = os.environ.get("JAXTRAFFIC_TEST_RUNS")
 
 
-def _start_training() -> dict:
-    if not _TRAINING:
-        root = Path(tempfile.mkdtemp(prefix="jaxtraffic-tiny-runs-"))
-        _TRAINING.update(root=root, two_devices=tiny_runs.start_two_devices(),
-                         train=tiny_runs.start_train_runs(root))
+def _start_training(*parts: str) -> dict:
+    if "root" not in _TRAINING:
+        if _SHARED_ROOT:
+            root = Path(_SHARED_ROOT)
+            if not (root / tiny_runs.DONE).exists():  # absent, or left by an interrupted session
+                shutil.rmtree(root, ignore_errors=True)
+            root.mkdir(parents=True, exist_ok=True)
+        else:
+            root = Path(tempfile.mkdtemp(prefix="jaxtraffic-tiny-runs-"))
+        _TRAINING["root"] = root
+    root = _TRAINING["root"]
+    if "two_devices" in parts and "two_devices" not in _TRAINING:
+        _TRAINING["two_devices"] = tiny_runs.start_two_devices()
+    if "train" in parts and "train" not in _TRAINING:
+        _TRAINING["train"] = None if (root / tiny_runs.DONE).exists() else tiny_runs.start_train_runs(root)
     return _TRAINING
 
 
 def pytest_collection_finish(session):
-    if any(_USES_TRAINING & set(getattr(item, "fixturenames", ())) for item in session.items):
-        _start_training()
+    used = set().union(*(getattr(item, "fixturenames", ()) for item in session.items))
+    parts = [part for part, fixtures in _NEEDS.items() if fixtures & used]
+    if parts:
+        _start_training(*parts)
 
 
 def pytest_sessionfinish(session, exitstatus):
@@ -80,20 +93,20 @@ def pytest_sessionfinish(session, exitstatus):
         if proc is not None and proc.poll() is None:
             proc.kill()
             proc.communicate()
-    if "root" in _TRAINING:
+    if "root" in _TRAINING and not _SHARED_ROOT:
         shutil.rmtree(_TRAINING["root"], ignore_errors=True)
 
 
 @pytest.fixture(scope="session")
 def two_device_proc():
     """The two-device training, running in a subprocess (``tiny_runs.TWO_DEVICES``)."""
-    return _start_training()["two_devices"]
+    return _start_training("two_devices")["two_devices"]
 
 
 @pytest.fixture(scope="session")
 def tiny_runs_root() -> Path:
     """Directory holding the run directories ``tiny_runs.RUNS`` (waits until all are written)."""
-    tr = _start_training()
+    tr = _start_training("train")
     tiny_runs.wait_train_runs(tr["train"], tr["root"])
     return tr["root"]
 
@@ -101,7 +114,7 @@ def tiny_runs_root() -> Path:
 @pytest.fixture(scope="session")
 def tiny_run_a() -> Path:
     """Run A of the tiny training session, as soon as it is written (the other runs may still train)."""
-    tr = _start_training()
+    tr = _start_training("train")
     return tiny_runs.wait_run_a(tr["train"], tr["root"])
 
 

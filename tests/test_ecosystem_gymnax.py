@@ -7,7 +7,6 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -17,12 +16,12 @@ import pytest
 pytest.importorskip("gymnax")
 from gymnax.environments import environment, spaces  # noqa: E402
 from gymnax.wrappers.purerl import FlattenObservationWrapper, LogWrapper  # noqa: E402
+from tiny_runs import REPO, xla_env  # noqa: E402
 
 from jaxtraffic.control.gain_policy import feature_size  # noqa: E402
 from jaxtraffic.ecosystem.gymnax_env import GainGymnaxEnv  # noqa: E402
 from jaxtraffic.learn.env import EnvParams  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
 N = 21
 CONFIG = {"n_points": N, "delay": 0.5, "max_delay_steps": 20, "horizon_s": 1.0, "delay_spread": 0.0}
 OBS = feature_size(N, EnvParams().obs_segments)  # the training default: the pooled observation
@@ -77,14 +76,13 @@ def test_wrappers_under_vmap_and_scan():
 
 
 def test_example_purejaxrl_style_ppo_trains():
-    """The example as a user runs it (a subprocess; XLA's backend optimisation off halves its compile)."""
-    flags = " ".join(filter(None, [os.environ.get("XLA_FLAGS", ""), "--xla_backend_optimization_level=0"]))
+    """The example as a user runs it (a subprocess, with the test XLA flags: cheaper compilation)."""
     proc = subprocess.run([sys.executable, str(REPO / "examples" / "gymnax_ppo.py"), "--n-points", str(N),
                            "--horizon-s", "1", "--num-envs", "8", "--num-steps", "16", "--num-updates", "3",
                            "--update-epochs", "2", "--num-minibatches", "2", "--seeds", "2"],
                           cwd=REPO, capture_output=True, text=True, timeout=1200,
-                          env={**os.environ, "XLA_FLAGS": flags, "JAX_PLATFORMS": "cpu",
-                               "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))})
+                          env=xla_env(PYTHONPATH=os.pathsep.join(filter(None, [str(REPO),
+                                                                               os.environ.get("PYTHONPATH")]))))
     assert proc.returncode == 0, proc.stderr[-3000:]
     out = proc.stdout
     assert "2 seed(s) x 3 updates x 8 envs x 16 steps" in out and "env steps/s" in out, out

@@ -3,8 +3,8 @@
 A tiny problem (21 nodes, 4 environments x 8 steps, 2 updates per chunk). ``conftest.py`` starts it
 once per session, in the background as soon as the tests are collected (so that it overlaps with the
 unit tests that run before it), in two subprocesses: ``train_runs`` (one CPU device) and
-``TWO_DEVICES`` (two forced host devices). Both compile with ``--xla_backend_optimization_level=0``
-(about half the compile time; every comparison in the tests is between runs of the same process).
+``TWO_DEVICES`` (two forced host devices). Both compile with the test flags of ``xla_flags.py``
+(cheaper compilation; every comparison in the tests is between runs of the same process).
 In ``train_runs`` every run has the same PPO config and environment, so ``ppo.make_train`` is
 memoised (``SharedCompile``): the trainer's own code (init, chunks, evaluation, checkpoints, resume)
 runs unchanged, only the recompilation of an identical program per ``train()`` call is saved. The
@@ -25,6 +25,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+from xla_flags import with_test_flags
 
 from jaxtraffic.cli import train as train_cli
 from jaxtraffic.control import Observation
@@ -42,6 +43,7 @@ TINY = ["--n-points", "21", "--delay", "0.5", "--max-delay-steps", "20", "--num-
         "--eval-horizon-s", "2", "--val-horizon-s", "2", "--quiet"]
 CHUNK = 4 * 8 * 2  # env steps per chunk
 RUNS = ("A", "B", "I", "C", "S", "W", "R", "R_half")
+DONE = "done.json"  # written last: the session is complete
 GRADIENT_ROOT = "runs"  # root/runs/gradient-gains: the tiny gradient-trained run (evaluate.py --runs-root)
 
 
@@ -113,7 +115,7 @@ def train_runs(root: Path) -> None:
     _cli(root / "R", "--total-steps", str(6 * CHUNK), *restart)
     _cli(root / "R_half", "--total-steps", str(3 * CHUNK), *restart)
     train_cli.main(["--out-dir", str(root / "R_half"), "--resume", "--total-steps", str(6 * CHUNK), "--quiet"])
-    write_json(root / "done.json", {"compiled_programs": len(shared.cache)})
+    write_json(root / DONE, {"compiled_programs": len(shared.cache)})
 
 
 def write_json(path: Path, obj) -> None:
@@ -149,10 +151,8 @@ def _round_trip(run: Path, runner) -> dict:
 
 
 def xla_env(**extra) -> dict:
-    """The environment of a training subprocess: CPU, unoptimised XLA backend, ``flags`` added to XLA_FLAGS."""
-    base = os.environ.get("XLA_FLAGS", "")
-    opt = "" if "xla_backend_optimization_level" in base else "--xla_backend_optimization_level=0"
-    flags = " ".join(filter(None, [base, opt, *extra.pop("flags", [])]))
+    """The environment of a training subprocess: CPU, the test XLA flags, ``flags`` added to XLA_FLAGS."""
+    flags = with_test_flags(os.environ.get("XLA_FLAGS", ""), *extra.pop("flags", []))
     return {**os.environ, "XLA_FLAGS": flags, "JAX_PLATFORMS": "cpu", **extra}
 
 
@@ -181,18 +181,22 @@ def _log_tail(root: Path) -> str:
     return (root / "train_runs.log").read_text()[-4000:]
 
 
-def wait_train_runs(proc: subprocess.Popen, root: Path, timeout: float = 900.0) -> None:
-    """Wait until every run of ``train_runs`` is written; fail with the subprocess's output if it failed."""
+def wait_train_runs(proc: subprocess.Popen | None, root: Path, timeout: float = 900.0) -> None:
+    """Wait until every run of ``train_runs`` is written; fail with the subprocess's output if it failed.
+    ``proc`` None: the runs were written by an earlier session (conftest's JAXTRAFFIC_TEST_RUNS)."""
+    if proc is None:
+        assert (root / DONE).exists(), root
+        return
     proc.wait(timeout=timeout)
     proc.log.close()
     assert proc.returncode == 0, _log_tail(root)
 
 
-def wait_run_a(proc: subprocess.Popen, root: Path, timeout: float = 900.0) -> Path:
+def wait_run_a(proc: subprocess.Popen | None, root: Path, timeout: float = 900.0) -> Path:
     """Run A as soon as it is complete (``A.done``), while the other runs may still be training."""
     t0 = time.monotonic()
     while not (root / "A.done").exists():
-        assert proc.poll() is None or (root / "A.done").exists(), _log_tail(root)
+        assert proc is not None and (proc.poll() is None or (root / "A.done").exists()), _log_tail(root)
         assert time.monotonic() - t0 < timeout, "run A not written in time"
         time.sleep(0.5)
     return root / "A"

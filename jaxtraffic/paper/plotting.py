@@ -113,6 +113,19 @@ def _sym_limit(values: Sequence[np.ndarray], center: float, q: float = 99.5) -> 
     return lim if lim > 0 else max(abs(center) * 1e-3, 1e-6)
 
 
+def _field_image(ax, t: np.ndarray, x: np.ndarray, f: np.ndarray, **kw):
+    """``f`` (T, N) drawn with time along x and position along y, each value a cell centred on its
+    (t, x). On uniform grids (the rollouts' recordings) an image: an order of magnitude cheaper to
+    draw than a mesh of T x N quads at paper resolution (3 001 x 201), and resampled smoothly."""
+    t, x = np.asarray(t, float), np.asarray(x, float)
+    uniform = all(len(a) > 1 and np.allclose(np.diff(a), a[1] - a[0], rtol=1e-6) for a in (t, x))
+    if not uniform:
+        return ax.pcolormesh(t, x, f.T, shading="nearest", rasterized=True, **kw)
+    dt, dx = t[1] - t[0], x[1] - x[0]
+    return ax.imshow(f.T, origin="lower", aspect="auto", interpolation="antialiased",
+                     extent=(t[0] - dt / 2, t[-1] + dt / 2, x[0] - dx / 2, x[-1] + dx / 2), **kw)
+
+
 def plot_spacetime(
     png_path: str | Path, t: np.ndarray, x: np.ndarray,
     rows: Mapping[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
@@ -140,7 +153,7 @@ def plot_spacetime(
         for i, lab in enumerate(labels):
             ax = axes[i, j]
             f = fields[i]
-            mesh = ax.pcolormesh(t, x, f.T, cmap=cmap, norm=norm, shading="nearest", rasterized=True)
+            mesh = _field_image(ax, t, x, f, cmap=cmap, norm=norm)
             cb = fig.colorbar(mesh, ax=ax, pad=0.01, extend="both")
             cb.set_label(cname, fontsize=8)
             cb.ax.tick_params(labelsize=7)

@@ -138,6 +138,8 @@ def test_ctrl_c_saves_and_resume_loses_nothing(runs):
     a, i = runs["A"], runs["I"]
     first = runs["I_first_summary"]
     assert first["interrupted"] is True and first["env_steps"] == 2 * CHUNK
+    # written on the way out: by the interval (--checkpoint-every 10) only chunk 1's would be on disk
+    assert ckpt.load_checkpoint(i.parent / "I_first")[1]["env_steps"] == 2 * CHUNK
     assert _no_wall(runs["I_first_rows"]) == _no_wall(_rows(a))[:2]
     assert _no_wall(_rows(i)) == _no_wall(_rows(a))
     assert _leaves_equal(ckpt.load_checkpoint(a)[0], ckpt.load_checkpoint(i)[0])

@@ -193,13 +193,16 @@ class RunConfig:
                            "of its, and at every delay of the suite the plant does not diverge and is still "
                            "converging); inf: no such condition")
     eval_horizon_s: float = _f(300.0, "evaluation rollout length, s")
+    checkpoint_every: int = _f(10, "PPO: write checkpoint.msgpack every this many chunks, and after a session's first "
+                               "chunk, at the end and on SIGINT/SIGTERM (1: after every chunk; SIGKILL loses at "
+                               "most this many chunks); best.msgpack is written whenever it improves")
     quiet: bool = _f(False, "no progress lines")
     tensorboard: str | None = _f(None, "also write the learning-curve rows as TensorBoard scalars to this directory "
                                  "(needs tensorboardX: pip install 'jaxtraffic[tb]')")
 
 
 RUN_CONTROL = ("out_dir", "total_steps", "max_wall_s", "keep_going", "resume", "quiet", "stop_patience",
-               "target_reward", "min_wave_speed", "tensorboard", "val_target")
+               "target_reward", "min_wave_speed", "tensorboard", "val_target", "checkpoint_every")
 # fields absent from a run's config.json because it was written before they existed: their value then
 # (the run is loaded and resumed as it was trained, not with today's defaults)
 BEFORE_FIELD = {"obs_segments": 0, "wave_weight": 0.0, "val_horizon_s": 0.0, "restart_steps": 0}

@@ -39,8 +39,9 @@ def write_curve(path: Path, rows: list[dict], fields: list[str] = CURVE_FIELDS) 
 
 def append_curve(path: Path, row: dict, fields: list[str] = CURVE_FIELDS) -> None:
     """Append one row to learning_curve.csv (whose header ``write_curve`` wrote), flushed and fsynced.
-    The trainer appends a row per chunk after saving the checkpoint; on resume it rewrites the file
-    once from the checkpoint's rows, so the CSV always matches the checkpoint."""
+    The trainer appends a row per chunk (the checkpoint is written every ``checkpoint_every`` chunks,
+    so the file may run ahead of it); on resume it rewrites the file once from the checkpoint's rows,
+    so a resumed run's CSV matches its checkpoint."""
     buf = io.StringIO()
     csv.DictWriter(buf, fieldnames=fields, extrasaction="ignore").writerow(row)
     with open(path, "a", newline="") as f:

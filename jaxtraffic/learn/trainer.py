@@ -2,8 +2,10 @@
 
 ``train(config)`` runs jit-compiled chunks of PPO updates. Between chunks it evaluates the
 deterministic policy of every member (seed) on the paper's initial condition (``eval_horizon_s``,
-the training plant without randomisation), prints a progress line, appends to ``learning_curve.csv``
-and rewrites the checkpoints atomically, and applies the stop rule unless ``keep_going``. A member meets the
+the training plant without randomisation), prints a progress line, appends to ``learning_curve.csv``,
+rewrites the checkpoint atomically after a session's first chunk and every ``checkpoint_every``-th
+(and at the end and on a signal; the best checkpoints whenever they improve), and applies the stop
+rule unless ``keep_going``. A member meets the
 rule at an evaluation when (1) the paper's rule holds (evaluation reward, i.e. the reward at the
 end of the evaluation rollout, >= ``target_reward``, no divergence); (2) with ``min_wave_speed``
 set, the closed loop under the gains its policy settles to at the equilibrium carries density
@@ -38,6 +40,7 @@ and above: not validated, 1e6: rejected).
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import functools
 import math
@@ -282,7 +285,8 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
         f"target eval reward >= {s.run.target_reward}")
     interrupted = False
     last_eval: dict = {}
-    steps_at_start = meta["env_steps"]
+    steps_at_start = saved_steps = meta["env_steps"]
+    best_saved, consistent = best, None
     signum = _agree(False, False, stop)[2]
     try:
         while meta["env_steps"] < s.run.total_steps and not meta["stopped"] and signum is None:
@@ -338,7 +342,16 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
                 f"({row['eta1']:+.2f}, {row['eta2']:+.2f}, {row['eta3']:+.2f}) | s {row['eval_wave_speed']:+.2f} m/s | "
                 f"val {validation.format_scores(score)} | {fmt_time(meta['wall_s'])} | "
                 f"ETA {fmt_time(eta)}" + (" | stop rule reached" if reached else ""))
-            _save(run_dir, runner, meta, best, writer)
+            # the state after this chunk, complete: saved now (a session's first chunk, every
+            # checkpoint_every-th) or, if the loop ends before the next save, on the way out
+            consistent = (runner, copy.deepcopy(meta))
+            chunks = (meta["env_steps"] - steps_at_start) // steps_per_chunk  # this session's, >= 1
+            if chunks == 1 or chunks % s.run.checkpoint_every == 0:
+                _save(run_dir, runner, meta, best, writer)
+                saved_steps = meta["env_steps"]
+            elif writer and best_saved is not best:
+                ckpt.save_best(run_dir, best)
+            best_saved = best
             if writer:
                 append_curve(curve_csv, row)
                 for callback in callbacks:
@@ -351,6 +364,8 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
         interrupted = True
     signum = signal.SIGINT if interrupted else signum
     interrupted = signum is not None
+    if interrupted and consistent is not None and consistent[1]["env_steps"] != saved_steps:
+        _save(run_dir, *consistent, best, writer)  # the last completed chunk, before saying it is saved
     if interrupted:
         msg = report_interruption(signum, run_dir, bool(meta["rows"]), meta["env_steps"] != steps_at_start,
                                   f"{meta['env_steps']} env steps")

@@ -38,7 +38,7 @@ RULES: dict[str, tuple[float | None, bool, float | None, bool]] = {
     # run
     "seed": (0, True, 2**32 - 1, True), "seeds": (1, True, None, False), "total_steps": (1, True, None, False),
     "max_wall_s": (0.0, False, None, False), "stop_patience": (1, True, None, False),
-    "restart_steps": (0, True, None, False),
+    "restart_steps": (0, True, None, False), "checkpoint_every": (1, True, None, False),
     "eval_horizon_s": (0.0, False, None, False), "val_horizon_s": (0.0, True, None, False),
     "val_target": (0.0, False, None, False),
     # grad (gradient-based training)

@@ -80,3 +80,18 @@ def test_evaluate_end_to_end(tiny_run, tmp_path):
     assert set(c5["readings"]) == {s.name for s in SCENARIOS if s.seeded}
     assert on_disk["meta"]["fig7_reading"] in c5["readings"]
     assert "Numerical uncertainty" in report and "alpha_noise_model_sees" in report
+
+
+def test_figures_drawn_in_the_background_report_their_lines_and_errors_in_the_caller():
+    """``driver._Background``: the thread's log lines come out at ``join``, and so does its exception."""
+    from jaxtraffic.paper.driver import _Background
+
+    def draw(log):
+        log("  wrote a.png")
+        raise RuntimeError("bad figure")
+
+    lines: list[str] = []
+    with pytest.raises(RuntimeError, match="bad figure"):
+        _Background(draw).join(lines.append)
+    assert lines == ["  wrote a.png"]
+    assert _Background(lambda log: ["b.png"]).join(lines.append) == ["b.png"]

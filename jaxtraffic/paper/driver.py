@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -14,7 +15,7 @@ from jaxtraffic.control import Controller, backstepping, lyapunov, open_loop
 from jaxtraffic.learn.checkpoint import to_jsonable
 from jaxtraffic.model.params import equilibrium
 from jaxtraffic.paper.claims import evaluate_claims, paper_like_reading
-from jaxtraffic.paper.figures import make_figures
+from jaxtraffic.paper.figures import FIG7, ROBUSTNESS, make_figures
 from jaxtraffic.paper.learned import comparison_section
 from jaxtraffic.paper.numerics import GRID_BOUND, on_coarse_grid, run_numerics
 from jaxtraffic.paper.report import numerics_summary, readings_summary, robustness_summary, write_report
@@ -25,6 +26,36 @@ from jaxtraffic.provenance import provenance
 
 
 # ----------------------------------------------------------------------------- driver
+class _Background:
+    """``make_figures(*args, log=..., **kwargs)`` in a thread, its log lines kept for ``join``.
+
+    Matplotlib draws while XLA runs the robustness map and the numerics check (which release the
+    GIL while they compute), on the core they leave free; only this thread uses matplotlib until
+    ``join``."""
+
+    def __init__(self, fn: Callable[..., list[str]], *args, **kwargs):
+        self.lines: list[str] = []
+        self.result: list[str] = []
+        self.error: BaseException | None = None
+
+        def run() -> None:
+            try:
+                self.result = fn(*args, log=self.lines.append, **kwargs)
+            except BaseException as exc:  # re-raised in the caller's thread by join
+                self.error = exc
+
+        self.thread = threading.Thread(target=run, name="jaxtraffic-figures", daemon=True)
+        self.thread.start()
+
+    def join(self, log: Callable[[str], None]) -> list[str]:
+        self.thread.join()
+        for line in self.lines:
+            log(line)
+        if self.error is not None:
+            raise self.error
+        return self.result
+
+
 def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: str | Path,
                  meta: dict[str, Any], ppo_delay0: Controller | None = None,
                  learning_curve_csv: str | Path | None = None, log: Callable[[str], None] = print,
@@ -52,6 +83,9 @@ def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: s
     log(f"[1/4] scenarios: {cfg.grid_points} points ({cfg.scheme}), dt = {cfg.dt} s, {cfg.horizon_s:g} s "
         f"({cfg.n_steps} steps), {len(cfg.seeds)} noise seeds")
     results = run_scenarios(ctrls, cfg, log, overrides)
+    lc = Path(learning_curve_csv) if learning_curve_csv else None
+    early = _Background(make_figures, results, {}, cfg, out_dir, lc,
+                        select=lambda name: name not in FIG7 + ROBUSTNESS)
     log(f"[2/4] robustness map: {len(cfg.robust_delays)} delays x {len(cfg.robust_alphas)} alphas, "
         f"{cfg.robust_horizon_s:g} s" + ("" if cfg.robust_delays and cfg.robust_alphas else " (skipped)"))
     robust = run_robustness(ctrls, cfg, log)
@@ -66,7 +100,6 @@ def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: s
         numerics = run_numerics(ctrls, cfg, metrics["delay4"], log)
         metrics["numerics"] = numerics
 
-    lc = Path(learning_curve_csv) if learning_curve_csv else None
     lc_data = None
     if lc is not None and lc.exists():
         from jaxtraffic.paper.plotting import read_learning_curve
@@ -79,7 +112,9 @@ def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: s
     fig7 = paper_like_reading(claims)
 
     log("[3/4] figures")
-    figures = make_figures(results, robust, cfg, out_dir, lc, log, fig7_scenario=fig7)
+    figures = early.join(log)  # the scenario figures, drawn while the robustness map ran
+    figures += make_figures(results, robust, cfg, out_dir, lc, log, fig7_scenario=fig7,
+                            select=lambda name: name in FIG7 + ROBUSTNESS)
 
     log("[4/4] tables, metrics.json, REPORT.md")
     rows = table2_rows(metrics, cfg, numerics)

@@ -19,14 +19,23 @@ from jaxtraffic.paper.scenarios import (
     initial_norms,
 )
 
-
 # ----------------------------------------------------------------------------- figures
+FIG7 = ("fig7_spacetime_alpha_noise.png", "fig7_l2_alpha_noise.png")  # drawn from the reading the claims choose
+ROBUSTNESS = ("robustness_map.png", "robustness_map_waves.png")
+LEARNING_CURVE = "fig3a_learning_curve.png"
+
+
 def make_figures(results: dict[str, dict[str, Outcome]], robust: dict[str, dict[str, np.ndarray]],
                  cfg: EvalConfig, out_dir: Path, learning_curve_csv: Path | None,
-                 log: Callable[[str], None] = print, fig7_scenario: str = "alpha_noise") -> list[str]:
+                 log: Callable[[str], None] = print, fig7_scenario: str = "alpha_noise",
+                 select: Callable[[str], bool] | None = None) -> list[str]:
     """Write every figure into ``out_dir``; returns the file names written. ``fig7_scenario``: the
-    reading of the alpha noise shown as figure 7 (``claims.paper_like_reading``)."""
+    reading of the alpha noise shown as figure 7 (``claims.paper_like_reading``). ``select``: draw only
+    the figures whose file name it accepts (default: all), e.g. the scenario figures while the
+    robustness map is still running (``FIG7`` and ``ROBUSTNESS`` need later results)."""
     from jaxtraffic.paper import plotting as P
+
+    want = select or (lambda name: True)
 
     nom = cfg.nominal()
     rho_bar, v_bar = (float(x) for x in equilibrium(nom))
@@ -35,17 +44,18 @@ def make_figures(results: dict[str, dict[str, Outcome]], robust: dict[str, dict[
     lab = P.LABELS
     written: list[str] = []
 
-    def done(path: Path) -> None:
-        written.append(path.name)
-        log(f"  wrote {path.name}")
+    def draw(name: str, plot: Callable[..., Path], *args, **kwargs) -> None:
+        if want(name):
+            written.append(plot(out_dir / name, *args, **kwargs).name)
+            log(f"  wrote {name}")
 
-    if learning_curve_csv is not None and Path(learning_curve_csv).exists():
+    if want(LEARNING_CURVE) and learning_curve_csv is not None and Path(learning_curve_csv).exists():
         try:
-            done(P.plot_learning_curve(learning_curve_csv, out_dir / "fig3a_learning_curve.png",
-                                       title="PPO learning curve, D = 4 s (paper fig. 3a)"))
+            draw(LEARNING_CURVE, lambda path: P.plot_learning_curve(
+                learning_curve_csv, path, title="PPO learning curve, D = 4 s (paper fig. 3a)"))
         except ValueError as e:
             log(f"  learning curve not plotted: {e}")
-    else:
+    elif want(LEARNING_CURVE):
         log("  no learning_curve.csv: fig3a skipped")
 
     t = results["delay4"]["open_loop"].t
@@ -62,59 +72,58 @@ def make_figures(results: dict[str, dict[str, Outcome]], robust: dict[str, dict[
         series[key] = o.reward[0]
         if o.metrics["diverged"][0]:
             markers[key] = float(o.metrics["diverged_at_s"][0])
-    done(P.plot_reward(out_dir / "fig3b_reward.png", t, series, markers=markers,
-                       title="Reward over time from the paper's initial condition (paper fig. 3b)"))
+    draw("fig3b_reward.png", P.plot_reward, t, series, markers=markers,
+         title="Reward over time from the paper's initial condition (paper fig. 3b)")
 
     titles = {
         "delay0": ("fig4_spacetime_delay0.png", "Plant delay D = 0 (paper fig. 4)"),
         "delay4": ("fig5_spacetime_delay4.png", "Plant delay D = 4 s (paper fig. 5)"),
-        fig7_scenario: ("fig7_spacetime_alpha_noise.png",
+        fig7_scenario: (FIG7[0],
                         f"D = 4 s, plant alpha = 0.15 + N(0, {NOISE_STD}^2), reading {fig7_scenario}: "
                         f"{SCENARIO_BY_NAME[fig7_scenario].description}; seed {cfg.seeds[0]} (paper fig. 7)"),
         "delay_mismatch_3": ("spacetime_delay_mismatch_3.png", "Plant delay 3 s, controllers assume 4 s"),
         "delay_mismatch_5": ("spacetime_delay_mismatch_5.png", "Plant delay 5 s, controllers assume 4 s"),
     }
     for s, (fname, title) in titles.items():
+        if not want(fname):
+            continue
         rows, div = {}, {}
         for c, o in results[s].items():
             rows[lab[c]] = (o.rho[0], o.v[0], o.h[0])
             if o.metrics["diverged"][0]:
                 div[lab[c]] = float(o.metrics["diverged_at_s"][0])
-        done(P.plot_spacetime(out_dir / fname, t, x, rows, eq, title, diverged_at=div))
+        draw(fname, P.plot_spacetime, t, x, rows, eq, title, diverged_at=div)
 
     def l2(s, ctrls):  # the extra learned controllers are added where they were evaluated
         ctrls = (*ctrls, *(c for c in EXTRA_LEARNED if c in results[s]))
         return {lab[c]: (results[s][c].rho_L2, results[s][c].v_L2) for c in ctrls}
 
-    done(P.plot_l2_norms(out_dir / "fig4_l2_delay0.png", t, l2("delay0", ("open_loop", "lyapunov", "ppo")),
-                         "L2 norms of the deviations, plant delay D = 0"))
-    done(P.plot_l2_norms(out_dir / "fig6_l2_delay4.png", t,
-                         l2("delay4", ("open_loop", "lyapunov", "backstepping", "ppo")),
-                         "L2 norms of the deviations, plant delay D = 4 s (paper fig. 6)"))
-    done(P.plot_l2_norms(out_dir / "fig7_l2_alpha_noise.png", t, l2(fig7_scenario, ("backstepping", "ppo")),
-                         f"L2 norms with alpha noise (D = 4 s, reading {fig7_scenario}): mean and min-max band "
-                         f"over {len(cfg.seeds)} seeds"))
-    done(P.plot_l2_panels(out_dir / "fig8_l2_delay_mismatch.png", t,
-                          {"plant D = 3 s": l2("delay_mismatch_3", ("backstepping", "ppo")),
-                           "plant D = 5 s": l2("delay_mismatch_5", ("backstepping", "ppo"))},
-                          "Mismatched delay, controllers assume 4 s (paper fig. 8)"))
-    if robust:
+    draw("fig4_l2_delay0.png", P.plot_l2_norms, t, l2("delay0", ("open_loop", "lyapunov", "ppo")),
+         "L2 norms of the deviations, plant delay D = 0")
+    draw("fig6_l2_delay4.png", P.plot_l2_norms, t, l2("delay4", ("open_loop", "lyapunov", "backstepping", "ppo")),
+         "L2 norms of the deviations, plant delay D = 4 s (paper fig. 6)")
+    draw(FIG7[1], P.plot_l2_norms, t, l2(fig7_scenario, ("backstepping", "ppo")),
+         f"L2 norms with alpha noise (D = 4 s, reading {fig7_scenario}): mean and min-max band "
+         f"over {len(cfg.seeds)} seeds")
+    draw("fig8_l2_delay_mismatch.png", P.plot_l2_panels, t,
+         {"plant D = 3 s": l2("delay_mismatch_3", ("backstepping", "ppo")),
+          "plant D = 5 s": l2("delay_mismatch_5", ("backstepping", "ppo"))},
+         "Mismatched delay, controllers assume 4 s (paper fig. 8)")
+    if robust and any(want(name) for name in ROBUSTNESS):
         names = {"open_loop": "open loop", "lyapunov": "Lyapunov",
                  "backstepping": "backstepping (assumes the true plant delay)",
                  "ppo": "PPO (trained D = 4 s)", **{c: lab[c] for c in ("grad_gains", "grad_network", "grad_robust")}}
         delays, alphas = np.asarray(cfg.robust_delays), np.asarray(cfg.robust_alphas)
         horizon = replace(cfg, horizon_s=cfg.robust_horizon_s).n_steps * cfg.dt
         maps = {names[c]: (r["final_rho_L2"], r["diverged"]) for c, r in robust.items()}
-        done(P.plot_robustness_map(
-            out_dir / "robustness_map.png", delays, alphas, maps,
-            f"Final density L2 deviation from the nominal target after {horizon:g} s, over plant delay x "
-            "plant ACC rate\n(includes the steady offset a proportional law keeps when alpha != 0.15)",
-            nominal=(CTRL_DELAY, 0.15), initial_l2=initial_norms(cfg)[0]))
+        draw(ROBUSTNESS[0], P.plot_robustness_map, delays, alphas, maps,
+             f"Final density L2 deviation from the nominal target after {horizon:g} s, over plant delay x "
+             "plant ACC rate\n(includes the steady offset a proportional law keeps when alpha != 0.15)",
+             nominal=(CTRL_DELAY, 0.15), initial_l2=initial_norms(cfg)[0])
         maps = {names[c]: (r["final_rho_spatial_std"], r["diverged"]) for c, r in robust.items()}
-        done(P.plot_robustness_map(
-            out_dir / "robustness_map_waves.png", delays, alphas, maps,
-            f"Remaining density waves after {horizon:g} s: spatial standard deviation of rho "
-            "(blind to a uniform offset)", nominal=(CTRL_DELAY, 0.15), initial_l2=initial_norms(cfg)[0],
-            quantity="final std_x(rho) (veh/km)"))
+        draw(ROBUSTNESS[1], P.plot_robustness_map, delays, alphas, maps,
+             f"Remaining density waves after {horizon:g} s: spatial standard deviation of rho "
+             "(blind to a uniform offset)", nominal=(CTRL_DELAY, 0.15), initial_l2=initial_norms(cfg)[0],
+             quantity="final std_x(rho) (veh/km)")
     return written
 

@@ -70,6 +70,24 @@ def test_spacetime(tmp_path, series):
     assert_png(out)
 
 
+def test_fields_on_uniform_grids_are_images_placed_on_their_cells():
+    """``_field_image``: recorded float32 times (spacing varying by ~1e-5 s) count as uniform and are
+    drawn as one image whose pixels are centred on (t, x); a non-uniform grid falls back to a mesh."""
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import QuadMesh
+    from matplotlib.image import AxesImage
+
+    t = np.append(np.arange(300, dtype=np.float32) * np.float32(1.0000001), np.float32(300.0))
+    x = np.linspace(0.0, 1000.0, 21)
+    f = np.zeros((t.size, x.size))
+    fig, ax = plt.subplots()
+    img = P._field_image(ax, t, x, f)
+    assert isinstance(img, AxesImage)
+    np.testing.assert_allclose(img.get_extent(), (-0.5, 300.5, -25.0, 1025.0), rtol=1e-6)
+    assert isinstance(P._field_image(ax, t, x ** 1.5, f), QuadMesh)
+    plt.close(fig)
+
+
 def test_l2_norms_and_panels(tmp_path, series):
     t, decay, grow = series
     s = {"backstepping": (0.007 * decay, 0.2 * decay),

@@ -18,6 +18,7 @@ Functions:
 from __future__ import annotations
 
 import math
+import textwrap
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -169,7 +170,7 @@ def plot_spacetime(
                 ax.axvline(td, color="k", ls="--", lw=1.2)
                 ax.text(td, x[-1], f" diverged at {td:.0f} s; frozen after", fontsize=7, va="top",
                         ha="right" if td > 0.6 * t[-1] else "left")
-    fig.suptitle(title, fontsize=12)
+    fig.suptitle(textwrap.fill(title, 150), fontsize=12)  # a long title would widen the saved figure
     return save_figure(fig, png_path)
 
 

@@ -1,14 +1,12 @@
-"""One XLA CPU device per core, opt-in for now (run at ``import jaxtraffic``, before jax starts).
+"""One XLA CPU device per core, by default (run at ``import jaxtraffic``, before jax starts).
 
 XLA's CPU backend presents the whole host as ONE device, and a jit-compiled batched rollout on
-one device keeps about one core busy. When
+one device keeps about one core busy. Unless
 
-  * ``JAXTRAFFIC_DEVICE_SPLIT=1`` is set (opt-in: the default PPO recipe has not yet been measured
-    with its environments split over several devices, which changes its floating-point path),
-  * ``JAXTRAFFIC_NO_DEVICE_SPLIT`` is not set to a non-empty value other than ``0``,
-  * the user's ``XLA_FLAGS`` do not already contain ``--xla_force_host_platform_device_count``
-    (and ``JAX_NUM_CPU_DEVICES`` is not set), and
-  * jax's backends have not been initialised yet (importing jax first is fine; having called
+  * ``JAXTRAFFIC_NO_DEVICE_SPLIT`` is set to a non-empty value other than ``0`` (opt-out),
+  * the user's ``XLA_FLAGS`` already contain ``--xla_force_host_platform_device_count``
+    (or ``JAX_NUM_CPU_DEVICES`` is set), or
+  * jax's backends have been initialised already (importing jax first is fine; having called
     ``jax.devices()`` or run a computation is not: the flag would be ignored),
 
 ``import jaxtraffic`` appends ``--xla_force_host_platform_device_count=<cores>`` to ``XLA_FLAGS``
@@ -17,7 +15,10 @@ CPU platform: on a GPU/TPU machine ``jax.devices()`` still lists the accelerator
 changed on a one-core machine. ``DEVICE_SPLIT`` records what was done (None: nothing).
 
 The batched entry points (``simulate_batch``, the evaluation, the trainers) shard their batch
-over ``jax.devices()``; see ``jaxtraffic.sim.sharding``.
+over ``jax.devices()``; see ``jaxtraffic.sim.sharding``. A rollout's numbers do not depend on the
+device count beyond float32 rounding; a PPO training's do (its minibatches and gradient sums
+split over the devices, and the training is chaotic in such rounding): BENCHMARKS.md "PPO
+reliability" measures the default recipe on one device and on two.
 """
 
 from __future__ import annotations
@@ -27,7 +28,6 @@ import sys
 
 FLAG = "--xla_force_host_platform_device_count"
 OPT_OUT = "JAXTRAFFIC_NO_DEVICE_SPLIT"
-OPT_IN = "JAXTRAFFIC_DEVICE_SPLIT"
 
 
 def host_cores() -> int:
@@ -47,7 +47,7 @@ def split_host(env: dict | None = None) -> int | None:
     """Add the device-count flag to ``env`` (default ``os.environ``) where allowed (see the module
     docstring); return the device count set, or None when nothing was changed."""
     env = os.environ if env is None else env
-    if env.get(OPT_IN, "") in ("", "0") or env.get(OPT_OUT, "") not in ("", "0"):
+    if env.get(OPT_OUT, "") not in ("", "0"):
         return None
     flags = env.get("XLA_FLAGS", "")
     if FLAG in flags or env.get("JAX_NUM_CPU_DEVICES") or _backends_initialised():

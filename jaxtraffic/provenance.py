@@ -45,7 +45,8 @@ def _cpu_model() -> str:
 
 
 def provenance() -> dict[str, Any]:
-    """Code version, package versions, Python, machine (CPU model, cores, JAX backend and devices), time."""
+    """Code version, package versions, Python, machine (CPU model, cores, JAX backend and devices), the
+    persistent compilation cache directory in use (None: none; ``jaxtraffic.compile_cache``), time."""
     versions = {}
     for name in PACKAGES:
         try:
@@ -58,6 +59,7 @@ def provenance() -> dict[str, Any]:
         **code_version(), "versions": versions, "python": platform.python_version(),
         "machine": {"cpu": _cpu_model(), "cores": os.cpu_count(), "platform": platform.platform(),
                     "backend": jax.default_backend(), "devices": [str(d) for d in jax.devices()]},
+        "compilation_cache": jax.config.jax_compilation_cache_dir,
         "utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
     }
 

@@ -24,6 +24,13 @@ import xla_flags
 os.environ.setdefault("JAXTRAFFIC_NO_DEVICE_SPLIT", "1")
 # cheaper compilation in the test process and its subprocesses (tests/xla_flags.py)
 xla_flags.apply()
+# The command-line jobs' persistent compilation cache (jaxtraffic.compile_cache) goes to a directory of
+# this session, never the user's ~/.cache; the suite's train.py / evaluate.py runs share it (.ci/run sets
+# one for both tiers).
+_OWN_CACHE = None
+if "JAXTRAFFIC_COMPILATION_CACHE" not in os.environ:
+    _OWN_CACHE = tempfile.mkdtemp(prefix="jaxtraffic-xla-cache-")
+    os.environ["JAXTRAFFIC_COMPILATION_CACHE"] = _OWN_CACHE
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
@@ -95,6 +102,8 @@ def pytest_sessionfinish(session, exitstatus):
             proc.communicate()
     if "root" in _TRAINING and not _SHARED_ROOT:
         shutil.rmtree(_TRAINING["root"], ignore_errors=True)
+    if _OWN_CACHE:
+        shutil.rmtree(_OWN_CACHE, ignore_errors=True)
 
 
 @pytest.fixture(scope="session")

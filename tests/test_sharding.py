@@ -20,10 +20,10 @@ REPO = Path(__file__).resolve().parents[1]
 def test_split_host_rules(monkeypatch):
     monkeypatch.setattr(_devices, "host_cores", lambda: 4)
     monkeypatch.setattr(_devices, "_backends_initialised", lambda: True)
-    on = {"JAXTRAFFIC_DEVICE_SPLIT": "1"}
+    on = {}  # the default: split
     assert _devices.split_host(dict(on)) is None  # too late: jax already started
     monkeypatch.setattr(_devices, "_backends_initialised", lambda: False)
-    assert _devices.split_host({}) is None  # opt-in
+    assert _devices.split_host({"JAXTRAFFIC_NO_DEVICE_SPLIT": "0"}) == 4  # "0" does not opt out
     env = dict(on)
     assert _devices.split_host(env) == 4 and env["XLA_FLAGS"] == "--xla_force_host_platform_device_count=4"
     env = {**on, "XLA_FLAGS": "--xla_cpu_foo=1"}

@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from jaxtraffic import paper
+from jaxtraffic import compile_cache, paper
 from jaxtraffic.cli import train as train_cli
 from jaxtraffic.learn.checkpoint import load_policy
 from jaxtraffic.learn.config import TrainConfig
@@ -177,6 +177,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     args = parse_args(argv)
     t0 = time.perf_counter()
     nd, na = check_args(args)
+    compile_cache.enable()  # before the first compilation (jaxtraffic.compile_cache)
     try:
         return _main(args, argv, t0, nd, na)
     except (ValueError, FileNotFoundError) as err:  # a broken run directory: one line naming the file

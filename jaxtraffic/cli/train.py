@@ -18,7 +18,7 @@ import math
 import sys
 from pathlib import Path
 
-from jaxtraffic import distributed
+from jaxtraffic import compile_cache, distributed
 from jaxtraffic.learn.config import RUN_CONTROL, SECTIONS, RunConfig, TrainConfig, load_config
 from jaxtraffic.learn.gradient_trainer import train_gradient
 from jaxtraffic.learn.trainer import TrainingInterrupted, check_resumable, train
@@ -125,6 +125,7 @@ def main(argv: list[str] | None = None) -> Path:
         if distributed.settings(*cluster) is not None and config.run.algo == "gradient":
             raise ValueError("--algo gradient runs in one process; multi-process runs train PPO only")
         distributed.initialize(*cluster)
+        compile_cache.enable()  # before the first compilation (jaxtraffic.compile_cache)
         if config.run.resume:
             check_resumable(Path(config.run.out_dir))
             warn_ignored_on_resume(config, explicit_flags(argv))

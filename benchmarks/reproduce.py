@@ -27,12 +27,14 @@ def _d4(m: dict, c: str) -> dict:
     return m["delay4"].get(c, {})
 
 
-def _beats_backstepping(c: str) -> Callable[[dict], tuple[bool, str]]:
+def _beats_backstepping(c: str, j_ratio: float = 1.0) -> Callable[[dict], tuple[bool, str]]:
+    """Final rho L2 below backstepping's and J_comfort below ``j_ratio`` x backstepping's (D = 4 s)."""
     def check(m: dict) -> tuple[bool, str]:
         x, b = _d4(m, c), _d4(m, "backstepping")
         if not x:
             return False, f"{c} not evaluated"
-        ok = (not x["diverged"]) and x["final_rho_L2"] < b["final_rho_L2"] and x["J_comfort"] < b["J_comfort"]
+        ok = ((not x["diverged"]) and x["final_rho_L2"] < b["final_rho_L2"]
+              and x["J_comfort"] < j_ratio * b["J_comfort"])
         return ok, (f"rho L2 {1e3 * x['final_rho_L2']:.3f} vs {1e3 * b['final_rho_L2']:.3f} veh/km, "
                     f"J_comfort {x['J_comfort']:.4g} vs {b['J_comfort']:.4g}")
     return check
@@ -58,7 +60,8 @@ CLAIMS: dict[str, Callable[[dict], tuple[bool, str]]] = {
     "Lyapunov does not stabilise with D = 4 s": _lyapunov_fails_with_delay,
     "backstepping stabilises with D = 4 s": _stabilises("delay4", "backstepping"),
     "PPO stabilises with D = 4 s": _stabilises("delay4", "ppo"),
-    "PPO beats backstepping at D = 4 s (final rho L2 and J_comfort)": _beats_backstepping("ppo"),
+    # the seed sweep's criterion (benchmarks/bench_ppo_seeds.py): L2 below, J_comfort at most 1.2x
+    "PPO at D = 4 s: rho L2 below backstepping's, J_comfort <= 1.2x": _beats_backstepping("ppo", 1.2),
     "gradient gains beat backstepping at D = 4 s": _beats_backstepping("grad_gains"),
     "gradient network beats backstepping at D = 4 s": _beats_backstepping("grad_network"),
 }

@@ -38,7 +38,10 @@ from jaxtraffic.learn.validate import check_devices
 from jaxtraffic.sim.plant import DIVERGED_CONTROL, DIVERGED_INITIAL, DIVERGED_NONE
 
 REPO = Path(__file__).resolve().parents[1]
-TINY = ["--n-points", "21", "--delay", "0.5", "--max-delay-steps", "20", "--num-envs", "4", "--num-steps", "8",
+# one member (the default is a population of 2): these runs are counted per member below;
+# the population itself: test_train.test_population_run
+TINY = ["--seeds", "1", "--n-points", "21", "--delay", "0.5", "--max-delay-steps", "20", "--num-envs", "4",
+        "--num-steps", "8",
         "--updates-per-chunk", "2", "--update-epochs", "2", "--num-minibatches", "2", "--horizon-s", "3",
         "--eval-horizon-s", "2", "--keep-going", "--quiet", "--obs-segments", "0", "--val-horizon-s", "2"]
 CHUNK = 4 * 8 * 2

@@ -21,7 +21,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
-from tiny_runs import CHUNK, REPO, RUNS
+from tiny_runs import CHUNK, REPO, RUNS, TINY
 
 from jaxtraffic.cli import train as train_cli
 from jaxtraffic.learn import checkpoint as ckpt
@@ -305,3 +305,24 @@ def test_two_cpu_devices(two_device_proc):
     assert res["envs_differ"]  # each device runs its own environments
     assert res["env_steps"] == 3 * CHUNK and res["n_rows"] == 3 and res["finite"]
     assert np.isfinite(res["final_reward"][0])
+
+
+def test_population_run(tmp_path):
+    """The default is a population (``config.POPULATION`` members in one jit): every member is
+    evaluated, the best one is the run's policy, and the members are different policies."""
+    from jaxtraffic.learn.config import POPULATION
+
+    assert TrainConfig().run.seeds == POPULATION == 2
+    argv = [x for x in TINY]
+    argv[argv.index("--seeds") + 1] = "2"
+    run = train_cli.main(argv + ["--out-dir", str(tmp_path / "pop"), "--keep-going", "--total-steps", str(2 * CHUNK),
+                                 "--val-horizon-s", "0"])
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["env_steps"] == 2 * CHUNK  # per member
+    fe = summary["final_eval"]
+    assert len(fe["final_reward"]) == 2 and np.all(np.isfinite(fe["final_reward"]))
+    assert fe["final_reward"][0] != fe["final_reward"][1]  # two different networks
+    best = summary["best_seed"]
+    assert best == int(np.argmin(summary["best_val_score"])) and best in (0, 1)
+    ctrl, cfg = load_policy(run)
+    assert cfg.run.seeds == 2 and np.ndim(jax.tree_util.tree_leaves(ctrl.settings)[0]) >= 1

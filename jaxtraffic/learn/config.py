@@ -31,6 +31,10 @@ _EP = EnvParams()
 _PPO = {f.name: f.default for f in dataclasses.fields(PPOConfig)}
 _GRAD = GradientConfig()
 ALGOS = ("ppo", "gradient")
+# The default PPO recipe is a population (BENCHMARKS.md "A population by default"): POPULATION members
+# trained at once, each on PPOConfig's num_envs / POPULATION environments, so that a chunk steps as many
+# environments as one member of PPOConfig's size; the run stops on the first member that meets the rule.
+POPULATION = 2
 
 
 def _f(default: Any, help: str, **meta: Any) -> Any:
@@ -85,7 +89,7 @@ class EnvConfig:
 class AlgoConfig:
     """PPO (``learn.ppo.PPOConfig``; ``network`` chooses its ``hidden`` layers)."""
 
-    num_envs: int = _f(_PPO["num_envs"], "parallel environments per seed")
+    num_envs: int = _f(_PPO["num_envs"] // POPULATION, "parallel environments per seed (population member)")
     num_steps: int = _f(_PPO["num_steps"], "rollout steps per update (100 = 10 s)")
     update_epochs: int = _f(_PPO["update_epochs"], "epochs per update")
     num_minibatches: int = _f(_PPO["num_minibatches"], "minibatches per epoch")
@@ -169,7 +173,8 @@ class RunConfig:
                       "run-control flags --total-steps/--max-wall-s/--keep-going/--stop-patience/--target-reward/"
                       "--min-wave-speed/--val-target apply)")
     seed: int = _f(0, "PRNG seed")
-    seeds: int = _f(1, "independent seeds trained at once (vmap)")
+    seeds: int = _f(POPULATION, "population: members trained at once (their keys split from --seed); the run "
+                    "stops on the first that meets the stop rule and keeps the best member's policy")
     total_steps: int = _f(10_000_000, "environment steps (all envs, per seed)")
     max_wall_s: float = _f(math.inf, "stop after this many seconds")
     keep_going: bool = _f(False, "ignore the stop rule")

@@ -214,6 +214,11 @@ def test_learning_curve_missing_or_short_of_the_rule(metrics):
     assert check(c1, "training reaches the stop rule") is False and c1["verdict"] == "partly"
     c1 = claims_of(metrics, curve={"eval_reward": np.array([np.nan])})[1]
     assert check(c1, "training reaches the stop rule") is None
+    # a population: its best member met the rule although the members' mean did not
+    pop = {"eval_reward": np.array([-3.0, -0.4]), "eval_reward_max": np.array([-2.0, -1e-4])}
+    assert check(claims_of(metrics, curve=pop)[1], "training reaches the stop rule") is True
+    pop["eval_reward_max"] = np.array([np.nan, np.nan])  # a curve without the column's values: the mean
+    assert check(claims_of(metrics, curve=pop)[1], "training reaches the stop rule") is False
 
 
 def test_coinciding_reward_curves_tolerance(metrics):

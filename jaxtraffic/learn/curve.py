@@ -22,8 +22,8 @@ from jaxtraffic.sim.metrics import REWARD_TARGET  # noqa: E402
 
 DPI = 110
 CURVE_FIELDS = ["update", "env_steps", "wall_s", "mean_reward", "eval_reward", "eval_reward_min",
-                "eval_J_comfort", "eval_rho_L2_veh_km", "eval_wave_speed", "val_score", "best_val_score", "eta1",
-                "eta2", "eta3", "entropy", "approx_kl", "value_loss", "restarts"]
+                "eval_reward_max", "eval_J_comfort", "eval_rho_L2_veh_km", "eval_wave_speed", "val_score",
+                "best_val_score", "eta1", "eta2", "eta3", "entropy", "approx_kl", "value_loss", "restarts"]
 # columns renamed since: old name -> new name (rows of a resumed older run, older CSV files)
 RENAMED_FIELDS = {"eval_rho_L2": "eval_rho_L2_veh_km"}
 
@@ -90,12 +90,15 @@ def plot_learning_curve(csv_path: str | Path, png_path: str | Path, title: str |
     """Paper fig. 3a: training reward against environment steps and against wall-clock seconds.
 
     Reads ``csv_path`` (header ``update,env_steps,wall_s,mean_reward,eval_reward,...``) and plots
-    the mean training reward and the deterministic evaluation reward, with the -0.1 stop-rule line
+    the mean training reward and the deterministic evaluation reward (of the best member, in a
+    population: ``eval_reward_max``; ``eval_reward`` is the members' mean), with the -0.1 stop-rule line
     and a dotted line where a random restart re-initialised a member.
     """
     data = read_learning_curve(csv_path)
-    series = [(k, lab) for k, lab in (("mean_reward", "mean training reward (stochastic policy)"),
-                                      ("eval_reward", "evaluation reward (deterministic policy)"))
+    ev_key, ev_label = "eval_reward", "evaluation reward (deterministic policy)"
+    if "eval_reward_max" in data and not np.allclose(data["eval_reward_max"], data["eval_reward"], equal_nan=True):
+        ev_key, ev_label = "eval_reward_max", "evaluation reward, best member (deterministic policy)"  # a population
+    series = [(k, lab) for k, lab in (("mean_reward", "mean training reward (stochastic policy)"), (ev_key, ev_label))
               if k in data and np.isfinite(data[k]).any()]
     if not series:
         raise ValueError(f"{csv_path}: no mean_reward / eval_reward values")

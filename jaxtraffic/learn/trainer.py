@@ -32,7 +32,8 @@ when training starts.
 
 Run directory: config.json, checkpoint.msgpack, best.msgpack, learning_curve.csv,
 learning_curve.png, summary.json. The curve's evaluation columns are means over members of the
-deterministic rollout: eval_reward (the paper's reward at its end, dimensionless), eval_J_comfort,
+deterministic rollout: eval_reward (the paper's reward at its end, dimensionless; eval_reward_min and
+eval_reward_max: the worst and best member's), eval_J_comfort,
 eval_rho_L2_veh_km (final density L2 deviation in veh/km; the metrics' ``final_rho_L2`` is in veh/m)
 and eval_wave_speed (m/s, see above); val_score and best_val_score are the lowest over members (1e7
 and above: not validated, 1e6: rejected).
@@ -306,6 +307,7 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
             row = {"update": int(np.asarray(rep.update).max()), "env_steps": meta["env_steps"],
                    "wall_s": round(meta["wall_s"], 3), "mean_reward": float(m["mean_reward"][:, -1].mean()),
                    "eval_reward": float(ev.mean()), "eval_reward_min": float(ev.min()),
+                   "eval_reward_max": float(ev.max()),
                    "eval_J_comfort": float(last_eval["J_comfort"].mean()),
                    "eval_rho_L2_veh_km": float(last_eval["final_rho_L2"].mean()) * VEH_PER_KM,
                    "eval_wave_speed": float(last_eval["wave_speed"].mean()),

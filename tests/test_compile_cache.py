@@ -26,14 +26,19 @@ def test_default_dir_follows_xdg(tmp_path):
 
 
 def test_left_off_or_to_the_user(tmp_path):
-    assert jax.config.jax_compilation_cache_dir is None  # the rules below must not touch the config
-    for value in ("0", "off", "False", "no"):
-        assert compile_cache.enable(env={compile_cache.ENV: value}) is None
-    # the user's own jax cache directory wins over ours, even with a path of ours given
-    user = {"JAX_COMPILATION_CACHE_DIR": str(tmp_path / "mine"), compile_cache.ENV: str(tmp_path / "ours")}
-    assert compile_cache.enable(env=user) is None
-    assert jax.config.jax_compilation_cache_dir is None
-    assert not (tmp_path / "ours").exists()
+    # an earlier in-process train.py / evaluate.py of the suite may have set the config: start from none
+    saved = jax.config.jax_compilation_cache_dir
+    jax.config.update("jax_compilation_cache_dir", None)
+    try:
+        for value in ("0", "off", "False", "no"):
+            assert compile_cache.enable(env={compile_cache.ENV: value}) is None
+        # the user's own jax cache directory wins over ours, even with a path of ours given
+        user = {"JAX_COMPILATION_CACHE_DIR": str(tmp_path / "mine"), compile_cache.ENV: str(tmp_path / "ours")}
+        assert compile_cache.enable(env=user) is None
+        assert jax.config.jax_compilation_cache_dir is None  # the rules above do not touch the config
+        assert not (tmp_path / "ours").exists()
+    finally:
+        jax.config.update("jax_compilation_cache_dir", saved)
 
 
 _CHILD = textwrap.dedent("""

@@ -313,7 +313,7 @@ def test_population_run(tmp_path):
     from jaxtraffic.learn.config import POPULATION
 
     assert TrainConfig().run.seeds == POPULATION == 2
-    argv = [x for x in TINY]
+    argv = list(TINY)
     argv[argv.index("--seeds") + 1] = "2"
     run = train_cli.main(argv + ["--out-dir", str(tmp_path / "pop"), "--keep-going", "--total-steps", str(2 * CHUNK),
                                  "--val-horizon-s", "0"])
@@ -324,5 +324,5 @@ def test_population_run(tmp_path):
     assert fe["final_reward"][0] != fe["final_reward"][1]  # two different networks
     best = summary["best_seed"]
     assert best == int(np.argmin(summary["best_val_score"])) and best in (0, 1)
-    ctrl, cfg = load_policy(run)
-    assert cfg.run.seeds == 2 and np.ndim(jax.tree_util.tree_leaves(ctrl.settings)[0]) >= 1
+    _, cfg = load_policy(run)
+    assert cfg.run.seeds == 2

@@ -183,10 +183,10 @@ class Outcome:
 
 def run_batch(controller: Controller, envs: list[TrafficParams], keys: list[int], cfg: EvalConfig,
               record: bool = True, batch_controller: bool = False, noise: NoiseReading | None = None,
-              chunk_size: int | None = 64):
+              chunk_size: int | None = None):
     """One vmapped rollout of ``controller`` over ``envs`` from the paper's initial condition
-    (computed on the nominal equilibrium; ``chunk_size``: see ``simulate_batch``). Returns the
-    SimResult with numpy leaves."""
+    (computed on the nominal equilibrium; ``chunk_size``: see ``simulate_batch``, whose default
+    None leaves). Returns the SimResult with numpy leaves."""
     nom = cfg.nominal()
     rho0, v0 = paper_initial_condition(nom)
     b = len(envs)
@@ -196,7 +196,7 @@ def run_batch(controller: Controller, envs: list[TrafficParams], keys: list[int]
         rho0=jnp.broadcast_to(rho0, (b, nom.n_points)), v0=jnp.broadcast_to(v0, (b, nom.n_points)),
         keys=jnp.stack([jax.random.PRNGKey(k) for k in keys]),
         record_every=cfg.record_every if record else 0, batch_controller=batch_controller, noise=noise,
-        chunk_size=chunk_size,
+        **({} if chunk_size is None else {"chunk_size": chunk_size}),
     )
     return jax.tree_util.tree_map(np.asarray, res)
 
@@ -279,7 +279,7 @@ def run_robustness(controllers: dict[str, Controller], cfg: EvalConfig,
     for name in ROBUST_CONTROLLERS:
         if name not in controllers:
             continue
-        ctrl, batched, chunk = controllers[name], False, 64
+        ctrl, batched, chunk = controllers[name], False, None
         if name == "backstepping":
             ctrl = backstepping(delay=jnp.asarray(dd.ravel(), jnp.float32), k=jnp.ones(dd.size))
             # the predictor's loop runs to the largest assumed delay of its chunk: one delay per

@@ -268,6 +268,7 @@ def test_cli_help_documents_every_flag(capsys):
     (["--network", "huge"], "invalid choice"),
     (["--delay-range", "1"], "LO,HI"),
     (["--lr-final", "2"], "lr_final"),
+    (["--diverge-penalty", "-1"], "diverge_penalty"),
 ])
 def test_cli_invalid_values_exit_2(argv, match, tmp_path, capsys):
     out = tmp_path / "run"
@@ -277,6 +278,14 @@ def test_cli_invalid_values_exit_2(argv, match, tmp_path, capsys):
     err = capsys.readouterr().err
     assert match in err and "Traceback" not in err
     assert not out.exists()  # rejected before anything is written
+
+
+def test_diverge_penalty_flag_reaches_the_environment():
+    """--diverge-penalty sets EnvParams.diverge_penalty (the reward of a diverging step); default 100."""
+    from jaxtraffic.learn.trainer import build
+
+    assert float(build(train_cli.settings_from_args([]))[1].diverge_penalty) == 100.0
+    assert float(build(train_cli.settings_from_args(["--diverge-penalty", "2e4"]))[1].diverge_penalty) == 2e4
 
 
 def test_cli_invalid_value_from_the_shell(tmp_path):

@@ -81,6 +81,8 @@ class EnvConfig:
                             "0 when their closed-loop wave speed (linear.gain_law_wave_speed) is >= --wave-speed-min, "
                             "rising to 1 at 5 m/s below it; 0: the paper's reward")
     wave_speed_min: float = _f(_EP.wave_speed_min, "m/s, see --wave-weight")
+    diverge_penalty: float = _f(_EP.diverge_penalty, "reward of the step on which the plant leaves the physical "
+                                "region (the episode then ends), dimensionless, subtracted")
     obs_segments: int = _f(_EP.obs_segments, "observation: each normalised field (rho, v, h_prev) averaged over "
                            "this many equal road segments; 0: the full fields (3 x n-points values)")
 

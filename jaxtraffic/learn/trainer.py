@@ -94,7 +94,8 @@ def build(s: TrainConfig) -> tuple[ppo.PPOConfig, learn_env.EnvParams]:
         amp_max=en.amp_range[1], wavenumber_min=int(en.wavenumber_range[0]),
         wavenumber_max=int(en.wavenumber_range[1]), phase_max=en.phase_max, delay_min=d_lo, delay_max=d_hi,
         alpha_min=a_lo, alpha_max=a_hi, gain_filter=en.gain_filter, h_rate_weight=en.h_rate_weight,
-        wave_weight=en.wave_weight, wave_speed_min=en.wave_speed_min, obs_segments=en.obs_segments)
+        wave_weight=en.wave_weight, wave_speed_min=en.wave_speed_min, obs_segments=en.obs_segments,
+        diverge_penalty=en.diverge_penalty)
     algo = dataclasses.asdict(s.algo)
     cfg = ppo.PPOConfig(num_seeds=s.run.seeds, hidden=s.algo.hidden(),
                         **{f.name: algo[f.name] for f in dataclasses.fields(ppo.PPOConfig) if f.name in algo})

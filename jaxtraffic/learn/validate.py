@@ -26,7 +26,8 @@ RULES: dict[str, tuple[float | None, bool, float | None, bool]] = {
     "horizon_s": (0.0, False, None, False), "delay_spread": (0.0, True, None, False),
     "phase_max": (0.0, True, None, False), "gain_max": (0.0, False, None, False),
     "gain_filter": (0.0, False, 1.0, True), "h_rate_weight": (0.0, True, None, False),
-    "wave_weight": (0.0, True, None, False), "obs_segments": (0, True, None, False),
+    "wave_weight": (0.0, True, None, False), "diverge_penalty": (0.0, True, None, False),
+    "obs_segments": (0, True, None, False),
     # algo
     "num_envs": (1, True, None, False), "num_steps": (1, True, None, False), "update_epochs": (1, True, None, False),
     "num_minibatches": (1, True, None, False), "updates_per_chunk": (1, True, None, False),

@@ -18,6 +18,7 @@ Devices: on a CPU-only machine ``import jaxtraffic`` splits the host into one XL
 Public API (see README.md for a module map):
     TrafficParams, equilibrium                      -- parameters and equilibrium
     simulate, simulate_batch, stack_params          -- jit-compiled, vmappable rollouts
+    plant_alphas                                    -- the plant alphas a rollout draws (to pass as alphas=)
     paper_initial_condition, equilibrium_state      -- initial conditions
     open_loop, lyapunov, backstepping, constant_gains, Controller, Observation -- controllers
 """
@@ -41,6 +42,7 @@ from jaxtraffic.sim import (
     Trajectory,
     equilibrium_state,
     paper_initial_condition,
+    plant_alphas,
     simulate,
     simulate_batch,
     stack_params,
@@ -51,6 +53,6 @@ register_gymnasium()  # gymnasium.make("jaxtraffic/Gain-v0") when gymnasium is i
 __all__ = [
     "__version__", "Controller", "Observation", "SimResult", "TrafficParams", "Trajectory", "backstepping",
     "cfl_number", "constant_gains", "equilibrium", "equilibrium_state", "gain_law", "lyapunov",
-    "open_loop", "paper_initial_condition", "saturate", "simulate", "simulate_batch",
+    "open_loop", "paper_initial_condition", "plant_alphas", "saturate", "simulate", "simulate_batch",
     "stack_params", "steps_for",
 ]

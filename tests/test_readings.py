@@ -152,3 +152,28 @@ def test_on_coarse_grid_observes_the_training_nodes_and_interpolates_back():
     np.testing.assert_allclose(h_f[::2], h_c, rtol=1e-6)
     np.testing.assert_allclose(h_f[1::2], 0.5 * (h_c[1:] + h_c[:-1]), rtol=1e-6)
     assert on_coarse_grid(ctrl, 1) is ctrl
+
+
+def test_given_alphas_reproduce_the_drawn_readings():
+    """``alphas=plant_alphas(params, key, n, reading)`` reproduces the rollout that draws that reading
+    (held road-wide, per node), so a batch of different holding times can share one program; the
+    batch version matches its members; a reading that draws and given alphas do not combine."""
+    p = jaxtraffic.TrafficParams(**SMALL, delay=1.0, max_delay_steps=8, alpha_noise=0.15)
+    ctrl, n, key = jaxtraffic.backstepping(1.0, 1.0), 40, jax.random.PRNGKey(3)
+    held, node = NoiseReading(hold_steps=7), NoiseReading(hold_steps=5, per_node=True)
+    for reading in (None, held, node):
+        drawn = jaxtraffic.simulate(p, ctrl, n_steps=n, key=key, noise=reading)
+        given = jaxtraffic.simulate(p, ctrl, n_steps=n, key=key, alphas=jaxtraffic.plant_alphas(p, key, n, reading))
+        assert float(drawn.metrics["J_comfort"]) > 0.0
+        for k in ("J_TTT", "J_comfort", "final_rho_L2"):
+            np.testing.assert_allclose(float(given.metrics[k]), float(drawn.metrics[k]), rtol=1e-6)
+    keys = jax.random.split(key, 2)
+    alphas = jnp.stack([jaxtraffic.plant_alphas(p, keys[0], n), jaxtraffic.plant_alphas(p, keys[1], n, held)])
+    batch = jaxtraffic.simulate_batch(p, ctrl, n_steps=n, keys=keys, alphas=alphas)
+    for i, reading in enumerate((None, held)):
+        one = jaxtraffic.simulate(p, ctrl, n_steps=n, key=keys[i], noise=reading)
+        np.testing.assert_allclose(float(batch.metrics["J_comfort"][i]), float(one.metrics["J_comfort"]), rtol=1e-5)
+    with pytest.raises(ValueError, match="replaces the drawn"):
+        jaxtraffic.simulate(p, ctrl, n_steps=n, noise=held, alphas=alphas[1])
+    with pytest.raises(ValueError, match="shape"):
+        jaxtraffic.simulate(p, ctrl, n_steps=n, alphas=alphas[1][:-1])

@@ -46,7 +46,7 @@ from jaxtraffic.model.params import TrafficParams, equilibrium, steps_for
 from jaxtraffic.sim import metrics as M
 from jaxtraffic.sim.initial import paper_initial_condition
 from jaxtraffic.sim.plant import NoiseReading
-from jaxtraffic.sim.rollout import simulate_batch, stack_params
+from jaxtraffic.sim.rollout import plant_alphas, simulate_batch, stack_params
 
 CTRL_DELAY = 4.0  # s, the delay the controllers (backstepping, PPO) are designed / trained for
 NOISE_STD = 0.15  # std of the Gaussian noise on the plant's alpha (alpha_noise scenario)
@@ -183,22 +183,37 @@ class Outcome:
 
 def run_batch(controller: Controller, envs: list[TrafficParams], keys: list[int], cfg: EvalConfig,
               record: bool = True, batch_controller: bool = False, noise: NoiseReading | None = None,
-              chunk_size: int | None = None):
+              chunk_size: int | None = None, readings: list[NoiseReading | None] | None = None):
     """One vmapped rollout of ``controller`` over ``envs`` from the paper's initial condition
     (computed on the nominal equilibrium; ``chunk_size``: see ``simulate_batch``, whose default
-    None leaves). Returns the SimResult with numpy leaves."""
+    None leaves). ``readings``: per environment, a road-wide reading whose alpha draw it gets
+    (``plant_alphas``; ``noise`` then only carries ``model_sees``), so that environments of
+    different holding times share one program. Returns the SimResult with numpy leaves."""
     nom = cfg.nominal()
     rho0, v0 = paper_initial_condition(nom)
     b = len(envs)
     params = stack_params(*envs)
+    alphas = None
+    if readings is not None:
+        alphas = jnp.stack([plant_alphas(e, jax.random.PRNGKey(k), cfg.n_steps, r)
+                            for e, k, r in zip(envs, keys, readings, strict=True)])
     res = simulate_batch(
         params, controller, n_steps=cfg.n_steps, nominal=nom,
         rho0=jnp.broadcast_to(rho0, (b, nom.n_points)), v0=jnp.broadcast_to(v0, (b, nom.n_points)),
         keys=jnp.stack([jax.random.PRNGKey(k) for k in keys]),
         record_every=cfg.record_every if record else 0, batch_controller=batch_controller, noise=noise,
-        **({} if chunk_size is None else {"chunk_size": chunk_size}),
+        alphas=alphas, **({} if chunk_size is None else {"chunk_size": chunk_size}),
     )
     return jax.tree_util.tree_map(np.asarray, res)
+
+
+def _program_reading(reading: NoiseReading | None) -> NoiseReading | None:
+    """The reading a scenario's program is compiled for: a road-wide held reading shares the
+    default one's program (its alphas are given), the others keep theirs."""
+    if reading is None or reading.per_node or reading.hold_steps == 1:
+        return reading
+    shared = replace(reading, hold_steps=1)
+    return None if shared == NoiseReading() else shared
 
 
 def initial_norms(cfg: EvalConfig) -> tuple[float, float]:
@@ -220,6 +235,9 @@ def run_scenarios(controllers: dict[str, Controller], cfg: EvalConfig,
     ``scenario_controllers``: (scenario, name) -> Controller overrides (e.g. a separate D = 0 PPO
     policy for "delay0"); each distinct override runs as its own batch, and so does each reading
     of the alpha noise other than the default one (``Scenario.reading``).
+    Readings that differ only in how long a road-wide draw is held share one program (their
+    alphas are drawn outside it, ``run_batch(readings=...)``); the per-node and model-sees
+    readings have programs of their own.
     Returns {scenario: {controller name: Outcome}}.
     """
     overrides = scenario_controllers or {}
@@ -228,7 +246,7 @@ def run_scenarios(controllers: dict[str, Controller], cfg: EvalConfig,
         for name in sc.controllers:
             if name in EXTRA_LEARNED and name not in controllers:
                 continue
-            gid = (name, sc.name if (sc.name, name) in overrides else "", sc.reading(cfg.dt, name))
+            gid = (name, sc.name if (sc.name, name) in overrides else "", _program_reading(sc.reading(cfg.dt, name)))
             seeds = cfg.seeds if sc.seeded else (0,)
             groups.setdefault(gid, []).extend((sc.name, s) for s in seeds)
     nom = cfg.nominal()
@@ -237,8 +255,11 @@ def run_scenarios(controllers: dict[str, Controller], cfg: EvalConfig,
         ctrl = overrides[(override_scenario, name)] if override_scenario else controllers[name]
         envs = [nom.replace(delay=SCENARIO_BY_NAME[s].plant_delay,
                             alpha_noise=SCENARIO_BY_NAME[s].alpha_noise) for s, _ in members]
+        readings = [SCENARIO_BY_NAME[s].reading(cfg.dt, name) for s, _ in members]
+        held = any(r is not None and r.hold_steps > 1 and not r.per_node for r in readings)
         t0 = time.perf_counter()
-        res = run_batch(ctrl, envs, [seed for _, seed in members], cfg, noise=reading)
+        res = run_batch(ctrl, envs, [seed for _, seed in members], cfg, noise=reading,
+                        readings=readings if held else None)
         scen = sorted({s for s, _ in members}, key=[x.name for x in SCENARIOS].index)
         log(f"  {name:<13s} {len(envs):3d} envs x {cfg.n_steps} steps ({', '.join(scen)})"
             f"  {time.perf_counter() - t0:6.1f} s")

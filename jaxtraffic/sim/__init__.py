@@ -3,7 +3,8 @@ closed-loop step, rollouts (``simulate``, ``simulate_batch``), initial condition
 
 from jaxtraffic.sim.initial import equilibrium_state, paper_initial_condition
 from jaxtraffic.sim.plant import PlantState, StepInfo, closed_loop_step, initial_state, plant_step
-from jaxtraffic.sim.rollout import SimResult, Trajectory, simulate, simulate_batch, stack_params
+from jaxtraffic.sim.rollout import SimResult, Trajectory, plant_alphas, simulate, simulate_batch, stack_params
 
 __all__ = ["PlantState", "SimResult", "StepInfo", "Trajectory", "closed_loop_step", "equilibrium_state",
-           "initial_state", "paper_initial_condition", "plant_step", "simulate", "simulate_batch", "stack_params"]
+           "initial_state", "paper_initial_condition", "plant_alphas", "plant_step", "simulate", "simulate_batch",
+           "stack_params"]

@@ -37,7 +37,7 @@ from jaxtraffic.sim.sharding import sharded_batch
 Array = jax.Array
 
 __all__ = ["NoiseReading", "PlantState", "SimResult", "Trajectory", "chunked_vmap", "equilibrium_state",
-           "finalize_metrics", "initial_state", "paper_initial_condition", "plant_step", "simulate",
+           "finalize_metrics", "initial_state", "paper_initial_condition", "plant_alphas", "plant_step", "simulate",
            "simulate_batch", "stack_params"]
 
 
@@ -103,17 +103,27 @@ def finalize_metrics(acc: M.MetricsAccumulator, final: PlantState, target: Traff
     }
 
 
+def plant_alphas(params: TrafficParams, key: Array | None, n_steps: int, noise: NoiseReading | None = None,
+                 dtype: Any = jnp.float32) -> Array:
+    """The plant alphas a rollout with this ``key`` (default PRNGKey(0)) and ``noise`` reading draws:
+    shape (n_steps,), or (n_steps, n) per node (``sim.plant.noise_alpha_sequence`` on the plant half
+    of the key; the other half goes to the controller). Giving them back as ``alphas=`` reproduces
+    that rollout, so rollouts of different (road-wide) readings can share one compiled program."""
+    key = jax.random.PRNGKey(0) if key is None else key
+    return noise_alpha_sequence(params, jax.random.split(key)[0], n_steps, noise, dtype)
+
+
 def _simulate(params: TrafficParams, controller: Controller | None, rho0: Array | None,
               v0: Array | None, key: Array | None, nominal: TrafficParams | None,
               n_steps: int, record_every: int, remat: bool = False,
-              noise: NoiseReading | None = None) -> SimResult:
+              noise: NoiseReading | None = None, alphas: Array | None = None) -> SimResult:
     p = params
     nominal = p if nominal is None else nominal
     controller = open_loop() if controller is None else controller
     if rho0 is None:
         rho0, v0 = paper_initial_condition(p)
     key = jax.random.PRNGKey(0) if key is None else key
-    k_plant, k_ctrl = jax.random.split(key)
+    k_ctrl = jax.random.split(key)[1]
     rho_bar, v_bar = equilibrium(nominal)
     state = initial_state(p, rho0, v0)
     cstate = controller.init(state.observation(p), nominal)
@@ -122,8 +132,8 @@ def _simulate(params: TrafficParams, controller: Controller | None, rho0: Array 
     # the initial state's is counted here
     r0 = M.reward(rho0, v0, rho_bar, v_bar)
     acc = acc.replace(last_bad_step=jnp.where(r0 < M.REWARD_TARGET, 0, -1).astype(jnp.int32))
-    # the plant's alpha of every step, drawn at once (cheaper than a draw inside the loop)
-    alphas = noise_alpha_sequence(p, k_plant, n_steps, noise, rho0.dtype)
+    # the plant's alpha of every step, drawn at once (cheaper than a draw inside the loop), unless given
+    alphas = plant_alphas(p, key, n_steps, noise, rho0.dtype) if alphas is None else alphas.astype(rho0.dtype)
     sees = noise is not None and noise.model_sees
     switch_step = p.delay_steps
 
@@ -168,6 +178,21 @@ def _simulate(params: TrafficParams, controller: Controller | None, rho0: Array 
 _simulate_jit = jax.jit(_simulate, static_argnames=("n_steps", "record_every", "remat", "noise"))
 
 
+def _check_alphas(params: TrafficParams, alphas: Array | None, n_steps: int, noise: NoiseReading | None,
+                  batch: int | None) -> None:
+    """ValueError unless ``alphas`` is None or of shape ([batch,] n_steps[, n_points]), and ``noise``
+    does not also ask for a draw of its own (held or per node)."""
+    if alphas is None:
+        return
+    if noise is not None and (noise.hold_steps != 1 or noise.per_node):
+        raise ValueError("alphas replaces the drawn alpha noise: give it the reading's sequence "
+                         "(plant_alphas(..., noise=reading)) and leave noise to model_sees")
+    lead = () if batch is None else (batch,)
+    ok = (lead + (n_steps,), lead + (n_steps, params.n_points))
+    if tuple(jnp.shape(alphas)) not in ok:
+        raise ValueError(f"alphas needs shape {ok[0]} or {ok[1]}, got {tuple(jnp.shape(alphas))}")
+
+
 def _check_initial_condition(params: TrafficParams, rho0: Array | None, v0: Array | None) -> None:
     """Raise ``ValueError`` if a concrete initial state (single, or batched (B, n)) is not finite
     or outside 0 < rho < 1/l, v >= 0. Traced inputs are not checked (the rollout then flags
@@ -190,7 +215,7 @@ def simulate(
     params: TrafficParams, controller: Controller | None = None, *, n_steps: int,
     rho0: Array | None = None, v0: Array | None = None, key: Array | None = None,
     nominal: TrafficParams | None = None, record_every: int = 0, remat: bool = False,
-    noise: NoiseReading | None = None,
+    noise: NoiseReading | None = None, alphas: Array | None = None,
 ) -> SimResult:
     """Closed-loop rollout of one freeway for ``n_steps`` steps of ``params.dt``.
 
@@ -208,9 +233,14 @@ def simulate(
             ``simulate_batch``).
         noise: how the alpha noise is drawn and whether the controller sees it (``NoiseReading``;
             default: one road-wide draw per step, plant only).
+        alphas: the plant's alpha at every step instead of a draw, shape (n_steps,) or
+            (n_steps, n_points) (per node); ``plant_alphas`` gives the draw of a key and reading.
+            ``noise`` then only says whether the controller sees it (``model_sees``).
     """
     _check_rollout_args(params, n_steps, rho0, v0, nominal, record_every, remat)
-    return _simulate_jit(params, controller, rho0, v0, key, nominal, int(n_steps), int(record_every), remat, noise)
+    _check_alphas(params, alphas, int(n_steps), noise, None)
+    return _simulate_jit(params, controller, rho0, v0, key, nominal, int(n_steps), int(record_every), remat, noise,
+                         alphas)
 
 
 def _check_rollout_args(params, n_steps, rho0, v0, nominal, record_every: int, remat: bool) -> None:
@@ -229,6 +259,7 @@ def simulate_batch(
     rho0: Array | None = None, v0: Array | None = None, keys: Array | None = None,
     nominal: TrafficParams | None = None, record_every: int = 0, batch_controller: bool = False,
     chunk_size: int | None = 64, remat: bool = False, noise: NoiseReading | None = None,
+    alphas: Array | None = None,
 ) -> SimResult:
     """``simulate`` vmapped over a batch; every returned leaf gets a leading batch axis.
 
@@ -238,6 +269,9 @@ def simulate_batch(
     a leading batch axis). ``nominal`` is shared (not batched). At least one input must be batched.
 
     ``noise`` (static): the ``NoiseReading`` shared by every environment (see ``simulate``).
+    ``alphas``: every environment's plant alphas instead of a draw, shape (B, n_steps) or
+    (B, n_steps, n_points) (see ``simulate``); environments whose alpha sequences come from
+    different road-wide readings (held for different times) can so share one program.
 
     ``chunk_size`` (static): a batch larger than this runs as a sequential loop over chunks of
     ``chunk_size`` environments, each chunk vmapped over the whole rollout, so that the working
@@ -253,24 +287,27 @@ def simulate_batch(
     r_axis = 0 if rho0 is not None and jnp.ndim(rho0) == 2 else None
     k_axis = 0 if keys is not None and jnp.ndim(keys) == 2 else None
     c_axis = 0 if batch_controller else None
-    if (p_axis, r_axis, k_axis, c_axis) == (None,) * 4:
+    a_axis = None if alphas is None else 0
+    if (p_axis, r_axis, k_axis, c_axis, a_axis) == (None,) * 5:
         raise ValueError("simulate_batch: nothing is batched; use simulate")
     _check_rollout_args(params, n_steps, rho0, v0, nominal, record_every, remat)
+    _check_alphas(params, alphas, int(n_steps), noise, None if alphas is None else int(jnp.shape(alphas)[0]))
     return _simulate_batch_jit(params, controller, rho0, v0, keys, nominal, int(n_steps), int(record_every),
-                               (p_axis, c_axis, r_axis, r_axis, k_axis), chunk_size or 0, remat, noise)
+                               (p_axis, c_axis, r_axis, r_axis, k_axis, a_axis), chunk_size or 0, remat, noise,
+                               alphas)
 
 
 @functools.partial(jax.jit, static_argnames=("n_steps", "record_every", "axes", "chunk_size", "remat", "noise"))
 def _simulate_batch_jit(params, controller, rho0, v0, keys, nominal, n_steps: int, record_every: int,
                         axes: tuple, chunk_size: int = 0, remat: bool = False,
-                        noise: NoiseReading | None = None) -> SimResult:
-    def one(p, c, r, v, k):
-        return _simulate(p, c, r, v, k, nominal, n_steps, record_every, remat, noise)
+                        noise: NoiseReading | None = None, alphas=None) -> SimResult:
+    def one(p, c, r, v, k, a):
+        return _simulate(p, c, r, v, k, nominal, n_steps, record_every, remat, noise, a)
 
     def local(*args):  # this device's block of the batch
         return chunked_vmap(one, args, axes, chunk_size)
 
-    return sharded_batch(local, (params, controller, rho0, v0, keys), axes)
+    return sharded_batch(local, (params, controller, rho0, v0, keys, alphas), axes)
 
 
 def chunked_vmap(fn, args: tuple, axes: tuple, chunk_size: int) -> Any:

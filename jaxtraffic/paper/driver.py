@@ -17,7 +17,7 @@ from jaxtraffic.model.params import equilibrium
 from jaxtraffic.paper.claims import evaluate_claims, paper_like_reading
 from jaxtraffic.paper.figures import FIG7, ROBUSTNESS, make_figures
 from jaxtraffic.paper.learned import comparison_section
-from jaxtraffic.paper.numerics import GRID_BOUND, on_coarse_grid, run_numerics
+from jaxtraffic.paper.numerics import GRID_BOUND, on_coarse_grid, relative_to, run_numerics
 from jaxtraffic.paper.report import numerics_summary, readings_summary, robustness_summary, write_report
 from jaxtraffic.paper.scenarios import CTRL_DELAY, SCENARIOS, EvalConfig, initial_norms, run_robustness, run_scenarios
 from jaxtraffic.paper.summaries import UNITS, equilibrium_indices, summarise
@@ -27,15 +27,16 @@ from jaxtraffic.provenance import provenance
 
 # ----------------------------------------------------------------------------- driver
 class _Background:
-    """``make_figures(*args, log=..., **kwargs)`` in a thread, its log lines kept for ``join``.
+    """``fn(*args, log=..., **kwargs)`` in a thread, its log lines kept for ``join``.
 
-    Matplotlib draws while XLA runs the robustness map and the numerics check (which release the
-    GIL while they compute), on the core they leave free; only this thread uses matplotlib until
-    ``join``."""
+    Used for the scenario figures (matplotlib draws while XLA runs the robustness map, which
+    releases the GIL while it computes; only this thread uses matplotlib until ``join``) and for
+    the numerics check (its programs compile and run alongside the robustness map's, on the
+    core those leave free: compilation uses about one core and a small batch does not fill two)."""
 
-    def __init__(self, fn: Callable[..., list[str]], *args, **kwargs):
+    def __init__(self, fn: Callable[..., Any], *args, name: str = "figures", **kwargs):
         self.lines: list[str] = []
-        self.result: list[str] = []
+        self.result: Any = None
         self.error: BaseException | None = None
 
         def run() -> None:
@@ -44,10 +45,10 @@ class _Background:
             except BaseException as exc:  # re-raised in the caller's thread by join
                 self.error = exc
 
-        self.thread = threading.Thread(target=run, name="jaxtraffic-figures", daemon=True)
+        self.thread = threading.Thread(target=run, name=f"jaxtraffic-{name}", daemon=True)
         self.thread.start()
 
-    def join(self, log: Callable[[str], None]) -> list[str]:
+    def join(self, log: Callable[[str], None]) -> Any:
         self.thread.join()
         for line in self.lines:
             log(line)
@@ -80,24 +81,26 @@ def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: s
         ctrls = {k: on_coarse_grid(c, cfg.refine) if k in GRID_BOUND else c for k, c in ctrls.items()}
         ppo_delay0 = None if ppo_delay0 is None else on_coarse_grid(ppo_delay0, cfg.refine)
     overrides = {("delay0", "ppo"): ppo_delay0} if ppo_delay0 is not None else {}
+    # independent of the rest: its programs compile and run alongside the scenarios' and the map's
+    checking = _Background(run_numerics, ctrls, cfg, name="numerics") if cfg.numerics_check else None
     log(f"[1/4] scenarios: {cfg.grid_points} points ({cfg.scheme}), dt = {cfg.dt} s, {cfg.horizon_s:g} s "
-        f"({cfg.n_steps} steps), {len(cfg.seeds)} noise seeds")
+        f"({cfg.n_steps} steps), {len(cfg.seeds)} noise seeds"
+        + ("; the numerical check of Table 2 runs alongside" if checking else ""))
     results = run_scenarios(ctrls, cfg, log, overrides)
     lc = Path(learning_curve_csv) if learning_curve_csv else None
     early = _Background(make_figures, results, {}, cfg, out_dir, lc,
                         select=lambda name: name not in FIG7 + ROBUSTNESS)
-    log(f"[2/4] robustness map: {len(cfg.robust_delays)} delays x {len(cfg.robust_alphas)} alphas, "
-        f"{cfg.robust_horizon_s:g} s" + ("" if cfg.robust_delays and cfg.robust_alphas else " (skipped)"))
-    robust = run_robustness(ctrls, cfg, log)
-
     init_l2 = initial_norms(cfg)
     metrics: dict[str, Any] = {"units": UNITS}
     for s, per in results.items():
         metrics[s] = {c: summarise(o, init_l2) for c, o in per.items()}
+    log(f"[2/4] robustness map: {len(cfg.robust_delays)} delays x {len(cfg.robust_alphas)} alphas, "
+        f"{cfg.robust_horizon_s:g} s" + ("" if cfg.robust_delays and cfg.robust_alphas else " (skipped)"))
+    robust = run_robustness(ctrls, cfg, log)
     numerics = None
-    if cfg.numerics_check:
+    if checking is not None:
         log("  numerical check of Table 2 (delay4): refined grid and the other scheme")
-        numerics = run_numerics(ctrls, cfg, metrics["delay4"], log)
+        numerics = relative_to(checking.join(log), metrics["delay4"])
         metrics["numerics"] = numerics
 
     lc_data = None

@@ -73,36 +73,45 @@ def _rel(a: float, b: float) -> float | None:
     return float((a - b) / abs(b))
 
 
-def run_numerics(controllers: dict[str, Controller], cfg: EvalConfig, base: dict[str, dict[str, float]],
+def run_numerics(controllers: dict[str, Controller], cfg: EvalConfig,
                  log: Callable[[str], None] = print) -> dict[str, Any]:
     """Scenario delay4 for ``NUMERICS_CONTROLLERS`` under each of ``variants(cfg)``.
 
     ``controllers``: as evaluated on ``cfg`` (a grid-bound one already wrapped for cfg's grid, i.e.
-    ``on_coarse_grid(policy, cfg.refine)``); ``base``: metrics.json's delay4 entries on ``cfg``.
+    ``on_coarse_grid(policy, cfg.refine)``). Independent of the evaluation on ``cfg`` itself, so it
+    can run alongside it; ``relative_to`` then adds the differences to it.
     Returns {"base": description, "variants": {name: description}, "delay4": {variant: {controller:
-    {index: value}}}, "rel_diff": {variant: {controller: {index: (variant - base) / |base|}}}}.
+    {index: value}}}}.
     """
-    out: dict[str, Any] = {"base": describe(cfg), "variants": {}, "delay4": {}, "rel_diff": {},
+    out: dict[str, Any] = {"base": describe(cfg), "variants": {}, "delay4": {},
                            "note": "rel_diff = (J_variant - J) / |J|; PPO on a refined grid observes the "
                                    "training grid's nodes and its time gap is interpolated back (paper.numerics)"}
     for vname, vcfg in variants(cfg).items():
         out["variants"][vname] = describe(vcfg)
-        out["delay4"][vname], out["rel_diff"][vname] = {}, {}
+        out["delay4"][vname] = {}
         factor = vcfg.refine // cfg.refine
         nom = vcfg.nominal(delay=CTRL_DELAY)
         for c in NUMERICS_CONTROLLERS:
-            if c not in controllers or c not in base:
+            if c not in controllers:
                 continue
             ctrl = controllers[c]
             if c in GRID_BOUND:
                 ctrl = on_coarse_grid(ctrl, factor)
             res = run_batch(ctrl, [nom], [0], vcfg, record=False)
-            vals = {k: float(np.asarray(res.metrics[k])[0]) for k in NUMERICS_INDICES}
-            out["delay4"][vname][c] = vals
-            out["rel_diff"][vname][c] = {k: _rel(vals[k], base[c][k]) for k in NUMERICS_INDICES if k in base[c]}
+            out["delay4"][vname][c] = {k: float(np.asarray(res.metrics[k])[0]) for k in NUMERICS_INDICES}
         log(f"  numerics {vname:<8s} ({vcfg.scheme}, {vcfg.grid_points} points): "
             + ", ".join(f"{c} J_comfort {v['J_comfort']:.4g}" for c, v in out["delay4"][vname].items()))
     return out
+
+
+def relative_to(numerics: dict[str, Any], base: dict[str, dict[str, float]]) -> dict[str, Any]:
+    """``run_numerics``' output with "rel_diff" = {variant: {controller: {index: (variant - base) /
+    |base|}}} against ``base``, metrics.json's delay4 entries on the base grid (controllers absent
+    from ``base`` are dropped)."""
+    delay4 = {v: {c: vals for c, vals in per.items() if c in base} for v, per in numerics["delay4"].items()}
+    rel = {v: {c: {k: _rel(vals[k], base[c][k]) for k in NUMERICS_INDICES if k in base[c]} for c, vals in per.items()}
+           for v, per in delay4.items()}
+    return {**numerics, "delay4": delay4, "rel_diff": rel}
 
 
 def survives(numerics: dict[str, Any], metrics: dict, cfg: EvalConfig) -> list[tuple[str, dict[str, bool]]]:

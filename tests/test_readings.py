@@ -177,3 +177,5 @@ def test_given_alphas_reproduce_the_drawn_readings():
         jaxtraffic.simulate(p, ctrl, n_steps=n, noise=held, alphas=alphas[1])
     with pytest.raises(ValueError, match="shape"):
         jaxtraffic.simulate(p, ctrl, n_steps=n, alphas=alphas[1][:-1])
+    with pytest.raises(ValueError, match="shape"):
+        jaxtraffic.simulate_batch(p, ctrl, n_steps=n, keys=keys, alphas=alphas[:, :-1])

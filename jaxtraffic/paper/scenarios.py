@@ -256,10 +256,10 @@ def run_scenarios(controllers: dict[str, Controller], cfg: EvalConfig,
         envs = [nom.replace(delay=SCENARIO_BY_NAME[s].plant_delay,
                             alpha_noise=SCENARIO_BY_NAME[s].alpha_noise) for s, _ in members]
         readings = [SCENARIO_BY_NAME[s].reading(cfg.dt, name) for s, _ in members]
-        held = any(r is not None and r.hold_steps > 1 and not r.per_node for r in readings)
+        shared = any(r != reading for r in readings)  # some member's draw differs from the program's
         t0 = time.perf_counter()
         res = run_batch(ctrl, envs, [seed for _, seed in members], cfg, noise=reading,
-                        readings=readings if held else None)
+                        readings=readings if shared else None)
         scen = sorted({s for s, _ in members}, key=[x.name for x in SCENARIOS].index)
         log(f"  {name:<13s} {len(envs):3d} envs x {cfg.n_steps} steps ({', '.join(scen)})"
             f"  {time.perf_counter() - t0:6.1f} s")

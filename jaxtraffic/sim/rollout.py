@@ -179,18 +179,19 @@ _simulate_jit = jax.jit(_simulate, static_argnames=("n_steps", "record_every", "
 
 
 def _check_alphas(params: TrafficParams, alphas: Array | None, n_steps: int, noise: NoiseReading | None,
-                  batch: int | None) -> None:
-    """ValueError unless ``alphas`` is None or of shape ([batch,] n_steps[, n_points]), and ``noise``
-    does not also ask for a draw of its own (held or per node)."""
+                  batched: bool) -> None:
+    """ValueError unless ``alphas`` is None or of shape ([B,] n_steps[, n_points]) (B when ``batched``),
+    and ``noise`` does not also ask for a draw of its own (held or per node)."""
     if alphas is None:
         return
     if noise is not None and (noise.hold_steps != 1 or noise.per_node):
         raise ValueError("alphas replaces the drawn alpha noise: give it the reading's sequence "
                          "(plant_alphas(..., noise=reading)) and leave noise to model_sees")
-    lead = () if batch is None else (batch,)
-    ok = (lead + (n_steps,), lead + (n_steps, params.n_points))
-    if tuple(jnp.shape(alphas)) not in ok:
-        raise ValueError(f"alphas needs shape {ok[0]} or {ok[1]}, got {tuple(jnp.shape(alphas))}")
+    shape = tuple(jnp.shape(alphas))
+    ok = ((n_steps,), (n_steps, params.n_points))
+    if (shape[1:] if batched else shape) not in ok:
+        lead = "(B, ...) with " if batched else ""
+        raise ValueError(f"alphas needs shape {lead}{ok[0]} or {ok[1]}, got {shape}")
 
 
 def _check_initial_condition(params: TrafficParams, rho0: Array | None, v0: Array | None) -> None:
@@ -238,7 +239,7 @@ def simulate(
             ``noise`` then only says whether the controller sees it (``model_sees``).
     """
     _check_rollout_args(params, n_steps, rho0, v0, nominal, record_every, remat)
-    _check_alphas(params, alphas, int(n_steps), noise, None)
+    _check_alphas(params, alphas, int(n_steps), noise, batched=False)
     return _simulate_jit(params, controller, rho0, v0, key, nominal, int(n_steps), int(record_every), remat, noise,
                          alphas)
 
@@ -291,7 +292,7 @@ def simulate_batch(
     if (p_axis, r_axis, k_axis, c_axis, a_axis) == (None,) * 5:
         raise ValueError("simulate_batch: nothing is batched; use simulate")
     _check_rollout_args(params, n_steps, rho0, v0, nominal, record_every, remat)
-    _check_alphas(params, alphas, int(n_steps), noise, None if alphas is None else int(jnp.shape(alphas)[0]))
+    _check_alphas(params, alphas, int(n_steps), noise, batched=True)
     return _simulate_batch_jit(params, controller, rho0, v0, keys, nominal, int(n_steps), int(record_every),
                                (p_axis, c_axis, r_axis, r_axis, k_axis, a_axis), chunk_size or 0, remat, noise,
                                alphas)

@@ -9,10 +9,17 @@ process id come from the arguments (``--coordinator-address HOST:PORT --num-proc
 collectives go through gloo (``jax_cpu_collectives_implementation``; the setting only concerns CPU
 devices, so it is made on every platform).
 
-What the PPO trainer does across processes (``learn.trainer``): its mesh spans ``jax.devices()``,
-gradients and statistics are averaged over every device, everything else (evaluation, validation)
-runs on each process's own devices with identical inputs, the decisions (stop, budget, signals)
-are process 0's (``agree``), and only process 0 writes files (``is_writer``).
+What runs across processes: every host-level batched rollout (``simulate_batch`` with concrete
+inputs, hence the evaluation, the trainers' evaluations and validation suites) is split over every
+device of every process and its result gathered into every process (``sim.sharding``); the PPO
+trainer's mesh spans ``jax.devices()`` (gradients and statistics averaged over every device); the
+gradient trainer splits its scenarios over them. The decisions (stop, budget, signals) are process
+0's (``agree``), and only process 0 prints and writes files (``is_writer``). Every process runs
+the same program on the same inputs (SPMD) and must see the run directories (a shared file system).
+
+``import jaxtraffic`` splits each process's host into one CPU device per core: with N processes
+on one machine set ``JAXTRAFFIC_NO_DEVICE_SPLIT=1`` (one device each) so the devices do not
+oversubscribe the cores.
 """
 
 from __future__ import annotations

@@ -10,6 +10,10 @@ Numerics: ``--scheme muscl`` and ``--refine R`` run the whole evaluation on anot
 refined R times (the policy then observes its training grid's nodes, ``paper.numerics``); Table 2's
 scenario is always rerun on a grid refined twice and with the other scheme unless
 ``--no-numerics-check``.
+The same command runs as N cooperating processes with ``--coordinator-address HOST:PORT
+--num-processes N --process-id I`` or the ``JAX_*`` variables (``jaxtraffic.distributed``; README,
+"Running on a cluster"): the batched rollouts (and any training the job starts) are split over
+every process's devices, and only process 0 prints and writes.
 The logic lives in ``jaxtraffic.paper``; ``main(argv)`` returns the metrics dict.
 """
 
@@ -25,7 +29,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from jaxtraffic import compile_cache, paper
+from jaxtraffic import compile_cache, distributed, paper
 from jaxtraffic.cli import train as train_cli
 from jaxtraffic.learn.checkpoint import load_policy
 from jaxtraffic.learn.config import TrainConfig
@@ -75,11 +79,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                     help="refine the evaluation grid R times: (n - 1) R + 1 points, same dt (default 1)")
     ap.add_argument("--no-numerics-check", action="store_true",
                     help="skip rerunning Table 2's scenario on a refined grid and with the other scheme")
+    distributed.add_flags(ap)
     return ap.parse_args(argv)
 
 
 def _log(msg: str) -> None:
-    print(msg, flush=True)
+    if distributed.is_writer():  # process 0 speaks for all
+        print(msg, flush=True)
 
 
 def _curve(path: Path) -> dict | None:
@@ -177,6 +183,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     args = parse_args(argv)
     t0 = time.perf_counter()
     nd, na = check_args(args)
+    try:
+        distributed.initialize(*(getattr(args, k) for k in distributed.FLAGS))  # before any computation
+    except ValueError as err:
+        raise _fail(str(err)) from None
     compile_cache.enable()  # before the first compilation (jaxtraffic.compile_cache)
     try:
         return _main(args, argv, t0, nd, na)

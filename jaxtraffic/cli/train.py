@@ -5,9 +5,9 @@
 A default run trains the D = 4 s policy and writes, in ``--out-dir`` (default runs/default):
 config.json, checkpoint.msgpack, learning_curve.csv/.png and summary.json. Ctrl-C or SIGTERM stops
 after the current chunk with its checkpoint saved (exit 130 / 143); ``--resume`` continues from it.
-The same command runs as N cooperating processes (PPO) with ``--coordinator-address HOST:PORT
---num-processes N --process-id I`` or the ``JAX_*`` variables (``jaxtraffic.distributed``; README,
-"Running on a cluster").
+The same command runs as N cooperating processes (PPO and ``--algo gradient``) with
+``--coordinator-address HOST:PORT --num-processes N --process-id I`` or the ``JAX_*`` variables
+(``jaxtraffic.distributed``; README, "Running on a cluster").
 """
 
 from __future__ import annotations
@@ -122,8 +122,6 @@ def main(argv: list[str] | None = None) -> Path:
         args = build_parser().parse_args(argv)
         config = _settings(args)
         cluster = [getattr(args, k) for k in distributed.FLAGS]
-        if distributed.settings(*cluster) is not None and config.run.algo == "gradient":
-            raise ValueError("--algo gradient runs in one process; multi-process runs train PPO only")
         distributed.initialize(*cluster)
         compile_cache.enable()  # before the first compilation (jaxtraffic.compile_cache)
         if config.run.resume:

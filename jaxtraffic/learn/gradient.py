@@ -41,6 +41,7 @@ import jax
 import jax.numpy as jnp
 import optax
 from flax import struct
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxtraffic.control.base import Controller
 from jaxtraffic.control.gain_law import constant_gains
@@ -49,6 +50,7 @@ from jaxtraffic.control.networks import SMALL_HIDDEN, ActorCritic
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.sim.initial import paper_initial_condition
 from jaxtraffic.sim.rollout import simulate
+from jaxtraffic.sim.sharding import batch_mesh, local_copy, replicate, sharded_batch, spans_processes
 
 Array = jax.Array
 POLICIES = ("gains", "network")
@@ -240,18 +242,21 @@ def objective(theta: Any, scen: Scenarios, w: Weights, cfg: GradientConfig, base
 
 
 def objective_and_grad(theta: Any, scen: Scenarios, w: Weights, cfg: GradientConfig, base: TrafficParams,
-                       n_steps: int) -> tuple[Array, Any, dict]:
-    """(J, dJ/dtheta, metrics). With ``cfg.scenario_clip`` > 0 every scenario's gradient is clipped
-    to that global norm before the mean, so that one scenario whose gradient explodes (a closed
-    loop near instability, long horizons) cannot dominate the step."""
-    if cfg.scenario_clip <= 0:
-        (j, aux), g = jax.value_and_grad(objective, has_aux=True)(theta, scen, w, cfg, base, n_steps)
-        return j, g, aux
+                       n_steps: int, mesh: Mesh | None = None) -> tuple[Array, Any, dict]:
+    """(J, dJ/dtheta, metrics): every scenario's value and gradient, the scenarios split over the
+    devices of ``mesh`` (``sim.sharding.sharded_batch``; default this process's devices), then the
+    mean. With ``cfg.scenario_clip`` > 0 every scenario's gradient is clipped to that global norm
+    before the mean, so that one scenario whose gradient explodes (a closed loop near instability,
+    long horizons) cannot dominate the step. Traceable."""
     vg = jax.value_and_grad(scenario_objective, has_aux=True)
-    (per, m), gs = jax.vmap(vg, (None, 0, 0, 0, None, None, None, None))(
-        theta, scen.params, scen.rho0, scen.v0, w, cfg, base, n_steps)
+
+    def block(th, p, r, v):  # one device's scenarios
+        return jax.vmap(vg, (None, 0, 0, 0, None, None, None, None))(th, p, r, v, w, cfg, base, n_steps)
+
+    (per, m), gs = sharded_batch(block, (theta, scen.params, scen.rho0, scen.v0), (None, 0, 0, 0), mesh)
     norms = jax.vmap(optax.tree.norm)(gs)
-    scale = jnp.minimum(1.0, cfg.scenario_clip / jnp.maximum(norms, 1e-30))
+    scale = (jnp.minimum(1.0, cfg.scenario_clip / jnp.maximum(norms, 1e-30)) if cfg.scenario_clip > 0
+             else jnp.ones_like(norms))
     g = jax.tree.map(lambda x: jnp.mean(x * scale.reshape((-1,) + (1,) * (x.ndim - 1)), axis=0), gs)
     return jnp.mean(per), g, {**m, "scenario_objective": per, "scenario_grad_norm": norms}
 
@@ -261,19 +266,26 @@ def make_optimizer(cfg: GradientConfig) -> optax.GradientTransformation:
 
 
 def _one_step(state: GradState, scen: Scenarios, w: Weights, cfg: GradientConfig, base: TrafficParams,
-              n_steps: int) -> tuple[GradState, dict]:
-    loss, g, aux = objective_and_grad(state.theta, scen, w, cfg, base, n_steps)
+              n_steps: int, mesh: Mesh | None) -> tuple[GradState, dict]:
+    loss, g, aux = objective_and_grad(state.theta, scen, w, cfg, base, n_steps, mesh)
     updates, opt_state = make_optimizer(cfg).update(g, state.opt_state, state.theta)
     new = GradState(theta=optax.apply_updates(state.theta, updates), opt_state=opt_state, update=state.update + 1)
     return new, {"objective": loss, "grad_norm": optax.tree.norm(g), **aux}
 
 
-@functools.partial(jax.jit, static_argnames=("cfg", "n_steps"))
-def _train_chunk(state: GradState, base: TrafficParams, cfg: GradientConfig, n_steps: int
+def _everywhere(tree: Any, mesh: Mesh) -> Any:
+    """``tree`` whole on every device of ``mesh`` (a no-op in one process; an all-gather of the
+    per-scenario metrics across processes)."""
+    return jax.lax.with_sharding_constraint(tree, NamedSharding(mesh, PartitionSpec())) if spans_processes(mesh) \
+        else tree
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "n_steps", "mesh"))
+def _train_chunk(state: GradState, base: TrafficParams, cfg: GradientConfig, n_steps: int, mesh: Mesh
                  ) -> tuple[GradState, dict]:
     scen, w = training_scenarios(cfg, base), weights_of(cfg)
-    return jax.lax.scan(lambda s, _: _one_step(s, scen, w, cfg, base, n_steps), state, None,
-                        length=cfg.steps_per_chunk)
+    return _everywhere(jax.lax.scan(lambda s, _: _one_step(s, scen, w, cfg, base, n_steps, mesh), state, None,
+                                    length=cfg.steps_per_chunk), mesh)
 
 
 @functools.partial(jax.jit, static_argnames=("cfg",))
@@ -282,14 +294,30 @@ def _init(key: Array, base: TrafficParams, cfg: GradientConfig) -> GradState:
     return GradState(theta=theta, opt_state=make_optimizer(cfg).init(theta), update=jnp.zeros((), jnp.int32))
 
 
-def make_train(cfg: GradientConfig, base: TrafficParams):
+def make_train(cfg: GradientConfig, base: TrafficParams, devices: list | None = None):
     """``(init, train_chunk)``: ``init(key) -> GradState``; ``train_chunk(state) -> (state,
     metrics)`` runs ``steps_per_chunk`` Adam steps in one jit-compiled ``lax.scan``; metrics are
     per step: objective, gradient norm and the per-scenario metrics of the rollout.
+
+    The scenarios of every step are split over ``devices`` (default: every device of every process,
+    ``jax.devices()``; ``sim.sharding``); the state and the metrics are whole on every device, and
+    both functions return this process's copy (ordinary local arrays), so the loop around them is
+    the same for one process and many (every process calls them in the same order). The
+    result depends on the device count only through float rounding.
 
     ``cfg`` is static (hashable: a second ``make_train`` with an equal config reuses the compiled
     programs); ``base`` (the nominal plant and grid) is traced.
     """
     n_steps = horizon_steps(cfg, base.dt)
-    return (functools.partial(_init, base=base, cfg=cfg),
-            functools.partial(_train_chunk, base=base, cfg=cfg, n_steps=n_steps))
+    mesh = batch_mesh(list(jax.devices()) if devices is None else list(devices))
+    across = spans_processes(mesh)
+
+    def init(key: Array) -> GradState:
+        return _init(key, base, cfg)
+
+    def train_chunk(state: GradState) -> tuple[GradState, dict]:
+        # placed whole on every device, as the chunk returns it: one compiled program for every chunk
+        out = _train_chunk(replicate(state, mesh), base, cfg, n_steps, mesh)
+        return local_copy(out) if across else out
+
+    return init, train_chunk

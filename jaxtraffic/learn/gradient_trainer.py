@@ -7,6 +7,12 @@ the nominal plant (``eval_horizon_s``) next to the delay-compensated baseline
 ``backstepping(delay)``; the summary records when it first met the paper's stop rule and when
 it first beat backstepping on both final density L2 and J_comfort. Ctrl-C keeps the last completed
 chunk; ``resume`` continues from it exactly (training is deterministic).
+
+Multi-process runs (``jaxtraffic.distributed``): the scenarios of every Adam step are split over every
+device of every process (``gradient.make_train``), the stop and wall-budget decisions are process
+0's and a signal to any process stops all of them after the same chunk (``session.agree_stop``), and
+only process 0 prints and writes. A checkpoint holds no per-device state, so it resumes on any
+number of processes and devices (to float rounding: the scenario split changes the sums' order).
 """
 
 from __future__ import annotations
@@ -21,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
+from jaxtraffic import distributed
 from jaxtraffic.control.base import Controller
 from jaxtraffic.control.baselines import backstepping
 from jaxtraffic.control.gain_policy import equilibrium_gains
@@ -31,8 +38,10 @@ from jaxtraffic.learn.curve import plot_learning_curve, write_curve
 from jaxtraffic.learn.session import (
     StopSignals,
     TrainingInterrupted,
+    agree_stop,
     check_out_dir,
     check_resumable,
+    finish_together,
     fmt_time,
     open_run_dir,
     report_interruption,
@@ -92,15 +101,16 @@ def train_gradient(tc: TrainConfig) -> Path:
         flat = tc.flat()
         tc = load_config(run_dir).replace(**{k: flat[k] for k in (*RUN_CONTROL, "grad_steps")})
     cfg, plant = gradient_setup(tc)  # validates: fail before creating the run directory
-    run = tc.run
-    say = (lambda *a: None) if run.quiet else (lambda *a: print(*a, flush=True))
-    open_run_dir(run_dir, say)
-    with StopSignals(say) as stop:
-        return _train_gradient(tc, cfg, plant, run_dir, say, stop)
+    writer = distributed.is_writer()  # process 0 prints and writes; the others only compute
+    say = (lambda *a: None) if tc.run.quiet or not writer else (lambda *a: print(*a, flush=True))
+    if writer:
+        open_run_dir(run_dir, say)
+    with finish_together("jaxtraffic.train_gradient"), StopSignals(say) as stop:
+        return _train_gradient(tc, cfg, plant, run_dir, say, stop, writer)
 
 
 def _train_gradient(tc: TrainConfig, cfg: G.GradientConfig, plant: TrafficParams, run_dir: Path, say,
-                    stop: StopSignals) -> Path:
+                    stop: StopSignals, writer: bool) -> Path:
     run = tc.run
     t_start = time.perf_counter()
     init, train_chunk = G.make_train(cfg, plant)
@@ -110,7 +120,7 @@ def _train_gradient(tc: TrainConfig, cfg: G.GradientConfig, plant: TrafficParams
         saved, meta = ckpt.load_checkpoint(run_dir)
         state = serialization.from_state_dict(state, saved)
         say(f"resumed {run_dir} at update {meta['updates']} ({meta['wall_s']:.1f} s)")
-    else:
+    elif writer:
         ckpt.write_json(run_dir / ckpt.CONFIG, config_json(tc, jax_version=jax.__version__))
     eval_steps = max(1, round(run.eval_horizon_s / tc.plant.dt))
     ref = evaluation(backstepping(tc.plant.delay), plant, eval_steps, gains=jnp.zeros(3))
@@ -121,8 +131,9 @@ def _train_gradient(tc: TrainConfig, cfg: G.GradientConfig, plant: TrafficParams
         f"{cfg.steps_per_chunk} steps/chunk, plant D = {tc.plant.delay:g} s; backstepping reference: "
         f"rho L2 {ref['final_rho_L2'] * 1e3:.3f} veh/km, J_comfort {ref['J_comfort']:.4g}")
     ev, updates_at_start = {}, meta["updates"]
+    signum = agree_stop(False, False, stop)[2]
     try:
-        while meta["updates"] < cfg.steps and stop.signum is None:
+        while meta["updates"] < cfg.steps and signum is None:
             state, m = train_chunk(state)
             jax.block_until_ready(m)
             ctrl = G.make_controller(state.theta, cfg, plant)
@@ -148,19 +159,22 @@ def _train_gradient(tc: TrainConfig, cfg: G.GradientConfig, plant: TrafficParams
                 f"J_comfort {row['eval_J_comfort']:.4g} | gains ({g[0]:+.2f}, {g[1]:+.2f}, {g[2]:+.2f}) | "
                 f"{fmt_time(meta['wall_s'])} ({meta['wall_s'] - t_prev:.1f} s/chunk)"
                 + (" | beats backstepping" if beats(ev, ref) else ""))
-            ckpt.save_checkpoint(run_dir, state, meta)
-            write_curve(run_dir / "learning_curve.csv", meta["rows"], CURVE_FIELDS)
-            if meta["wall_s"] > run.max_wall_s:
+            if writer:
+                ckpt.save_checkpoint(run_dir, state, meta)
+                write_curve(run_dir / "learning_curve.csv", meta["rows"], CURVE_FIELDS)
+            _, over_budget, signum = agree_stop(False, meta["wall_s"] > run.max_wall_s, stop)
+            if over_budget:
                 say(f"stopping: wall-clock budget {run.max_wall_s:g} s reached")
                 break
-    except KeyboardInterrupt:  # raised by Python code (StopSignals turns signals into a flag)
-        stop.signum = signal.SIGINT
-    interrupted = stop.signum is not None
-    if interrupted:
-        msg = report_interruption(stop.signum, run_dir, bool(meta["rows"]), meta["updates"] != updates_at_start,
+    except KeyboardInterrupt:  # raised by Python code (StopSignals turns signals into a flag; not agreed)
+        signum = signal.SIGINT
+    interrupted = signum is not None
+    if interrupted and writer:
+        msg = report_interruption(signum, run_dir, bool(meta["rows"]), meta["updates"] != updates_at_start,
                                   f"{meta['updates']} Adam steps")
-    plot_learning_curve(run_dir / "learning_curve.csv", run_dir / "learning_curve.png",
-                        title=f"gradient-based training ({cfg.policy})")
+    if writer:
+        plot_learning_curve(run_dir / "learning_curve.csv", run_dir / "learning_curve.png",
+                            title=f"gradient-based training ({cfg.policy})")
     if not ev:
         ev = evaluation(G.make_controller(state.theta, cfg, plant), plant, eval_steps,
                         state.theta if cfg.policy == "gains" else None)
@@ -173,10 +187,11 @@ def _train_gradient(tc: TrainConfig, cfg: G.GradientConfig, plant: TrafficParams
                                            "seconds_to_beat_backstepping", "updates_to_beat_backstepping")}}
     if cfg.policy == "gains":
         summary["gains"] = np.asarray(state.theta).tolist()
-    ckpt.write_json(run_dir / ckpt.SUMMARY, summary)
+    if writer:
+        ckpt.write_json(run_dir / ckpt.SUMMARY, summary)
     say(f"done: {meta['updates']} Adam steps in {meta['wall_s']:.1f} s; final rho L2 "
         f"{ev['final_rho_L2'] * 1e3:.3f} veh/km, J_comfort {ev['J_comfort']:.4g}; first beat backstepping "
         f"after {meta.get('seconds_to_beat_backstepping') or float('nan'):.1f} s; outputs in {run_dir}")
     if interrupted:
-        raise TrainingInterrupted(stop.signum, msg)
+        raise TrainingInterrupted(signum, msg if writer else "")
     return run_dir

@@ -16,7 +16,8 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from jaxtraffic.learn.ppo import Runner, local_copy
+from jaxtraffic.learn.ppo import Runner
+from jaxtraffic.sim.sharding import local_copy
 
 __all__ = ["replicated", "restart_members"]
 

@@ -34,6 +34,7 @@ from jax.sharding import PartitionSpec as P
 
 from jaxtraffic.control.gain_policy import normalize_obs
 from jaxtraffic.control.networks import SMALL_HIDDEN, ActorCritic
+from jaxtraffic.sim.sharding import local_copy
 
 Array = jax.Array
 AXIS = "dev"
@@ -396,8 +397,3 @@ def train_mesh(cfg: PPOConfig, devices: list | None = None) -> Mesh:
     if ((cfg.num_envs // n_dev) * cfg.num_steps) % cfg.num_minibatches:
         raise ValueError("num_envs/devices * num_steps must be divisible by num_minibatches")
     return Mesh(np.array(devices), (AXIS,))
-
-
-def local_copy(tree):
-    """This process's copy of replicated arrays (a single-device array each)."""
-    return jax.tree.map(lambda x: x.addressable_data(0), tree)

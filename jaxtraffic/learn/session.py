@@ -7,6 +7,7 @@ is raised after what could be saved was saved (``exit_code`` 130 / 143); ``check
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import signal
@@ -14,6 +15,7 @@ import sys
 import threading
 from pathlib import Path
 
+from jaxtraffic import distributed
 from jaxtraffic.learn import checkpoint as ckpt
 
 __all__ = ["StopSignals", "TrainingInterrupted", "check_out_dir", "check_resumable", "fmt_time", "open_run_dir",
@@ -58,6 +60,26 @@ class StopSignals:
         for sig, handler in self.old.items():
             signal.signal(sig, handler)
         return False
+
+
+@contextlib.contextmanager
+def finish_together(name: str):
+    """Every process leaves the block together (``distributed.barrier(name)``) when it ends normally
+    or by an agreed interruption (``TrainingInterrupted``), so that none returns before process 0's
+    files are complete; any other error leaves at once."""
+    try:
+        yield
+    except TrainingInterrupted:
+        distributed.barrier(name)
+        raise
+    distributed.barrier(name)
+
+
+def agree_stop(stopped: bool, over_budget: bool, stop: StopSignals) -> tuple[bool, bool, int | None]:
+    """Process 0's stop and wall-budget decisions and the largest signal number any process received
+    (None: none), the same on every process (a collective: every process calls it at the same point)."""
+    votes = distributed.agree([stopped, over_budget, stop.signum or 0])
+    return bool(votes[0, 0]), bool(votes[0, 1]), int(votes[:, 2].max()) or None
 
 
 def check_out_dir(run_dir: Path) -> None:

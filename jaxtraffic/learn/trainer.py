@@ -65,8 +65,10 @@ from jaxtraffic.learn.metrics_writer import TensorBoardWriter
 from jaxtraffic.learn.session import (
     StopSignals,
     TrainingInterrupted,
+    agree_stop,
     check_out_dir,
     check_resumable,
+    finish_together,
     fmt_time,
     open_run_dir,
     report_interruption,
@@ -186,13 +188,6 @@ def _save(run_dir: Path, runner: ppo.Runner, meta: dict, best: dict, writer: boo
         ckpt.save_best(run_dir, best)
 
 
-def _agree(stopped: bool, over_budget: bool, stop: StopSignals) -> tuple[bool, bool, int | None]:
-    """Process 0's stop and wall-budget decisions and the largest signal number any process received
-    (None: none), the same on every process (a collective)."""
-    votes = distributed.agree([stopped, over_budget, stop.signum or 0])
-    return bool(votes[0, 0]), bool(votes[0, 1]), int(votes[:, 2].max()) or None
-
-
 def _plot_curve(run_dir: Path) -> None:
     plot_learning_curve(run_dir / "learning_curve.csv", run_dir / "learning_curve.png")
 
@@ -227,17 +222,12 @@ def train(s: TrainConfig, callbacks: Sequence[Callable[[dict], None]] = ()) -> P
     if writer:
         open_run_dir(run_dir, say)
     try:
-        with StopSignals(say) as stop:
-            run = _train(s, cfg, env_params, run_dir, state, saved_meta if state is not None else None, say, stop,
-                         [*callbacks, *owned])
-    except TrainingInterrupted:  # every process agreed on it (``_agree``)
-        distributed.barrier("jaxtraffic.train")
-        raise
+        with finish_together("jaxtraffic.train"), StopSignals(say) as stop:  # an interruption is agreed (agree_stop)
+            return _train(s, cfg, env_params, run_dir, state, saved_meta if state is not None else None, say, stop,
+                          [*callbacks, *owned])
     finally:
         for tb in owned:
             tb.close()
-    distributed.barrier("jaxtraffic.train")  # no process returns before process 0's files are complete
-    return run
 
 
 def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, run_dir: Path, state: dict | None,
@@ -289,7 +279,7 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
     last_eval: dict = {}
     steps_at_start = saved_steps = meta["env_steps"]
     best_saved, consistent = best, None
-    signum = _agree(False, False, stop)[2]
+    signum = agree_stop(False, False, stop)[2]
     try:
         while meta["env_steps"] < s.run.total_steps and not meta["stopped"] and signum is None:
             runner, m = train_chunk(runner)
@@ -359,7 +349,7 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
                 append_curve(curve_csv, row)
                 for callback in callbacks:
                     callback(row)
-            meta["stopped"], over_budget, signum = _agree(meta["stopped"], meta["wall_s"] > s.run.max_wall_s, stop)
+            meta["stopped"], over_budget, signum = agree_stop(meta["stopped"], meta["wall_s"] > s.run.max_wall_s, stop)
             if over_budget:
                 say(f"stopping: wall-clock budget {s.run.max_wall_s:g} s reached")
                 break

@@ -11,6 +11,7 @@ from typing import Any
 
 import jax
 
+from jaxtraffic import distributed
 from jaxtraffic.control import Controller, backstepping, lyapunov, open_loop
 from jaxtraffic.learn.checkpoint import to_jsonable
 from jaxtraffic.model.params import equilibrium
@@ -32,12 +33,19 @@ class _Background:
     Used for the scenario figures (matplotlib draws while XLA runs the robustness map, which
     releases the GIL while it computes; only this thread uses matplotlib until ``join``) and for
     the numerics check (its programs compile and run alongside the robustness map's, on the
-    core those leave free: compilation uses about one core and a small batch does not fill two)."""
+    core those leave free: compilation uses about one core and a small batch does not fill two).
+
+    In a multi-process run ``fn`` runs at once, in the caller's thread: the batched rollouts are
+    SPMD programs that every process must launch in the same order."""
 
     def __init__(self, fn: Callable[..., Any], *args, name: str = "figures", **kwargs):
         self.lines: list[str] = []
         self.result: Any = None
         self.error: BaseException | None = None
+        if jax.process_count() > 1:
+            self.thread = None
+            self.result = fn(*args, log=self.lines.append, **kwargs)
+            return
 
         def run() -> None:
             try:
@@ -49,7 +57,8 @@ class _Background:
         self.thread.start()
 
     def join(self, log: Callable[[str], None]) -> Any:
-        self.thread.join()
+        if self.thread is not None:
+            self.thread.join()
         for line in self.lines:
             log(line)
         if self.error is not None:
@@ -70,10 +79,16 @@ def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: s
     On a refined evaluation grid (``cfg.refine`` > 1) the grid-bound policies act through
     ``numerics.on_coarse_grid`` (they observe their training grid's nodes). With
     ``cfg.numerics_check`` Table 2's scenario is rerun on a refined grid and with the other scheme.
+
+    In a multi-process run (``jaxtraffic.distributed``) every process must call it with the same
+    arguments: the batched rollouts are split over every process's devices, every process gets
+    the metrics, and only process 0 draws and writes.
     """
     t_start = time.perf_counter()
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    writer = distributed.is_writer()
+    if writer:
+        out_dir.mkdir(parents=True, exist_ok=True)
     ctrls = {"open_loop": open_loop(), "lyapunov": lyapunov(1.0),
              "backstepping": backstepping(CTRL_DELAY, 1.0)}
     ctrls.update(controllers)
@@ -89,7 +104,7 @@ def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: s
     results = run_scenarios(ctrls, cfg, log, overrides)
     lc = Path(learning_curve_csv) if learning_curve_csv else None
     early = _Background(make_figures, results, {}, cfg, out_dir, lc,
-                        select=lambda name: name not in FIG7 + ROBUSTNESS)
+                        select=lambda name: name not in FIG7 + ROBUSTNESS) if writer else None
     init_l2 = initial_norms(cfg)
     metrics: dict[str, Any] = {"units": UNITS}
     for s, per in results.items():
@@ -114,14 +129,14 @@ def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: s
     claims = evaluate_claims(metrics, cfg, lc_data, d0_label)
     fig7 = paper_like_reading(claims)
 
-    log("[3/4] figures")
-    figures = early.join(log)  # the scenario figures, drawn while the robustness map ran
-    figures += make_figures(results, robust, cfg, out_dir, lc, log, fig7_scenario=fig7,
-                            select=lambda name: name in FIG7 + ROBUSTNESS)
-
-    log("[4/4] tables, metrics.json, REPORT.md")
-    rows = table2_rows(metrics, cfg, numerics)
-    write_table2(rows, out_dir, cfg.n_steps * cfg.dt, metrics, numerics)
+    figures: list = []
+    if writer:
+        log("[3/4] figures")
+        figures = early.join(log)  # the scenario figures, drawn while the robustness map ran
+        figures += make_figures(results, robust, cfg, out_dir, lc, log, fig7_scenario=fig7,
+                                select=lambda name: name in FIG7 + ROBUSTNESS)
+        log("[4/4] tables, metrics.json, REPORT.md")
+        write_table2(table2_rows(metrics, cfg, numerics), out_dir, cfg.n_steps * cfg.dt, metrics, numerics)
     nom = cfg.nominal()
     meta = dict(meta)
     meta.update({
@@ -150,12 +165,21 @@ def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: s
                              "diverged": "bool", "final_rho_spatial_std": "veh/m"},
                    "note": "arrays indexed [delay][alpha]; backstepping assumes the true plant delay",
                    "controllers": {c: {k: v.tolist() for k, v in r.items()} for c, r in robust.items()}}
-    (out_dir / "robustness.json").write_text(json.dumps(to_jsonable(robust_json), indent=1, allow_nan=False))
     meta["runtime_s"] = time.perf_counter() - t_start
     meta["claims"] = {str(c["id"]): c["verdict"] for c in claims}
     meta["claim5_readings"] = {n: r["verdict"] for c in claims if c["id"] == 5 for n, r in c["readings"].items()}
     metrics["meta"] = meta
     metrics = to_jsonable(metrics)
+    if writer:
+        _write(out_dir, claims, metrics, meta, figures, robust, robust_json, cfg, numerics, lc_data, learned_runs)
+    log(f"done in {meta['runtime_s']:.1f} s -> {out_dir}")
+    return metrics
+
+
+def _write(out_dir: Path, claims: list, metrics: dict, meta: dict, figures: list, robust: dict, robust_json: dict,
+           cfg: EvalConfig, numerics: dict | None, lc_data: Any, learned_runs: dict | None) -> None:
+    """robustness.json, metrics.json, REPORT.md and claims.json."""
+    (out_dir / "robustness.json").write_text(json.dumps(to_jsonable(robust_json), indent=1, allow_nan=False))
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=1, allow_nan=False))
     notes = []
     if lc_data is None:
@@ -167,6 +191,4 @@ def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: s
     (out_dir / "claims.json").write_text(json.dumps(to_jsonable(
         [{**{k: v for k, v in c.items() if k != "checks"},
           "checks": [ch.__dict__ for ch in c["checks"]]} for c in claims]), indent=1, allow_nan=False))
-    log(f"done in {meta['runtime_s']:.1f} s -> {out_dir}")
-    return metrics
 

@@ -47,6 +47,7 @@ from jaxtraffic.sim import metrics as M
 from jaxtraffic.sim.initial import paper_initial_condition
 from jaxtraffic.sim.plant import NoiseReading
 from jaxtraffic.sim.rollout import plant_alphas, simulate_batch, stack_params
+from jaxtraffic.sim.sharding import host_mesh
 
 CTRL_DELAY = 4.0  # s, the delay the controllers (backstepping, PPO) are designed / trained for
 NOISE_STD = 0.15  # std of the Gaussian noise on the plant's alpha (alpha_noise scenario)
@@ -305,7 +306,7 @@ def run_robustness(controllers: dict[str, Controller], cfg: EvalConfig,
             ctrl = backstepping(delay=jnp.asarray(dd.ravel(), jnp.float32), k=jnp.ones(dd.size))
             # the predictor's loop runs to the largest assumed delay of its chunk: one delay per
             # chunk (the batch is delay-major and dealt over the devices), 20 % faster than 64
-            batched, chunk = True, -(-dd.shape[1] // len(jax.local_devices()))
+            batched, chunk = True, -(-dd.shape[1] // host_mesh().size)
         t0 = time.perf_counter()
         res = run_batch(ctrl, envs, [0] * len(envs), cfg, record=False, batch_controller=batched,
                         chunk_size=chunk)

@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxtraffic.control.base import Controller
 from jaxtraffic.control.baselines import open_loop
@@ -32,7 +33,7 @@ from jaxtraffic.sim.plant import (
     noise_alpha_sequence,
     plant_step,
 )
-from jaxtraffic.sim.sharding import sharded_batch
+from jaxtraffic.sim.sharding import host_mesh, local_copy, replicate, sharded_batch, spans_processes
 
 Array = jax.Array
 
@@ -283,6 +284,10 @@ def simulate_batch(
     ``remat`` (static, needs ``record_every`` > 0): checkpoint each recording chunk for reverse-mode
     differentiation (``jax.checkpoint``), so that the memory of a gradient grows with
     n_steps / record_every + record_every steps instead of n_steps. Values are unchanged.
+
+    Devices (``sim.sharding``): the batch is split over this process's devices; called with
+    concrete inputs in a multi-process run, over every device of every process, each process
+    getting the whole result as local arrays (every process must make the same call).
     """
     p_axis = 0 if jnp.ndim(jax.tree_util.tree_leaves(params)[0]) == 1 else None
     r_axis = 0 if rho0 is not None and jnp.ndim(rho0) == 2 else None
@@ -293,22 +298,30 @@ def simulate_batch(
         raise ValueError("simulate_batch: nothing is batched; use simulate")
     _check_rollout_args(params, n_steps, rho0, v0, nominal, record_every, remat)
     _check_alphas(params, alphas, int(n_steps), noise, batched=True)
-    return _simulate_batch_jit(params, controller, rho0, v0, keys, nominal, int(n_steps), int(record_every),
-                               (p_axis, c_axis, r_axis, r_axis, k_axis, a_axis), chunk_size or 0, remat, noise,
-                               alphas)
+    inputs = (params, controller, rho0, v0, keys, nominal, alphas)
+    mesh = host_mesh(inputs)  # every process's devices in a multi-process run (sim.sharding)
+    across = spans_processes(mesh)
+    res = _simulate_batch_jit(*(replicate(inputs, mesh) if across else inputs), int(n_steps), int(record_every),
+                              (p_axis, c_axis, r_axis, r_axis, k_axis, a_axis), chunk_size or 0, remat, noise,
+                              mesh)
+    return local_copy(res) if across else res
 
 
-@functools.partial(jax.jit, static_argnames=("n_steps", "record_every", "axes", "chunk_size", "remat", "noise"))
-def _simulate_batch_jit(params, controller, rho0, v0, keys, nominal, n_steps: int, record_every: int,
+@functools.partial(jax.jit, static_argnames=("n_steps", "record_every", "axes", "chunk_size", "remat", "noise",
+                                             "mesh"))
+def _simulate_batch_jit(params, controller, rho0, v0, keys, nominal, alphas, n_steps: int, record_every: int,
                         axes: tuple, chunk_size: int = 0, remat: bool = False,
-                        noise: NoiseReading | None = None, alphas=None) -> SimResult:
+                        noise: NoiseReading | None = None, mesh: Mesh | None = None) -> SimResult:
     def one(p, c, r, v, k, a):
         return _simulate(p, c, r, v, k, nominal, n_steps, record_every, remat, noise, a)
 
     def local(*args):  # this device's block of the batch
         return chunked_vmap(one, args, axes, chunk_size)
 
-    return sharded_batch(local, (params, controller, rho0, v0, keys, alphas), axes)
+    out = sharded_batch(local, (params, controller, rho0, v0, keys, alphas), axes, mesh)
+    if mesh is not None and spans_processes(mesh):  # the whole result on every process (one all-gather)
+        out = jax.lax.with_sharding_constraint(out, NamedSharding(mesh, PartitionSpec()))
+    return out
 
 
 def chunked_vmap(fn, args: tuple, axes: tuple, chunk_size: int) -> Any:

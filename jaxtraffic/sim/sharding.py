@@ -1,10 +1,15 @@
-"""Batches split over every local device: one code path for one device and many.
+"""Batches split over devices: one code path for one device, many devices and many processes.
 
-``sharded_batch(fn, args, axes)`` runs ``fn`` (a function of a batch) with its batch axis split
-over a one-axis ``Mesh`` of this process's devices, ``jax.local_devices()`` (``shard_map``: each
-device runs ``fn`` on its share; no communication). In a multi-process run
-(``jaxtraffic.distributed``) each process simulates the whole batch on its own devices, so its
-results are ordinary local arrays. Entries are dealt out like cards (entry i to device i mod
+``sharded_batch(fn, args, axes, mesh)`` runs ``fn`` (a function of a batch) with its batch axis
+split over a one-axis ``Mesh`` (``shard_map``: each device runs ``fn`` on its share; no
+communication). The default mesh is this process's devices, ``jax.local_devices()``, which is
+what a call traced inside a user's ``jit`` gets. A host-level batched call (``simulate_batch`` with
+concrete inputs, the gradient trainer) takes ``host_mesh``: in a multi-process run
+(``jaxtraffic.distributed``) that is every device of every process, its inputs are placed
+``replicate``-d on every device, its outputs are gathered into every process inside the same
+program (a replicated output), and ``local_copy`` hands each process ordinary local arrays. So N
+processes share the work of one batch and all of them see the whole result; every process must
+make the same calls in the same order (SPMD). Entries are dealt out like cards (entry i to device i mod
 n_devices, in order), so that a batch ordered by cost (the robustness map, by delay) loads every device alike
 and each device's share keeps the order. A batch that is not a multiple of the device count is
 padded with copies of its last entry, whose results are dropped. Entries are independent, so a
@@ -24,12 +29,43 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 AXIS = "batch"
 
-__all__ = ["AXIS", "batch_mesh", "batch_sharding", "sharded_batch"]
+__all__ = ["AXIS", "batch_mesh", "batch_sharding", "host_mesh", "local_copy", "replicate", "sharded_batch",
+           "spans_processes"]
 
 
 def batch_mesh(devices: list | None = None) -> Mesh:
     """A one-axis mesh (``AXIS``) over ``devices`` (default: this process's, ``jax.local_devices()``)."""
     return Mesh(np.array(jax.local_devices() if devices is None else devices), (AXIS,))
+
+
+def spans_processes(mesh: Mesh) -> bool:
+    """Whether ``mesh`` holds devices of more than one process."""
+    return len({d.process_index for d in mesh.devices.flat}) > 1
+
+
+def host_mesh(tree: Any = None) -> Mesh:
+    """The mesh of a host-level batched call on ``tree`` (its inputs): every device of every process
+    (``jax.devices()``) unless ``tree`` holds a tracer (a call inside a user's transformation, which
+    stays on this process's devices)."""
+    traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree))
+    return batch_mesh(None if traced else list(jax.devices()))
+
+
+def replicate(tree: Any, mesh: Mesh) -> Any:
+    """Every array leaf of ``tree`` (identical on every process: SPMD) placed whole on every device of
+    ``mesh``, devices of other processes included (each process fills its own)."""
+    sharding = NamedSharding(mesh, PartitionSpec())
+
+    def one(x):
+        x = np.asarray(jnp.asarray(x))  # the dtype jax would give it (float32 unless x64)
+        return jax.make_array_from_callback(x.shape, sharding, lambda index: x[index])
+
+    return jax.tree.map(one, tree)
+
+
+def local_copy(tree: Any) -> Any:
+    """This process's copy of replicated arrays (a single-device array each)."""
+    return jax.tree.map(lambda x: x.addressable_data(0), tree)
 
 
 def batch_sharding(mesh: Mesh | None = None) -> NamedSharding:

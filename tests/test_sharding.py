@@ -69,3 +69,25 @@ def test_batch_independent_of_device_count():
     for c in ("lyap", "bs"):
         for k, v in one[c].items():
             np.testing.assert_allclose(two[c][k], v, rtol=1e-6, atol=0, err_msg=f"{c} {k}")
+
+
+def test_host_mesh_replicate_and_local_copy():
+    """One process: a host-level call's mesh is every device, a traced call's this process's; the
+    replicated placement and the local copy keep every value (and jax's dtype of each leaf)."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxtraffic.sim import sharding
+
+    mesh = sharding.host_mesh({"x": np.zeros(3)})
+    assert mesh.size == len(jax.devices()) and not sharding.spans_processes(mesh)
+    sizes = []
+    jax.jit(lambda x: sizes.append(sharding.host_mesh(x).size) or x)(jnp.zeros(2))
+    assert sizes == [len(jax.local_devices())]
+    tree = {"a": np.arange(6.0).reshape(2, 3), "b": 3, "c": None}
+    rep = sharding.replicate(tree, mesh)
+    assert rep["c"] is None and rep["a"].dtype == jnp.float32 and rep["a"].sharding.is_fully_replicated
+    assert len(rep["a"].sharding.device_set) == mesh.size
+    back = sharding.local_copy(rep)
+    np.testing.assert_array_equal(np.asarray(back["a"]), tree["a"])
+    assert int(back["b"]) == 3 and len(back["a"].devices()) == 1

@@ -41,7 +41,7 @@ import jax
 import jax.numpy as jnp
 import optax
 from flax import struct
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from jax.sharding import Mesh
 
 from jaxtraffic.control.base import Controller
 from jaxtraffic.control.gain_law import constant_gains
@@ -50,7 +50,7 @@ from jaxtraffic.control.networks import SMALL_HIDDEN, ActorCritic
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.sim.initial import paper_initial_condition
 from jaxtraffic.sim.rollout import simulate
-from jaxtraffic.sim.sharding import batch_mesh, local_copy, replicate, sharded_batch, spans_processes
+from jaxtraffic.sim.sharding import batch_mesh, gathered, local_copy, replicate, sharded_batch, spans_processes
 
 Array = jax.Array
 POLICIES = ("gains", "network")
@@ -273,19 +273,13 @@ def _one_step(state: GradState, scen: Scenarios, w: Weights, cfg: GradientConfig
     return new, {"objective": loss, "grad_norm": optax.tree.norm(g), **aux}
 
 
-def _everywhere(tree: Any, mesh: Mesh) -> Any:
-    """``tree`` whole on every device of ``mesh`` (a no-op in one process; an all-gather of the
-    per-scenario metrics across processes)."""
-    return jax.lax.with_sharding_constraint(tree, NamedSharding(mesh, PartitionSpec())) if spans_processes(mesh) \
-        else tree
-
-
 @functools.partial(jax.jit, static_argnames=("cfg", "n_steps", "mesh"))
 def _train_chunk(state: GradState, base: TrafficParams, cfg: GradientConfig, n_steps: int, mesh: Mesh
                  ) -> tuple[GradState, dict]:
     scen, w = training_scenarios(cfg, base), weights_of(cfg)
-    return _everywhere(jax.lax.scan(lambda s, _: _one_step(s, scen, w, cfg, base, n_steps, mesh), state, None,
-                                    length=cfg.steps_per_chunk), mesh)
+    out = jax.lax.scan(lambda s, _: _one_step(s, scen, w, cfg, base, n_steps, mesh), state, None,
+                       length=cfg.steps_per_chunk)
+    return gathered(out, mesh)  # the per-scenario metrics whole on every process
 
 
 @functools.partial(jax.jit, static_argnames=("cfg",))

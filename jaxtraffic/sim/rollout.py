@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from jax.sharding import Mesh
 
 from jaxtraffic.control.base import Controller
 from jaxtraffic.control.baselines import open_loop
@@ -33,7 +33,15 @@ from jaxtraffic.sim.plant import (
     noise_alpha_sequence,
     plant_step,
 )
-from jaxtraffic.sim.sharding import host_mesh, local_copy, replicate, sharded_batch, spans_processes
+from jaxtraffic.sim.sharding import (
+    batch_mesh,
+    gathered,
+    host_mesh,
+    local_copy,
+    replicate,
+    sharded_batch,
+    spans_processes,
+)
 
 Array = jax.Array
 
@@ -318,10 +326,8 @@ def _simulate_batch_jit(params, controller, rho0, v0, keys, nominal, alphas, n_s
     def local(*args):  # this device's block of the batch
         return chunked_vmap(one, args, axes, chunk_size)
 
-    out = sharded_batch(local, (params, controller, rho0, v0, keys, alphas), axes, mesh)
-    if mesh is not None and spans_processes(mesh):  # the whole result on every process (one all-gather)
-        out = jax.lax.with_sharding_constraint(out, NamedSharding(mesh, PartitionSpec()))
-    return out
+    mesh = batch_mesh() if mesh is None else mesh
+    return gathered(sharded_batch(local, (params, controller, rho0, v0, keys, alphas), axes, mesh), mesh)
 
 
 def chunked_vmap(fn, args: tuple, axes: tuple, chunk_size: int) -> Any:

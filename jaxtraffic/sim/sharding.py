@@ -29,8 +29,8 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 AXIS = "batch"
 
-__all__ = ["AXIS", "batch_mesh", "batch_sharding", "host_mesh", "local_copy", "replicate", "sharded_batch",
-           "spans_processes"]
+__all__ = ["AXIS", "batch_mesh", "batch_sharding", "gathered", "host_mesh", "local_copy", "replicate",
+           "sharded_batch", "spans_processes"]
 
 
 def batch_mesh(devices: list | None = None) -> Mesh:
@@ -57,10 +57,20 @@ def replicate(tree: Any, mesh: Mesh) -> Any:
     sharding = NamedSharding(mesh, PartitionSpec())
 
     def one(x):
-        x = np.asarray(jnp.asarray(x))  # the dtype jax would give it (float32 unless x64)
+        x = np.asarray(x)
+        x = x.astype(jax.dtypes.canonicalize_dtype(x.dtype), copy=False)  # float32 unless x64, as jax gives it
         return jax.make_array_from_callback(x.shape, sharding, lambda index: x[index])
 
     return jax.tree.map(one, tree)
+
+
+def gathered(tree: Any, mesh: Mesh) -> Any:
+    """Inside a traced function: ``tree`` whole on every device of ``mesh`` when the mesh spans
+    processes (an all-gather across them, so every process can ``local_copy`` the result); else
+    ``tree`` unchanged."""
+    if not spans_processes(mesh):
+        return tree
+    return jax.lax.with_sharding_constraint(tree, NamedSharding(mesh, PartitionSpec()))
 
 
 def local_copy(tree: Any) -> Any:

@@ -49,10 +49,10 @@ def test_reset_step_shapes_and_reward():
     assert int(st2.t) == 1 and not bool(done)
     # no reset: obs is the new state's (equal up to XLA fusion rounding)
     np.testing.assert_allclose(obs2, info["terminal_obs"], rtol=0, atol=1e-6)
-    # reward: the paper's r of the state after the step = -sum(rho~^2 + v~^2) of the normalised obs
+    # reward: the paper's r of the state after the step = -(dx/5) sum(rho~^2 + v~^2) of the normalised obs
     rho_bar, v_bar = equilibrium(TP)
-    np.testing.assert_allclose(r, paper_reward(st2.plant.rho, st2.plant.v, rho_bar, v_bar), rtol=1e-6)
-    np.testing.assert_allclose(r, -np.sum(np.asarray(obs2[: 2 * N]) ** 2), rtol=1e-4)
+    np.testing.assert_allclose(r, paper_reward(st2.plant.rho, st2.plant.v, rho_bar, v_bar, TP.dx), rtol=1e-6)
+    np.testing.assert_allclose(r, -np.sum(np.asarray(obs2[: 2 * N]) ** 2) * float(TP.dx) / 5.0, rtol=1e-4)
     assert float(r) < 0.0
 
 
@@ -251,14 +251,14 @@ def _step_with_and_without(**penalty):
 
 
 def test_h_rate_cost_in_the_reward():
-    """h_rate_weight w subtracts w * sum_i ((h_i - h_prev_i)/h_bar)^2 of the time gap commanded at
-    this step; zero gains at the start command h_bar, so they cost nothing."""
+    """h_rate_weight w subtracts w * (dx / 5 m) sum_i ((h_i - h_prev_i)/h_bar)^2 of the time gap
+    commanded at this step; zero gains at the start command h_bar, so they cost nothing."""
     w = 0.3
     st, st0, r0, r1 = _step_with_and_without(h_rate_weight=w)
     h_new = np.asarray(st0.plant.h_prev, np.float64)  # the gap commanded at this step
-    expected = np.sum(((h_new - np.asarray(st.plant.h_prev)) / float(TP.h_bar)) ** 2)
+    expected = np.sum(((h_new - np.asarray(st.plant.h_prev)) / float(TP.h_bar)) ** 2) * float(TP.dx) / 5.0
     assert expected > 0.0
-    np.testing.assert_allclose(float(learn_env.h_rate_cost(st.plant.h_prev, st0.plant.h_prev, TP.h_bar)), expected,
+    np.testing.assert_allclose(float(learn_env.h_rate_cost(st.plant.h_prev, st0.plant.h_prev, TP.h_bar, TP.dx)), expected,
                                rtol=1e-5)
     np.testing.assert_allclose(float(r1), float(r0) - w * expected, rtol=1e-5)
     _, _, r_zero, _, _ = step_jit(jax.random.PRNGKey(1), st, jnp.zeros(3), _params(h_rate_weight=w))

@@ -122,9 +122,12 @@ def test_grid_and_cfl_number():
         ({"delay": -0.1}, "non-negative multiple of dt"),
         ({"delay": 10.1}, "above the buffer capacity"),
         ({"delay": 2.0, "max_delay_steps": 10}, "above the buffer capacity"),
-        # |lambda2| dt / dx = 3.6 * 2 / 5 = 1.44 > 1
+        # at h = h_min |lambda2| = 14.05 m/s: 14.05 dt / dx > 1 (the equilibrium's 3.6 m/s is not the bound)
         ({"dt": 2.0}, "CFL violated"),
-        ({"n_points": 4001}, "CFL violated"),  # dx = 0.25 m: CFL 1.44
+        ({"dt": 0.4}, "CFL violated"),  # 1.12; at h_bar only 0.29
+        ({"n_points": 1601}, "CFL violated"),  # dx = 0.625 m: 2.25 (0.58 at h_bar)
+        ({"n_points": 1601, "substeps": 2}, "CFL violated"),  # 1.12
+        ({"substeps": 0}, "substeps must be an int >= 1"),
         ({"n_points": 2}, "n_points must be an int >= 3"),
         ({"max_delay_steps": -1}, "max_delay_steps"),
         ({"scheme": "weno"}, "scheme must be one of"),
@@ -148,7 +151,9 @@ def test_valid_edge_cases():
     TrafficParams(delay=10.0)  # exactly the capacity: 100 steps of 0.1 s
     TrafficParams(alpha=0.0)
     TrafficParams(alpha=1.0)
-    TrafficParams(dt=1.3)  # CFL 0.94 <= 1
+    TrafficParams(dt=0.35)  # CFL bound 0.98 <= 1
+    TrafficParams(n_points=1601, substeps=4)  # 0.56
+    TrafficParams(dt=1.3, substeps=4)  # 0.91
     assert TrafficParams(delay=0.3).delay_steps == 3
 
 
@@ -173,3 +178,20 @@ def test_traced_fields_do_not_recompile():
     assert f._cache_size() == 1
     f(TrafficParams(n_points=21))  # static field: a new program
     assert f._cache_size() == 2
+
+
+def test_cfl_bound_is_the_speed_characteristic_at_the_smallest_time_gap():
+    """The construction check bounds |lambda2| at h = h_min (14.05 m/s at the defaults), not at h_bar
+    (3.6 m/s): a saturating controller reaches it (at 1601 points and dt = 0.1 s a local CFL of 1.76 and
+    a blow-up, BENCHMARKS.md), so substeps divide the solver step."""
+    from jaxtraffic.model import fundamental as fd
+    from jaxtraffic.model.params import cfl_bound
+
+    p = TrafficParams()
+    rho_bar, v_bar = equilibrium(p)
+    lam2 = float(v_bar) - 1.0 / (float(rho_bar) * float(fd.h_mix(p.h_min, p)))
+    assert lam2 == pytest.approx(-14.05, abs=0.01)
+    assert cfl_bound(p) == pytest.approx(abs(lam2) * 0.1 / 5.0, rel=1e-5)
+    q = TrafficParams(n_points=801, substeps=2)
+    assert cfl_bound(q) == pytest.approx(abs(lam2) * 0.05 / 1.25, rel=1e-5)
+    assert cfl_number(q) == pytest.approx(3.59813 * 0.05 / 1.25, rel=1e-5)

@@ -227,7 +227,7 @@ def test_metrics_scale_with_horizon_and_match_trajectory():
     dx, dt = float(p.dx), float(p.dt)
     j_ttt = dt * np.sum(dx * (rec.sum(axis=1) - 0.5 * (rec[:, 0] + rec[:, -1])))
     assert float(res.metrics["J_TTT"]) == pytest.approx(j_ttt, rel=1e-5)
-    np.testing.assert_allclose(tr.reward, M.reward(tr.rho, tr.v, rho_bar, v_bar), rtol=1e-6)
+    np.testing.assert_allclose(tr.reward, M.reward(tr.rho, tr.v, rho_bar, v_bar, p.dx), rtol=1e-6)
     np.testing.assert_allclose(tr.t, np.arange(60) * dt, rtol=1e-6)
 
 

@@ -171,3 +171,24 @@ def test_muscl_is_second_order(orders):
     assert np.all(o > 1.5), o
     # and more accurate than upwind on the same grid
     assert np.all(errs < orders["upwind"][1])
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+def test_substeps_are_solver_steps_of_dt_over_substeps(x64, scheme):
+    """One step of dt with 3 substeps = three steps of dt/3 (to rounding), fluxes averaged over them, so
+    the mass balance dx * sum(rho[1:]) += (F_in - F_out) dt holds for the whole step."""
+    p3 = TrafficParams(scheme=scheme, substeps=3, **{**SMALL, "dt": 3 * SMALL["dt"]})
+    p1 = TrafficParams(scheme=scheme, **SMALL)
+    rho, v = bump_state(p1, dtype=jnp.float64)
+    r3, v3, fi3, fo3 = arz_step(rho, v, jnp.full_like(rho, p1.h_bar), p3)
+    r1, v1, fis, fos = rho, v, [], []
+    for _ in range(3):
+        r1, v1, fi, fo = arz_step(r1, v1, jnp.full_like(rho, p1.h_bar), p1)
+        fis.append(fi)
+        fos.append(fo)
+    np.testing.assert_allclose(r3, r1, rtol=1e-13)
+    np.testing.assert_allclose(v3, v1, rtol=1e-13)
+    dx = float(p1.dx)
+    dm = dx * (float(jnp.sum(r3[1:])) - float(jnp.sum(rho[1:])))
+    assert dm == pytest.approx((float(fi3) - float(fo3)) * float(p3.dt), abs=1e-13 * dx * float(jnp.sum(rho)))
+    assert float(fo3) == pytest.approx(np.mean(fos), rel=1e-13)

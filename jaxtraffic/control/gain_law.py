@@ -1,17 +1,25 @@
 """The paper's three-gain law (docs/controllers.md; docs/model.md section 9) and constant gains.
 
-    h = h_bar + h_bar (-eta1 h~_prev/h_bar - eta2 v~/v_bar + eta3 rho~/rho_bar)   (tildes: deviations)
+    h = h_bar + h_bar (-eta1 h~_prev/h_bar - eta2 S v~/v_bar + eta3 S rho~/rho_bar)   (tildes: deviations)
+
+S is the identity (the paper's pointwise law) or a Gaussian filter of width sigma (m) over x
+(``model.spatial.smooth``): the law's own spatial scale, which keeps the delayed loop stable at
+the high wavenumbers a pointwise law destabilises (``control.stability``, docs/model.md section 16).
 """
 
 from __future__ import annotations
 
+import functools
+
 import chex
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxtraffic.control.base import Controller, Observation
 from jaxtraffic.model.linear import linearize
 from jaxtraffic.model.params import TrafficParams, equilibrium
+from jaxtraffic.model.spatial import smooth
 
 Array = jax.Array
 
@@ -19,19 +27,22 @@ GAIN_NAMES = ("eta1", "eta2", "eta3")
 
 
 def gain_law(gains: Array, obs: Observation, nominal: TrafficParams,
-             eq: tuple[Array, Array] | None = None) -> Array:
+             eq: tuple[Array, Array] | None = None, sigma_nodes: float = 0.0) -> Array:
     """The paper's three-gain law on normalised deviations (docs/model.md section 9).
 
-    h = h_bar + h_bar * (-eta1 (h_prev - h_bar)/h_bar - eta2 (v - v_bar)/v_bar
-                         + eta3 (rho - rho_bar)/rho_bar),
+    h = h_bar + h_bar * (-eta1 (h_prev - h_bar)/h_bar - eta2 S(v - v_bar)/v_bar
+                         + eta3 S(rho - rho_bar)/rho_bar),
     with dimensionless gains ``gains = [eta1, eta2, eta3]`` (shape (3,)); ``eq``: (rho_bar, v_bar)
-    of ``nominal`` if the caller has it already (default: computed).
+    of ``nominal`` if the caller has it already (default: computed); S: the Gaussian filter of
+    width ``sigma_nodes`` node spacings (static; 0: none, the paper's pointwise law).
     """
     chex.assert_shape(gains, (3,))
     rho_bar, v_bar = equilibrium(nominal) if eq is None else eq
     h_bar = nominal.h_bar
-    dev = (-gains[0] * (obs.h_prev - h_bar) / h_bar - gains[1] * (obs.v - v_bar) / v_bar
-           + gains[2] * (obs.rho - rho_bar) / rho_bar)
+    rho_t, v_t = obs.rho - rho_bar, obs.v - v_bar
+    if sigma_nodes:
+        rho_t, v_t = smooth(rho_t, sigma_nodes), smooth(v_t, sigma_nodes)
+    dev = -gains[0] * (obs.h_prev - h_bar) / h_bar - gains[1] * v_t / v_bar + gains[2] * rho_t / rho_bar
     return h_bar + h_bar * dev
 
 
@@ -54,8 +65,29 @@ def _gain_act(settings, cstate, obs, nominal, key):
     return gain_law(settings, obs, nominal), cstate
 
 
-def constant_gains(eta1: float = 0.0, eta2: float = 0.0, eta3: float = 0.0) -> Controller:
-    """The three-gain law with constant gains (what a PPO policy outputs, frozen)."""
-    return Controller(settings=jnp.asarray([eta1, eta2, eta3], float), act_fn=_gain_act,
-                      name="constant_gains")
+@functools.cache
+def _filtered_gain_act(sigma_nodes: float):
+    def act(settings, cstate, obs, nominal, key):
+        return gain_law(settings, obs, nominal, sigma_nodes=sigma_nodes), cstate
+
+    return act
+
+
+def constant_gains(eta1: float = 0.0, eta2: float = 0.0, eta3: float = 0.0, filter_sigma: float = 0.0,
+                   dx: float = 5.0) -> Controller:
+    """The three-gain law with constant gains (what a PPO policy outputs, frozen); ``filter_sigma``
+    (m, static): width of the Gaussian filter of the observed rho~, v~ on the controller's grid of
+    spacing ``dx`` (m; the paper's 5 m by default), 0: the pointwise law."""
+    settings = jnp.asarray([eta1, eta2, eta3], float)
+    if filter_sigma:
+        return Controller(settings=settings, act_fn=_filtered_gain_act(sigma_nodes(filter_sigma, dx)),
+                          name=f"constant_gains (sigma {filter_sigma:g} m)")
+    return Controller(settings=settings, act_fn=_gain_act, name="constant_gains")
+
+
+def sigma_nodes(filter_sigma: float, dx: float) -> float:
+    """A filter width in m as node spacings of a grid of spacing ``dx`` (m); ``ValueError`` if negative."""
+    if not (np.isfinite(filter_sigma) and filter_sigma >= 0):
+        raise ValueError(f"filter_sigma must be a finite width >= 0 m, got {filter_sigma}")
+    return float(filter_sigma) / float(dx)
 

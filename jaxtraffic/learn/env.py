@@ -38,6 +38,7 @@ from jaxtraffic.control import gain_policy as gp
 from jaxtraffic.model.linear import LinearModel, gain_law_is_regular, gain_law_wave_speed, linearize
 from jaxtraffic.model.params import TrafficParams, equilibrium
 from jaxtraffic.sim.initial import paper_initial_condition
+from jaxtraffic.sim.metrics import node_weight
 from jaxtraffic.sim.plant import PlantState, closed_loop_step, initial_state, plant_alpha, select_state
 
 Array = jax.Array
@@ -126,11 +127,12 @@ def action_to_gains(action: Array, params: EnvParams) -> Array:
     return gp.action_to_gains(action, params.gain_max)
 
 
-def h_rate_cost(h_prev: Array, h: Array, h_bar: Array | float) -> Array:
-    """sum_i ((h_i - h_prev_i) / h_bar)^2: how much the commanded time gap moves in one step
-    (dimensionless). Unlike the acceleration, which the delay D postpones, it depends on this
-    step's action alone, so its credit is immediate."""
-    return jnp.sum(((h - h_prev) / h_bar) ** 2, axis=-1)
+def h_rate_cost(h_prev: Array, h: Array, h_bar: Array | float, dx: Array | float) -> Array:
+    """(dx / 5 m) sum_i ((h_i - h_prev_i) / h_bar)^2: how much the commanded time gap moves in one
+    step (dimensionless; weighted per node like the reward, ``metrics.node_weight``). Unlike the
+    acceleration, which the delay D postpones, it depends on this step's action alone, so its credit
+    is immediate."""
+    return jnp.sum(((h - h_prev) / h_bar) ** 2, axis=-1) * node_weight(dx)
 
 
 def backward_wave_cost(gains: Array, lm: LinearModel, speed_min: Array | float, scale: float = 5.0) -> Array:
@@ -183,7 +185,7 @@ def step_env(key: Array, state: EnvState, action: Array, params: EnvParams):
     plant, gains, h, info = closed_loop_step(state.plant, state.gains, ctrl, state.plant_params, tp,
                                              plant_alpha(state.plant_params, k_plant), k_plant, eq)
     terminated = plant.diverged
-    r = (info.reward - params.h_rate_weight * h_rate_cost(state.plant.h_prev, h, tp.h_bar)
+    r = (info.reward - params.h_rate_weight * h_rate_cost(state.plant.h_prev, h, tp.h_bar, tp.dx)
          - params.wave_weight * backward_wave_cost(gains, linearize(tp), params.wave_speed_min))
     r = jnp.where(terminated, -params.diverge_penalty, r)
     t = state.t + 1

@@ -44,6 +44,9 @@ class TrafficParams:
         alpha_noise: std of Gaussian noise added to the plant's alpha, redrawn every step
             (clipped to [0, 1]); 0 disables it.
         n_points: number of grid points (static); dx = L / (n_points - 1).
+        substeps: solver steps per time step (static, >= 1): the plant advances ``dt`` in
+            ``substeps`` explicit steps of dt / substeps, while the control period, the delay
+            buffer and the indices' sampling stay at ``dt`` (a finer plant without a faster controller).
         max_delay_steps: capacity of the input-delay ring buffer in steps (static).
         scheme: ``"upwind"`` (first order, the paper's method) or ``"muscl"`` (second order,
             minmod-limited reconstruction with SSP-RK2 time stepping) (static).
@@ -65,12 +68,13 @@ class TrafficParams:
     h_max: float = 3.0
     alpha_noise: float = 0.0
     n_points: int = struct.field(pytree_node=False, default=201)
+    substeps: int = struct.field(pytree_node=False, default=1)
     max_delay_steps: int = struct.field(pytree_node=False, default=100)
     scheme: str = struct.field(pytree_node=False, default="upwind")
     model: str = struct.field(pytree_node=False, default="arz")
 
     def __post_init__(self) -> None:
-        for name in ("n_points", "max_delay_steps"):  # numpy integers are ints too (np.int64(21))
+        for name in ("n_points", "substeps", "max_delay_steps"):  # numpy integers are ints too (np.int64(21))
             value = getattr(self, name)
             if isinstance(value, numbers.Integral) and not isinstance(value, (bool, int)):
                 object.__setattr__(self, name, int(value))
@@ -80,6 +84,11 @@ class TrafficParams:
     def dx(self) -> jax.Array | float:
         """Grid spacing, m."""
         return self.L / (self.n_points - 1)
+
+    @property
+    def solver_dt(self) -> jax.Array | float:
+        """Time step of the solver, s: dt / substeps."""
+        return self.dt / self.substeps if self.substeps != 1 else self.dt
 
     @property
     def delay_steps(self) -> jax.Array:
@@ -110,11 +119,14 @@ def validate(p: TrafficParams, cfl_max: float = 1.0) -> None:
 
     Checks positivity of lengths and times, alpha in [0, 1], actuator bounds, that the inflow
     admits an equilibrium, that the delay is a non-negative multiple of dt within the buffer's
-    capacity, and the CFL condition max|lambda| dt/dx <= ``cfl_max`` at the equilibrium.
+    capacity, and the CFL condition max|lambda| (dt/substeps)/dx <= ``cfl_max`` over the actuator
+    range (``cfl_bound``).
     Fields that are traced (inside ``jit``/``vmap``) are skipped: validate before tracing.
     """
     if isinstance(p.n_points, bool) or not isinstance(p.n_points, int) or p.n_points < 3:
         raise ValueError(f"n_points must be an int >= 3, got {p.n_points!r}")
+    if isinstance(p.substeps, bool) or not isinstance(p.substeps, int) or p.substeps < 1:
+        raise ValueError(f"substeps must be an int >= 1, got {p.substeps!r}")
     if isinstance(p.max_delay_steps, bool) or not isinstance(p.max_delay_steps, int) or p.max_delay_steps < 0:
         raise ValueError(f"max_delay_steps must be an int >= 0, got {p.max_delay_steps!r}")
     if p.scheme not in SCHEMES:
@@ -154,14 +166,14 @@ def validate(p: TrafficParams, cfl_max: float = 1.0) -> None:
         raise ValueError(
             f"delay {vals['delay']} s is {int(np.max(np.round(d)))} steps, above the buffer capacity"
             f" max_delay_steps={p.max_delay_steps}; raise max_delay_steps")
-    rho_bar, v_bar = _equilibrium_np(vals)
-    lam2 = v_bar - 1.0 / (rho_bar * hm_bar)
-    dx = vals["L"] / (p.n_points - 1)
-    cfl = np.max(np.maximum(np.abs(v_bar), np.abs(lam2)) * vals["dt"] / dx)
+    cfl = _cfl_bound_np(vals, p.n_points, p.substeps)
     if not cfl <= cfl_max:
+        dx = vals["L"] / (p.n_points - 1)
         raise ValueError(
-            f"CFL violated: max|lambda| dt/dx = {cfl:.3f} > {cfl_max} (dt={vals['dt']} s, dx={dx} m);"
-            " reduce dt or use fewer points")
+            f"CFL violated: max|lambda| dt/dx = {cfl:.3f} > {cfl_max} over the actuator range h in [h_min, h_max]"
+            f" (solver step dt/substeps = {np.max(vals['dt']) / p.substeps:g} s, dx = {dx:g} m): at h = h_min the"
+            f" speed characteristic lambda2 = v - 1/(rho h_mix(h)) is fastest; raise substeps, reduce dt or use"
+            " fewer points")
 
 
 def check_nominal(plant: TrafficParams, nominal: TrafficParams | None) -> None:
@@ -221,10 +233,32 @@ def equilibrium(p: TrafficParams) -> tuple[jax.Array, jax.Array]:
 
 
 def cfl_number(p: TrafficParams) -> float:
-    """CFL number max|lambda| dt/dx at the equilibrium, for concrete parameters."""
+    """CFL number max|lambda| dt_s/dx at the equilibrium (h = h_bar; dt_s = ``solver_dt``), for
+    concrete parameters."""
     rho_bar, v_bar = equilibrium(p)
     lam1, lam2 = fd.characteristic_speeds(rho_bar, v_bar, p.h_bar, p)
-    return float(jnp.max(jnp.maximum(jnp.abs(lam1), jnp.abs(lam2)) * p.dt / p.dx))
+    return float(jnp.max(jnp.maximum(jnp.abs(lam1), jnp.abs(lam2)) * p.solver_dt / p.dx))
+
+
+def cfl_bound(p: TrafficParams) -> float:
+    """The CFL number the construction check bounds (``validate``): max|lambda| dt_s/dx at the
+    equilibrium density over the whole actuator range h in [h_min, h_max]. |lambda2| = |v - 1/(rho
+    h_mix(h))| is largest at h = h_min (about 14 m/s at the defaults against 3.6 at h_bar), which a
+    controller reaches whenever it saturates, so the equilibrium CFL (``cfl_number``) is not a
+    sufficient guard: 1601 points at dt = 0.1 s have an equilibrium CFL of 0.58 and blow up."""
+    vals = {k: np.asarray(getattr(p, k), np.float64) for k in FLOAT_FIELDS}
+    return float(_cfl_bound_np(vals, p.n_points, p.substeps))
+
+
+def _cfl_bound_np(vals: dict[str, np.ndarray], n_points: int, substeps: int) -> float:
+    """``cfl_bound`` on a dict of float64 arrays (possibly batched: the largest over the batch)."""
+    rho_bar, v_bar = _equilibrium_np(vals)
+    hm = fd.h_mix(vals["h_min"], _np_view(vals), vals["alpha"])
+    # a noisy plant alpha reaches 1, where h_mix(h_min) = h_min is smallest (h_min < h_m)
+    hm = np.where(vals["alpha_noise"] > 0, np.minimum(hm, vals["h_min"]), hm)
+    lam2 = v_bar - 1.0 / (rho_bar * hm)
+    dx = vals["L"] / (n_points - 1)
+    return float(np.max(np.maximum(np.abs(v_bar), np.abs(lam2)) * vals["dt"] / substeps / dx))
 
 
 def steps_for(p: TrafficParams, seconds: float) -> int:

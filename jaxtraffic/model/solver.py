@@ -98,14 +98,32 @@ def _apply_inlet(rho: Array, v: Array, p: TrafficParams) -> Array:
     return rho.at[0].set(p.q_in / v[0])
 
 
+def _solver_step(rho: Array, v: Array, h: Array, alpha: Array, p: TrafficParams, dt: Array | float
+                 ) -> tuple[Array, Array, Array, Array]:
+    """One explicit step of length ``dt`` of ``p.scheme``; returns (rho, v, F_in, F_out)."""
+    if p.scheme == "upwind":
+        drho, dv, f_in, f_out = _rhs(rho, v, h, alpha, p, second_order=False)
+        rho1, v1 = rho + dt * drho, v + dt * dv
+        return _apply_inlet(rho1, v1, p), v1, f_in, f_out
+    # SSP-RK2: u1 = u + dt L(u); u_new = (u + u1 + dt L(u1)) / 2
+    drho, dv, f_in0, f_out0 = _rhs(rho, v, h, alpha, p, second_order=True)
+    rho1, v1 = rho + dt * drho, v + dt * dv
+    rho1 = _apply_inlet(rho1, v1, p)
+    drho1, dv1, f_in1, f_out1 = _rhs(rho1, v1, h, alpha, p, second_order=True)
+    rho2 = 0.5 * (rho + rho1 + dt * drho1)
+    v2 = 0.5 * (v + v1 + dt * dv1)
+    return _apply_inlet(rho2, v2, p), v2, 0.5 * (f_in0 + f_in1), 0.5 * (f_out0 + f_out1)
+
+
 def arz_step(
     rho: Array, v: Array, h: Array, p: TrafficParams, alpha: Array | float | None = None
 ) -> tuple[Array, Array, Array, Array]:
-    """Advance (rho in veh/m, v in m/s) by one step dt under the applied time gap ``h`` (s).
+    """Advance (rho in veh/m, v in m/s) by one step dt under the applied time gap ``h`` (s), held
+    over the step, in ``p.substeps`` solver steps of dt / substeps.
 
     Args:
         rho, v, h: fields of shape (n_points,).
-        p: parameters (scheme, dx, dt, physical constants).
+        p: parameters (scheme, dx, dt, substeps, physical constants).
         alpha: plant penetration rate for this step (defaults to ``p.alpha``).
     Returns:
         (rho_new, v_new, F_in, F_out): the new state and the time-averaged mass fluxes (veh/s)
@@ -115,19 +133,18 @@ def arz_step(
     chex.assert_rank([rho, v, h], 1)
     chex.assert_equal_shape([rho, v, h])
     a = p.alpha if alpha is None else alpha
-    dt = p.dt
-    if p.scheme == "upwind":
-        drho, dv, f_in, f_out = _rhs(rho, v, h, a, p, second_order=False)
-        rho1, v1 = rho + dt * drho, v + dt * dv
-        return _apply_inlet(rho1, v1, p), v1, f_in, f_out
-    # SSP-RK2: u1 = u + dt L(u); u_new = (u + u1 + dt L(u1)) / 2
-    drho, dv, f_in0, f_out0 = _rhs(rho, v, h, a, p, second_order=True)
-    rho1, v1 = rho + dt * drho, v + dt * dv
-    rho1 = _apply_inlet(rho1, v1, p)
-    drho1, dv1, f_in1, f_out1 = _rhs(rho1, v1, h, a, p, second_order=True)
-    rho2 = 0.5 * (rho + rho1 + dt * drho1)
-    v2 = 0.5 * (v + v1 + dt * dv1)
-    return _apply_inlet(rho2, v2, p), v2, 0.5 * (f_in0 + f_in1), 0.5 * (f_out0 + f_out1)
+    if p.substeps == 1:
+        return _solver_step(rho, v, h, a, p, p.dt)
+    dt = p.solver_dt
+
+    def body(_, carry):
+        r, u, f_in, f_out = carry
+        r, u, fi, fo = _solver_step(r, u, h, a, p, dt)
+        return r, u, f_in + fi, f_out + fo
+
+    zero = jnp.zeros((), rho.dtype)
+    r, u, f_in, f_out = jax.lax.fori_loop(0, p.substeps, body, (rho, v, zero, zero))
+    return r, u, f_in / p.substeps, f_out / p.substeps
 
 
 def is_physical(rho: Array, v: Array, p: TrafficParams) -> Array:
@@ -139,9 +156,10 @@ def is_physical(rho: Array, v: Array, p: TrafficParams) -> Array:
 
 
 def local_cfl(rho: Array, v: Array, h: Array, p: TrafficParams, alpha: Array | float | None = None) -> Array:
-    """CFL number max(|lambda1|, |lambda2|) dt/dx at every node for the current state."""
+    """CFL number max(|lambda1|, |lambda2|) dt_s/dx at every node for the current state (dt_s: the
+    solver step dt / substeps)."""
     lam2, _ = _speeds_and_source(rho, v, h, p.alpha if alpha is None else alpha, p)
-    return jnp.maximum(jnp.abs(v), jnp.abs(lam2)) * (p.dt / p.dx)
+    return jnp.maximum(jnp.abs(v), jnp.abs(lam2)) * (p.solver_dt / p.dx)
 
 
 def max_cfl(rho: Array, v: Array, h: Array, p: TrafficParams, alpha: Array | float | None = None) -> Array:

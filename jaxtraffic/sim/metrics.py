@@ -31,6 +31,7 @@ VEH_PER_KM = 1000.0  # veh/m -> veh/km
 FUEL_B0, FUEL_B1, FUEL_B3, FUEL_B4 = 25e-3, 24.5e-6, 32.5e-9, 125e-6  # Treiber & Kesting
 KMH = 3.6  # m/s -> km/h
 REWARD_TARGET = -0.1  # the paper's stop rule on the reward
+REWARD_DX = 5.0  # m, the paper's grid spacing: the reward's per-node sum is weighted by dx / REWARD_DX
 
 
 def trapezoid(f: Array, dx: Array | float) -> Array:
@@ -50,18 +51,26 @@ def l2_deviation(u: Array, u_bar: Array | float) -> Array:
     return jnp.sqrt(jnp.mean((u - u_bar) ** 2, axis=-1))
 
 
-def reward(rho: Array, v: Array, rho_bar: Array | float, v_bar: Array | float) -> Array:
-    """Paper reward r = -sum_i [((rho_i - rho_bar)/rho_bar)^2 + ((v_i - v_bar)/v_bar)^2]."""
-    return -jnp.sum(((rho - rho_bar) * (1.0 / rho_bar)) ** 2 + ((v - v_bar) * (1.0 / v_bar)) ** 2, axis=-1)
+def node_weight(dx: Array | float) -> Array | float:
+    """dx / ``REWARD_DX``: the weight of one node in the paper's per-node sums (1 on the paper's grid),
+    so that a sum over nodes approximates the same integral, (1/5 m) int (...) dx, on every grid."""
+    return dx * (1.0 / REWARD_DX)
+
+
+def reward(rho: Array, v: Array, rho_bar: Array | float, v_bar: Array | float, dx: Array | float) -> Array:
+    """Paper reward r = -(dx / 5 m) sum_i [((rho_i - rho_bar)/rho_bar)^2 + ((v_i - v_bar)/v_bar)^2]
+    (dimensionless; the paper's per-node sum on its 5 m grid, the same integral on any other)."""
+    terms = ((rho - rho_bar) * (1.0 / rho_bar)) ** 2 + ((v - v_bar) * (1.0 / v_bar)) ** 2
+    return -jnp.sum(terms, axis=-1) * node_weight(dx)
 
 
 def physical_reward(rho: Array, v: Array, rho_bar: Array | float, v_bar: Array | float,
-                    l: Array | float) -> Array:
+                    l: Array | float, dx: Array | float) -> Array:
     """The reward of (rho, v), or NaN if any node is outside the physical region
     (finite, 0 < rho < 1/l, v >= 0): one reduction serves both the divergence check and the reward."""
     ok = in_physical_region(rho, v, l)
     terms = ((rho - rho_bar) * (1.0 / rho_bar)) ** 2 + ((v - v_bar) * (1.0 / v_bar)) ** 2
-    return -jnp.sum(jnp.where(ok, terms, jnp.nan), axis=-1)
+    return -jnp.sum(jnp.where(ok, terms, jnp.nan), axis=-1) * node_weight(dx)
 
 
 def material_acceleration(v: Array, v_next: Array, dx: Array | float, dt: Array | float) -> Array:
@@ -145,7 +154,7 @@ def update_metrics(
     a_t = (a - a_prev) * inv_dt
     w = (dt * VEH_PER_KM) * rho
     if reward_next is None:
-        r, r_step = reward(rho, v, rho_bar, v_bar), step
+        r, r_step = reward(rho, v, rho_bar, v_bar, dx), step
     else:
         r, r_step = reward_next, step + 1
 

@@ -165,14 +165,19 @@ def _plant_step(state: PlantState, h_sent: Array, p: TrafficParams, alpha: Array
     h_applied = delay_buffer.read(sent, p.delay_steps)
     if p.model == "linear":
         lm = linearize(p)
-        r_t, v_t = linear_step(state.rho - lm.rho_bar, state.v - lm.v_bar, h_applied - lm.h_bar, lm)
+        u, x = h_applied - lm.h_bar, (state.rho - lm.rho_bar, state.v - lm.v_bar)
+        if p.substeps == 1:
+            r_t, v_t = linear_step(*x, u, lm)
+        else:
+            lm = lm.replace(dt=jnp.asarray(p.solver_dt))
+            r_t, v_t = jax.lax.fori_loop(0, p.substeps, lambda _, y: linear_step(y[0], y[1], u, lm), x)
         rho, v = r_t + lm.rho_bar, v_t + lm.v_bar
     else:
         rho, v, _, _ = arz_step(state.rho, state.v, h_applied, p, alpha)
     if target is None:
         r_new, ok = None, is_physical(rho, v, p)
     else:
-        r_new = M.physical_reward(rho, v, target[0], target[1], p.l)
+        r_new = M.physical_reward(rho, v, target[0], target[1], p.l, p.dx)
         ok = ~jnp.isnan(r_new)
     bad = (~ok | bad_input) & ~state.diverged
     frozen = state.diverged | bad

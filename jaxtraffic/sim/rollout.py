@@ -92,7 +92,7 @@ def finalize_metrics(acc: M.MetricsAccumulator, final: PlantState, target: Traff
     rho_bar, v_bar = equilibrium(target)
     dt = target.dt
     healthy_to_end = ~final.diverged
-    r_final = M.reward(final.rho, final.v, rho_bar, v_bar)
+    r_final = M.reward(final.rho, final.v, rho_bar, v_bar, dx)
     reached = healthy_to_end & (acc.last_bad_step < n_steps - 1) & (r_final >= M.REWARD_TARGET)
     tot = M.totals(acc, dx)
     return {
@@ -139,7 +139,7 @@ def _simulate(params: TrafficParams, controller: Controller | None, rho0: Array 
     acc = M.init_metrics(p.n_points, rho0.dtype)
     # rewards are tracked for the state after each step (sharing the physicality reduction);
     # the initial state's is counted here
-    r0 = M.reward(rho0, v0, rho_bar, v_bar)
+    r0 = M.reward(rho0, v0, rho_bar, v_bar, p.dx)
     acc = acc.replace(last_bad_step=jnp.where(r0 < M.REWARD_TARGET, 0, -1).astype(jnp.int32))
     # the plant's alpha of every step, drawn at once (cheaper than a draw inside the loop), unless given
     alphas = plant_alphas(p, key, n_steps, noise, rho0.dtype) if alphas is None else alphas.astype(rho0.dtype)
@@ -167,7 +167,7 @@ def _simulate(params: TrafficParams, controller: Controller | None, rho0: Array 
         def chunk(carry, alpha_chunk):
             s = carry[0]
             carry, hs = jax.lax.scan(one_step, carry, alpha_chunk)
-            rec = (s.step * p.dt, s.rho, s.v, hs[0], M.reward(s.rho, s.v, rho_bar, v_bar),
+            rec = (s.step * p.dt, s.rho, s.v, hs[0], M.reward(s.rho, s.v, rho_bar, v_bar, p.dx),
                    M.l2_deviation(s.rho, rho_bar), M.l2_deviation(s.v, v_bar))
             return carry, rec
 

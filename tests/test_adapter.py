@@ -1,0 +1,62 @@
+"""A controller on another discretisation (control.adapter): identity on its own grid, the hold over its
+control period, convergence across grids, clear errors."""
+
+import numpy as np
+import pytest
+
+import jaxtraffic as jt
+from jaxtraffic.control.adapter import ControllerGrid, adapt, ratios
+
+P = jt.TrafficParams(n_points=21, delay=2.0, dt=0.5, max_delay_steps=10)
+GRID = ControllerGrid.of(P)
+
+
+@pytest.mark.parametrize("ctrl", [jt.backstepping(2.0), jt.constant_gains(0.3, -0.5, -1.0), jt.lyapunov(1.0),
+                                  jt.constant_gains(0.0, -0.5, -1.0, filter_sigma=60.0, dx=50.0)],
+                         ids=["backstepping", "gains", "lyapunov", "filtered"])
+def test_on_its_own_grid_the_adapted_controller_is_the_controller(ctrl):
+    """Same grid and period: its own buffer of sent fields and its own h_prev equal the plant's, so the
+    rollout is the same bit for bit (backstepping reads the buffer, the gain law h_prev)."""
+    a = jt.simulate(P, ctrl, n_steps=300, record_every=10)
+    b = jt.simulate(P, adapt(ctrl, GRID, P), n_steps=300, record_every=10)
+    np.testing.assert_array_equal(a.trajectory.rho, b.trajectory.rho)
+    np.testing.assert_array_equal(a.trajectory.h, b.trajectory.h)
+    assert float(a.metrics["J_comfort"]) == float(b.metrics["J_comfort"])
+
+
+def test_the_time_gap_is_held_over_the_control_period():
+    fine_t = P.replace(dt=0.25, max_delay_steps=20)
+    res = jt.simulate(fine_t, adapt(jt.lyapunov(1.0), GRID, fine_t), n_steps=40, record_every=1)
+    h = np.asarray(res.trajectory.h)
+    np.testing.assert_array_equal(h[0::2], h[1::2])  # acts at steps 0, 2, 4, ...
+    assert np.any(h[2] != h[0])
+
+
+def test_on_a_refined_plant_the_time_gap_is_the_interpolated_controller_field():
+    fine = P.replace(n_points=41)
+    res = jt.simulate(fine, adapt(jt.lyapunov(1.0), GRID, fine), n_steps=20, record_every=1)
+    h = np.asarray(res.trajectory.h)
+    np.testing.assert_allclose(h[:, 1:-1:2], 0.5 * (h[:, 0:-2:2] + h[:, 2::2]), rtol=1e-6)
+
+
+def test_constant_gains_at_zero_delay_converge_across_plant_grids():
+    """The same controller (21 points) on plants refined 2, 4, 8 times: the density L2 at 150 s changes
+    less at each refinement (the plant's first-order discretisation error shrinks)."""
+    gains = jt.constant_gains(0.0, -0.5, -1.5)
+    l2 = []
+    for n, dt in ((41, 0.5), (81, 0.25), (161, 0.125)):
+        q = P.replace(n_points=n, delay=0.0, dt=dt, max_delay_steps=int(10 / dt))
+        res = jt.simulate(q, adapt(gains, GRID, q), n_steps=int(150 / dt))
+        l2.append(float(res.metrics["final_rho_L2"]))
+    d1, d2 = abs(l2[1] - l2[0]), abs(l2[2] - l2[1])
+    assert d2 < 0.75 * d1, l2
+
+
+def test_ratio_errors():
+    with pytest.raises(ValueError, match="integer factor"):
+        ratios(GRID, P.replace(n_points=31))
+    with pytest.raises(ValueError, match="integer factor"):
+        ratios(ControllerGrid(41, 0.5, 10), P)  # a plant coarser than the controller
+    with pytest.raises(ValueError, match="whole number of plant steps"):
+        ratios(GRID, P.replace(dt=0.3, delay=0.0, max_delay_steps=20))
+    assert ratios(GRID, P.replace(n_points=81, dt=0.25, max_delay_steps=20)) == (4, 2)

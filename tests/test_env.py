@@ -258,8 +258,8 @@ def test_h_rate_cost_in_the_reward():
     h_new = np.asarray(st0.plant.h_prev, np.float64)  # the gap commanded at this step
     expected = np.sum(((h_new - np.asarray(st.plant.h_prev)) / float(TP.h_bar)) ** 2) * float(TP.dx) / 5.0
     assert expected > 0.0
-    np.testing.assert_allclose(float(learn_env.h_rate_cost(st.plant.h_prev, st0.plant.h_prev, TP.h_bar, TP.dx)), expected,
-                               rtol=1e-5)
+    cost = learn_env.h_rate_cost(st.plant.h_prev, st0.plant.h_prev, TP.h_bar, TP.dx)
+    np.testing.assert_allclose(float(cost), expected, rtol=1e-5)
     np.testing.assert_allclose(float(r1), float(r0) - w * expected, rtol=1e-5)
     _, _, r_zero, _, _ = step_jit(jax.random.PRNGKey(1), st, jnp.zeros(3), _params(h_rate_weight=w))
     _, _, r_zero_ref, _, _ = step_jit(jax.random.PRNGKey(1), st, jnp.zeros(3), _params())

@@ -16,12 +16,13 @@ GRID = ControllerGrid.of(P)
                          ids=["backstepping", "gains", "lyapunov", "filtered"])
 def test_on_its_own_grid_the_adapted_controller_is_the_controller(ctrl):
     """Same grid and period: its own buffer of sent fields and its own h_prev equal the plant's, so the
-    rollout is the same bit for bit (backstepping reads the buffer, the gain law h_prev)."""
+    rollout is the same to float32 rounding (XLA may fuse the law differently: 1 ulp here and there;
+    backstepping reads the buffer, the gain law h_prev)."""
     a = jt.simulate(P, ctrl, n_steps=300, record_every=10)
     b = jt.simulate(P, adapt(ctrl, GRID, P), n_steps=300, record_every=10)
-    np.testing.assert_array_equal(a.trajectory.rho, b.trajectory.rho)
-    np.testing.assert_array_equal(a.trajectory.h, b.trajectory.h)
-    assert float(a.metrics["J_comfort"]) == float(b.metrics["J_comfort"])
+    np.testing.assert_allclose(a.trajectory.rho, b.trajectory.rho, rtol=1e-5)
+    np.testing.assert_allclose(a.trajectory.h, b.trajectory.h, rtol=1e-5)
+    assert float(a.metrics["J_comfort"]) == pytest.approx(float(b.metrics["J_comfort"]), rel=1e-4)
 
 
 def test_the_time_gap_is_held_over_the_control_period():

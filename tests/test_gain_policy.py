@@ -59,7 +59,8 @@ def test_policy_controller_replays_the_environment(gain_filter, segments, gain_m
     assert np.ptp(gains_env, axis=0).min() > 1e-3  # the gains really vary along the rollout
 
     ctrl = policy_controller(params, mean, var, gain_max, hidden=HIDDEN, init_sigma=0.3, gain_filter=gain_filter,
-                             obs_segments=segments)
+                             obs_segments=segments, sigma_nodes=ep.filter_nodes)
+    assert ep.filter_nodes > 0  # the learned law's spatial filter (the default)
     res = simulate(TP, ctrl, n_steps=STEPS, record_every=1)
     np.testing.assert_allclose(res.trajectory.rho[1:], np.array(rho_env[:-1]), rtol=1e-5, atol=1e-8)
     np.testing.assert_allclose(res.final.rho, rho_env[-1], rtol=1e-5, atol=1e-8)

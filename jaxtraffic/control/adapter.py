@@ -49,10 +49,24 @@ class ControllerGrid:
         """The grid of a (concrete) nominal: its n_points, dt and max_delay_steps."""
         return cls(n_points=p.n_points, dt=float(p.dt), max_delay_steps=p.max_delay_steps)
 
-    def nominal(self, plant_nominal: TrafficParams) -> TrafficParams:
-        """``plant_nominal``'s physical constants on this grid (one solver step per period)."""
-        return plant_nominal.replace(n_points=self.n_points, dt=self.dt, max_delay_steps=self.max_delay_steps,
-                                     substeps=1)
+    def nominal(self, plant_nominal: TrafficParams, period_steps: int = 1) -> TrafficParams:
+        """``plant_nominal``'s physical constants on this grid (one solver step per period, which is
+        ``period_steps`` plant steps)."""
+        dt = plant_nominal.dt if period_steps == 1 else self.dt
+        return plant_nominal.replace(n_points=self.n_points, dt=dt, max_delay_steps=self.max_delay_steps, substeps=1)
+
+
+PAPER_GRID = ControllerGrid()  # the paper's grid (5 m, 0.1 s): the baselines' design grid
+
+
+def baseline_grid(plant: TrafficParams) -> ControllerGrid:
+    """The grid a baseline (open loop, Lyapunov, backstepping) acts on over ``plant``: the paper's
+    whenever the plant's grid and step refine it, else the plant's own (e.g. a tiny test grid)."""
+    try:
+        ratios(PAPER_GRID, plant)
+    except ValueError:
+        return ControllerGrid.of(plant)
+    return PAPER_GRID
 
 
 def ratios(grid: ControllerGrid, plant: TrafficParams) -> tuple[int, int]:
@@ -85,13 +99,19 @@ def adapt(controller: Controller, grid: ControllerGrid, plant: TrafficParams) ->
     """``controller``, built on ``grid``, acting on the (concrete) discretisation of ``plant``
     (module docstring). On the controller's own grid and period it acts exactly as the controller
     itself (through its own buffer of sent fields)."""
-    r, s = ratios(grid, plant)
+    return on_grid(controller, grid, *ratios(grid, plant))
+
+
+def on_grid(controller: Controller, grid: ControllerGrid, r: int, s: int) -> Controller:
+    """``adapt`` with the ratios given (static ints: plant nodes per controller cell r, plant steps per
+    control period s), for a plant that is traced; ``grid.dt`` is then not used when s = 1 (the
+    controller's period is the plant's dt)."""
     inner = controller
 
     def view(obs: Observation, nominal: TrafficParams, h_prev: Array,
              sent: delay_buffer.DelayBuffer) -> tuple[Observation, TrafficParams]:
         sub = Observation(rho=restrict(obs.rho, r), v=restrict(obs.v, r), h_prev=h_prev, t=obs.t, sent=sent)
-        return sub, grid.nominal(nominal)
+        return sub, grid.nominal(nominal, s)
 
     def init(settings, obs, nominal):
         h0 = jnp.full((grid.n_points,), nominal.h_bar, obs.rho.dtype)

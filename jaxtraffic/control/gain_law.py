@@ -24,6 +24,10 @@ from jaxtraffic.model.spatial import smooth
 Array = jax.Array
 
 GAIN_NAMES = ("eta1", "eta2", "eta3")
+# m, the default width of the learned gain law's spatial filter (``learn``): the smallest of 10, 15, 20, 25 m
+# at which the gains the gradient trainer reaches on the reference plant are certified (BENCHMARKS.md,
+# "The learned law's spatial filter")
+FILTER_SIGMA = 20.0
 
 
 def gain_law(gains: Array, obs: Observation, nominal: TrafficParams,

@@ -94,11 +94,13 @@ def normalize_obs(x: Array, mean: Array, var: Array) -> Array:
 
 
 def filtered_gain_law(gains_prev: Array, target: Array, gain_filter: Array | float, obs: Observation,
-                      nominal: TrafficParams, eq: tuple[Array, Array] | None = None) -> tuple[Array, Array]:
+                      nominal: TrafficParams, eq: tuple[Array, Array] | None = None,
+                      sigma_nodes: float = 0.0) -> tuple[Array, Array]:
     """(h, applied gains): filter the gains towards ``target``, then apply the three-gain law
-    (``eq``: the nominal equilibrium (rho_bar, v_bar) if known)."""
+    (``eq``: the nominal equilibrium (rho_bar, v_bar) if known; ``sigma_nodes``: its spatial filter,
+    static, in node spacings, ``control.gain_law``)."""
     gains = filter_gains(gains_prev, target, gain_filter)
-    return gain_law(gains, obs, nominal, eq), gains
+    return gain_law(gains, obs, nominal, eq, sigma_nodes), gains
 
 
 def zero_gains(settings: Any, obs: Observation, nominal: TrafficParams) -> Array:
@@ -117,17 +119,24 @@ class GainTarget:
     eq: tuple[Array, Array] | None = None
 
 
-def _target_act(settings: GainTarget, gains_prev, obs, nominal, key):
-    return filtered_gain_law(gains_prev, settings.target, settings.gain_filter, obs, nominal, settings.eq)
+@functools.cache
+def _target_act_fn(sigma_nodes: float):
+    def act(settings: GainTarget, gains_prev, obs, nominal, key):
+        return filtered_gain_law(gains_prev, settings.target, settings.gain_filter, obs, nominal, settings.eq,
+                                 sigma_nodes)
+
+    return act
 
 
 def gain_target_controller(target: Array, gain_filter: Array | float = 1.0,
-                           eq: tuple[Array, Array] | None = None) -> Controller:
+                           eq: tuple[Array, Array] | None = None, sigma_nodes: float = 0.0) -> Controller:
     """The filtered three-gain law towards the given ``target`` gains (the environment's action,
     squashed); its state is the gains applied at the previous step. ``eq``: the equilibrium of
-    the ``nominal`` it will be called with, when the caller has computed it already."""
+    the ``nominal`` it will be called with, when the caller has computed it already;
+    ``sigma_nodes``: the law's spatial filter (static, node spacings of the grid it acts on)."""
     settings = GainTarget(target=jnp.asarray(target), gain_filter=jnp.asarray(gain_filter, float), eq=eq)
-    return Controller(settings=settings, act_fn=_target_act, init_fn=zero_gains, name="gain_target")
+    return Controller(settings=settings, act_fn=_target_act_fn(float(sigma_nodes)), init_fn=zero_gains,
+                      name="gain_target")
 
 
 # ----------------------------------------------------------------------------- learned policy
@@ -145,7 +154,7 @@ class PolicySettings:
 
 
 @functools.cache
-def _policy_act_fn(hidden: tuple, init_sigma: float, obs_segments: int):
+def _policy_act_fn(hidden: tuple, init_sigma: float, obs_segments: int, sigma_nodes: float):
     network = ActorCritic(hidden=hidden, init_sigma=init_sigma)
 
     def act(settings: PolicySettings, gains_prev, obs, nominal, key):
@@ -153,14 +162,14 @@ def _policy_act_fn(hidden: tuple, init_sigma: float, obs_segments: int):
         x = policy_features(obs, gains_prev, nominal, settings.gain_max, eq, obs_segments)
         mean, _, _ = network.apply(settings.params, normalize_obs(x, settings.obs_mean, settings.obs_var))
         target = action_to_gains(mean, settings.gain_max)
-        return filtered_gain_law(gains_prev, target, settings.gain_filter, obs, nominal, eq)
+        return filtered_gain_law(gains_prev, target, settings.gain_filter, obs, nominal, eq, sigma_nodes)
 
     return act
 
 
 def policy_controller(params: Any, obs_mean: Array, obs_var: Array, gain_max: float | Array, *,
                       hidden: tuple, init_sigma: float = 0.5, gain_filter: float | Array = 1.0,
-                      obs_segments: int = 0) -> Controller:
+                      obs_segments: int = 0, sigma_nodes: float = 0.0) -> Controller:
     """Controller applying the policy's deterministic gains (the mean of its Gaussian, squashed,
     then filtered like in the environment) through the three-gain law; its state is the gains
     applied at the previous step (zero at the start). ``gain_max``: a scalar or one bound per
@@ -170,7 +179,7 @@ def policy_controller(params: Any, obs_mean: Array, obs_var: Array, gain_max: fl
     settings = PolicySettings(params=params, obs_mean=jnp.asarray(obs_mean), obs_var=jnp.asarray(obs_var),
                               gain_max=gain_max,
                               gain_filter=jnp.broadcast_to(jnp.asarray(gain_filter, float), gain_max.shape))
-    act = _policy_act_fn(tuple(hidden), float(init_sigma), int(obs_segments))
+    act = _policy_act_fn(tuple(hidden), float(init_sigma), int(obs_segments), float(sigma_nodes))
     return Controller(settings=settings, act_fn=act, init_fn=zero_gains, name="ppo")
 
 

@@ -18,11 +18,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from jaxtraffic.control.gain_law import FILTER_SIGMA
 from jaxtraffic.control.networks import PAPER_HIDDEN, SMALL_HIDDEN
 from jaxtraffic.learn.env import EnvParams
 from jaxtraffic.learn.gradient import POLICIES, POLICY_DEFAULTS, GradientConfig
 from jaxtraffic.learn.ppo import PPOConfig
-from jaxtraffic.model.params import TrafficParams
+from jaxtraffic.model.params import SCHEMES, TrafficParams
 from jaxtraffic.sim.metrics import REWARD_TARGET
 
 CONFIG_VERSION = 2
@@ -49,13 +50,17 @@ class PlantConfig:
     delay: float = _f(float(_EP.traffic.delay), "plant input delay D, s (multiple of dt)")
     alpha: float = _f(_TP.alpha, "ACC penetration rate")
     alpha_noise: float = _f(_TP.alpha_noise, "per-step std of plant alpha noise")
-    n_points: int = _f(_TP.n_points, "grid points (dx = L/(n-1))")
-    dt: float = _f(_TP.dt, "time step, s")
+    n_points: int = _f(_TP.n_points, "grid points of the training plant (dx = L/(n-1))")
+    scheme: str = _f(_TP.scheme, "the training plant's scheme (upwind: the paper's; muscl: second order)",
+                     choices=SCHEMES)
+    substeps: int = _f(_TP.substeps, "solver steps per time step dt (a finer plant, same control period)")
+    dt: float = _f(_TP.dt, "time step, s (the control period)")
     max_delay_steps: int = _f(_TP.max_delay_steps, "delay buffer capacity, steps")
 
     def traffic(self) -> TrafficParams:
         return TrafficParams(delay=self.delay, alpha=self.alpha, alpha_noise=self.alpha_noise,
-                             n_points=self.n_points, dt=self.dt, max_delay_steps=self.max_delay_steps)
+                             n_points=self.n_points, scheme=self.scheme, substeps=self.substeps, dt=self.dt,
+                             max_delay_steps=self.max_delay_steps)
 
 
 @dataclass(frozen=True)
@@ -85,6 +90,12 @@ class EnvConfig:
                                 "region (the episode then ends), dimensionless, subtracted")
     obs_segments: int = _f(_EP.obs_segments, "observation: each normalised field (rho, v, h_prev) averaged over "
                            "this many equal road segments; 0: the full fields (3 x n-points values)")
+    filter_sigma: float = _f(FILTER_SIGMA, "width (m) of the Gaussian filter the learned gain law applies to the "
+                             "observed rho~, v~ (its own spatial scale, docs/model.md section 16); 0: the paper's "
+                             "pointwise law")
+    controller_points: int | None = _f(None, "gradient training: the controller's own grid (nodes over the road; "
+                                       "the plant's n-points must refine it by an integer factor); default: the "
+                                       "plant's grid")
 
 
 @dataclass(frozen=True)
@@ -160,7 +171,8 @@ class GradConfig:
             horizon_s=self.train_horizon_s, record_every=self.record_every, steps_per_chunk=self.steps_per_chunk,
             hidden=hidden, gain_filter=env.gain_filter, reward_weight=self.reward_weight,
             wave_weight=self.waves_weight, comfort_weight=self.comfort_weight, effort_weight=self.effort_weight,
-            scenario_clip=self.scenario_clip, init_gains=tuple(self.init_gains))
+            scenario_clip=self.scenario_clip, init_gains=tuple(self.init_gains), filter_sigma=env.filter_sigma,
+            controller_points=env.controller_points or 0)
 
 
 @dataclass(frozen=True)
@@ -212,7 +224,8 @@ RUN_CONTROL = ("out_dir", "total_steps", "max_wall_s", "keep_going", "resume", "
                "target_reward", "min_wave_speed", "tensorboard", "val_target", "checkpoint_every")
 # fields absent from a run's config.json because it was written before they existed: their value then
 # (the run is loaded and resumed as it was trained, not with today's defaults)
-BEFORE_FIELD = {"obs_segments": 0, "wave_weight": 0.0, "val_horizon_s": 0.0, "restart_steps": 0}
+BEFORE_FIELD = {"obs_segments": 0, "wave_weight": 0.0, "val_horizon_s": 0.0, "restart_steps": 0,
+                "filter_sigma": 0.0}
 
 
 @dataclass(frozen=True)

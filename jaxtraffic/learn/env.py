@@ -35,6 +35,7 @@ import numpy as np
 from flax import struct
 
 from jaxtraffic.control import gain_policy as gp
+from jaxtraffic.control.gain_law import FILTER_SIGMA, sigma_nodes
 from jaxtraffic.model.linear import LinearModel, gain_law_is_regular, gain_law_wave_speed, linearize
 from jaxtraffic.model.params import TrafficParams, equilibrium
 from jaxtraffic.sim.initial import paper_initial_condition
@@ -71,6 +72,9 @@ class EnvParams:
     wave_speed_min: float = 1.0  # m/s, backward_wave_cost's threshold
     # observation: 0: the full normalised fields (3 n values); K > 0: each field averaged over K equal segments
     obs_segments: int = struct.field(pytree_node=False, default=16)
+    # the gain law's Gaussian filter of the observed rho~, v~, in node spacings of ``traffic``'s grid
+    # (``control.gain_law``; make_env_params sets it from a width in m); 0: the paper's pointwise law
+    filter_nodes: float = struct.field(pytree_node=False, default=0.0)
 
 
 @struct.dataclass
@@ -81,9 +85,11 @@ class EnvState:
     gains: Array  # gains applied at the previous step, shape (3,) (dimensionless): the controller state
 
 
-def make_env_params(traffic: TrafficParams | None = None, **kwargs) -> EnvParams:
-    """EnvParams whose delay range defaults to the plant's delay and alpha range to its alpha."""
+def make_env_params(traffic: TrafficParams | None = None, filter_sigma: float = FILTER_SIGMA, **kwargs) -> EnvParams:
+    """EnvParams whose delay range defaults to the plant's delay and alpha range to its alpha;
+    ``filter_sigma``: width (m) of the gain law's spatial filter on ``traffic``'s grid (0: none)."""
     traffic = TrafficParams(delay=4.0) if traffic is None else traffic
+    kwargs["filter_nodes"] = sigma_nodes(filter_sigma, float(traffic.dx))
     kwargs.setdefault("delay_min", float(traffic.delay))
     kwargs.setdefault("delay_max", float(traffic.delay))
     kwargs.setdefault("alpha_min", float(traffic.alpha))
@@ -181,7 +187,7 @@ def step_env(key: Array, state: EnvState, action: Array, params: EnvParams):
     k_plant, k_reset = jax.random.split(key)
     tp = params.traffic
     eq = equilibrium(tp)  # once per step: the law, the reward target, both observations, the reset
-    ctrl = gp.gain_target_controller(action_to_gains(action, params), params.gain_filter, eq)
+    ctrl = gp.gain_target_controller(action_to_gains(action, params), params.gain_filter, eq, params.filter_nodes)
     plant, gains, h, info = closed_loop_step(state.plant, state.gains, ctrl, state.plant_params, tp,
                                              plant_alpha(state.plant_params, k_plant), k_plant, eq)
     terminated = plant.diverged

@@ -43,8 +43,9 @@ import optax
 from flax import struct
 from jax.sharding import Mesh
 
+from jaxtraffic.control.adapter import ControllerGrid, on_grid
 from jaxtraffic.control.base import Controller
-from jaxtraffic.control.gain_law import constant_gains
+from jaxtraffic.control.gain_law import FILTER_SIGMA, constant_gains, sigma_nodes
 from jaxtraffic.control.gain_policy import feature_size, policy_controller
 from jaxtraffic.control.networks import SMALL_HIDDEN, ActorCritic
 from jaxtraffic.model.params import TrafficParams
@@ -55,6 +56,9 @@ from jaxtraffic.sim.sharding import batch_mesh, gathered, local_copy, replicate,
 Array = jax.Array
 POLICIES = ("gains", "network")
 OBS_SCALE = 0.1  # std assumed for the normalised field deviations of the observation (dimensionless)
+# m: the road of every training config (learn.config has no road-length field); the filter's width in nodes
+# is static, so it is computed from this rather than from the traced base.L
+ROAD_LENGTH = float(TrafficParams().L)
 
 
 @dataclass(frozen=True)
@@ -88,6 +92,8 @@ class GradientConfig:
     init_gains: tuple[float, float, float] = (0.0, 0.0, 0.0)
     steps: int = 40  # Adam steps in all
     scenario_clip: float = 0.0  # > 0: clip each scenario's gradient to this norm (``objective_and_grad``)
+    filter_sigma: float = FILTER_SIGMA  # m, the gain law's Gaussian filter (``control.gain_law``); 0: pointwise
+    controller_points: int = 0  # the controller's own grid (``control.adapter``); 0: the plant's
 
     def __post_init__(self) -> None:
         if self.policy not in POLICIES:
@@ -109,6 +115,9 @@ class GradientConfig:
         for name in ("reward_weight", "wave_weight", "comfort_weight", "effort_weight", "scenario_clip"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if not self.filter_sigma >= 0 or self.controller_points < 0 or self.controller_points in (1, 2):
+            raise ValueError(f"filter_sigma must be >= 0 m and controller_points 0 or >= 3, got "
+                             f"{self.filter_sigma}, {self.controller_points}")
         if self.policy == "network" and max(abs(g) for g in self.init_gains) >= self.gain_max:
             raise ValueError(f"init_gains {self.init_gains} must lie inside (-gain_max, gain_max)")
 
@@ -177,11 +186,10 @@ def _network(cfg: GradientConfig) -> ActorCritic:
     return ActorCritic(hidden=tuple(cfg.hidden))
 
 
-def obs_statistics(base: TrafficParams) -> tuple[Array, Array]:
-    """Fixed observation normalisation of a gradient-trained network: mean 0, std ``OBS_SCALE``
-    for the 3 n field entries and 1/sqrt(3) (a uniform variable on [-1, 1]) for the 3 gains."""
-    n = base.n_points
-    var = jnp.concatenate([jnp.full((3 * n,), OBS_SCALE**2), jnp.full((3,), 1.0 / 3.0)])
+def obs_statistics(n_points: int) -> tuple[Array, Array]:
+    """Fixed observation normalisation of a gradient-trained network on ``n_points`` nodes: mean 0, std
+    ``OBS_SCALE`` for the 3 n field entries and 1/sqrt(3) (a uniform variable on [-1, 1]) for the 3 gains."""
+    var = jnp.concatenate([jnp.full((3 * n_points,), OBS_SCALE**2), jnp.full((3,), 1.0 / 3.0)])
     return jnp.zeros_like(var), var
 
 
@@ -191,20 +199,33 @@ def init_theta(cfg: GradientConfig, base: TrafficParams, key: Array) -> Any:
     g0 = jnp.asarray(cfg.init_gains, jnp.result_type(float))
     if cfg.policy == "gains":
         return g0
-    params = _network(cfg).init(key, jnp.zeros((feature_size(base.n_points),)))
+    n = cfg.controller_points or base.n_points
+    params = _network(cfg).init(key, jnp.zeros((feature_size(n),)))
     actor = params["params"]["actor"]
     last = sorted(k for k in actor if k.startswith("Dense_"))[-1]
     bias = jnp.arctanh(g0 / cfg.gain_max)
     return {"params": {**params["params"], "actor": {**actor, last: {**actor[last], "bias": bias}}}}
 
 
-def make_controller(theta: Any, cfg: GradientConfig, base: TrafficParams) -> Controller:
-    """The controller of parameters ``theta`` (deterministic)."""
+def own_controller(theta: Any, cfg: GradientConfig, n_points: int, dx: float) -> Controller:
+    """The controller of parameters ``theta`` (deterministic) on its own grid of ``n_points`` nodes, spacing
+    ``dx`` (m, for the filter width in nodes)."""
+    nodes = sigma_nodes(cfg.filter_sigma, dx)
     if cfg.policy == "gains":
         chex.assert_shape(theta, (3,))
-        return constant_gains(theta[0], theta[1], theta[2])
-    mean, var = obs_statistics(base)
-    return policy_controller(theta, mean, var, cfg.gain_max, hidden=tuple(cfg.hidden), gain_filter=cfg.gain_filter)
+        return constant_gains(theta[0], theta[1], theta[2], cfg.filter_sigma, dx)
+    mean, var = obs_statistics(n_points)
+    return policy_controller(theta, mean, var, cfg.gain_max, hidden=tuple(cfg.hidden), gain_filter=cfg.gain_filter,
+                             sigma_nodes=nodes)
+
+
+def make_controller(theta: Any, cfg: GradientConfig, base: TrafficParams) -> Controller:
+    """The controller of parameters ``theta`` on its own grid, acting on the plant grid of ``base``
+    (``control.adapter.on_grid``: restricted observation, interpolated time gap; the period is dt)."""
+    n = cfg.controller_points or base.n_points
+    r = (base.n_points - 1) // (n - 1)
+    ctrl = own_controller(theta, cfg, n, ROAD_LENGTH / (n - 1))
+    return ctrl if r == 1 else on_grid(ctrl, ControllerGrid(n, 0.0, base.max_delay_steps), r, 1)
 
 
 def weights_of(cfg: GradientConfig) -> Weights:

@@ -28,6 +28,7 @@ import numpy as np
 from flax import serialization
 
 from jaxtraffic import distributed
+from jaxtraffic.control.adapter import adapt, baseline_grid
 from jaxtraffic.control.base import Controller
 from jaxtraffic.control.baselines import backstepping
 from jaxtraffic.control.gain_policy import equilibrium_gains
@@ -69,15 +70,25 @@ def load_gradient_policy(run_dir: str | Path, cfg: TrainConfig) -> Controller:
     return G.make_controller(jax.tree.map(jnp.asarray, theta), gcfg, plant)
 
 
-def evaluation(ctrl: Controller, plant: TrafficParams, n_steps: int, gains: Any | None) -> dict:
+def evaluation(ctrl: Controller, plant: TrafficParams, n_steps: int, gains: Any | None,
+               own: tuple[Controller, TrafficParams] | None = None) -> dict:
     """Deterministic rollout metrics of ``ctrl`` on the paper's initial condition, plus the gains it
-    settles to at the equilibrium and the closed loop's wave speed there (m/s)."""
+    settles to at the equilibrium (``gains`` if given, else those of ``own`` = (the controller on its
+    own grid, its nominal there)) and the closed loop's wave speed there (m/s)."""
     res = simulate(plant, ctrl, n_steps=n_steps)
     out = {k: float(v) for k, v in res.metrics.items()}
-    g = jnp.asarray(gains) if gains is not None else equilibrium_gains(ctrl, plant)
+    g = jnp.asarray(gains) if gains is not None else equilibrium_gains(*own)
     out["equilibrium_gains"] = np.asarray(g).tolist()
     out["wave_speed"] = float(gain_law_wave_speed(g, linearize(plant)))
     return out
+
+
+def policy_evaluation(theta: Any, cfg: G.GradientConfig, plant: TrafficParams, n_steps: int) -> dict:
+    """``evaluation`` of the controller of ``theta`` acting on ``plant``."""
+    n = cfg.controller_points or plant.n_points
+    own = (G.own_controller(theta, cfg, n, G.ROAD_LENGTH / (n - 1)), plant.replace(n_points=n, substeps=1))
+    return evaluation(G.make_controller(theta, cfg, plant), plant, n_steps,
+                      theta if cfg.policy == "gains" else None, own)
 
 
 def beats(ev: dict, ref: dict) -> bool:
@@ -123,7 +134,8 @@ def _train_gradient(tc: TrainConfig, cfg: G.GradientConfig, plant: TrafficParams
     elif writer:
         ckpt.write_json(run_dir / ckpt.CONFIG, config_json(tc, jax_version=jax.__version__))
     eval_steps = max(1, round(run.eval_horizon_s / tc.plant.dt))
-    ref = evaluation(backstepping(tc.plant.delay), plant, eval_steps, gains=jnp.zeros(3))
+    ref = evaluation(adapt(backstepping(tc.plant.delay), baseline_grid(plant), plant), plant, eval_steps,
+                     gains=jnp.zeros(3))
     n_steps = G.horizon_steps(cfg, tc.plant.dt)
     steps_per_update = cfg.n_scenarios * n_steps
     wall0 = float(meta["wall_s"])
@@ -136,8 +148,7 @@ def _train_gradient(tc: TrainConfig, cfg: G.GradientConfig, plant: TrafficParams
         while meta["updates"] < cfg.steps and signum is None:
             state, m = train_chunk(state)
             jax.block_until_ready(m)
-            ctrl = G.make_controller(state.theta, cfg, plant)
-            ev = evaluation(ctrl, plant, eval_steps, state.theta if cfg.policy == "gains" else None)
+            ev = policy_evaluation(state.theta, cfg, plant, eval_steps)
             t_prev = meta["rows"][-1]["wall_s"] if meta["rows"] else wall0
             meta["updates"] += cfg.steps_per_chunk
             meta["env_steps"] += cfg.steps_per_chunk * steps_per_update
@@ -176,8 +187,7 @@ def _train_gradient(tc: TrainConfig, cfg: G.GradientConfig, plant: TrafficParams
         plot_learning_curve(run_dir / "learning_curve.csv", run_dir / "learning_curve.png",
                             title=f"gradient-based training ({cfg.policy})")
     if not ev:
-        ev = evaluation(G.make_controller(state.theta, cfg, plant), plant, eval_steps,
-                        state.theta if cfg.policy == "gains" else None)
+        ev = policy_evaluation(state.theta, cfg, plant, eval_steps)
     summary = {"provenance": provenance(), "algo": ALGO, "policy": cfg.policy, "updates": meta["updates"],
                "env_steps": meta["env_steps"],
                "wall_s": meta["wall_s"], "interrupted": interrupted, "eval_horizon_s": run.eval_horizon_s,

@@ -97,7 +97,7 @@ def build(s: TrainConfig) -> tuple[ppo.PPOConfig, learn_env.EnvParams]:
         wavenumber_max=int(en.wavenumber_range[1]), phase_max=en.phase_max, delay_min=d_lo, delay_max=d_hi,
         alpha_min=a_lo, alpha_max=a_hi, gain_filter=en.gain_filter, h_rate_weight=en.h_rate_weight,
         wave_weight=en.wave_weight, wave_speed_min=en.wave_speed_min, obs_segments=en.obs_segments,
-        diverge_penalty=en.diverge_penalty)
+        diverge_penalty=en.diverge_penalty, filter_sigma=en.filter_sigma)
     algo = dataclasses.asdict(s.algo)
     cfg = ppo.PPOConfig(num_seeds=s.run.seeds, hidden=s.algo.hidden(),
                         **{f.name: algo[f.name] for f in dataclasses.fields(ppo.PPOConfig) if f.name in algo})
@@ -119,7 +119,7 @@ def member_controller(cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, param
     gain_max = jnp.asarray(env_params.gain_max, float)
     return policy_controller(params, obs_mean, obs_var, jnp.broadcast_to(gain_max, (n,) + gain_max.shape),
                              hidden=tuple(cfg.hidden), init_sigma=cfg.init_sigma, gain_filter=env_params.gain_filter,
-                             obs_segments=env_params.obs_segments)
+                             obs_segments=env_params.obs_segments, sigma_nodes=env_params.filter_nodes)
 
 
 def make_evaluator(cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, eval_steps: int):

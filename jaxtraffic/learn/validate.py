@@ -22,6 +22,8 @@ RULES: dict[str, tuple[float | None, bool, float | None, bool]] = {
     # plant
     "delay": (0.0, True, None, False), "alpha": (0.0, True, 1.0, True), "alpha_noise": (0.0, True, None, False),
     "n_points": (3, True, None, False), "dt": (0.0, False, None, False), "max_delay_steps": (0, True, None, False),
+    "substeps": (1, True, None, False), "filter_sigma": (0.0, True, None, False),
+    "controller_points": (3, True, None, False),
     # env
     "horizon_s": (0.0, False, None, False), "delay_spread": (0.0, True, None, False),
     "phase_max": (0.0, True, None, False), "gain_max": (0.0, False, None, False),
@@ -183,6 +185,13 @@ def check_config(cfg: Any) -> None:
                     f"must divide the batch num_envs * num_steps = {al.num_envs} * {al.num_steps} = {batch}")
     if al.num_minibatches > batch:
         raise _fail("num_minibatches", al.num_minibatches, f"must be <= the batch num_envs * num_steps = {batch}")
+    cp = en.controller_points
+    if cp is not None and (cp > pl.n_points or (pl.n_points - 1) % (cp - 1)):
+        raise _fail("controller_points", cp, f"the plant's grid (n-points {pl.n_points}) must refine it by an integer "
+                    f"factor: (n_points - 1) a multiple of (controller_points - 1)")
+    if cp is not None and cp != pl.n_points and run.algo != "gradient":
+        raise _fail("controller_points", cp, "PPO's controller acts on the training plant's grid; only --algo "
+                    "gradient trains a controller on a grid of its own")
     for name in ("horizon_s", "eval_horizon_s"):
         value = getattr(en if name == "horizon_s" else run, name)
         if value < pl.dt:

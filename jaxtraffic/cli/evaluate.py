@@ -3,12 +3,15 @@
     python evaluate.py [--run RUN_DIR] [--run-delay0 RUN_DIR] [--out results/]
 
 Without ``--run`` it uses ``runs/default`` if that holds a trained run (config.json and
-checkpoint.msgpack), else trains one with ``train.py``'s defaults first. Outputs in ``--out``:
-metrics.json, robustness.json, claims.json, table2.md, table2.csv, the figures (PNG) and
-REPORT.md. Small flags for tests: ``--n-points``, ``--horizon``, ``--seeds``, ``--robust-grid``.
-Numerics: ``--scheme muscl`` and ``--refine R`` run the whole evaluation on another scheme / a grid
-refined R times (the policy then observes its training grid's nodes, ``paper.numerics``); Table 2's
-scenario is always rerun on a grid refined twice and with the other scheme unless
+checkpoint.msgpack), else trains one with ``train.py``'s defaults first; likewise the gradient-trained
+runs (``GRADIENT_RUNS``, trained on the reference plant). Every experiment runs on two plants
+(``--plants``): the paper's grid (upwind, the PPO run's points; outputs in ``--out``) and the reference
+plant (``TrafficParams.reference``: MUSCL, 801 points, 2 solver steps per 0.1 s; outputs in
+``--out``/reference), each controller acting on its own grid (``control.adapter``); ``plants.md`` and
+REPORT.md then say, claim by claim, which conclusions survive on the reference plant. Outputs per plant:
+metrics.json, robustness.json, claims.json, table2.md, table2.csv, the figures (PNG) and REPORT.md.
+Small flags for tests: ``--n-points``, ``--horizon``, ``--seeds``, ``--robust-grid``, ``--reference-grid``.
+Table 2's scenario is rerun on each plant refined twice and with the other scheme unless
 ``--no-numerics-check``.
 The same command runs as N cooperating processes with ``--coordinator-address HOST:PORT
 --num-processes N --process-id I`` or the ``JAX_*`` variables (``jaxtraffic.distributed``; README,
@@ -31,23 +34,21 @@ from typing import Any
 
 from jaxtraffic import compile_cache, distributed, paper
 from jaxtraffic.cli import train as train_cli
-from jaxtraffic.learn.checkpoint import load_policy
+from jaxtraffic.learn.checkpoint import atomic_write_text, load_policy, policy_grid
 from jaxtraffic.learn.config import TrainConfig
+from jaxtraffic.model.params import TrafficParams
 
+_REF = TrafficParams.reference()
 DEFAULT_RUN = Path("runs/default")
+PLANTS = ("paper", "reference")
 # wall-clock cap of the PPO training the main job starts when runs/default is missing: a run that has
 # not met its stop rule by then keeps its best checkpoint so far (the main job stays bounded)
 MAIN_JOB_PPO_WALL_S = 600.0
 # the gradient-trained controllers evaluated beside PPO: name -> (run directory under --runs-root,
-# train.py flags)
+# train.py flags); they train on the reference plant (--reference-grid) with the controller on the paper's grid
 GRADIENT_RUNS = {
     "grad_gains": ("gradient-gains", ["--algo", "gradient", "--policy", "gains"]),
     "grad_network": ("gradient-network", ["--algo", "gradient", "--policy", "network"]),
-    # trained over the robustness map's ranges on the wave objective (blind to the steady offset a
-    # plant with another alpha keeps), each scenario's gradient clipped
-    "grad_robust": ("gradient-robust", [
-        "--algo", "gradient", "--policy", "network", "--train-delays", "0,4,8", "--train-alphas", "0.05,0.3,0.6",
-        "--reward-weight", "0", "--waves-weight", "1", "--scenario-clip", "1", "--grad-steps", "20"]),
 }
 
 
@@ -73,12 +74,17 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                     + "): auto = use them, training the missing ones first; existing = only those already "
                     "trained; none = skip")
     ap.add_argument("--runs-root", type=Path, default=Path("runs"), help="where the gradient runs live")
-    ap.add_argument("--scheme", choices=("upwind", "muscl"), default="upwind",
-                    help="numerical scheme of the whole evaluation (default upwind, the paper's)")
-    ap.add_argument("--refine", type=int, default=1,
-                    help="refine the evaluation grid R times: (n - 1) R + 1 points, same dt (default 1)")
+    ap.add_argument("--plants", default="paper,reference",
+                    help="the plants every experiment runs on: paper (upwind on the PPO run's grid, the paper's "
+                    "method), reference (the converged plant, --reference-grid) or both (default paper,reference)")
+    ap.add_argument("--reference-grid", default=f"{_REF.n_points}x{_REF.substeps}",
+                    help="the reference plant's POINTSxSUBSTEPS (MUSCL; default "
+                    f"{_REF.n_points}x{_REF.substeps}, TrafficParams.reference); also the gradient runs' "
+                    "training plant")
+    ap.add_argument("--reference-robust-grid", default="9x6",
+                    help="NDxNA of the robustness map on the reference plant (default 9x6: 1 s x 0.11 steps)")
     ap.add_argument("--no-numerics-check", action="store_true",
-                    help="skip rerunning Table 2's scenario on a refined grid and with the other scheme")
+                    help="skip rerunning Table 2's scenario on each plant refined twice and with the other scheme")
     distributed.add_flags(ap)
     return ap.parse_args(argv)
 
@@ -113,25 +119,35 @@ def find_or_train_run(run: Path | None, n_points: int | None) -> Path:
     return Path(train_cli.main(targv))
 
 
-def gradient_controllers(mode: str, n_points: int, root: Path) -> tuple[dict[str, Any], dict[str, dict]]:
-    """(name -> controller, name -> {"summary", "curve", "run_dir"}) of the gradient-trained runs
-    (``GRADIENT_RUNS`` under ``root``), training the missing ones first when ``mode`` is "auto"."""
-    ctrls, runs = {}, {}
+def gradient_controllers(mode: str, root: Path, plant_flags: list[str]
+                         ) -> tuple[dict[str, Any], dict[str, Any], dict[str, dict]]:
+    """(name -> controller on its own grid, name -> its grid, name -> {"summary", "curve", "run_dir"}) of
+    the gradient-trained runs (``GRADIENT_RUNS`` under ``root``), training the missing ones first (with
+    ``plant_flags``: the training plant and controller grid) when ``mode`` is "auto"."""
+    ctrls, grids, runs = {}, {}, {}
     for name, (sub, flags) in GRADIENT_RUNS.items() if mode != "none" else ():
         run_dir = root / sub
         if not (run_dir / "summary.json").exists():
             if mode != "auto":
                 continue
-            _log(f"no trained run at {run_dir}: training it first (train.py {' '.join(flags)})")
-            train_cli.main([*flags, "--out-dir", str(run_dir), "--n-points", str(n_points)])
+            _log(f"no trained run at {run_dir}: training it first (train.py {' '.join(flags + plant_flags)})")
+            train_cli.main([*flags, *plant_flags, "--out-dir", str(run_dir)])
         ctrl, config = load_policy(run_dir)
-        if config.plant.n_points != n_points:
-            raise SystemExit(f"{run_dir} was trained on {config.plant.n_points} points, the evaluation uses "
-                             f"{n_points}: remove it or pass --gradient none")
-        ctrls[name] = ctrl
+        ctrls[name], grids[name] = ctrl, policy_grid(config)
         runs[name] = {"run_dir": str(run_dir), "summary": json.loads((run_dir / "summary.json").read_text()),
                       "curve": _curve(run_dir / "learning_curve.csv")}
-    return ctrls, runs
+    return ctrls, grids, runs
+
+
+def parse_grid(text: str, flag: str) -> tuple[int, int]:
+    """"AxB" as two ints >= 0 (``SystemExit(2)`` naming ``flag`` otherwise)."""
+    try:
+        a, b = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise _fail(f"{flag} must look like AxB (two integers), got {text!r}") from None
+    if a < 0 or b < 0:
+        raise _fail(f"{flag} sizes must be >= 0, got {text!r}")
+    return a, b
 
 
 def _describe(run_dir: Path, config: TrainConfig) -> dict[str, Any]:
@@ -148,19 +164,20 @@ def _fail(msg: str) -> SystemExit:
 def check_args(args: argparse.Namespace) -> tuple[int, int]:
     """Reject bad flags (``SystemExit(2)`` with a message naming the flag, the value and the allowed
     range) before anything is created or compiled; returns the robustness grid sizes."""
-    try:
-        nd, na = (int(v) for v in args.robust_grid.lower().split("x"))
-    except ValueError:
-        raise _fail(f"--robust-grid must look like 17x12 (NDxNA, integers >= 0), got {args.robust_grid!r}") from None
-    if nd < 0 or na < 0:
-        raise _fail(f"--robust-grid sizes must be >= 0, got {args.robust_grid!r}")
+    nd, na = parse_grid(args.robust_grid, "--robust-grid")
+    plants = [p.strip() for p in args.plants.split(",") if p.strip()]
+    if not plants or any(p not in PLANTS for p in plants) or len(set(plants)) != len(plants):
+        raise _fail(f"--plants must name one or both of {PLANTS}, separated by a comma, got {args.plants!r}")
+    args.plants = tuple(p for p in PLANTS if p in plants)
+    ref_n, ref_s = parse_grid(args.reference_grid, "--reference-grid")
+    if ref_n < 3 or ref_s < 1:
+        raise _fail(f"--reference-grid needs >= 3 points and >= 1 substep, got {args.reference_grid!r}")
+    parse_grid(args.reference_robust_grid, "--reference-robust-grid")
     if args.seeds < 1:
         raise _fail(f"--seeds must be >= 1, got {args.seeds}")
     for flag, value in (("--horizon", args.horizon), ("--robust-horizon", args.robust_horizon)):
         if value is not None and not (math.isfinite(value) and value > 0):
             raise _fail(f"{flag} must be a finite number of seconds > 0, got {value}")
-    if args.refine < 1:
-        raise _fail(f"--refine must be >= 1, got {args.refine}")
     if args.n_points is not None and args.n_points < 3:
         raise _fail(f"--n-points must be >= 3, got {args.n_points}")
     for flag, run in (("--run", args.run), ("--run-delay0", args.run_delay0)):
@@ -199,35 +216,56 @@ def _main(args: argparse.Namespace, argv: list[str] | None, t0: float, nd: int, 
     ppo, config = load_policy(run_dir)
     if args.horizon < float(config.plant.dt):
         raise ValueError(f"--horizon must be at least one time step ({config.plant.dt} s), got {args.horizon}")
-    n_points, dt = config.plant.n_points, float(config.plant.dt)
+    grids = {"ppo": policy_grid(config)}
+    n_points, dt = grids["ppo"].n_points, float(config.plant.dt)
     if args.n_points and args.n_points != n_points:
-        _log(f"note: --n-points {args.n_points} ignored; the run was trained on {n_points} points")
+        _log(f"note: --n-points {args.n_points} ignored; the run's controller acts on {n_points} points")
     ppo0, desc0 = None, None
     if args.run_delay0 is not None:
         ppo0, config0 = load_policy(args.run_delay0)
-        if (config0.plant.n_points, float(config0.plant.dt)) != (n_points, dt):
-            raise SystemExit(f"--run-delay0 {args.run_delay0}: grid differs from --run's ({n_points}, {dt})")
+        if policy_grid(config0) != grids["ppo"]:
+            raise SystemExit(f"--run-delay0 {args.run_delay0}: its controller's grid differs from --run's "
+                             f"({n_points} points, {dt} s)")
         desc0 = _describe(args.run_delay0, config0)
         if float(config0.plant.delay) != 0.0:
             _log(f"WARNING: --run-delay0 {args.run_delay0} was trained with D = {config0.plant.delay} s, not 0")
     policy = _describe(run_dir, config)
     policy0 = desc0 or {**policy, "description": f"the D = 4 s policy ({policy['description']}); "
                         "no D = 0 run was given"}
-
-    cfg = paper.EvalConfig(
-        n_points=n_points, dt=dt, horizon_s=args.horizon, seeds=tuple(range(args.seeds)),
-        robust_delays=paper.robust_axis(nd, 0.0, 8.0, dt), robust_alphas=paper.robust_axis(na, 0.05, 0.6),
-        robust_horizon_s=args.robust_horizon or 2.0 * args.horizon, scheme=args.scheme, refine=args.refine,
-        numerics_check=not args.no_numerics_check)
+    ref_n, ref_s = parse_grid(args.reference_grid, "--reference-grid")
+    plant_flags = ["--n-points", str(ref_n), "--scheme", "muscl", "--substeps", str(ref_s),
+                   "--controller-points", str(n_points)]
+    grad, grad_grids, grad_runs = gradient_controllers(args.gradient, args.runs_root, plant_flags)
+    grids.update(grad_grids)
     lc = run_dir / "learning_curve.csv"
-    meta = {"policy": policy, "policy_delay0": policy0,
-            "argv": list(sys.argv[1:] if argv is None else argv)}
-    grad, grad_runs = gradient_controllers(args.gradient, n_points, args.runs_root)
     learned_runs = {"ppo": {"run_dir": str(run_dir), "curve": _curve(lc),
                             "summary": json.loads((run_dir / "summary.json").read_text())
                             if (run_dir / "summary.json").exists() else {}}, **grad_runs}
-    metrics = paper.evaluate_all({"ppo": ppo, **grad}, cfg, args.out, meta, ppo_delay0=ppo0, learning_curve_csv=lc,
-                                 log=_log, learned_runs=learned_runs)
-    _log(f"total {time.perf_counter() - t0:.1f} s; verdicts: {json.dumps(metrics['meta']['claims'])}")
+    common = {"dt": dt, "horizon_s": args.horizon, "seeds": tuple(range(args.seeds)),
+              "robust_horizon_s": args.robust_horizon or 2.0 * args.horizon,
+              "numerics_check": not args.no_numerics_check}
+    configs = {"paper": paper.EvalConfig(n_points=n_points, robust_delays=paper.robust_axis(nd, 0.0, 8.0, dt),
+                                         robust_alphas=paper.robust_axis(na, 0.05, 0.6), **common)}
+    rd, ra = parse_grid(args.reference_robust_grid, "--reference-robust-grid")
+    configs["reference"] = paper.EvalConfig(
+        n_points=ref_n, scheme="muscl", substeps=ref_s, robust_delays=paper.robust_axis(rd, 0.0, 8.0, dt),
+        robust_alphas=paper.robust_axis(ra, 0.05, 0.6), **common)
+    meta = {"policy": policy, "policy_delay0": policy0, "argv": list(sys.argv[1:] if argv is None else argv)}
+    results = {}
+    for plant in args.plants:
+        out = args.out if plant == "paper" else args.out / plant
+        _log(f"== {plant} plant: {configs[plant].describe()} -> {out}")
+        results[plant] = paper.evaluate_all({"ppo": ppo, **grad}, configs[plant], out, {**meta, "plant": plant},
+                                            ppo_delay0=ppo0, learning_curve_csv=lc, log=_log,
+                                            learned_runs=learned_runs, grids=grids)
+    if distributed.is_writer():
+        if len(results) > 1:
+            paper.compare_plants(results, {k: configs[k] for k in results}, args.out, log=_log)
+        section = paper.certificate_section(learned_runs, args.out, log=_log)
+        report = args.out / "REPORT.md"
+        if section and report.exists():
+            atomic_write_text(report, report.read_text().rstrip() + "\n\n" + "\n".join(section))
+    metrics = results[args.plants[0]]
+    _log(f"total {time.perf_counter() - t0:.1f} s; verdicts: "
+         + "; ".join(f"{k}: {json.dumps(m['meta']['claims'])}" for k, m in results.items()))
     return metrics
-

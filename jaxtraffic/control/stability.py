@@ -146,6 +146,17 @@ def certify(gains: Array, p: TrafficParams, delay: float, sigma: float = 0.0, sy
                        sigma=float(sigma), symbol=symbol)
 
 
+def certify_controller(controller: Any, nominal: TrafficParams, delay: float, sigma: float) -> Certificate:
+    """``certify`` of a gain controller (constant gains, a policy) at the gains it settles to while the plant
+    sits at ``nominal``'s equilibrium (``gain_policy.equilibrium_gains``; ``nominal`` on the controller's own
+    grid, its dt the control period), with its filter width ``sigma`` (m)."""
+    from jaxtraffic.control.gain_policy import equilibrium_gains
+
+    settings = controller.settings
+    gains = settings if getattr(settings, "shape", None) == (3,) else equilibrium_gains(controller, nominal)
+    return certify(gains, nominal, delay, sigma)
+
+
 def stable_region(p: TrafficParams, delay: float, eta1: float, eta2: np.ndarray, eta3: np.ndarray,
                   sigma: float = 0.0, symbol: str = "pde", k: np.ndarray | None = None) -> np.ndarray:
     """max_k sigma(k) (1/s) on the grid ``eta2`` x ``eta3`` at fixed ``eta1``, shape (len(eta2), len(eta3))."""

@@ -34,9 +34,13 @@ import msgpack
 import numpy as np
 from flax import serialization
 
+from jaxtraffic.control.adapter import ControllerGrid, adapt
 from jaxtraffic.control.base import Controller
+from jaxtraffic.control.gain_law import sigma_nodes
 from jaxtraffic.control.gain_policy import feature_size, policy_controller
+from jaxtraffic.control.stability import certify_controller
 from jaxtraffic.learn.config import TrainConfig, load_config
+from jaxtraffic.model.params import TrafficParams
 
 CHECKPOINT = "checkpoint.msgpack"
 CONFIG = "config.json"
@@ -295,9 +299,30 @@ def _read_json(path: Path) -> Any:
         raise ValueError(f"{path}: unreadable or not valid JSON ({err})") from None
 
 
-def load_policy(run_dir: str | Path, seed: int | None = None, checkpoint: str = "best"
-                ) -> tuple[Controller, TrainConfig]:
+def policy_grid(config: TrainConfig) -> ControllerGrid:
+    """The grid a run's controller acts on: ``controller_points`` nodes (default the training plant's),
+    period dt, the training plant's delay buffer."""
+    pl = config.plant
+    return ControllerGrid(n_points=config.env.controller_points or pl.n_points, dt=float(pl.dt),
+                          max_delay_steps=pl.max_delay_steps)
+
+
+def policy_certificate(controller: Controller, config: TrainConfig) -> dict[str, Any]:
+    """The stability certificate (``control.stability``) of a run's controller on its own grid, at its
+    training plant's nominal delay and alpha, as a JSON-ready dict."""
+    grid = policy_grid(config)
+    nominal = config.plant.traffic().replace(n_points=grid.n_points, substeps=1, scheme="upwind", alpha_noise=0.0)
+    return certify_controller(controller, nominal, float(config.plant.delay), config.env.filter_sigma).to_json()
+
+
+def load_policy(run_dir: str | Path, seed: int | None = None, checkpoint: str = "best",
+                plant: TrafficParams | None = None) -> tuple[Controller, TrainConfig]:
     """Controller and ``TrainConfig`` of a run directory written by ``train.py``.
+
+    The controller acts on its own grid (``policy_grid(config)``: the training plant's, or the
+    gradient trainer's ``controller_points``); with ``plant`` (concrete ``TrafficParams`` whose grid
+    and step refine it by integers) it is adapted to act on that plant's discretisation
+    (``control.adapter.adapt``: restricted observation, interpolated and held time gap).
 
     ``checkpoint``: "best" (default: the best-scoring checkpoint of each member, which the PPO
     trainer keeps in best.msgpack) or "last" (the state training stopped in). ``seed`` selects one
@@ -310,7 +335,13 @@ def load_policy(run_dir: str | Path, seed: int | None = None, checkpoint: str = 
     if config.run.algo == "gradient":
         from jaxtraffic.learn.gradient_trainer import load_gradient_policy  # it imports this module
 
-        return load_gradient_policy(run_dir, config), config
+        controller = load_gradient_policy(run_dir, config)
+    else:
+        controller = _load_ppo_policy(run_dir, config, seed, checkpoint)
+    return (controller if plant is None else adapt(controller, policy_grid(config), plant)), config
+
+
+def _load_ppo_policy(run_dir: Path, config: TrainConfig, seed: int | None, checkpoint: str) -> Controller:
     _, saved, summary = load_run(run_dir, checkpoint)
     if seed is None:
         seed = summary.get("best_seed", 0) if summary else 0
@@ -327,8 +358,9 @@ def load_policy(run_dir: str | Path, seed: int | None = None, checkpoint: str = 
                          f"observation of {expected} values) but the checkpoint holds an observation of {got} values"
                          + (f" ({got // 3 - 1} per field)" if got % 3 == 0 else "")
                          + ": the two files do not belong together")
-    controller = policy_controller(
+    dx = float(TrafficParams().L) / (config.plant.n_points - 1)  # the training road (learn.config has no length)
+    return policy_controller(
         jax.tree.map(lambda x: jnp.asarray(x[seed]), saved.params), saved.obs_mean[seed], saved.obs_var[seed],
         config.env.gain_max, hidden=config.algo.hidden(), init_sigma=config.algo.init_sigma,
-        gain_filter=config.env.gain_filter, obs_segments=segments)
-    return controller, config
+        gain_filter=config.env.gain_filter, obs_segments=segments,
+        sigma_nodes=sigma_nodes(config.env.filter_sigma, dx))

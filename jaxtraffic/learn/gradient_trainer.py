@@ -62,12 +62,14 @@ def gradient_setup(cfg: TrainConfig) -> tuple[G.GradientConfig, TrafficParams]:
 
 
 def load_gradient_policy(run_dir: str | Path, cfg: TrainConfig) -> Controller:
-    """The controller saved in a gradient-trained run directory (``cfg``: its ``load_config``)."""
+    """The controller saved in a gradient-trained run directory (``cfg``: its ``load_config``), on its own
+    grid (``checkpoint.policy_grid``)."""
     gcfg, plant = gradient_setup(cfg)
     state, _ = ckpt.load_checkpoint(run_dir)
     template = G.init_theta(gcfg, plant, jax.random.PRNGKey(0))
     theta = serialization.from_state_dict(template, state["theta"])
-    return G.make_controller(jax.tree.map(jnp.asarray, theta), gcfg, plant)
+    n = gcfg.controller_points or plant.n_points
+    return G.own_controller(jax.tree.map(jnp.asarray, theta), gcfg, n, G.ROAD_LENGTH / (n - 1))
 
 
 def evaluation(ctrl: Controller, plant: TrafficParams, n_steps: int, gains: Any | None,
@@ -197,6 +199,9 @@ def _train_gradient(tc: TrainConfig, cfg: G.GradientConfig, plant: TrafficParams
                                            "seconds_to_beat_backstepping", "updates_to_beat_backstepping")}}
     if cfg.policy == "gains":
         summary["gains"] = np.asarray(state.theta).tolist()
+    n = cfg.controller_points or plant.n_points
+    own = G.own_controller(state.theta, cfg, n, G.ROAD_LENGTH / (n - 1))
+    summary["certificate"] = ckpt.policy_certificate(own, tc)
     if writer:
         ckpt.write_json(run_dir / ckpt.SUMMARY, summary)
     say(f"done: {meta['updates']} Adam steps in {meta['wall_s']:.1f} s; final rho L2 "

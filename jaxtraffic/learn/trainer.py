@@ -392,6 +392,8 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
         "eval_horizon_s": s.run.eval_horizon_s,
     }
     if writer:
+        ckpt.write_json(run_dir / ckpt.SUMMARY, summary)  # load_policy reads best_seed from it
+        summary["certificate"] = ckpt.policy_certificate(ckpt.load_policy(run_dir)[0], s)
         ckpt.write_json(run_dir / ckpt.SUMMARY, summary)
     rule = (f"first reached after {meta['seconds_to_stop_rule']:.1f} s" if summary["stop_rule_reached"]
             else "not reached")

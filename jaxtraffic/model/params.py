@@ -26,6 +26,9 @@ SCHEMES = ("upwind", "muscl")
 FLOAT_FIELDS = ("L", "l", "q_in", "alpha", "tau_acc", "tau_m", "h_bar", "h_m", "delay", "dt", "h_min", "h_max",
                 "alpha_noise")
 MODELS = ("arz", "linear")
+# the reference plant's grid (``TrafficParams.reference``): the coarsest level of the convergence study
+# (benchmarks/convergence_study.py) whose convergent metrics are within 5 % of the next finer one's
+REFERENCE_POINTS, REFERENCE_SUBSTEPS = 801, 2
 
 
 @struct.dataclass
@@ -79,6 +82,13 @@ class TrafficParams:
             if isinstance(value, numbers.Integral) and not isinstance(value, (bool, int)):
                 object.__setattr__(self, name, int(value))
         validate(self)
+
+    @classmethod
+    def reference(cls, **changes: object) -> TrafficParams:
+        """The reference plant: the paper's road on the discretisation at which the closed-loop results no
+        longer depend on the grid (docs/model.md section 15): MUSCL, 801 points (dx = 1.25 m), dt = 0.1 s
+        in 2 solver steps. ``changes``: other fields (delay, alpha, ...)."""
+        return cls(**{"n_points": REFERENCE_POINTS, "scheme": "muscl", "substeps": REFERENCE_SUBSTEPS, **changes})
 
     @property
     def dx(self) -> jax.Array | float:

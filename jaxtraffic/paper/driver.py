@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import threading
 import time
@@ -13,12 +14,13 @@ import jax
 
 from jaxtraffic import distributed
 from jaxtraffic.control import Controller, backstepping, lyapunov, open_loop
+from jaxtraffic.control.adapter import ControllerGrid
 from jaxtraffic.learn.checkpoint import to_jsonable
 from jaxtraffic.model.params import equilibrium
 from jaxtraffic.paper.claims import evaluate_claims, paper_like_reading
 from jaxtraffic.paper.figures import FIG7, ROBUSTNESS, make_figures
 from jaxtraffic.paper.learned import comparison_section
-from jaxtraffic.paper.numerics import GRID_BOUND, on_coarse_grid, relative_to, run_numerics
+from jaxtraffic.paper.numerics import deploy, relative_to, run_numerics
 from jaxtraffic.paper.report import numerics_summary, readings_summary, robustness_summary, write_report
 from jaxtraffic.paper.scenarios import CTRL_DELAY, SCENARIOS, EvalConfig, initial_norms, run_robustness, run_scenarios
 from jaxtraffic.paper.summaries import UNITS, equilibrium_indices, summarise
@@ -69,16 +71,18 @@ class _Background:
 def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: str | Path,
                  meta: dict[str, Any], ppo_delay0: Controller | None = None,
                  learning_curve_csv: str | Path | None = None, log: Callable[[str], None] = print,
-                 learned_runs: dict[str, dict] | None = None) -> dict[str, Any]:
+                 learned_runs: dict[str, dict] | None = None, grids: dict[str, ControllerGrid] | None = None
+                 ) -> dict[str, Any]:
     """Run every scenario and the robustness map, write all outputs; return the metrics dict.
 
     ``controllers`` must hold "ppo" (the D = 4 s policy); the baselines are added if missing.
     ``ppo_delay0``: a separate policy for scenario delay0 (else the D = 4 s one is used).
     ``learned_runs``: controller name -> {"summary", "curve", "run_dir"} of the runs behind the
     learned controllers, for REPORT.md's comparison section (``paper.learned``).
-    On a refined evaluation grid (``cfg.refine`` > 1) the grid-bound policies act through
-    ``numerics.on_coarse_grid`` (they observe their training grid's nodes). With
-    ``cfg.numerics_check`` Table 2's scenario is rerun on a refined grid and with the other scheme.
+    ``grids``: the grid each learned controller acts on (``learn.checkpoint.policy_grid``; "ppo" also
+    for ``ppo_delay0``); every controller is adapted from its grid to the evaluation plant (baselines:
+    ``adapter.baseline_grid``; ``numerics.deploy``). With ``cfg.numerics_check`` Table 2's scenario is
+    rerun on a refined plant and with the other scheme.
 
     In a multi-process run (``jaxtraffic.distributed``) every process must call it with the same
     arguments: the batched rollouts are split over every process's devices, every process gets
@@ -92,13 +96,14 @@ def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: s
     ctrls = {"open_loop": open_loop(), "lyapunov": lyapunov(1.0),
              "backstepping": backstepping(CTRL_DELAY, 1.0)}
     ctrls.update(controllers)
-    if cfg.refine > 1:
-        ctrls = {k: on_coarse_grid(c, cfg.refine) if k in GRID_BOUND else c for k, c in ctrls.items()}
-        ppo_delay0 = None if ppo_delay0 is None else on_coarse_grid(ppo_delay0, cfg.refine)
-    overrides = {("delay0", "ppo"): ppo_delay0} if ppo_delay0 is not None else {}
+    grids = grids or {}
     # independent of the rest: its programs compile and run alongside the scenarios' and the map's
-    checking = _Background(run_numerics, ctrls, cfg, name="numerics") if cfg.numerics_check else None
-    log(f"[1/4] scenarios: {cfg.grid_points} points ({cfg.scheme}), dt = {cfg.dt} s, {cfg.horizon_s:g} s "
+    checking = _Background(run_numerics, ctrls, grids, cfg, name="numerics") if cfg.numerics_check else None
+    if ppo_delay0 is not None:
+        ppo_delay0 = deploy({"ppo": ppo_delay0}, grids, cfg)["ppo"]
+    ctrls = deploy(ctrls, grids, cfg)
+    overrides = {("delay0", "ppo"): ppo_delay0} if ppo_delay0 is not None else {}
+    log(f"[1/4] scenarios: {cfg.describe()}, {cfg.horizon_s:g} s "
         f"({cfg.n_steps} steps), {len(cfg.seeds)} noise seeds"
         + ("; the numerical check of Table 2 runs alongside" if checking else ""))
     results = run_scenarios(ctrls, cfg, log, overrides)
@@ -141,9 +146,10 @@ def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: s
     meta = dict(meta)
     meta.update({
         "seeds": list(cfg.seeds),
-        "grid": {"n_points": cfg.grid_points, "dx_m": float(nom.dx), "dt_s": cfg.dt, "horizon_s": cfg.horizon_s,
+        "grid": {"n_points": cfg.n_points, "dx_m": float(nom.dx), "dt_s": cfg.dt, "horizon_s": cfg.horizon_s,
                  "n_steps": cfg.n_steps, "record_every": cfg.record_every, "scheme": cfg.scheme,
-                 "refine": cfg.refine, "policy_n_points": cfg.n_points},
+                 "substeps": cfg.substeps,
+                 "controller_grids": {k: dataclasses.asdict(g) for k, g in grids.items()}},
         "fig7_reading": fig7,
         "nominal": {"alpha": 0.15, "h_bar_s": float(nom.h_bar),
                     "rho_bar_veh_per_m": float(equilibrium(nom)[0]),

@@ -1,12 +1,10 @@
 """Numerical uncertainty of Table 2: the D = 4 s scenario on a refined grid and with the
 other scheme, and the relative change of every index.
 
-A learned policy is tied to its training grid (its observation has 3 n + 3 entries). On a grid
-refined by an integer factor r the training grid's nodes are every r-th node, so
-``on_coarse_grid`` gives the policy the refined state *at its own nodes* (the refined fields
-sampled there, i.e. interpolated exactly where the nodes coincide) and interpolates the time-gap
-field it returns linearly back to the refined grid. The baselines (open loop, backstepping) act on
-the refined grid directly, with their nominal model there.
+Every controller acts on its own grid (the baselines on the paper's, ``control.adapter.baseline_grid``;
+a learned policy on its training grid, ``learn.checkpoint.policy_grid``) through ``control.adapter``:
+only the plant is refined (twice the points and twice the solver steps, so the CFL bound stays) or
+changes scheme.
 """
 
 from __future__ import annotations
@@ -15,55 +13,38 @@ from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
-import jax.numpy as jnp
 import numpy as np
 
 from jaxtraffic.control import Controller
+from jaxtraffic.control.adapter import ControllerGrid, adapt, baseline_grid
 from jaxtraffic.paper.scenarios import CTRL_DELAY, EvalConfig, run_batch
 
-NUMERICS_CONTROLLERS = ("open_loop", "backstepping", "ppo")
+NUMERICS_CONTROLLERS = ("open_loop", "backstepping", "ppo", "grad_gains", "grad_network")
 NUMERICS_INDICES = ("J_TTT", "J_fuel", "J_comfort", "J_comfort_a2", "J_comfort_at2", "J_comfort_no_switch_on",
                     "J_TTT_kmh", "J_fuel_kmh", "J_comfort_kmh", "J_comfort_no_switch_on_kmh", "J_comfort_switch_on",
                     "final_rho_L2", "final_v_L2")
-GRID_BOUND = ("ppo", "grad_network", "grad_robust")  # learned policies whose input is tied to the training grid
 
 
-def on_coarse_grid(controller: Controller, factor: int) -> Controller:
-    """``controller`` (built for a grid of n nodes) acting on a grid refined ``factor`` times:
-    it observes rho, v, h_prev at every ``factor``-th node, is handed the nominal parameters on its
-    own grid, and its time gap is linearly interpolated back to the refined nodes."""
-    if factor == 1:
-        return controller
-    inner = controller
-
-    def coarse(obs, nominal):
-        n = (nominal.n_points - 1) // factor + 1
-        sub = obs.replace(rho=obs.rho[::factor], v=obs.v[::factor], h_prev=obs.h_prev[::factor], sent=None)
-        return sub, nominal.replace(n_points=n)
-
-    def act(settings, cstate, obs, nominal, key):
-        sub, nom = coarse(obs, nominal)
-        h, cstate = inner.act_fn(settings, cstate, sub, nom, key)
-        x_fine = jnp.arange(obs.rho.shape[0], dtype=obs.rho.dtype)
-        return jnp.interp(x_fine, x_fine[::factor], h), cstate
-
-    def init(settings, obs, nominal):
-        sub, nom = coarse(obs, nominal)
-        return inner.init_fn(settings, sub, nom)
-
-    return Controller(settings=inner.settings, act_fn=act, init_fn=init,
-                      name=f"{getattr(inner, 'name', 'controller')} (training grid, x{factor})")
+def deploy(controllers: dict[str, Controller], grids: dict[str, ControllerGrid], cfg: EvalConfig
+           ) -> dict[str, Controller]:
+    """Each controller adapted to the plant of ``cfg`` from its own grid (``grids``; absent: a baseline,
+    on ``baseline_grid``)."""
+    nom = cfg.nominal()
+    return {k: adapt(c, grids.get(k) or baseline_grid(nom), nom) for k, c in controllers.items()}
 
 
 def variants(cfg: EvalConfig) -> dict[str, EvalConfig]:
-    """The two numerical variants of ``cfg``: its grid refined twice, and its other scheme."""
+    """The two numerical variants of ``cfg``'s plant: refined twice (points and solver steps), and its
+    other scheme."""
     other = "muscl" if cfg.scheme == "upwind" else "upwind"
-    return {"refined": replace(cfg, refine=2 * cfg.refine), "scheme": replace(cfg, scheme=other)}
+    return {"refined": replace(cfg, n_points=2 * cfg.n_points - 1, substeps=2 * cfg.substeps),
+            "scheme": replace(cfg, scheme=other)}
 
 
 def describe(cfg: EvalConfig) -> dict[str, Any]:
     nom = cfg.nominal()
-    return {"scheme": cfg.scheme, "n_points": cfg.grid_points, "dx_m": float(nom.dx), "dt_s": cfg.dt}
+    return {"scheme": cfg.scheme, "n_points": cfg.n_points, "dx_m": float(nom.dx), "dt_s": cfg.dt,
+            "substeps": cfg.substeps}
 
 
 def _rel(a: float, b: float) -> float | None:
@@ -73,33 +54,27 @@ def _rel(a: float, b: float) -> float | None:
     return float((a - b) / abs(b))
 
 
-def run_numerics(controllers: dict[str, Controller], cfg: EvalConfig,
+def run_numerics(controllers: dict[str, Controller], grids: dict[str, ControllerGrid], cfg: EvalConfig,
                  log: Callable[[str], None] = print) -> dict[str, Any]:
     """Scenario delay4 for ``NUMERICS_CONTROLLERS`` under each of ``variants(cfg)``.
 
-    ``controllers``: as evaluated on ``cfg`` (a grid-bound one already wrapped for cfg's grid, i.e.
-    ``on_coarse_grid(policy, cfg.refine)``). Independent of the evaluation on ``cfg`` itself, so it
-    can run alongside it; ``relative_to`` then adds the differences to it.
+    ``controllers``: on their own grids (``grids``; baselines absent, see ``deploy``). Independent of the
+    evaluation on ``cfg`` itself, so it can run alongside it; ``relative_to`` then adds the differences to it.
     Returns {"base": description, "variants": {name: description}, "delay4": {variant: {controller:
     {index: value}}}}.
     """
     out: dict[str, Any] = {"base": describe(cfg), "variants": {}, "delay4": {},
-                           "note": "rel_diff = (J_variant - J) / |J|; PPO on a refined grid observes the "
-                                   "training grid's nodes and its time gap is interpolated back (paper.numerics)"}
+                           "note": "rel_diff = (J_variant - J) / |J|; every controller acts on its own grid "
+                                   "(control.adapter), only the plant changes"}
     for vname, vcfg in variants(cfg).items():
         out["variants"][vname] = describe(vcfg)
         out["delay4"][vname] = {}
-        factor = vcfg.refine // cfg.refine
         nom = vcfg.nominal(delay=CTRL_DELAY)
-        for c in NUMERICS_CONTROLLERS:
-            if c not in controllers:
-                continue
-            ctrl = controllers[c]
-            if c in GRID_BOUND:
-                ctrl = on_coarse_grid(ctrl, factor)
+        chosen = {c: controllers[c] for c in NUMERICS_CONTROLLERS if c in controllers}
+        for c, ctrl in deploy(chosen, grids, vcfg).items():
             res = run_batch(ctrl, [nom], [0], vcfg, record=False)
             out["delay4"][vname][c] = {k: float(np.asarray(res.metrics[k])[0]) for k in NUMERICS_INDICES}
-        log(f"  numerics {vname:<8s} ({vcfg.scheme}, {vcfg.grid_points} points): "
+        log(f"  numerics {vname:<8s} ({vcfg.describe()}): "
             + ", ".join(f"{c} J_comfort {v['J_comfort']:.4g}" for c, v in out["delay4"][vname].items()))
     return out
 

@@ -42,6 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxtraffic.control import Controller, backstepping
+from jaxtraffic.control.adapter import adapt, baseline_grid
 from jaxtraffic.model.params import TrafficParams, equilibrium, steps_for
 from jaxtraffic.sim import metrics as M
 from jaxtraffic.sim.initial import paper_initial_condition
@@ -127,13 +128,15 @@ class EvalConfig:
     record_every_target: int = 10
     robust_horizon_s: float = 600.0
     scheme: str = "upwind"
-    refine: int = 1
+    substeps: int = 1
     numerics_check: bool = True
 
-    @property
-    def grid_points(self) -> int:
-        """Nodes of the evaluation grid: ``n_points`` (the policy's grid) refined ``refine`` times."""
-        return (self.n_points - 1) * self.refine + 1
+    @classmethod
+    def reference(cls, **changes: Any) -> EvalConfig:
+        """The evaluation on the reference plant (``TrafficParams.reference``'s discretisation)."""
+        ref = TrafficParams.reference()
+        return cls(**{"n_points": ref.n_points, "scheme": ref.scheme, "substeps": ref.substeps, "dt": float(ref.dt),
+                      **changes})
 
     @property
     def n_steps(self) -> int:
@@ -151,8 +154,15 @@ class EvalConfig:
         return max(100, int(math.ceil(round(worst / self.dt, 6))))
 
     def nominal(self, **changes: Any) -> TrafficParams:
-        return TrafficParams(alpha=0.15, n_points=self.grid_points, dt=self.dt, scheme=self.scheme,
-                             max_delay_steps=self.max_delay_steps, **changes)
+        """The nominal plant of the evaluation (alpha 0.15) on its grid."""
+        return TrafficParams(alpha=0.15, n_points=self.n_points, dt=self.dt, scheme=self.scheme,
+                             substeps=self.substeps, max_delay_steps=self.max_delay_steps, **changes)
+
+    def describe(self) -> str:
+        """One line: points, scheme, dx and the solver step."""
+        nom = self.nominal()
+        return (f"{self.n_points} points ({self.scheme}, dx = {float(nom.dx):g} m), dt = {self.dt:g} s"
+                + (f" in {self.substeps} solver steps" if self.substeps > 1 else ""))
 
 
 def robust_axis(n: int, lo: float, hi: float, dt: float | None = None) -> tuple[float, ...]:
@@ -304,6 +314,7 @@ def run_robustness(controllers: dict[str, Controller], cfg: EvalConfig,
         ctrl, batched, chunk = controllers[name], False, None
         if name == "backstepping":
             ctrl = backstepping(delay=jnp.asarray(dd.ravel(), jnp.float32), k=jnp.ones(dd.size))
+            ctrl = adapt(ctrl, baseline_grid(nom), nom)
             # the predictor's loop runs to the largest assumed delay of its chunk: one delay per
             # chunk (the batch is delay-major and dealt over the devices), 20 % faster than 64
             batched, chunk = True, -(-dd.shape[1] // host_mesh().size)

@@ -1,0 +1,172 @@
+"""Convergence study of the closed loop under plant refinement: which discretisation is the reference plant.
+
+Every controller acts on its own grid (the baselines on the paper's 5 m grid at 0.1 s, ``control.adapter``;
+a learned run on its training grid), so only the plant is refined: a ladder of grids (201 .. 3201 points)
+for both schemes, each with the fewest solver steps per 0.1 s that the CFL bound allows
+(``TrafficParams.substeps``), plus the same grids with twice the solver steps (time refinement). For each
+plant and controller: the density L2 at 300 s and 600 s and the speed L2 at 300 s, J_TTT, J_fuel and
+J_comfort (with its a^2 and a_t^2 parts and without the switch-on step) over 300 s, and the time after which
+the reward stays >= -0.1 (600 s horizon).
+
+Convergence: a level is converged when every convergent metric is within ``--tol`` (5 %) of the next finer
+level of the same scheme, a difference below the metric's absolute floor (``FLOORS``) counting as none. The
+floors: 0.1 veh/km for the density L2 (float32 stagnation: near the equilibrium the solver's increments
+fall below half an ulp of rho and the state stops moving at 0.01-0.1 veh/km, depending on the solver step;
+float64 decays to 1e-6, BENCHMARKS.md), 0.005 m/s for the speed L2 and 5 s for the time to the reward target.
+J_comfort is reported, not required: where the solution carries shocks it grows with 1/dx (the acceleration
+of a vehicle crossing a shock is a delta).
+
+    python benchmarks/convergence_study.py --out docs/results/convergence [--runs ppo=runs/default,...]
+
+Writes convergence.json, convergence.md (the tables) and convergence.png (metric vs dx per scheme and
+controller), and prints the reference plant it finds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import jaxtraffic as jt
+from jaxtraffic.control.adapter import adapt, baseline_grid
+from jaxtraffic.learn.checkpoint import atomic_write_text, load_policy, policy_grid, write_json
+from jaxtraffic.provenance import provenance
+
+LEVELS = ((201, 1), (401, 1), (801, 2), (1601, 4), (3201, 8))  # the fewest solver steps the CFL bound allows
+METRICS = ("rho_L2_300", "rho_L2_600", "v_L2_300", "J_TTT", "J_fuel", "t_reward", "J_comfort", "J_comfort_a2",
+           "J_comfort_at2", "J_comfort_no_switch_on")
+CONVERGENT = ("rho_L2_300", "rho_L2_600", "v_L2_300", "J_TTT", "J_fuel", "t_reward")
+FLOORS = {"rho_L2_300": 0.1, "rho_L2_600": 0.1, "v_L2_300": 0.005, "t_reward": 5.0}  # veh/km, m/s, s
+BASELINES = {"open_loop": (jt.open_loop, 0.0), "lyapunov_D0": (lambda: jt.lyapunov(1.0), 0.0),
+             "backstepping": (lambda: jt.backstepping(4.0), 4.0)}
+
+
+def run_one(ctrl, grid, plant: jt.TrafficParams) -> dict[str, float]:
+    """The study's metrics of one controller on one plant (two rollouts: 300 s for the indices, 600 s)."""
+    c = adapt(ctrl, grid or baseline_grid(plant), plant)
+    short = jt.simulate(plant, c, n_steps=3000)
+    long = jt.simulate(plant, c, n_steps=6000, record_every=100)
+    m, ml = short.metrics, long.metrics
+    return {"rho_L2_300": 1e3 * float(m["final_rho_L2"]), "rho_L2_600": 1e3 * float(ml["final_rho_L2"]),
+            "v_L2_300": float(m["final_v_L2"]), "J_TTT": float(m["J_TTT"]), "J_fuel": float(m["J_fuel"]),
+            "t_reward": float(ml["time_to_reward_target_s"]), "J_comfort": float(m["J_comfort"]),
+            "J_comfort_a2": float(m["J_comfort_a2"]), "J_comfort_at2": float(m["J_comfort_at2"]),
+            "J_comfort_no_switch_on": float(m["J_comfort_no_switch_on"]),
+            "diverged_at_s": float(ml["diverged_at_s"])}
+
+
+def rel_change(a: float, b: float, floor: float = 0.0) -> float:
+    """|a - b| / |b|, 0 when both are within ``floor`` of each other (or both infinite)."""
+    if math.isinf(a) and math.isinf(b):
+        return 0.0
+    if not (math.isfinite(a) and math.isfinite(b)):
+        return math.inf
+    if abs(a - b) <= floor:
+        return 0.0
+    return abs(a - b) / max(abs(b), 1e-30)
+
+
+def converged_levels(data: dict, scheme: str, controllers: list[str], tol: float) -> dict[str, Any]:
+    """Per space level of ``scheme``: the largest relative change of each convergent metric to the next finer
+    level over the controllers, and whether all are within ``tol``."""
+    out = {}
+    for (n, s), (nf, sf) in zip(LEVELS[:-1], LEVELS[1:], strict=True):
+        worst = {}
+        for k in CONVERGENT:
+            worst[k] = max(rel_change(data[f"{scheme}/{n}/{s}"][c][k], data[f"{scheme}/{nf}/{sf}"][c][k],
+                                      FLOORS.get(k, 0.0)) for c in controllers)
+        out[f"{n}/{s}"] = {"next": f"{nf}/{sf}", "worst": worst, "converged": all(v <= tol for v in worst.values())}
+    return out
+
+
+def table(data: dict, controllers: list[str], metric: str, schemes: tuple[str, ...]) -> list[str]:
+    plants = [f"{sc}/{n}/{s}" for sc in schemes for n, s in sorted(set(LEVELS) | {(n, 2 * s) for n, s in LEVELS[:-1]})]
+    plants = [p for p in plants if p in data]
+    lines = ["| plant (scheme/points/solver steps) | " + " | ".join(controllers) + " |",
+             "|---|" + "---|" * len(controllers)]
+    for p in plants:
+        lines.append(f"| {p} | " + " | ".join(f"{data[p][c][metric]:.4g}" for c in controllers) + " |")
+    return lines
+
+
+def plot(path: Path, data: dict, controllers: list[str], schemes: tuple[str, ...]) -> None:
+    import matplotlib.pyplot as plt
+
+    metrics = ("rho_L2_300", "rho_L2_600", "J_TTT", "t_reward", "J_comfort", "J_comfort_a2")
+    fig, axes = plt.subplots(2, 3, figsize=(14, 7.5))
+    for ax, k in zip(axes.ravel(), metrics, strict=True):
+        for c in controllers:
+            for sc, ls in zip(schemes, ("-", "--"), strict=False):
+                dx = [1000.0 / (n - 1) for n, _ in LEVELS]
+                ys = [data.get(f"{sc}/{n}/{s}", {}).get(c, {}).get(k, np.nan) for n, s in LEVELS]
+                ax.plot(dx, ys, ls, marker="o", label=f"{c} ({sc})")
+        ax.set_xscale("log")
+        ax.set_yscale("log" if k != "J_TTT" else "linear")
+        ax.invert_xaxis()
+        ax.set_xlabel("plant dx (m)")
+        ax.set_title(k)
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=6, ncol=2)
+    fig.suptitle("Closed loop under plant refinement (controllers on their own grids)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", type=Path, default=Path("results/convergence"))
+    ap.add_argument("--runs", default="", help="learned runs to include, NAME=RUN_DIR,... (at their training delay)")
+    ap.add_argument("--tol", type=float, default=0.05)
+    ap.add_argument("--schemes", default="upwind,muscl")
+    args = ap.parse_args()
+    schemes = tuple(args.schemes.split(","))
+    ctrls: dict[str, tuple[Any, Any, float]] = {k: (f(), None, d) for k, (f, d) in BASELINES.items()}
+    for item in filter(None, args.runs.split(",")):
+        name, run = item.split("=")
+        ctrl, config = load_policy(run)
+        ctrls[name] = (ctrl, policy_grid(config), float(config.plant.delay))
+    plants = sorted({(sc, n, s) for sc in schemes for n, s in LEVELS}
+                    | {(sc, n, 2 * s) for sc in schemes for n, s in LEVELS[:-1]}, key=lambda x: (x[0], x[1], x[2]))
+    data: dict[str, dict[str, dict]] = {}
+    t0 = time.perf_counter()
+    for sc, n, s in plants:
+        key = f"{sc}/{n}/{s}"
+        data[key] = {}
+        for name, (ctrl, grid, delay) in ctrls.items():
+            data[key][name] = run_one(ctrl, grid, jt.TrafficParams(n_points=n, substeps=s, scheme=sc, delay=delay))
+        print(f"{key:>16s}: " + " | ".join(f"{c} L2 {v['rho_L2_300']:.3f} J_c {v['J_comfort']:.4g}"
+                                           for c, v in data[key].items()) + f"  ({time.perf_counter() - t0:.0f} s)",
+              flush=True)
+    names = list(ctrls)
+    conv = {sc: converged_levels(data, sc, names, args.tol) for sc in schemes}
+    found = [(sc, lvl) for sc in ("muscl", "upwind") if sc in conv for lvl, v in conv[sc].items() if v["converged"]]
+    reference = found[0] if found else None
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_json(args.out / "convergence.json", {"provenance": provenance(), "tol": args.tol, "floors": FLOORS,
+                                               "levels": LEVELS, "data": data, "convergence": conv,
+                                               "reference": reference})
+    md = [f"# Convergence study (controllers on their own grids; tol {args.tol:.0%}, floors {FLOORS})", ""]
+    for sc in schemes:
+        md += [f"## {sc}: largest change of each convergent metric to the next finer level", "",
+               "| level | next | " + " | ".join(CONVERGENT) + " | converged |",
+               "|---|---|" + "---|" * (len(CONVERGENT) + 1)]
+        for lvl, v in conv[sc].items():
+            md.append(f"| {lvl} | {v['next']} | " + " | ".join(f"{100 * v['worst'][k]:.1f} %" for k in CONVERGENT)
+                      + f" | {'yes' if v['converged'] else 'no'} |")
+        md.append("")
+    for metric in METRICS:
+        md += [f"## {metric}", "", *table(data, names, metric, schemes), ""]
+    md += [f"Reference plant found: {reference}", ""]
+    atomic_write_text(args.out / "convergence.md", "\n".join(md))
+    plot(args.out / "convergence.png", data, names, schemes)
+    print(f"reference plant: {reference} (the coarsest converged level, MUSCL first); outputs in {args.out}")
+
+
+if __name__ == "__main__":
+    main()

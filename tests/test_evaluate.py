@@ -40,7 +40,8 @@ def test_evaluate_end_to_end(tiny_run, tmp_path):
     runs_root = tiny_run.parent / GRADIENT_ROOT
     assert (runs_root / "gradient-gains" / "config.json").is_file()
     metrics = evaluate.main(["--run", str(tiny_run), "--out", str(out), "--horizon", "6", "--seeds", "2",
-                             "--robust-grid", "2x2", "--gradient", "existing", "--runs-root", str(runs_root)])
+                             "--robust-grid", "2x2", "--gradient", "existing", "--runs-root", str(runs_root),
+                             "--reference-grid", "41x1", "--reference-robust-grid", "2x1"])
     on_disk = json.loads((out / "metrics.json").read_text())
     assert "units" in on_disk and "meta" in on_disk
     skipped = {"grad_network"}
@@ -80,6 +81,15 @@ def test_evaluate_end_to_end(tiny_run, tmp_path):
     assert set(c5["readings"]) == {s.name for s in SCENARIOS if s.seeded}
     assert on_disk["meta"]["fig7_reading"] in c5["readings"]
     assert "Numerical uncertainty" in report and "alpha_noise_model_sees" in report
+    # the same experiments on the reference plant (here 41 points, MUSCL), claim by claim side by side
+    ref = json.loads((out / "reference" / "metrics.json").read_text())
+    assert ref["meta"]["grid"]["n_points"] == 41 and ref["meta"]["grid"]["scheme"] == "muscl"
+    assert set(ref["delay4"]) == expected["delay4"]
+    plants = json.loads((out / "plants.json").read_text())
+    assert set(plants["claims"]) == {"paper", "reference"} and set(plants["claims"]["reference"]) == set("123456")
+    assert "The experiments on the reference plant" in report and (out / "fig_plants_delay4.png").stat().st_size
+    # every learned run's certificate, in its summary and in the report
+    assert "Stability certificate of the learned laws" in report and (out / "fig_certificate.png").stat().st_size
 
 
 def test_figures_drawn_in_the_background_report_their_lines_and_errors_in_the_caller():

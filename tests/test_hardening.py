@@ -272,7 +272,10 @@ def test_out_dir_not_writable(tmp_path, capsys):
     (["--horizon", "inf"], "--horizon must be a finite"),
     (["--robust-horizon", "0"], "--robust-horizon must be"),
     (["--seeds", "0"], "--seeds must be >= 1, got 0"),
-    (["--robust-grid", "3"], "--robust-grid must look like 17x12"),
+    (["--robust-grid", "3"], "--robust-grid must look like AxB"),
+    (["--plants", "paper,moon"], "--plants must name one or both of"),
+    (["--reference-grid", "801"], "--reference-grid must look like AxB"),
+    (["--reference-grid", "2x1"], "--reference-grid needs >= 3 points"),
     (["--n-points", "2"], "--n-points must be >= 3"),
 ])
 def test_bad_evaluation_flags(argv, match, tmp_path, capsys):

@@ -197,6 +197,9 @@ class RunConfig:
     min_wave_speed: float | None = _f(0.5, "stop rule also requires the closed loop's kinematic wave speed at the "
                                       "policy's equilibrium gains (linear.gain_law_wave_speed, m/s) >= this; -inf: the "
                                       "paper's rule alone")
+    require_certificate: bool = _f(True, "stop rule also requires the stability certificate (control.stability) of "
+                                   "the gains the policy settles to at the equilibrium, at the training delay and "
+                                   "alpha with its filter: largest growth rate over wavenumbers <= 1e-3/s")
     stop_patience: int = _f(1, "consecutive evaluations that must meet the stop rule (per population member) "
                             "before stopping")
     restart_steps: int = _f(1_500_000, "a member that has not met the stop rule within this many env steps of its "
@@ -221,11 +224,11 @@ class RunConfig:
 
 
 RUN_CONTROL = ("out_dir", "total_steps", "max_wall_s", "keep_going", "resume", "quiet", "stop_patience",
-               "target_reward", "min_wave_speed", "tensorboard", "val_target", "checkpoint_every")
+               "target_reward", "min_wave_speed", "require_certificate", "tensorboard", "val_target", "checkpoint_every")
 # fields absent from a run's config.json because it was written before they existed: their value then
 # (the run is loaded and resumed as it was trained, not with today's defaults)
 BEFORE_FIELD = {"obs_segments": 0, "wave_weight": 0.0, "val_horizon_s": 0.0, "restart_steps": 0,
-                "filter_sigma": 0.0}
+                "filter_sigma": 0.0, "require_certificate": False}
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,9 @@ end of the evaluation rollout, >= ``target_reward``, no divergence); (2) with ``
 set, the closed loop under the gains its policy settles to at the equilibrium carries density
 waves downstream at least that fast (``linear.gain_law_wave_speed``, m/s: a backward wave speed
 leaves a slow mode that enters at the outlet and never decays, which the 300 s evaluation reward
-hardly sees); (3) with a validation suite (``val_horizon_s`` > 0, ``learn.validation``), its
+hardly sees), and with ``require_certificate`` those gains are certified (``control.stability``: the
+delayed, filtered law's linearised closed loop grows at no wavenumber faster than 1e-3/s at the
+training delay and alpha); (3) with a validation suite (``val_horizon_s`` > 0, ``learn.validation``), its
 validation score is <= ``val_target``. The suite is rolled out only for evaluations that pass (1)
 and (2). The run stops when one member has met the rule at ``stop_patience`` consecutive
 evaluations (default 1: the suite is strict, and good policies come in windows of one to three
@@ -56,6 +58,7 @@ import numpy as np
 
 from jaxtraffic import distributed
 from jaxtraffic.control.gain_policy import equilibrium_gains, policy_controller
+from jaxtraffic.control.stability import certify
 from jaxtraffic.learn import checkpoint as ckpt
 from jaxtraffic.learn import env as learn_env
 from jaxtraffic.learn import members, ppo, validation
@@ -179,6 +182,14 @@ def _maybe_restart(s: TrainConfig, meta: dict, ok: np.ndarray, runner, init, say
     return members.restart_members(runner, fresh, due)
 
 
+def _certified(gains: np.ndarray, candidate: np.ndarray, s: TrainConfig) -> np.ndarray:
+    """Per member: whether its equilibrium ``gains`` (shape (M, 3)) are certified (``control.stability``) at
+    the training delay and alpha with the law's filter; computed for the ``candidate`` members only."""
+    nominal = s.plant.traffic().replace(alpha_noise=0.0)
+    return np.array([bool(c) and certify(g, nominal, float(s.plant.delay), s.env.filter_sigma).stable
+                     for g, c in zip(np.asarray(gains), np.asarray(candidate), strict=True)])
+
+
 def _save(run_dir: Path, runner: ppo.Runner, meta: dict, best: dict, writer: bool) -> None:
     """The checkpoint and the best checkpoints (the runner is gathered on every process: a collective;
     process 0 writes)."""
@@ -291,6 +302,8 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
             paper = (ev >= s.run.target_reward) & ~np.asarray(last_eval["diverged"])
             candidate = paper & (True if s.run.min_wave_speed is None
                                  else last_eval["wave_speed"] >= s.run.min_wave_speed)
+            if s.run.require_certificate:
+                candidate = candidate & _certified(last_eval["equilibrium_gains"], candidate, s)
             score = validation.scores(ev, candidate, validate, functools.partial(
                 member_controller, cfg, env_params, rep.params, rep.stats.mean, rep.stats.var))
             best = validation.update_best(best, score, meta["env_steps"], policy)

@@ -224,7 +224,8 @@ class RunConfig:
 
 
 RUN_CONTROL = ("out_dir", "total_steps", "max_wall_s", "keep_going", "resume", "quiet", "stop_patience",
-               "target_reward", "min_wave_speed", "require_certificate", "tensorboard", "val_target", "checkpoint_every")
+               "target_reward", "min_wave_speed", "require_certificate", "tensorboard", "val_target",
+               "checkpoint_every")
 # fields absent from a run's config.json because it was written before they existed: their value then
 # (the run is loaded and resumed as it was trained, not with today's defaults)
 BEFORE_FIELD = {"obs_segments": 0, "wave_weight": 0.0, "val_horizon_s": 0.0, "restart_steps": 0,

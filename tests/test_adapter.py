@@ -1,6 +1,8 @@
 """A controller on another discretisation (control.adapter): identity on its own grid, the hold over its
 control period, convergence across grids, clear errors."""
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -38,6 +40,27 @@ def test_on_a_refined_plant_the_time_gap_is_the_interpolated_controller_field():
     res = jt.simulate(fine, adapt(jt.lyapunov(1.0), GRID, fine), n_steps=20, record_every=1)
     h = np.asarray(res.trajectory.h)
     np.testing.assert_allclose(h[:, 1:-1:2], 0.5 * (h[:, 0:-2:2] + h[:, 2::2]), rtol=1e-6)
+
+
+def test_the_controller_sees_the_restricted_fields_on_its_own_nodes():
+    """One act on a plant refined twice: the controller's field is its own law on the full-weighting
+    restriction of the plant's fields (and its own nominal), interpolated back."""
+    from jaxtraffic.control.base import Observation
+    from jaxtraffic.model.spatial import restrict
+
+    fine = P.replace(n_points=41, delay=0.0)
+    rho, v = jt.paper_initial_condition(fine)
+    obs_f = Observation(rho=rho, v=v, h_prev=jnp.full_like(rho, fine.h_bar), t=jnp.zeros(()), sent=None)
+    ctrl = jt.lyapunov(1.0)
+    coarse_nom = P.replace(delay=0.0)
+    obs_c = Observation(rho=restrict(rho, 2), v=restrict(v, 2), h_prev=jnp.full((21,), P.h_bar), t=jnp.zeros(()),
+                        sent=None)
+    h_c, _ = ctrl.act((), obs_c, coarse_nom, jax.random.PRNGKey(0))
+    wrapped = adapt(ctrl, GRID, fine)
+    h_f, _ = wrapped.act(wrapped.init(obs_f, fine), obs_f, fine, jax.random.PRNGKey(0))
+    np.testing.assert_allclose(h_f[::2], jt.saturate(h_c, P), rtol=1e-6)
+    np.testing.assert_allclose(h_f[1::2], 0.5 * (h_f[:-1:2] + h_f[2::2]), rtol=1e-6)
+    assert np.ptp(np.asarray(h_f)) > 0.01
 
 
 def test_constant_gains_at_zero_delay_converge_across_plant_grids():

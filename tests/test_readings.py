@@ -135,25 +135,6 @@ def test_model_sees_noise_controller_gets_the_plant_alpha():
     assert float(res.controller_state) == float(alphas[-1]) != 0.15
 
 
-def test_on_coarse_grid_observes_the_training_nodes_and_interpolates_back():
-    from jaxtraffic.control.base import Observation
-    from jaxtraffic.paper.numerics import on_coarse_grid
-
-    coarse = jaxtraffic.TrafficParams(**SMALL)
-    fine = coarse.replace(n_points=2 * (coarse.n_points - 1) + 1)
-    rho, v = jaxtraffic.paper_initial_condition(fine)
-    obs_f = Observation(rho=rho, v=v, h_prev=jnp.full_like(rho, fine.h_bar), t=jnp.zeros(()), sent=None)
-    obs_c = Observation(rho=rho[::2], v=v[::2], h_prev=obs_f.h_prev[::2], t=jnp.zeros(()), sent=None)
-    ctrl = jaxtraffic.lyapunov(1.0)
-    h_c, _ = ctrl.act(ctrl.init(obs_c, coarse), obs_c, coarse, jax.random.PRNGKey(0))
-    wrapped = on_coarse_grid(ctrl, 2)
-    h_f, _ = wrapped.act(wrapped.init(obs_f, fine), obs_f, fine, jax.random.PRNGKey(0))
-    assert h_f.shape == (fine.n_points,)
-    np.testing.assert_allclose(h_f[::2], h_c, rtol=1e-6)
-    np.testing.assert_allclose(h_f[1::2], 0.5 * (h_c[1:] + h_c[:-1]), rtol=1e-6)
-    assert on_coarse_grid(ctrl, 1) is ctrl
-
-
 def test_given_alphas_reproduce_the_drawn_readings():
     """``alphas=plant_alphas(params, key, n, reading)`` reproduces the rollout that draws that reading
     (held road-wide, per node), so a batch of different holding times can share one program; the

@@ -130,10 +130,12 @@ def _round_trip(run: Path, runner) -> dict:
     on two states."""
     ctrl, config = load_policy(run, checkpoint="last")
     rep = jax.tree.map(lambda x: x[0, 0], runner)  # device 0, seed 0
+    env_params = build(config)[1]
     mem = policy_controller(rep.params, rep.stats.mean, rep.stats.var, config.env.gain_max,
                             hidden=config.algo.hidden(), init_sigma=config.algo.init_sigma,
-                            gain_filter=config.env.gain_filter, obs_segments=config.env.obs_segments)
-    tp = build(config)[1].traffic  # the run's nominal plant
+                            gain_filter=config.env.gain_filter, obs_segments=config.env.obs_segments,
+                            sigma_nodes=env_params.filter_nodes)
+    tp = env_params.traffic  # the run's nominal plant
     out = {"identical": [], "h": [], "stats_trained": bool(np.abs(rep.stats.mean).max() > 0
                                                            and not np.allclose(rep.stats.var, 1.0))}
     for amp in (0.004, 0.012):

@@ -102,13 +102,17 @@ def growth_rates(gains: Array, p: TrafficParams, delay: float, k: Array | None =
     if d < 0 or abs(d * float(p.dt) - float(delay)) > 1e-6:
         raise ValueError(f"delay must be a non-negative multiple of dt = {float(p.dt)} s, got {delay}")
     k = jnp.asarray(wavenumbers(float(p.L)) if k is None else k)
-    lm = linearize(p)
-    dx = p.dx if dx is None else dx
-    gains = jnp.asarray(gains)
+    return model_growth_rates(jnp.asarray(gains), linearize(p), d, k, sigma, symbol, p.dx if dx is None else dx)
+
+
+def model_growth_rates(gains: Array, lm: LinearModel, delay_periods: int, k: Array, sigma: Array | float = 0.0,
+                       symbol: str = "pde", dx: Array | float = 5.0) -> Array:
+    """``growth_rates`` on a ``LinearModel`` (its dt the control period) and a static delay in periods:
+    traceable and differentiable in the gains (a training penalty, ``learn.gradient``)."""
 
     def one(kk):
-        Z = closed_loop_matrix(kk, gains, lm, jnp.asarray(d), d, p.dt, sigma, symbol, dx)
-        return jnp.log(jnp.max(jnp.abs(jnp.linalg.eigvals(Z)))) / p.dt
+        Z = closed_loop_matrix(kk, gains, lm, jnp.asarray(delay_periods), delay_periods, lm.dt, sigma, symbol, dx)
+        return jnp.log(jnp.max(jnp.abs(jnp.linalg.eigvals(Z)))) / lm.dt
 
     return jax.vmap(one)(k)
 

@@ -156,6 +156,8 @@ class GradConfig:
     effort_weight: float = _f(_GRAD.effort_weight, "objective weight of mean (h - h_bar)^2, 1/s^2")
     scenario_clip: float = _f(_GRAD.scenario_clip, "> 0: clip each scenario's gradient to this norm before "
                               "averaging; 0: off")
+    certificate_weight: float = _f(_GRAD.certificate_weight, "objective weight of the certificate penalty: by how "
+                                   "much the law's largest growth rate (1/s, control.stability) exceeds 1e-3/s")
     init_gains: tuple[float, ...] = _f(_GRAD.init_gains, "initial gains eta1,eta2,eta3")
     grad_gain_max: float | None = _f(None, f"network policy: |eta_i| bound (default {_GRAD.gain_max}; PPO's is "
                                      "--gain-max)")
@@ -172,6 +174,7 @@ class GradConfig:
             hidden=hidden, gain_filter=env.gain_filter, reward_weight=self.reward_weight,
             wave_weight=self.waves_weight, comfort_weight=self.comfort_weight, effort_weight=self.effort_weight,
             scenario_clip=self.scenario_clip, init_gains=tuple(self.init_gains), filter_sigma=env.filter_sigma,
+            certificate_weight=self.certificate_weight,
             controller_points=env.controller_points or 0)
 
 

@@ -46,8 +46,10 @@ from jax.sharding import Mesh
 from jaxtraffic.control.adapter import ControllerGrid, on_grid
 from jaxtraffic.control.base import Controller
 from jaxtraffic.control.gain_law import FILTER_SIGMA, constant_gains, sigma_nodes
-from jaxtraffic.control.gain_policy import feature_size, policy_controller
+from jaxtraffic.control.gain_policy import equilibrium_gains, feature_size, policy_controller
 from jaxtraffic.control.networks import SMALL_HIDDEN, ActorCritic
+from jaxtraffic.control.stability import GROWTH_TOL, model_growth_rates, wavenumbers
+from jaxtraffic.model.linear import linearize
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.sim.initial import paper_initial_condition
 from jaxtraffic.sim.rollout import simulate
@@ -94,6 +96,7 @@ class GradientConfig:
     scenario_clip: float = 0.0  # > 0: clip each scenario's gradient to this norm (``objective_and_grad``)
     filter_sigma: float = FILTER_SIGMA  # m, the gain law's Gaussian filter (``control.gain_law``); 0: pointwise
     controller_points: int = 0  # the controller's own grid (``control.adapter``); 0: the plant's
+    certificate_weight: float = 0.0  # objective += w * ``certificate_penalty`` (1/s)
 
     def __post_init__(self) -> None:
         if self.policy not in POLICIES:
@@ -112,7 +115,8 @@ class GradientConfig:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         if not 0.0 < self.gain_filter <= 1.0:
             raise ValueError(f"gain_filter must lie in (0, 1], got {self.gain_filter}")
-        for name in ("reward_weight", "wave_weight", "comfort_weight", "effort_weight", "scenario_clip"):
+        for name in ("reward_weight", "wave_weight", "comfort_weight", "effort_weight", "scenario_clip",
+                     "certificate_weight"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if not self.filter_sigma >= 0 or self.controller_points < 0 or self.controller_points in (1, 2):
@@ -282,23 +286,44 @@ def objective_and_grad(theta: Any, scen: Scenarios, w: Weights, cfg: GradientCon
     return jnp.mean(per), g, {**m, "scenario_objective": per, "scenario_grad_norm": norms}
 
 
+def certificate_penalty(theta: Any, cfg: GradientConfig, base: TrafficParams, periods: tuple[int, ...]) -> Array:
+    """max(0, sigma_max - GROWTH_TOL) (1/s): by how much the largest growth rate of the law's certificate
+    (``control.stability``, at the gains it settles to at the nominal equilibrium, its filter, every training
+    delay of ``periods`` control periods) exceeds the tolerance. Differentiable in ``theta``."""
+    n = cfg.controller_points or base.n_points
+    nominal = base.replace(n_points=n, substeps=1)
+    if cfg.policy == "gains":
+        gains = theta
+    else:
+        gains = equilibrium_gains(own_controller(theta, cfg, n, ROAD_LENGTH / (n - 1)), nominal)
+    lm = linearize(nominal)
+    k = jnp.asarray(wavenumbers(ROAD_LENGTH, n=96))
+    worst = jnp.max(jnp.stack([jnp.max(model_growth_rates(gains, lm, d, k, cfg.filter_sigma)) for d in periods]))
+    return jax.nn.relu(worst - GROWTH_TOL)
+
+
 def make_optimizer(cfg: GradientConfig) -> optax.GradientTransformation:
     return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(cfg.lr))
 
 
 def _one_step(state: GradState, scen: Scenarios, w: Weights, cfg: GradientConfig, base: TrafficParams,
-              n_steps: int, mesh: Mesh | None) -> tuple[GradState, dict]:
+              n_steps: int, mesh: Mesh | None, periods: tuple[int, ...]) -> tuple[GradState, dict]:
     loss, g, aux = objective_and_grad(state.theta, scen, w, cfg, base, n_steps, mesh)
+    if cfg.certificate_weight > 0:
+        pen, g_pen = jax.value_and_grad(certificate_penalty)(state.theta, cfg, base, periods)
+        loss = loss + cfg.certificate_weight * pen
+        g = jax.tree.map(lambda a, b: a + cfg.certificate_weight * b, g, g_pen)
+        aux = {**aux, "certificate_penalty": pen}
     updates, opt_state = make_optimizer(cfg).update(g, state.opt_state, state.theta)
     new = GradState(theta=optax.apply_updates(state.theta, updates), opt_state=opt_state, update=state.update + 1)
     return new, {"objective": loss, "grad_norm": optax.tree.norm(g), **aux}
 
 
-@functools.partial(jax.jit, static_argnames=("cfg", "n_steps", "mesh"))
-def _train_chunk(state: GradState, base: TrafficParams, cfg: GradientConfig, n_steps: int, mesh: Mesh
-                 ) -> tuple[GradState, dict]:
+@functools.partial(jax.jit, static_argnames=("cfg", "n_steps", "mesh", "periods"))
+def _train_chunk(state: GradState, base: TrafficParams, cfg: GradientConfig, n_steps: int, mesh: Mesh,
+                 periods: tuple[int, ...]) -> tuple[GradState, dict]:
     scen, w = training_scenarios(cfg, base), weights_of(cfg)
-    out = jax.lax.scan(lambda s, _: _one_step(s, scen, w, cfg, base, n_steps, mesh), state, None,
+    out = jax.lax.scan(lambda s, _: _one_step(s, scen, w, cfg, base, n_steps, mesh, periods), state, None,
                        length=cfg.steps_per_chunk)
     return gathered(out, mesh)  # the per-scenario metrics whole on every process
 
@@ -324,6 +349,7 @@ def make_train(cfg: GradientConfig, base: TrafficParams, devices: list | None = 
     programs); ``base`` (the nominal plant and grid) is traced.
     """
     n_steps = horizon_steps(cfg, base.dt)
+    periods = tuple(sorted({int(round(d / float(base.dt))) for d in cfg.delays}))  # the certificate's delays
     mesh = batch_mesh(list(jax.devices()) if devices is None else list(devices))
     across = spans_processes(mesh)
 
@@ -332,7 +358,7 @@ def make_train(cfg: GradientConfig, base: TrafficParams, devices: list | None = 
 
     def train_chunk(state: GradState) -> tuple[GradState, dict]:
         # placed whole on every device, as the chunk returns it: one compiled program for every chunk
-        out = _train_chunk(replicate(state, mesh), base, cfg, n_steps, mesh)
+        out = _train_chunk(replicate(state, mesh), base, cfg, n_steps, mesh, periods)
         return local_copy(out) if across else out
 
     return init, train_chunk

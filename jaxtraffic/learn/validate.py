@@ -50,6 +50,7 @@ RULES: dict[str, tuple[float | None, bool, float | None, bool]] = {
     "steps_per_chunk": (1, True, None, False), "reward_weight": (0.0, True, None, False),
     "waves_weight": (0.0, True, None, False), "comfort_weight": (0.0, True, None, False),
     "effort_weight": (0.0, True, None, False), "scenario_clip": (0.0, True, None, False),
+    "certificate_weight": (0.0, True, None, False),
     "grad_gain_max": (0.0, False, None, False),
 }
 ALLOW_INF = {"max_wall_s", "val_target"}  # inf: no wall-clock limit / no validation condition

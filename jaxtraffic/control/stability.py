@@ -112,9 +112,28 @@ def model_growth_rates(gains: Array, lm: LinearModel, delay_periods: int, k: Arr
 
     def one(kk):
         Z = closed_loop_matrix(kk, gains, lm, jnp.asarray(delay_periods), delay_periods, lm.dt, sigma, symbol, dx)
-        return jnp.log(jnp.max(jnp.abs(jnp.linalg.eigvals(Z)))) / lm.dt
+        return jnp.log(jnp.abs(dominant_eigenvalue(Z))) / lm.dt
 
     return jax.vmap(one)(k)
+
+
+def dominant_eigenvalue(Z: Array) -> Array:
+    """The eigenvalue of largest modulus of the square complex matrix ``Z``, differentiable in Z by first-order
+    perturbation theory, lambda' = u^H Z' v / (u^H v) with v, u its right and left eigenvectors (JAX's own
+    derivative of ``eig`` is far slower here: minutes for a 42 x 42 batch of 96 that this does in 0.3 s)."""
+    Zs = jax.lax.stop_gradient(Z)
+    lam, v, u = _dominant_eigenpair(Zs)
+    return lam + (jnp.conj(u) @ ((Z - Zs) @ v)) / (jnp.conj(u) @ v)
+
+
+def _dominant_eigenpair(Z: Array) -> tuple[Array, Array, Array]:
+    """(lambda, right eigenvector, left eigenvector) of the eigenvalue of largest modulus of ``Z``. Under a
+    multi-device ``jit`` call it inside ``shard_map`` (``sim.sharding.sharded_batch``): an ``eig`` that XLA
+    partitions itself over CPU devices waits forever on a collective."""
+    w, V = jnp.linalg.eig(Z)
+    i = jnp.argmax(jnp.abs(w))
+    wl, U = jnp.linalg.eig(Z.conj().T)  # left eigenvectors: right ones of Z^H, eigenvalues conjugated
+    return w[i], V[:, i], U[:, jnp.argmin(jnp.abs(wl - jnp.conj(w[i])))]
 
 
 @dataclasses.dataclass(frozen=True)

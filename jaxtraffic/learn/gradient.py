@@ -289,7 +289,8 @@ def objective_and_grad(theta: Any, scen: Scenarios, w: Weights, cfg: GradientCon
 def certificate_penalty(theta: Any, cfg: GradientConfig, base: TrafficParams, periods: tuple[int, ...]) -> Array:
     """max(0, sigma_max - GROWTH_TOL) (1/s): by how much the largest growth rate of the law's certificate
     (``control.stability``, at the gains it settles to at the nominal equilibrium, its filter, every training
-    delay of ``periods`` control periods) exceeds the tolerance. Differentiable in ``theta``."""
+    delay of ``periods`` control periods) exceeds the tolerance. Differentiable in ``theta``. Run it on one
+    device: XLA's CPU ``eig`` inside a program over several devices waits forever on a collective."""
     n = cfg.controller_points or base.n_points
     nominal = base.replace(n_points=n, substeps=1)
     if cfg.policy == "gains":
@@ -298,8 +299,12 @@ def certificate_penalty(theta: Any, cfg: GradientConfig, base: TrafficParams, pe
         gains = equilibrium_gains(own_controller(theta, cfg, n, ROAD_LENGTH / (n - 1)), nominal)
     lm = linearize(nominal)
     k = jnp.asarray(wavenumbers(ROAD_LENGTH, n=96))
+
     worst = jnp.max(jnp.stack([jnp.max(model_growth_rates(gains, lm, d, k, cfg.filter_sigma)) for d in periods]))
     return jax.nn.relu(worst - GROWTH_TOL)
+
+
+penalty_and_grad = jax.jit(jax.value_and_grad(certificate_penalty), static_argnames=("cfg", "periods"))
 
 
 def make_optimizer(cfg: GradientConfig) -> optax.GradientTransformation:
@@ -307,23 +312,22 @@ def make_optimizer(cfg: GradientConfig) -> optax.GradientTransformation:
 
 
 def _one_step(state: GradState, scen: Scenarios, w: Weights, cfg: GradientConfig, base: TrafficParams,
-              n_steps: int, mesh: Mesh | None, periods: tuple[int, ...]) -> tuple[GradState, dict]:
+              n_steps: int, mesh: Mesh | None, penalty: tuple[Array, Any] | None) -> tuple[GradState, dict]:
     loss, g, aux = objective_and_grad(state.theta, scen, w, cfg, base, n_steps, mesh)
-    if cfg.certificate_weight > 0:
-        pen, g_pen = jax.value_and_grad(certificate_penalty)(state.theta, cfg, base, periods)
-        loss = loss + cfg.certificate_weight * pen
-        g = jax.tree.map(lambda a, b: a + cfg.certificate_weight * b, g, g_pen)
-        aux = {**aux, "certificate_penalty": pen}
+    if penalty is not None:  # (value, gradient) of the certificate penalty at the chunk's start
+        loss = loss + cfg.certificate_weight * penalty[0]
+        g = jax.tree.map(lambda a, b: a + cfg.certificate_weight * b, g, penalty[1])
+        aux = {**aux, "certificate_penalty": penalty[0]}
     updates, opt_state = make_optimizer(cfg).update(g, state.opt_state, state.theta)
     new = GradState(theta=optax.apply_updates(state.theta, updates), opt_state=opt_state, update=state.update + 1)
     return new, {"objective": loss, "grad_norm": optax.tree.norm(g), **aux}
 
 
-@functools.partial(jax.jit, static_argnames=("cfg", "n_steps", "mesh", "periods"))
+@functools.partial(jax.jit, static_argnames=("cfg", "n_steps", "mesh"))
 def _train_chunk(state: GradState, base: TrafficParams, cfg: GradientConfig, n_steps: int, mesh: Mesh,
-                 periods: tuple[int, ...]) -> tuple[GradState, dict]:
+                 penalty: tuple[Array, Any] | None) -> tuple[GradState, dict]:
     scen, w = training_scenarios(cfg, base), weights_of(cfg)
-    out = jax.lax.scan(lambda s, _: _one_step(s, scen, w, cfg, base, n_steps, mesh, periods), state, None,
+    out = jax.lax.scan(lambda s, _: _one_step(s, scen, w, cfg, base, n_steps, mesh, penalty), state, None,
                        length=cfg.steps_per_chunk)
     return gathered(out, mesh)  # the per-scenario metrics whole on every process
 
@@ -336,7 +340,8 @@ def _init(key: Array, base: TrafficParams, cfg: GradientConfig) -> GradState:
 
 def make_train(cfg: GradientConfig, base: TrafficParams, devices: list | None = None):
     """``(init, train_chunk)``: ``init(key) -> GradState``; ``train_chunk(state) -> (state,
-    metrics)`` runs ``steps_per_chunk`` Adam steps in one jit-compiled ``lax.scan``; metrics are
+    metrics)`` runs ``steps_per_chunk`` Adam steps in one jit-compiled ``lax.scan`` (with a certificate penalty,
+    its value and gradient are taken once per chunk, at its start, on one device); metrics are
     per step: objective, gradient norm and the per-scenario metrics of the rollout.
 
     The scenarios of every step are split over ``devices`` (default: every device of every process,
@@ -358,7 +363,10 @@ def make_train(cfg: GradientConfig, base: TrafficParams, devices: list | None = 
 
     def train_chunk(state: GradState) -> tuple[GradState, dict]:
         # placed whole on every device, as the chunk returns it: one compiled program for every chunk
-        out = _train_chunk(replicate(state, mesh), base, cfg, n_steps, mesh, periods)
+        penalty = None
+        if cfg.certificate_weight > 0:  # on one device, once per chunk (``certificate_penalty`` says why)
+            penalty = replicate(penalty_and_grad(jax.device_get(state.theta), cfg, base, periods), mesh)
+        out = _train_chunk(replicate(state, mesh), base, cfg, n_steps, mesh, penalty)
         return local_copy(out) if across else out
 
     return init, train_chunk

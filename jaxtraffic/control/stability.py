@@ -127,13 +127,25 @@ def dominant_eigenvalue(Z: Array) -> Array:
 
 
 def _dominant_eigenpair(Z: Array) -> tuple[Array, Array, Array]:
-    """(lambda, right eigenvector, left eigenvector) of the eigenvalue of largest modulus of ``Z``. Under a
-    multi-device ``jit`` call it inside ``shard_map`` (``sim.sharding.sharded_batch``): an ``eig`` that XLA
-    partitions itself over CPU devices waits forever on a collective."""
-    w, V = jnp.linalg.eig(Z)
-    i = jnp.argmax(jnp.abs(w))
-    wl, U = jnp.linalg.eig(Z.conj().T)  # left eigenvectors: right ones of Z^H, eigenvalues conjugated
-    return w[i], V[:, i], U[:, jnp.argmin(jnp.abs(wl - jnp.conj(w[i])))]
+    """(lambda, right eigenvector, left eigenvector) of the eigenvalue of largest modulus of ``Z`` (batched over
+    leading axes), by numpy's LAPACK on the host (``jax.pure_callback``): XLA's CPU ``eig`` deadlocks now and
+    then inside a jitted, vmapped program on this project's 2-device CPU setup (BENCHMARKS.md). Call it from a
+    program on one device."""
+    vec = jax.ShapeDtypeStruct(Z.shape[:-1], Z.dtype)
+    shapes = (jax.ShapeDtypeStruct(Z.shape[:-2], Z.dtype), vec, vec)
+
+    def host(z):
+        z = np.asarray(z)
+        w, V = np.linalg.eig(z)
+        wl, U = np.linalg.eig(np.conj(np.swapaxes(z, -1, -2)))  # left: right ones of Z^H, eigenvalues conjugated
+        i = np.argmax(np.abs(w), axis=-1)[..., None]
+        lam = np.take_along_axis(w, i, -1)
+        j = np.argmin(np.abs(wl - np.conj(lam)), axis=-1)[..., None]
+        v = np.take_along_axis(V, i[..., None, :], -1)[..., 0]
+        u = np.take_along_axis(U, j[..., None, :], -1)[..., 0]
+        return lam[..., 0].astype(z.dtype), v.astype(z.dtype), u.astype(z.dtype)
+
+    return jax.pure_callback(host, shapes, Z, vmap_method="broadcast_all")
 
 
 @dataclasses.dataclass(frozen=True)

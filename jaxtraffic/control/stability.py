@@ -170,10 +170,12 @@ def certify(gains: Array, p: TrafficParams, delay: float, sigma: float = 0.0, sy
             dx: float | None = None) -> Certificate:
     """``Certificate`` of the three-gain law (``growth_rates``) on the wavenumbers of ``wavenumbers(p.L)``
     (with ``symbol="upwind"``: those the grid resolves, wavelengths >= 2 dx)."""
+    gains = np.asarray(jax.device_get(gains), np.float64)  # on the host: a pure_callback runs on one device
     k = wavenumbers(float(p.L))
     if symbol == "upwind":
         k = k[k * float(p.dx if dx is None else dx) < np.pi]
-    s = np.asarray(growth_rates(gains, p, delay, jnp.asarray(k), sigma, symbol, dx), np.float64)
+    g_dev = jnp.asarray(gains, jnp.result_type(float))
+    s = np.asarray(growth_rates(g_dev, p, delay, jnp.asarray(k), sigma, symbol, dx), np.float64)
     i = int(np.argmax(s))
     g = tuple(float(x) for x in np.asarray(gains))
     return Certificate(max_growth=float(s[i]), worst_wavelength=float(2 * np.pi / k[i]),

@@ -200,7 +200,7 @@ def _train_gradient(tc: TrainConfig, cfg: G.GradientConfig, plant: TrafficParams
     if cfg.policy == "gains":
         summary["gains"] = np.asarray(state.theta).tolist()
     n = cfg.controller_points or plant.n_points
-    own = G.own_controller(state.theta, cfg, n, G.ROAD_LENGTH / (n - 1))
+    own = G.own_controller(jax.device_get(state.theta), cfg, n, G.ROAD_LENGTH / (n - 1))
     summary["certificate"] = ckpt.policy_certificate(own, tc)
     if writer:
         ckpt.write_json(run_dir / ckpt.SUMMARY, summary)

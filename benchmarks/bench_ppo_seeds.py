@@ -4,16 +4,17 @@
 For every seed of ``--seeds`` (e.g. ``0-9`` or ``0,3,5``) it runs ``python train.py --seed S
 --out-dir ROOT/seedS`` with the defaults plus any extra flags given after the script's own
 (sequentially, one process per seed), then evaluates the run's saved policy
-(``jaxtraffic.learn.load_policy``: the best checkpoint, deterministic gains) on the nonlinear
-plant, paper initial condition, plant delay D = 4 s (``TrafficParams(delay=4.0)``), over 3000
-steps (300 s) and 6000 steps (600 s), with ``backstepping(4.0)`` over 300 s as the reference. A
-seed passes when
+(``jaxtraffic.learn.load_policy``: the best checkpoint, deterministic gains, acting on its own grid) on
+the nonlinear plant ``--judge`` (the reference plant by default, else the paper's grid), paper initial
+condition, plant delay D = 4 s, over 3000 steps (300 s) and 6000 steps (600 s), with
+``backstepping(4.0)`` (on the paper's grid) over 300 s as the reference. A seed passes when
 
   (a) the run reached its stop rule (``summary.json``: ``stopped``, i.e. the rule held at
       ``--stop-patience`` consecutive evaluations),
   (b) final density L2 at 300 s < backstepping's,
   (c) J_comfort (300 s) <= 1.2 x backstepping's,
-  (d) density L2 at 600 s < its value at 300 s (no slow growing mode).
+  (d) density L2 at 600 s < its value at 300 s (no slow growing mode),
+  (e) on the reference plant: density L2 at 300 s and J_comfort change by < 10 % on the plant refined twice.
 
 Times: ``first`` = trainer wall time when the stop rule first held (``seconds_to_stop_rule``;
 from before initialisation, compilation included, Python/JAX import excluded), ``stop`` = trainer
@@ -69,20 +70,30 @@ def train_one(seed: int, run_dir: Path, extra: list[str], timeout: float | None)
     return {"proc_s": wall, "load_before": load0, "load_after": load(), "cmd": " ".join(cmd[1:])}
 
 
-def reference():
+def plant_of(judge: str):
+    """The plant a policy is judged on (D = 4 s): the paper's grid or the reference plant."""
     import jaxtraffic as jt
 
-    p = jt.TrafficParams(delay=4.0)
-    res = jt.simulate(p, jt.backstepping(4.0), n_steps=3000)
+    return jt.TrafficParams(delay=4.0) if judge == "paper" else jt.TrafficParams.reference(delay=4.0)
+
+
+def reference(judge: str = "paper"):
+    import jaxtraffic as jt
+    from jaxtraffic.control.adapter import adapt, baseline_grid
+
+    p = plant_of(judge)
+    res = jt.simulate(p, adapt(jt.backstepping(4.0), baseline_grid(p), p), n_steps=3000)
     return {"rho_L2_300": float(res.metrics["final_rho_L2"]) * 1e3, "J_comfort": float(res.metrics["J_comfort"])}
 
 
-def evaluate_run(run_dir: Path, ref: dict) -> dict:
+def evaluate_run(run_dir: Path, ref: dict, judge: str = "paper") -> dict:
+    """The checks (a)-(d) on the plant ``judge`` (the policy acting on its own grid); on the reference plant
+    also (e): density L2 at 300 s and J_comfort within 10 % on the plant refined twice (no chattering)."""
     import jaxtraffic as jt
     from jaxtraffic.learn import load_policy
 
-    p = jt.TrafficParams(delay=4.0)
-    ctrl, _ = load_policy(run_dir)
+    p = plant_of(judge)
+    ctrl, _ = load_policy(run_dir, plant=p)
     m300 = jt.simulate(p, ctrl, n_steps=3000).metrics
     m600 = jt.simulate(p, ctrl, n_steps=6000).metrics
     summary = json.loads((run_dir / "summary.json").read_text())
@@ -93,11 +104,18 @@ def evaluate_run(run_dir: Path, ref: dict) -> dict:
     stopped = bool(summary.get("stopped", summary.get("stop_rule_reached", False)))
     checks = {"stop": stopped, "L2": (not diverged) and l2_300 < ref["rho_L2_300"],
               "J": (not diverged) and jc <= J_RATIO_MAX * ref["J_comfort"], "600s": (not diverged) and l2_600 < l2_300}
-    return {"stopped": stopped, "first_s": summary.get("seconds_to_stop_rule"),
-            "stop_s": summary.get("wall_s") if stopped else None, "env_steps": summary.get("env_steps"),
-            "env_steps_first": summary.get("env_steps_to_stop_rule"), "rho_L2_300": l2_300, "rho_L2_600": l2_600,
-            "J_comfort": jc, "J_ratio": jc / ref["J_comfort"], "diverged": diverged, "checks": checks,
-            "pass": all(checks.values())}
+    out = {"stopped": stopped, "first_s": summary.get("seconds_to_stop_rule"),
+           "stop_s": summary.get("wall_s") if stopped else None, "env_steps": summary.get("env_steps"),
+           "env_steps_first": summary.get("env_steps_to_stop_rule"), "rho_L2_300": l2_300, "rho_L2_600": l2_600,
+           "J_comfort": jc, "J_ratio": jc / ref["J_comfort"], "diverged": diverged,
+           "certified": (summary.get("certificate") or {}).get("stable")}
+    if judge == "reference":
+        fine = p.replace(n_points=2 * p.n_points - 1, substeps=2 * p.substeps)
+        mf = jt.simulate(fine, load_policy(run_dir, plant=fine)[0], n_steps=3000).metrics
+        out["refined_change_L2"] = float(mf["final_rho_L2"]) * 1e3 / l2_300 - 1.0
+        out["refined_change_J"] = float(mf["J_comfort"]) / jc - 1.0
+        checks["refined"] = max(abs(out["refined_change_L2"]), abs(out["refined_change_J"])) < 0.10
+    return {**out, "checks": checks, "pass": all(checks.values())}
 
 
 def _f(x, fmt):
@@ -111,6 +129,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--eval-only", action="store_true", help="evaluate existing run directories, do not train")
     ap.add_argument("--timeout", type=float, default=None, help="kill a training process after this many s")
     ap.add_argument("--json", action="store_true", help="print the results as JSON (after the table)")
+    ap.add_argument("--judge", choices=("paper", "reference"), default="reference",
+                    help="the plant the policies are judged on (default: the reference plant, which adds the "
+                    "refinement check (e))")
     args, extra = ap.parse_known_args(argv)
     extra = [a for a in extra if a != "--"]
     seeds = parse_seeds(args.seeds)
@@ -118,14 +139,14 @@ def main(argv: list[str] | None = None) -> dict:
     root.mkdir(parents=True, exist_ok=True)
     import jax
 
-    ref = reference()
+    ref = reference(args.judge)
     print(f"backstepping(4.0): rho L2 at 300 s {ref['rho_L2_300']:.3f} veh/km, J_comfort {ref['J_comfort']:.0f}; "
           f"train.py extra flags: {' '.join(extra) or '(none)'}", flush=True)
     rows = []
     for s in seeds:
         run_dir = root / f"seed{s}"
         info = {} if args.eval_only else train_one(s, run_dir, extra, args.timeout)
-        row = {"seed": s, **info, **evaluate_run(run_dir, ref)}
+        row = {"seed": s, **info, **evaluate_run(run_dir, ref, args.judge)}
         rows.append(row)
         print(f"seed {s}: {'PASS' if row['pass'] else 'fail'} stop {_f(row['stop_s'], '.1f')} s "
               f"L2 {row['rho_L2_300']:.3f}/{row['rho_L2_600']:.3f} J {row['J_ratio']:.2f}x "
@@ -143,7 +164,8 @@ def main(argv: list[str] | None = None) -> dict:
     stops = [r["stop_s"] if r["stop_s"] is not None else float("inf") for r in rows]
     firsts = [r["first_s"] if r["first_s"] is not None else float("inf") for r in rows]
     med_stop, med_first = statistics.median(stops), statistics.median(firsts)
-    out = {"seeds": seeds, "extra_flags": extra, "reference": ref, "rows": rows, "n_pass": n_pass,
+    out = {"seeds": seeds, "extra_flags": extra, "judge": args.judge, "reference": ref, "rows": rows,
+           "n_pass": n_pass,
            "n_seeds": len(rows), "median_stop_s": med_stop, "median_first_s": med_first,
            "median_proc_s": statistics.median([r["proc_s"] for r in rows]) if rows and "proc_s" in rows[0] else None,
            "machine": {"cpu": cpu_model(), "cores": os.cpu_count(), "load_end": load(), "jax": jax.__version__,

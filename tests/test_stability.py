@@ -111,7 +111,7 @@ def test_growth_rate_gradient_matches_finite_differences():
         k = jnp.asarray([2 * np.pi / 30.0])
 
         def f(g):
-            return model_growth_rates(g, lm, 40, k, 5.0)[0]
+            return model_growth_rates(g, lm, 40, k, 5.0, differentiable=True)[0]
 
         g0 = jnp.asarray([0.1, -0.8, -1.2])
         grad = np.asarray(jax.grad(f)(g0))
@@ -119,6 +119,7 @@ def test_growth_rate_gradient_matches_finite_differences():
         fd = [(float(f(g0.at[i].add(eps))) - float(f(g0.at[i].add(-eps)))) / (2 * eps) for i in range(3)]
         np.testing.assert_allclose(grad, fd, rtol=1e-4, atol=1e-7)
         assert np.max(np.abs(fd)) > 1e-3  # the test is not trivial
+        assert float(model_growth_rates(g0, lm, 40, k, 5.0)[0]) == pytest.approx(float(f(g0)), abs=1e-10)
 
 
 def test_certificate_penalty_is_zero_when_certified_and_pushes_towards_it():

@@ -106,15 +106,24 @@ def growth_rates(gains: Array, p: TrafficParams, delay: float, k: Array | None =
 
 
 def model_growth_rates(gains: Array, lm: LinearModel, delay_periods: int, k: Array, sigma: Array | float = 0.0,
-                       symbol: str = "pde", dx: Array | float = 5.0) -> Array:
+                       symbol: str = "pde", dx: Array | float = 5.0, differentiable: bool = False) -> Array:
     """``growth_rates`` on a ``LinearModel`` (its dt the control period) and a static delay in periods:
-    traceable and differentiable in the gains (a training penalty, ``learn.gradient``)."""
+    traceable; ``differentiable`` (static): also differentiable in the gains (``dominant_eigenvalue``, a
+    training penalty, ``learn.gradient``), else the cheaper spectral radius alone."""
 
     def one(kk):
         Z = closed_loop_matrix(kk, gains, lm, jnp.asarray(delay_periods), delay_periods, lm.dt, sigma, symbol, dx)
-        return jnp.log(jnp.abs(dominant_eigenvalue(Z))) / lm.dt
+        radius = jnp.abs(dominant_eigenvalue(Z)) if differentiable else _spectral_radius(Z)
+        return jnp.log(radius) / lm.dt
 
     return jax.vmap(one)(k)
+
+
+def _spectral_radius(Z: Array) -> Array:
+    """max |eig(Z)| (batched over leading axes), by numpy on the host (``_dominant_eigenpair`` says why)."""
+    shape = jax.ShapeDtypeStruct(Z.shape[:-2], jnp.finfo(Z.dtype).dtype)
+    return jax.pure_callback(lambda z: np.max(np.abs(np.linalg.eigvals(np.asarray(z))), axis=-1).astype(shape.dtype),
+                             shape, Z, vmap_method="broadcast_all")
 
 
 def dominant_eigenvalue(Z: Array) -> Array:

@@ -300,7 +300,8 @@ def certificate_penalty(theta: Any, cfg: GradientConfig, base: TrafficParams, pe
     lm = linearize(nominal)
     k = jnp.asarray(wavenumbers(ROAD_LENGTH, n=96))
 
-    worst = jnp.max(jnp.stack([jnp.max(model_growth_rates(gains, lm, d, k, cfg.filter_sigma)) for d in periods]))
+    worst = jnp.max(jnp.stack([jnp.max(model_growth_rates(gains, lm, d, k, cfg.filter_sigma, differentiable=True))
+                               for d in periods]))
     return jax.nn.relu(worst - GROWTH_TOL)
 
 

@@ -88,6 +88,12 @@ def test_evaluate_end_to_end(tiny_run, tmp_path):
     plants = json.loads((out / "plants.json").read_text())
     assert set(plants["claims"]) == {"paper", "reference"} and set(plants["claims"]["reference"]) == set("123456")
     assert "The experiments on the reference plant" in report and (out / "fig_plants_delay4.png").stat().st_size
+    # the evaluated controllers themselves, loadable from the results
+    from jaxtraffic.learn import load_policy
+
+    assert {p.name for p in (out / "runs").iterdir()} == {"ppo", "grad_gains"}
+    load_policy(out / "runs" / "ppo")
+    load_policy(out / "runs" / "grad_gains")
     # every learned run's certificate, in its summary and in the report
     assert "Stability certificate of the learned laws" in report and (out / "fig_certificate.png").stat().st_size
 

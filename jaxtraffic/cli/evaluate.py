@@ -27,6 +27,7 @@ import dataclasses
 import json
 import math
 import os
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -137,6 +138,22 @@ def gradient_controllers(mode: str, root: Path, plant_flags: list[str]
         runs[name] = {"run_dir": str(run_dir), "summary": json.loads((run_dir / "summary.json").read_text()),
                       "curve": _curve(run_dir / "learning_curve.csv")}
     return ctrls, grids, runs
+
+
+RUN_FILES = ("config.json", "summary.json", "learning_curve.csv")
+
+
+def export_runs(learned_runs: dict[str, dict], root: Path) -> None:
+    """The evaluated controllers themselves, small enough to commit: each run's config.json, summary.json,
+    learning curve and the checkpoint ``load_policy`` reads (best.msgpack when there is one, else
+    checkpoint.msgpack) in ``root/NAME``, loadable with ``load_policy(root/NAME)``."""
+    for name, run in learned_runs.items():
+        src, dst = Path(run["run_dir"]), root / name
+        dst.mkdir(parents=True, exist_ok=True)
+        ckpt = "best.msgpack" if (src / "best.msgpack").exists() else "checkpoint.msgpack"
+        for f in (*RUN_FILES, ckpt):
+            if (src / f).exists():
+                shutil.copyfile(src / f, dst / f)
 
 
 def parse_grid(text: str, flag: str) -> tuple[int, int]:
@@ -259,6 +276,7 @@ def _main(args: argparse.Namespace, argv: list[str] | None, t0: float, nd: int, 
                                             ppo_delay0=ppo0, learning_curve_csv=lc, log=_log,
                                             learned_runs=learned_runs, grids=grids)
     if distributed.is_writer():
+        export_runs(learned_runs, args.out / "runs")
         if len(results) > 1:
             paper.compare_plants(results, {k: configs[k] for k in results}, args.out, log=_log)
         section = paper.certificate_section(learned_runs, args.out, log=_log)

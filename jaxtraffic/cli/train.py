@@ -69,8 +69,9 @@ def build_parser() -> argparse.ArgumentParser:
         g = parser.add_argument_group(GROUPS[section])
         for f in dataclasses.fields(SECTIONS[section]):
             flag = "--" + f.name.replace("_", "-")
-            if f.type == "bool":
-                g.add_argument(flag, action="store_true", help=f.metadata["help"])
+            if f.type == "bool":  # on by default: --no-FLAG turns it off
+                action = argparse.BooleanOptionalAction if f.default else "store_true"
+                g.add_argument(flag, action=action, default=f.default, help=f.metadata["help"])
                 continue
             default = None if f.name == "out_dir" else f.default  # resolved from --algo below
             g.add_argument(flag, type=_PARSERS[f.type], default=default, choices=f.metadata.get("choices"),

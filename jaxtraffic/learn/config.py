@@ -213,6 +213,9 @@ class RunConfig:
                               "range, over this many seconds, scored against backstepping; the best-scoring "
                               "checkpoint of each member is kept (best.msgpack) and the best member is the run's "
                               "policy; 0: no suite")
+    val_plant: str = _f("reference", "the plant the validation suite runs on: reference (TrafficParams.reference: "
+                        "MUSCL, 801 points, 2 solver steps; the policy acts on its training grid through "
+                        "control.adapter) or training (the training plant)", choices=("reference", "training"))
     val_target: float = _f(1.0, "stop rule also requires a validation score <= this (1: at the nominal delay the "
                            "density L2 at half the suite horizon is below backstepping's and J_comfort within 20 %% "
                            "of its, and at every delay of the suite the plant does not diverge and is still "
@@ -232,7 +235,7 @@ RUN_CONTROL = ("out_dir", "total_steps", "max_wall_s", "keep_going", "resume", "
 # fields absent from a run's config.json because it was written before they existed: their value then
 # (the run is loaded and resumed as it was trained, not with today's defaults)
 BEFORE_FIELD = {"obs_segments": 0, "wave_weight": 0.0, "val_horizon_s": 0.0, "restart_steps": 0,
-                "filter_sigma": 0.0, "require_certificate": False}
+                "filter_sigma": 0.0, "require_certificate": False, "val_plant": "training"}
 
 
 @dataclass(frozen=True)

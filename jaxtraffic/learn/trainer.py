@@ -78,6 +78,7 @@ from jaxtraffic.learn.session import (
 )
 from jaxtraffic.learn.validate import check_devices
 from jaxtraffic.model.linear import gain_law_wave_speed, linearize
+from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.provenance import provenance
 from jaxtraffic.sim.initial import paper_initial_condition
 from jaxtraffic.sim.metrics import VEH_PER_KM
@@ -252,7 +253,9 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
     validate = None
     if s.run.val_horizon_s > 0:
         val_steps = 2 * max(1, round(s.run.val_horizon_s / s.plant.dt / 2))
-        validate = validation.make_validator(env_params.traffic, val_steps, validation.validation_delays(env_params))
+        judge = TrafficParams.reference() if s.run.val_plant == "reference" else None
+        validate = validation.make_validator(env_params.traffic, val_steps, validation.validation_delays(env_params),
+                                             plant=judge)
     writer = distributed.is_writer()
     runner = init(jax.random.PRNGKey(s.run.seed))
     rep = members.replicated(runner)  # the shared leaves on this process: once per chunk (a collective)
@@ -399,6 +402,7 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
         "best_val_score": best["score"], "best_env_steps": best["env_steps"],
         "restarts": meta.get("restarts", []),
         "validation": None if validate is None else {"delays": validation.validation_delays(env_params),
+                                                     "plant": s.run.val_plant,
                                                      "horizon_s": s.run.val_horizon_s, "target": s.run.val_target,
                                                      "reference": validate.reference},
         "final_eval": {k: v for k, v in last_eval.items()},

@@ -193,10 +193,29 @@ def check_config(cfg: Any) -> None:
     if cp is not None and cp != pl.n_points and run.algo != "gradient":
         raise _fail("controller_points", cp, "PPO's controller acts on the training plant's grid; only --algo "
                     "gradient trains a controller on a grid of its own")
+    if run.val_plant == "reference" and run.val_horizon_s > 0 and run.algo == "ppo":
+        _check_reference_validation(pl)
     for name in ("horizon_s", "eval_horizon_s"):
         value = getattr(en if name == "horizon_s" else run, name)
         if value < pl.dt:
             raise _fail(name, value, f"must be >= one time step dt = {pl.dt} s")
+
+
+def _check_reference_validation(pl: Any) -> None:
+    """The validation suite on the reference plant needs its grid to refine the training grid and its CFL
+    bound at the training dt."""
+    from jaxtraffic.model.params import TrafficParams
+
+    ref = TrafficParams.reference()
+    if (ref.n_points - 1) % (pl.n_points - 1):
+        raise _fail("n_points", pl.n_points, f"the validation suite runs on the reference plant ({ref.n_points} "
+                    f"points), whose grid must refine the training grid by an integer factor: n_points - 1 must "
+                    f"divide {ref.n_points - 1} (or give --val-plant training)")
+    try:
+        ref.replace(dt=pl.dt, max_delay_steps=pl.max_delay_steps)
+    except ValueError as err:
+        raise _fail("val_plant", "reference", f"the reference plant at dt = {pl.dt} s: {err} (or give --val-plant "
+                    "training)") from None
 
 
 def check_devices(cfg: Any, n_devices: int) -> None:

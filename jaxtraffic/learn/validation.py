@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxtraffic.control.adapter import ControllerGrid, adapt, baseline_grid
 from jaxtraffic.control.baselines import backstepping
 from jaxtraffic.sim.initial import paper_initial_condition
 from jaxtraffic.sim.rollout import simulate_batch
@@ -57,26 +58,32 @@ def _half_and_end(res):
     return res.trajectory.rho_L2[:, 1], res.metrics["final_rho_L2"], res.metrics["J_comfort"], res.metrics["diverged"]
 
 
-def make_validator(nominal, steps: int, delays, ics=DEFAULT_ICS, j_slack: float = 1.2):
+def make_validator(nominal, steps: int, delays, ics=DEFAULT_ICS, j_slack: float = 1.2, plant=None):
     """``validate(controller, n_members) -> dict`` of numpy arrays: ``score`` (members,) and the
     per-scenario ``rho_L2_half``, ``rho_L2_end`` (veh/km), ``J_comfort``, ``ratio`` (members, S).
-    ``controller``: a policy controller whose settings carry a leading member axis."""
+    ``controller``: a policy controller on the grid of ``nominal`` whose settings carry a leading member
+    axis. ``plant``: the discretisation the suite runs on (n_points, scheme, substeps; default the
+    nominal's), every controller acting on its own grid (``control.adapter``; backstepping on the
+    paper's, ``baseline_grid``): the training grid need not be the one the policy is judged on."""
     if steps % 2:
         raise ValueError("the validation horizon needs an even number of steps")
-    plants, rho0, v0, labels = scenarios(nominal, delays, ics)
+    judge = nominal if plant is None else nominal.replace(n_points=plant.n_points, scheme=plant.scheme,
+                                                          substeps=plant.substeps)
+    plants, rho0, v0, labels = scenarios(judge, delays, ics)
     n_s = len(labels)
     nominal_delay = np.isclose(np.asarray(plants.delay), float(nominal.delay))
-    ref = simulate_batch(plants, backstepping(float(nominal.delay)), n_steps=steps, rho0=rho0, v0=v0,
-                         nominal=nominal, record_every=steps // 2)
+    grid = ControllerGrid.of(nominal)
+    ref = simulate_batch(plants, adapt(backstepping(float(nominal.delay)), baseline_grid(judge), judge),
+                         n_steps=steps, rho0=rho0, v0=v0, nominal=judge, record_every=steps // 2)
     ref_half, ref_end, ref_j, ref_div = (np.asarray(x) for x in _half_and_end(ref))
     if ref_div.any():
         raise ValueError("backstepping diverged on the validation suite")
 
     def validate(controller, n_members: int) -> dict:
-        ctrl = jax.tree.map(lambda x: jnp.repeat(x, n_s, axis=0), controller)  # member-major
+        ctrl = adapt(jax.tree.map(lambda x: jnp.repeat(x, n_s, axis=0), controller), grid, judge)  # member-major
         tile = lambda x: jnp.tile(x, (n_members,) + (1,) * (x.ndim - 1))  # noqa: E731
         res = simulate_batch(jax.tree.map(tile, plants), ctrl, n_steps=steps, rho0=tile(rho0), v0=tile(v0),
-                             nominal=nominal, record_every=steps // 2, batch_controller=True)
+                             nominal=judge, record_every=steps // 2, batch_controller=True)
         half, end, jc, div = (np.asarray(x).reshape(n_members, n_s) for x in _half_and_end(res))
         with np.errstate(invalid="ignore", over="ignore"):
             ratio = np.maximum(half / ref_half, jc / (j_slack * ref_j))

@@ -1,5 +1,6 @@
 #!/usr/bin/env python
-"""Rerun the main job and say whether each headline claim of the README still holds.
+"""Rerun the main job and say whether each headline claim of the README still holds (on the paper's grid,
+on the reference plant, and the learned controllers' certificates).
 
     python benchmarks/reproduce.py [--out DIR] [--skip-run] [--reference docs/results]
 
@@ -65,8 +66,37 @@ CLAIMS: dict[str, Callable[[dict], tuple[bool, str]]] = {
     "gradient gains beat backstepping at D = 4 s": _beats_backstepping("grad_gains"),
     "gradient network beats backstepping at D = 4 s": _beats_backstepping("grad_network"),
 }
+# on the reference plant (DIR/reference/metrics.json): the learned controllers against backstepping, and
+# each within 10 % of itself on the plant refined twice (the evaluation's numerical check)
+def _converged(c: str, tol: float = 0.10) -> Callable[[dict], tuple[bool, str]]:
+    def check(m: dict) -> tuple[bool, str]:
+        rel = m.get("numerics", {}).get("rel_diff", {}).get("refined", {}).get(c)
+        if not rel:
+            return False, f"{c}: no numerical check"
+        worst = max(abs(rel["final_rho_L2"]), abs(rel["J_comfort"]))
+        return worst < tol, f"largest change on the refined plant {100 * worst:.1f} %"
+    return check
+
+
+REFERENCE_CLAIMS: dict[str, Callable[[dict], tuple[bool, str]]] = {
+    "reference plant: PPO rho L2 below backstepping's, J_comfort <= 1.2x": _beats_backstepping("ppo", 1.2),
+    "reference plant: gradient gains beat backstepping": _beats_backstepping("grad_gains"),
+    "reference plant: gradient network beats backstepping": _beats_backstepping("grad_network"),
+    **{f"reference plant: {c} within 10 % on the refined plant": _converged(c)
+       for c in ("backstepping", "ppo", "grad_gains", "grad_network")},
+}
 KEY_NUMBERS = [("delay4", c, k) for c in ("backstepping", "ppo", "grad_gains", "grad_network")
                for k in ("final_rho_L2", "J_comfort")]
+
+
+def certificates(out: Path) -> dict[str, tuple[bool, str]]:
+    """Each exported learned controller (DIR/runs/NAME/summary.json) is certified at its nominal (D, alpha)."""
+    res = {}
+    for run in sorted((out / "runs").glob("*/summary.json")):
+        cert = json.loads(run.read_text()).get("certificate") or {}
+        res[f"{run.parent.name} certified"] = (bool(cert.get("stable")),
+                                               f"max growth {cert.get('max_growth')} /s at {cert.get('delay')} s")
+    return res
 
 
 def main() -> int:
@@ -81,6 +111,10 @@ def main() -> int:
         subprocess.run([sys.executable, str(ROOT / "evaluate.py"), "--out", str(out.resolve())], check=True, cwd=work)
     m = json.loads((out / "metrics.json").read_text())
     results = {name: check(m) for name, check in CLAIMS.items()}
+    if (out / "reference" / "metrics.json").exists():
+        mr = json.loads((out / "reference" / "metrics.json").read_text())
+        results.update({name: check(mr) for name, check in REFERENCE_CLAIMS.items()})
+    results.update(certificates(out))
     for name, (ok, detail) in results.items():
         print(f"{'PASS' if ok else 'FAIL'}  {name}: {detail}")
     ref_path = args.reference / "metrics.json"

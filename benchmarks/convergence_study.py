@@ -30,6 +30,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import jax
 import numpy as np
 
 import jaxtraffic as jt
@@ -143,6 +144,7 @@ def main() -> None:
         print(f"{key:>16s}: " + " | ".join(f"{c} L2 {v['rho_L2_300']:.3f} J_c {v['J_comfort']:.4g}"
                                            for c, v in data[key].items()) + f"  ({time.perf_counter() - t0:.0f} s)",
               flush=True)
+        jax.clear_caches()  # about 200 programs in one process: LLVM ran out of memory without this
     names = list(ctrls)
     conv = {sc: converged_levels(data, sc, names, args.tol) for sc in schemes}
     found = [(sc, lvl) for sc in ("muscl", "upwind") if sc in conv for lvl, v in conv[sc].items() if v["converged"]]

@@ -19,12 +19,13 @@ of a vehicle crossing a shock is a delta).
     python benchmarks/convergence_study.py --out docs/results/convergence [--runs ppo=runs/default,...]
 
 Writes convergence.json, convergence.md (the tables) and convergence.png (metric vs dx per scheme and
-controller), and prints the reference plant it finds.
+controller), and prints the coarsest converged level (of every loop, and of every loop without shocks).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import time
 from pathlib import Path
@@ -43,6 +44,7 @@ METRICS = ("rho_L2_300", "rho_L2_600", "v_L2_300", "J_TTT", "J_fuel", "t_reward"
            "J_comfort_at2", "J_comfort_no_switch_on")
 CONVERGENT = ("rho_L2_300", "rho_L2_600", "v_L2_300", "J_TTT", "J_fuel", "t_reward")
 FLOORS = {"rho_L2_300": 0.1, "rho_L2_600": 0.1, "v_L2_300": 0.005, "t_reward": 5.0}  # veh/km, m/s, s
+SHOCK_LOOP = "lyapunov_D0"  # stabilises v first and lets the density wave steepen: its solution carries shocks
 BASELINES = {"open_loop": (jt.open_loop, 0.0), "lyapunov_D0": (lambda: jt.lyapunov(1.0), 0.0),
              "backstepping": (lambda: jt.backstepping(4.0), 4.0)}
 
@@ -85,6 +87,15 @@ def converged_levels(data: dict, scheme: str, controllers: list[str], tol: float
     return out
 
 
+def coarsest_converged(conv: dict[str, Any]) -> str | None:
+    """The coarsest level of one scheme from which every finer level is converged too."""
+    levels = list(conv)
+    for i, lvl in enumerate(levels):
+        if all(conv[later]["converged"] for later in levels[i:]):
+            return lvl
+    return None
+
+
 def table(data: dict, controllers: list[str], metric: str, schemes: tuple[str, ...]) -> list[str]:
     plants = [f"{sc}/{n}/{s}" for sc in schemes for n, s in sorted(set(LEVELS) | {(n, 2 * s) for n, s in LEVELS[:-1]})]
     plants = [p for p in plants if p in data]
@@ -100,13 +111,15 @@ def plot(path: Path, data: dict, controllers: list[str], schemes: tuple[str, ...
 
     metrics = ("rho_L2_300", "rho_L2_600", "J_TTT", "t_reward", "J_comfort", "J_comfort_a2")
     fig, axes = plt.subplots(2, 3, figsize=(14, 7.5))
+    dx = [1000.0 / (n - 1) for n, _ in LEVELS]
     for ax, k in zip(axes.ravel(), metrics, strict=True):
-        for c in controllers:
-            for sc, ls in zip(schemes, ("-", "--"), strict=False):
-                dx = [1000.0 / (n - 1) for n, _ in LEVELS]
+        for i, c in enumerate(controllers):
+            for sc, ls in zip(schemes, ("--", "-"), strict=False):
                 ys = [data.get(f"{sc}/{n}/{s}", {}).get(c, {}).get(k, np.nan) for n, s in LEVELS]
-                ax.plot(dx, ys, ls, marker="o", label=f"{c} ({sc})")
+                ax.plot(dx, ys, ls, color=f"C{i}", marker="o", ms=3, label=f"{c} ({sc})")
         ax.set_xscale("log")
+        ax.set_xticks(dx, [f"{d:g}" for d in dx])
+        ax.minorticks_off()
         ax.set_yscale("log" if k != "J_TTT" else "linear")
         ax.invert_xaxis()
         ax.set_xlabel("plant dx (m)")
@@ -125,8 +138,17 @@ def main() -> None:
     ap.add_argument("--runs", default="", help="learned runs to include, NAME=RUN_DIR,... (at their training delay)")
     ap.add_argument("--tol", type=float, default=0.05)
     ap.add_argument("--schemes", default="upwind,muscl")
+    ap.add_argument("--from-json", type=Path, default=None,
+                    help="redo the analysis and the outputs from an earlier convergence.json (no simulation)")
     args = ap.parse_args()
     schemes = tuple(args.schemes.split(","))
+    if args.from_json is not None:
+        earlier = json.loads(args.from_json.read_text())
+        data = earlier["data"]  # (a metric never reached was written as null)
+        data = {p: {c: {k: math.inf if v is None else v for k, v in m.items()} for c, m in by_ctrl.items()}
+                for p, by_ctrl in data.items()}
+        write_outputs(args.out, data, list(next(iter(data.values()))), schemes, args.tol, earlier["provenance"])
+        return
     ctrls: dict[str, tuple[Any, Any, float]] = {k: (f(), None, d) for k, (f, d) in BASELINES.items()}
     for item in filter(None, args.runs.split(",")):
         name, run = item.split("=")
@@ -145,15 +167,32 @@ def main() -> None:
                                            for c, v in data[key].items()) + f"  ({time.perf_counter() - t0:.0f} s)",
               flush=True)
         jax.clear_caches()  # about 200 programs in one process: LLVM ran out of memory without this
-    names = list(ctrls)
-    conv = {sc: converged_levels(data, sc, names, args.tol) for sc in schemes}
-    found = [(sc, lvl) for sc in ("muscl", "upwind") if sc in conv for lvl, v in conv[sc].items() if v["converged"]]
-    reference = found[0] if found else None
-    args.out.mkdir(parents=True, exist_ok=True)
-    write_json(args.out / "convergence.json", {"provenance": provenance(), "tol": args.tol, "floors": FLOORS,
-                                               "levels": LEVELS, "data": data, "convergence": conv,
-                                               "reference": reference})
-    md = [f"# Convergence study (controllers on their own grids; tol {args.tol:.0%}, floors {FLOORS})", ""]
+    write_outputs(args.out, data, list(ctrls), schemes, args.tol)
+
+
+def write_outputs(out: Path, data: dict, names: list[str], schemes: tuple[str, ...], tol: float,
+                  simulated_by: dict | None = None) -> None:
+    """The analysis of the study's data: convergence per scheme (all loops, and per loop), the reference.
+    ``simulated_by``: the provenance of the simulations when they were run by another commit."""
+    conv = {sc: converged_levels(data, sc, names, tol) for sc in schemes}
+    per_loop = {sc: {c: coarsest_converged(converged_levels(data, sc, [c], tol)) for c in names} for sc in schemes}
+    smooth = [c for c in names if c != SHOCK_LOOP]  # the loops whose solution has no shock
+    conv_smooth = {sc: converged_levels(data, sc, smooth, tol) for sc in schemes}
+    found = [(sc, coarsest_converged(conv[sc])) for sc in ("muscl", "upwind") if sc in conv]
+    found_smooth = [(sc, coarsest_converged(conv_smooth[sc])) for sc in ("muscl", "upwind") if sc in conv]
+    reference = next((f for f in found if f[1]), None)
+    reference_smooth = next((f for f in found_smooth if f[1]), None)
+    out.mkdir(parents=True, exist_ok=True)
+    prov = provenance() if simulated_by is None else {**simulated_by, "analysis": provenance()}
+    write_json(out / "convergence.json", {"provenance": prov, "tol": tol, "floors": FLOORS,
+                                          "levels": LEVELS, "data": data, "convergence": conv,
+                                          "coarsest_converged_per_loop": per_loop, "reference": reference,
+                                          "reference_without_" + SHOCK_LOOP: reference_smooth})
+    md = [f"# Convergence study (controllers on their own grids; tol {tol:.0%}, floors {FLOORS})", "",
+          "## The coarsest level from which each closed loop is converged", "",
+          "| scheme | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
+    md += [f"| {sc} | " + " | ".join(str(per_loop[sc][c]) for c in names) + " |" for sc in schemes]
+    md.append("")
     for sc in schemes:
         md += [f"## {sc}: largest change of each convergent metric to the next finer level", "",
                "| level | next | " + " | ".join(CONVERGENT) + " | converged |",
@@ -164,10 +203,12 @@ def main() -> None:
         md.append("")
     for metric in METRICS:
         md += [f"## {metric}", "", *table(data, names, metric, schemes), ""]
-    md += [f"Reference plant found: {reference}", ""]
-    atomic_write_text(args.out / "convergence.md", "\n".join(md))
-    plot(args.out / "convergence.png", data, names, schemes)
-    print(f"reference plant: {reference} (the coarsest converged level, MUSCL first); outputs in {args.out}")
+    md += [f"Coarsest level from which every loop is converged: {reference}; every loop but {SHOCK_LOOP} (whose "
+           f"solution carries shocks): {reference_smooth}.", ""]
+    atomic_write_text(out / "convergence.md", "\n".join(md))
+    plot(out / "convergence.png", data, names, schemes)
+    print(f"coarsest converged level (MUSCL first): every loop {reference}, every loop but {SHOCK_LOOP} "
+          f"{reference_smooth}; outputs in {out}")
 
 
 if __name__ == "__main__":

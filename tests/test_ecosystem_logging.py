@@ -14,7 +14,8 @@ from jaxtraffic.learn.curve import CURVE_FIELDS
 from jaxtraffic.learn.trainer import train
 
 TINY = {"n_points": 21, "delay": 0.5, "max_delay_steps": 20, "num_envs": 4, "num_steps": 8, "updates_per_chunk": 2,
-        "update_epochs": 2, "num_minibatches": 2, "horizon_s": 3.0, "eval_horizon_s": 2.0, "keep_going": True}
+        "update_epochs": 2, "num_minibatches": 2, "horizon_s": 3.0, "eval_horizon_s": 2.0, "val_horizon_s": 2.0,
+        "keep_going": True}
 CHUNK = 4 * 8 * 2
 
 

@@ -4,7 +4,14 @@
 A thin wrapper around ``jaxtraffic.cli.evaluate.main`` (``--help`` lists the flags).
 """
 
-from jaxtraffic.cli.evaluate import main, parse_args
+import os
+import signal
+
+# Ctrl-C while jax loads (about 1.5 s; nothing to save yet): exit 130 at once, without a traceback
+signal.signal(signal.SIGINT, lambda signum, frame: os._exit(128 + signum))
+from jaxtraffic.cli.evaluate import main, parse_args  # noqa: E402
+
+signal.signal(signal.SIGINT, signal.default_int_handler)
 
 __all__ = ["main", "parse_args"]
 

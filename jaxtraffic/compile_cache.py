@@ -14,7 +14,8 @@ program a fresh compilation would produce, so results are bit-identical with and
   * otherwise ``$XDG_CACHE_HOME/jaxtraffic/xla`` (``~/.cache/jaxtraffic/xla``).
 
 The directory is created private to the user (mode 0700: jax executes what it loads from there,
-so it must not be writable by others). Its size is bounded (``MAX_BYTES``; least recently used
+so it must not be writable by others); an existing directory that others can write to is not used
+(a warning says so). Its size is bounded (``MAX_BYTES``; least recently used
 entries are evicted), which also makes jax guard every read and write with a file lock, so that
 processes running at once (several trainings, the processes of a multi-process run) never read
 a half-written entry. Only programs that took at least ``MIN_COMPILE_S`` to compile are stored.
@@ -26,6 +27,7 @@ directory is the command-line jobs' choice, and a library user calls ``enable()`
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 ENV = "JAXTRAFFIC_COMPILATION_CACHE"
@@ -33,7 +35,7 @@ MAX_BYTES = 2 << 30  # 2 GiB; a default training + evaluation stores about 30 MB
 MIN_COMPILE_S = 0.5  # programs that compile faster are not worth a disk entry
 _OFF = ("0", "off", "false", "no")
 
-__all__ = ["ENV", "MAX_BYTES", "MIN_COMPILE_S", "default_dir", "enable"]
+__all__ = ["ENV", "MAX_BYTES", "MIN_COMPILE_S", "default_dir", "enable", "private"]
 
 
 def default_dir(env: dict | None = None) -> Path:
@@ -41,6 +43,18 @@ def default_dir(env: dict | None = None) -> Path:
     env = os.environ if env is None else env
     base = env.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
     return Path(base) / "jaxtraffic" / "xla"
+
+
+def private(where: Path) -> bool:
+    """Whether no other user can write to the cache directory ``where`` (jax executes what it loads from
+    there); if they can, say so on stderr."""
+    mode = where.stat().st_mode
+    if mode & 0o022:
+        print(f"warning: the compilation cache {where} is writable by other users (mode {mode & 0o777:o}); "
+              "running without a cache (chmod go-w it, or set JAXTRAFFIC_COMPILATION_CACHE to a private "
+              "directory)", file=sys.stderr)
+        return False
+    return True
 
 
 def enable(path: str | os.PathLike | None = None, env: dict | None = None) -> Path | None:
@@ -68,6 +82,8 @@ def enable(path: str | os.PathLike | None = None, env: dict | None = None) -> Pa
         where.mkdir(mode=0o700, parents=True, exist_ok=True)
     except OSError:
         return None  # e.g. a read-only home: run without a cache
+    if not private(where):
+        return None
     jax.config.update("jax_compilation_cache_dir", str(where))
     jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_S)

@@ -166,7 +166,8 @@ def leaves_equal(a, b) -> bool:
     la, lb = jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)
     if len(la) != len(lb):
         return False
-    return all(np.array_equal(np.asarray(x), np.asarray(y), equal_nan=True) for x, y in zip(la, lb, strict=True))
+    return all(x == y if isinstance(x, str) or isinstance(y, str)  # (a checkpoint's config_problem)
+               else np.array_equal(np.asarray(x), np.asarray(y), equal_nan=True) for x, y in zip(la, lb, strict=True))
 
 
 def take(tree, i: int):

@@ -288,8 +288,9 @@ def test_chunked_batches_match_one_vmap_and_contain_divergence():
     chunked = simulate_batch(p, ctrl, rho0=r0, v0=v0, chunk_size=2, **kw)
     assert np.asarray(chunked.final.rho).shape == (5, p.n_points)
     assert np.asarray(chunked.trajectory.rho).shape == (5, 20, p.n_points)
+    # (two programs: float32 rounding may differ, e.g. 3e-8 on a reward of -1.6e-3 over 200 steps)
     for a, b in zip(jax.tree_util.tree_leaves(one), jax.tree_util.tree_leaves(chunked), strict=True):
-        np.testing.assert_allclose(np.asarray(a, np.float64), np.asarray(b, np.float64), rtol=1e-5, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(a, np.float64), np.asarray(b, np.float64), rtol=1e-5, atol=1e-7)
     # env 3 diverges (open-loop-like gain, huge amplitude); the others: bit-identical
     r_bad, v_bad = _ic_batch(p, [0.010, 0.005, 0.008, 0.09, 0.009])
     sick = simulate_batch(p, ctrl, rho0=r_bad, v0=v_bad, chunk_size=2, **kw)

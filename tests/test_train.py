@@ -21,6 +21,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from conftest import leaves_equal
 from tiny_runs import CHUNK, REPO, RUNS, TINY
 
 from jaxtraffic.cli import train as train_cli
@@ -44,10 +45,6 @@ def _no_wall(rows: list[dict]) -> list[dict]:
     return [{k: v for k, v in r.items() if k != "wall_s"} for r in rows]
 
 
-def _leaves_equal(a, b) -> bool:
-    la, lb = jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)
-    return len(la) == len(lb) and all(np.array_equal(np.asarray(x), np.asarray(y), equal_nan=True)
-                                      for x, y in zip(la, lb, strict=True))
 
 
 @pytest.fixture(scope="module")
@@ -110,8 +107,8 @@ def test_resume_is_bit_identical(runs):
     assert _no_wall(_rows(b)) == _no_wall(_rows(a))
     state_a, meta_a = ckpt.load_checkpoint(a)
     state_b, meta_b = ckpt.load_checkpoint(b)
-    assert _leaves_equal(state_a, state_b)  # params, Adam state, environments, obs statistics, keys
-    assert _leaves_equal(ckpt.load_best(a), ckpt.load_best(b))  # the kept best checkpoints too
+    assert leaves_equal(state_a, state_b)  # params, Adam state, environments, obs statistics, keys
+    assert leaves_equal(ckpt.load_best(a), ckpt.load_best(b))  # the kept best checkpoints too
     assert meta_a["env_steps"] == meta_b["env_steps"] == 4 * CHUNK
     sa, sb = (json.loads((r / "summary.json").read_text()) for r in (a, b))
     assert sa["final_eval"] == sb["final_eval"] and sa["env_steps"] == sb["env_steps"]
@@ -128,7 +125,7 @@ def test_random_restarts_reinitialise_and_resume_exactly(runs):
     assert [int(row["restarts"]) for row in _rows(r)] == [0, 1, 1, 2, 2, 2]
     state_r, meta_r = ckpt.load_checkpoint(r)
     state_h, meta_h = ckpt.load_checkpoint(half)
-    assert _leaves_equal(state_r, state_h) and _leaves_equal(ckpt.load_best(r), ckpt.load_best(half))
+    assert leaves_equal(state_r, state_h) and leaves_equal(ckpt.load_best(r), ckpt.load_best(half))
     assert _no_wall(_rows(r)) == _no_wall(_rows(half)) and meta_r["restarts"] == meta_h["restarts"]
     assert meta_r["member_start_steps"] == [4 * CHUNK]
     assert int(np.asarray(state_r["update"]).max()) == 2 * 2  # 2 chunks x 2 updates since the last restart
@@ -142,7 +139,7 @@ def test_ctrl_c_saves_and_resume_loses_nothing(runs):
     assert ckpt.load_checkpoint(i.parent / "I_first")[1]["env_steps"] == 2 * CHUNK
     assert _no_wall(runs["I_first_rows"]) == _no_wall(_rows(a))[:2]
     assert _no_wall(_rows(i)) == _no_wall(_rows(a))
-    assert _leaves_equal(ckpt.load_checkpoint(a)[0], ckpt.load_checkpoint(i)[0])
+    assert leaves_equal(ckpt.load_checkpoint(a)[0], ckpt.load_checkpoint(i)[0])
 
 
 def test_same_seed_same_curve_different_seed_differs(runs):
@@ -200,7 +197,7 @@ def test_load_policy_loads_the_best_checkpoint(runs):
     assert summary["best_val_score"][0] == pytest.approx(min(scores)) == pytest.approx(float(best["score"][0]))
     assert summary["best_env_steps"][0] == int(rows[int(np.argmin(scores))]["env_steps"])
     ctrl, _ = load_policy(run)
-    assert _leaves_equal(ctrl.settings.params, jax.tree.map(lambda x: x[0], best["params"]))
+    assert leaves_equal(ctrl.settings.params, jax.tree.map(lambda x: x[0], best["params"]))
     np.testing.assert_array_equal(ctrl.settings.obs_mean, best["mean"][0])
     assert float(rows[-1]["best_val_score"]) == pytest.approx(min(scores))
     with pytest.raises(ValueError, match="checkpoint"):

@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from jaxtraffic import compile_cache, distributed, paper
+from jaxtraffic.cli import staging
 from jaxtraffic.cli import train as train_cli
 from jaxtraffic.learn.checkpoint import atomic_write_text, load_policy, policy_grid
 from jaxtraffic.learn.config import TrainConfig
@@ -42,6 +43,8 @@ from jaxtraffic.model.params import TrafficParams
 _REF = TrafficParams.reference()
 DEFAULT_RUN = Path("runs/default")
 PLANTS = ("paper", "reference")
+MAX_CELLS = 10_000  # of a robustness map (the paper's is 17 x 12 = 204)
+MAX_HORIZON_S = 1e7  # 1e8 control steps of 0.1 s: longer would not fit the step counters, nor finish
 # wall-clock cap of the PPO training the main job starts when runs/default is missing: a run that has
 # not met its stop rule by then keeps its best checkpoint so far (the main job stays bounded)
 MAIN_JOB_PPO_WALL_S = 600.0
@@ -131,8 +134,10 @@ def gradient_controllers(mode: str, root: Path, plant_flags: list[str]
         if not (run_dir / "summary.json").exists():
             if mode != "auto":
                 continue
-            _log(f"no trained run at {run_dir}: training it first (train.py {' '.join(flags + plant_flags)})")
-            train_cli.main([*flags, *plant_flags, "--out-dir", str(run_dir)])
+            resume = ["--resume"] if (run_dir / "checkpoint.msgpack").exists() else []  # an interrupted training
+            _log(f"no trained run at {run_dir}: {'continuing' if resume else 'training'} it first "
+                 f"(train.py {' '.join(flags + plant_flags + resume)})")
+            train_cli.main([*flags, *plant_flags, "--out-dir", str(run_dir), *resume])
         ctrl, config = load_policy(run_dir)
         ctrls[name], grids[name] = ctrl, policy_grid(config)
         runs[name] = {"run_dir": str(run_dir), "summary": json.loads((run_dir / "summary.json").read_text()),
@@ -164,12 +169,15 @@ def parse_grid(text: str, flag: str) -> tuple[int, int]:
         raise _fail(f"{flag} must look like AxB (two integers), got {text!r}") from None
     if a < 0 or b < 0:
         raise _fail(f"{flag} sizes must be >= 0, got {text!r}")
+    if a * b > MAX_CELLS:
+        raise _fail(f"{flag} {text} has {a * b} cells; at most {MAX_CELLS} (each is a 600 s rollout per controller)")
     return a, b
 
 
 def _describe(run_dir: Path, config: TrainConfig) -> dict[str, Any]:
     return {"run_dir": str(run_dir),
-            "description": f"PPO trained with D = {config.plant.delay} s, alpha = {config.plant.alpha}",
+            "description": ("PPO trained" if config.run.algo == "ppo" else f"gradient-trained {config.grad.policy}")
+            + f" with D = {config.plant.delay} s, alpha = {config.plant.alpha}",
             "config": dataclasses.asdict(config)}
 
 
@@ -193,8 +201,8 @@ def check_args(args: argparse.Namespace) -> tuple[int, int]:
     if args.seeds < 1:
         raise _fail(f"--seeds must be >= 1, got {args.seeds}")
     for flag, value in (("--horizon", args.horizon), ("--robust-horizon", args.robust_horizon)):
-        if value is not None and not (math.isfinite(value) and value > 0):
-            raise _fail(f"{flag} must be a finite number of seconds > 0, got {value}")
+        if value is not None and not (math.isfinite(value) and 0 < value <= MAX_HORIZON_S):
+            raise _fail(f"{flag} must be a number of seconds in (0, {MAX_HORIZON_S:.0e}], got {value}")
     if args.n_points is not None and args.n_points < 3:
         raise _fail(f"--n-points must be >= 3, got {args.n_points}")
     for flag, run in (("--run", args.run), ("--run-delay0", args.run_delay0)):
@@ -222,17 +230,36 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     except ValueError as err:
         raise _fail(str(err)) from None
     compile_cache.enable()  # before the first compilation (jaxtraffic.compile_cache)
+    final = args.out  # written whole at the end, or left as it was (cli.staging)
+    work = staging.staging_dir(final) if distributed.is_writer() else None
+    args.out = work or final
     try:
-        return _main(args, argv, t0, nd, na)
+        with staging.signals_raise():
+            metrics = _main(args, argv, t0, nd, na)
+        if work is not None:
+            staging.publish(work, final)
+            _log(f"outputs moved into {final}")
+        return metrics
+    except staging.Stopped as stop:  # SIGINT / SIGTERM / SIGHUP: exit 128 + signal, nothing half-written
+        staging.discard(work)
+        print(f"evaluate.py: interrupted ({stop}): nothing was written to {final} (what it held is unchanged)",
+              file=sys.stderr, flush=True)
+        raise staging.leave(stop.exit_code) from None
     except (ValueError, FileNotFoundError) as err:  # a broken run directory: one line naming the file
-        raise _fail(str(err)) from None
+        staging.discard(work)
+        print(f"evaluate.py: error: {err}", file=sys.stderr, flush=True)
+        raise staging.leave(2) from None
+    except BaseException:
+        staging.discard(work)
+        raise
 
 
 def _main(args: argparse.Namespace, argv: list[str] | None, t0: float, nd: int, na: int) -> dict[str, Any]:
     run_dir = find_or_train_run(args.run, args.n_points)
     ppo, config = load_policy(run_dir)
-    if args.horizon < float(config.plant.dt):
-        raise ValueError(f"--horizon must be at least one time step ({config.plant.dt} s), got {args.horizon}")
+    for flag, value in (("--horizon", args.horizon), ("--robust-horizon", args.robust_horizon)):
+        if value is not None and value < float(config.plant.dt):
+            raise ValueError(f"{flag} must be at least one time step ({config.plant.dt} s), got {value}")
     grids = {"ppo": policy_grid(config)}
     n_points, dt = grids["ppo"].n_points, float(config.plant.dt)
     if args.n_points and args.n_points != n_points:

@@ -15,11 +15,12 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import os
 import sys
 from pathlib import Path
 
 from jaxtraffic import compile_cache, distributed
-from jaxtraffic.learn.config import RUN_CONTROL, SECTIONS, RunConfig, TrainConfig, load_config
+from jaxtraffic.learn.config import RUN_CONTROL, SECTIONS, RunConfig, TrainConfig, check_flags_apply, load_config
 from jaxtraffic.learn.gradient_trainer import train_gradient
 from jaxtraffic.learn.trainer import TrainingInterrupted, check_resumable, train
 
@@ -101,18 +102,20 @@ def explicit_flags(argv: list[str] | None = None) -> dict:
     return vars(p.parse_args(argv))
 
 
-def warn_ignored_on_resume(settings: TrainConfig, given: dict) -> None:
-    """On --resume the run's saved config is used: say which given flags that ignores."""
-    try:
-        saved = load_config(settings.run.out_dir).flat()
-    except (OSError, ValueError):
-        return  # train() reports a broken directory itself
-    flat = settings.flat()
-    ignored = [f"--{k.replace('_', '-')} {flat[k]!r} (the run's value: {saved[k]!r})" for k in given
-               if k not in RUN_CONTROL and k in saved and flat[k] != saved[k]]
-    if ignored:
-        print("train.py: warning: --resume continues with the run's saved configuration; ignoring "
-              + ", ".join(ignored), file=sys.stderr)
+def resume_settings(settings: TrainConfig, given: dict) -> TrainConfig:
+    """On --resume: the run's saved configuration, with the run-control flags given on the command line
+    (``config.RUN_CONTROL``; for the gradient trainer also --grad-steps) applied, and recorded in the
+    run's config.json; a flag that would change the trained problem is an error."""
+    saved = load_config(settings.run.out_dir)
+    control = (*RUN_CONTROL, "grad_steps") if saved.run.algo == "gradient" else RUN_CONTROL
+    flat, old = settings.flat(), saved.flat()
+    changed = [f"--{k.replace('_', '-')} {flat[k]!r} (the run's value: {old[k]!r})" for k in given
+               if k not in control and k in old and flat[k] != old[k]]
+    if changed:
+        raise ValueError("--resume continues the run with its saved configuration; these flags would change it: "
+                         + ", ".join(changed) + "; drop them, or start a new run (--overwrite clears this one)")
+    return saved.replace(**{**{k: flat[k] for k in given if k in control}, "resume": True,
+                            "out_dir": settings.run.out_dir})
 
 
 def main(argv: list[str] | None = None) -> Path:
@@ -127,11 +130,16 @@ def main(argv: list[str] | None = None) -> Path:
         compile_cache.enable()  # before the first compilation (jaxtraffic.compile_cache)
         if config.run.resume:
             check_resumable(Path(config.run.out_dir))
-            warn_ignored_on_resume(config, explicit_flags(argv))
+            config = resume_settings(config, explicit_flags(argv))
+        check_flags_apply(config.run.algo, explicit_flags(argv))  # (on resume: the run's algorithm)
         return train_gradient(config) if config.run.algo == "gradient" else train(config)
     except TrainingInterrupted as exc:  # the trainer has said what is saved
         raise SystemExit(exc.exit_code) from None
-    except (ValueError, FileNotFoundError) as err:  # invalid parameters / run directory: a clear message
+    except BrokenPipeError:  # stdout closed early (train.py | head): say so once, without a traceback
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        print("train.py: error: standard output was closed (broken pipe); stopped", file=sys.stderr)
+        raise SystemExit(2) from None
+    except (ValueError, OSError) as err:  # invalid parameters / run directory, a full disk, no permission...
         print(f"train.py: error: {err}", file=sys.stderr)
         raise SystemExit(2) from err
 

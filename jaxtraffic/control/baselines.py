@@ -152,11 +152,19 @@ def assumed_delay_steps(delay: Array, sent: delay_buffer.DelayBuffer, nominal: T
     return jnp.clip(d, 0, sent.size - 1)
 
 
+def _checked_gain(settings) -> Array:
+    """The gain k, or NaN if a traced setting the constructor could not check is invalid (a non-finite gain, a
+    NaN or negative assumed delay): the law then returns NaN, which ``sim.plant`` reports as
+    ``DIVERGED_CONTROL``. (A select on the scalar gain, so the law's arithmetic is untouched.)"""
+    ok = jnp.isfinite(settings.delay) & (settings.delay >= 0)
+    return jnp.where(ok, settings.k, jnp.nan)
+
+
 def _backstepping_act(settings, cstate, obs, nominal, key):
     lm = linearize(nominal)
     d = assumed_delay_steps(settings.delay, obs.sent, nominal)
     r_hat, v_hat = predict(obs.rho - lm.rho_bar, obs.v - lm.v_bar, obs.sent, d, lm)
-    return _lyapunov_h(r_hat, v_hat, settings.k, lm), cstate
+    return _lyapunov_h(r_hat, v_hat, _checked_gain(settings), lm), cstate
 
 
 # ----------------------------------------------------------------------------- recursive predictor
@@ -211,7 +219,7 @@ def _backstepping_recursive_act(settings, cstate, obs, nominal, key):
     lm = linearize(nominal)
     d = assumed_delay_steps(settings.delay, obs.sent, nominal)
     r_hat, v_hat, cstate = predict_recursive(obs.rho - lm.rho_bar, obs.v - lm.v_bar, obs.sent, d, lm, cstate)
-    return _lyapunov_h(r_hat, v_hat, settings.k, lm), cstate
+    return _lyapunov_h(r_hat, v_hat, _checked_gain(settings), lm), cstate
 
 
 def backstepping(delay: float | Array = 4.0, k: float | Array = 1.0, recursive: bool = False) -> Controller:

@@ -122,8 +122,14 @@ def model_growth_rates(gains: Array, lm: LinearModel, delay_periods: int, k: Arr
 def _spectral_radius(Z: Array) -> Array:
     """max |eig(Z)| (batched over leading axes), by numpy on the host (``_dominant_eigenpair`` says why)."""
     shape = jax.ShapeDtypeStruct(Z.shape[:-2], jnp.finfo(Z.dtype).dtype)
-    return jax.pure_callback(lambda z: np.max(np.abs(np.linalg.eigvals(np.asarray(z))), axis=-1).astype(shape.dtype),
-                             shape, Z, vmap_method="broadcast_all")
+
+    def radius(z):
+        z = np.asarray(z)
+        finite = np.all(np.isfinite(z), axis=(-2, -1))  # a non-finite matrix (gains gone inf): radius inf
+        r = np.max(np.abs(np.linalg.eigvals(np.where(finite[..., None, None], z, 0))), axis=-1)
+        return np.where(finite, r, np.inf).astype(shape.dtype)
+
+    return jax.pure_callback(radius, shape, Z, vmap_method="broadcast_all")
 
 
 def dominant_eigenvalue(Z: Array) -> Array:
@@ -145,6 +151,8 @@ def _dominant_eigenpair(Z: Array) -> tuple[Array, Array, Array]:
 
     def host(z):
         z = np.asarray(z)
+        finite = np.all(np.isfinite(z), axis=(-2, -1))
+        z = np.where(finite[..., None, None], z, 0)
         w, V = np.linalg.eig(z)
         wl, U = np.linalg.eig(np.conj(np.swapaxes(z, -1, -2)))  # left: right ones of Z^H, eigenvalues conjugated
         i = np.argmax(np.abs(w), axis=-1)[..., None]
@@ -152,7 +160,8 @@ def _dominant_eigenpair(Z: Array) -> tuple[Array, Array, Array]:
         j = np.argmin(np.abs(wl - np.conj(lam)), axis=-1)[..., None]
         v = np.take_along_axis(V, i[..., None, :], -1)[..., 0]
         u = np.take_along_axis(U, j[..., None, :], -1)[..., 0]
-        return lam[..., 0].astype(z.dtype), v.astype(z.dtype), u.astype(z.dtype)
+        lam = np.where(finite, lam[..., 0], np.inf)  # a non-finite matrix (gains gone inf): growth inf
+        return lam.astype(z.dtype), v.astype(z.dtype), u.astype(z.dtype)
 
     return jax.pure_callback(host, shapes, Z, vmap_method="broadcast_all")
 

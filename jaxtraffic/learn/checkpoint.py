@@ -39,7 +39,7 @@ from jaxtraffic.control.base import Controller
 from jaxtraffic.control.gain_law import sigma_nodes
 from jaxtraffic.control.gain_policy import feature_size, policy_controller
 from jaxtraffic.control.stability import certify_controller
-from jaxtraffic.learn.config import TrainConfig, load_config
+from jaxtraffic.learn.config import RUN_CONTROL, TrainConfig, load_config
 from jaxtraffic.model.params import TrafficParams
 
 CHECKPOINT = "checkpoint.msgpack"
@@ -68,9 +68,11 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as err:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        if isinstance(err, OSError) and err.filename is None:  # e.g. ENOSPC from write: name the file
+            raise type(err)(err.errno, err.strerror, str(path)) from None
         raise
 
 
@@ -182,10 +184,35 @@ def _read_checked(path: Path, legacy_key: str) -> Any:
         raise _broken(path, f"payload cannot be decoded ({type(err).__name__}: {err})") from None
 
 
-def save_best(run_dir: str | Path, best: dict) -> None:
-    """Write the per-member best checkpoints (params, obs mean/var, score, env_steps) atomically."""
+PROBLEM = "config_problem"  # the trained problem (``problem_of``), in the checkpoint's meta and in best.msgpack
+
+
+def problem_of(config: TrainConfig) -> str:
+    """What a checkpoint was trained on: every config field but the run control (``RUN_CONTROL`` and the
+    gradient trainer's step count, which a resume may change), as canonical JSON."""
+    skip = {*RUN_CONTROL, "grad_steps"}
+    return json.dumps(to_jsonable({k: v for k, v in config.flat().items() if k not in skip}), sort_keys=True)
+
+
+def check_problem(config: TrainConfig, stored: Any, path: Path) -> None:
+    """``ValueError`` if ``path`` (a checkpoint holding ``stored``, its ``problem_of`` at training time) was
+    trained on another problem than ``config`` says; files written before the binding hold none."""
+    if not isinstance(stored, str):
+        return
+    saved, now = json.loads(stored), json.loads(problem_of(config))
+    diff = [k for k in saved if k in now and saved[k] != now[k]]
+    if diff:
+        said = ", ".join(f"{k} = {now[k]!r}" for k in diff[:4])
+        raise ValueError(f"{path.parent / CONFIG}: {said}, but {path.name} was trained with "
+                         f"{', '.join(repr(saved[k]) for k in diff[:4])}: the two files do not belong together "
+                         "(config.json edited after training, or taken from another run)")
+
+
+def save_best(run_dir: str | Path, best: dict, problem: str | None = None) -> None:
+    """Write the per-member best checkpoints (params, obs mean/var, score, env_steps) atomically, with the
+    trained problem (``problem_of``)."""
     state = {"params": serialization.to_state_dict(jax.device_get(best["params"])),
-             **{k: np.asarray(best[k]) for k in _BEST_ARRAYS}}
+             **{k: np.asarray(best[k]) for k in _BEST_ARRAYS}, **({PROBLEM: problem} if problem else {})}
     _write_checked(Path(run_dir) / BEST, state)
 
 
@@ -272,7 +299,14 @@ def load_run(run_dir: str | Path, checkpoint: str = "best") -> tuple[dict, Saved
     if not cfg_path.exists():
         raise FileNotFoundError(f"{run_dir} is not a run directory (no {CONFIG})")
     config = _read_json(cfg_path)
+    summary_path = run_dir / SUMMARY
+    summary = from_jsonable(_read_json(summary_path)) if summary_path.exists() else {}
+    if not isinstance(summary, dict):
+        raise ValueError(f"{summary_path}: not a summary.json written by train.py")
     best = load_best(run_dir) if checkpoint == "best" else None
+    if best is None and checkpoint == "best" and "best_val_score" in summary:
+        raise ValueError(f"{run_dir / BEST} is missing, though {SUMMARY} says the run kept its best checkpoint: "
+                         "restore it, or load the last state explicitly (checkpoint='last')")
     if best is not None:  # the best checkpoint of each member (the trainer's selection)
         policy = SavedPolicy(params=jax.tree.map(np.asarray, best["params"]), obs_mean=np.asarray(best["mean"]),
                              obs_var=np.asarray(best["var"]))
@@ -285,18 +319,14 @@ def load_run(run_dir: str | Path, checkpoint: str = "best") -> tuple[dict, Saved
         except (KeyError, IndexError, TypeError) as err:
             raise ValueError(f"{run_dir / CHECKPOINT}: no policy in the saved state "
                              f"({type(err).__name__}: {err})") from None
-    summary_path = run_dir / SUMMARY
-    summary = from_jsonable(_read_json(summary_path)) if summary_path.exists() else {}
-    if not isinstance(summary, dict):
-        raise ValueError(f"{summary_path}: not a summary.json written by train.py")
     return config, policy, summary
 
 
 def _read_json(path: Path) -> Any:
     try:
         return json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise ValueError(f"{path}: unreadable or not valid JSON ({err})") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as err:
+        raise ValueError(f"{path}: unreadable or not valid JSON ({type(err).__name__}: {err})") from None
 
 
 def policy_grid(config: TrainConfig) -> ControllerGrid:
@@ -332,12 +362,21 @@ def load_policy(run_dir: str | Path, seed: int | None = None, checkpoint: str = 
     """
     run_dir = Path(run_dir)
     config = load_config(run_dir)
-    if config.run.algo == "gradient":
-        from jaxtraffic.learn.gradient_trainer import load_gradient_policy  # it imports this module
+    best = run_dir / BEST
+    if checkpoint == "best" and best.exists():
+        check_problem(config, load_best(run_dir).get(PROBLEM), best)
+    if (run_dir / CHECKPOINT).exists():
+        check_problem(config, load_checkpoint(run_dir)[1].get(PROBLEM), run_dir / CHECKPOINT)
+    try:
+        if config.run.algo == "gradient":
+            from jaxtraffic.learn.gradient_trainer import load_gradient_policy  # it imports this module
 
-        controller = load_gradient_policy(run_dir, config)
-    else:
-        controller = _load_ppo_policy(run_dir, config, seed, checkpoint)
+            controller = load_gradient_policy(run_dir, config)
+        else:
+            controller = _load_ppo_policy(run_dir, config, seed, checkpoint)
+    except (KeyError, AttributeError, TypeError, IndexError) as err:  # e.g. config.json's algo or policy edited
+        raise ValueError(f"{run_dir}: {CONFIG} (algo {config.run.algo}, policy {config.grad.policy}) and the "
+                         f"checkpoint do not belong together ({type(err).__name__}: {err})") from None
     return (controller if plant is None else adapt(controller, policy_grid(config), plant)), config
 
 

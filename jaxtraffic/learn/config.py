@@ -186,9 +186,12 @@ class RunConfig:
                    "(flags of the 'gradient-based training' group)", choices=ALGOS)
     out_dir: str = _f("runs/default", "run directory (default runs/default; with --algo gradient: "
                       "runs/gradient-POLICY)")
-    resume: bool = _f(False, "continue from the run directory's checkpoint (its saved config is used; only the "
-                      "run-control flags --total-steps/--max-wall-s/--keep-going/--stop-patience/--target-reward/"
-                      "--min-wave-speed/--val-target apply)")
+    resume: bool = _f(False, "continue from the run directory's checkpoint with its saved config, run control "
+                      "included; run-control flags given with it (--total-steps, --max-wall-s, --keep-going, "
+                      "--stop-patience, --target-reward, --min-wave-speed, --val-target, ...; gradient: --grad-steps) "
+                      "apply and are recorded, any other flag that would change the run is an error")
+    overwrite: bool = _f(False, "a fresh run into an --out-dir holding another run's results (checkpoint, best "
+                         "policy, summary, learning curve) clears them first; without it that is an error")
     seed: int = _f(0, "PRNG seed")
     seeds: int = _f(POPULATION, "population: members trained at once (their keys split from --seed); the run "
                     "stops on the first that meets the stop rule and keeps the best member's policy")
@@ -229,7 +232,7 @@ class RunConfig:
                                  "(needs tensorboardX: pip install 'jaxtraffic[tb]')")
 
 
-RUN_CONTROL = ("out_dir", "total_steps", "max_wall_s", "keep_going", "resume", "quiet", "stop_patience",
+RUN_CONTROL = ("out_dir", "total_steps", "max_wall_s", "keep_going", "resume", "overwrite", "quiet", "stop_patience",
                "target_reward", "min_wave_speed", "require_certificate", "tensorboard", "val_target",
                "checkpoint_every")
 # fields absent from a run's config.json because it was written before they existed: their value then
@@ -274,6 +277,29 @@ class TrainConfig:
 
 
 SECTIONS = {"plant": PlantConfig, "env": EnvConfig, "algo": AlgoConfig, "grad": GradConfig, "run": RunConfig}
+# the fields only one algorithm reads (the plant, and the run's place, seed, wall budget, evaluation horizon and
+# printing, are both's; the gradient trainer's network policy takes --network)
+_names = lambda cls: {f.name for f in dataclasses.fields(cls)}  # noqa: E731
+ONLY_FOR = {
+    "gradient": _names(GradConfig) | {"controller_points"},
+    "ppo": (_names(AlgoConfig) - {"network"})
+    | (_names(EnvConfig) - {"gain_filter", "filter_sigma", "controller_points"})
+    | {"seeds", "total_steps", "keep_going", "target_reward", "min_wave_speed", "require_certificate",
+       "stop_patience", "restart_steps", "val_horizon_s", "val_plant", "val_target", "checkpoint_every",
+       "tensorboard"},
+}
+
+
+def check_flags_apply(algo: str, given: dict | set) -> None:
+    """``ValueError`` if flags given on the command line (field names) belong to the other algorithm only."""
+    other = "ppo" if algo == "gradient" else "gradient"
+    wrong = sorted(k for k in given if k in ONLY_FOR[other])
+    if wrong:
+        raise ValueError(f"{', '.join('--' + k.replace('_', '-') for k in wrong)}: used by --algo {other} only, and "
+                         f"this run is --algo {algo}" + (" (its length is --grad-steps)" if algo == "gradient"
+                                                          and "total_steps" in wrong else ""))
+
+
 _OWNER = {f.name: s for s, c in SECTIONS.items() for f in dataclasses.fields(c)}
 _TYPES = {f.name: str(f.type) for c in SECTIONS.values() for f in dataclasses.fields(c)}
 
@@ -329,6 +355,6 @@ def load_config(run_dir: str | Path) -> TrainConfig:
         raise FileNotFoundError(f"{run_dir} is not a run directory (no config.json)")
     try:
         data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise ValueError(f"{path}: unreadable or not valid JSON ({err})") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as err:
+        raise ValueError(f"{path}: unreadable or not valid JSON ({type(err).__name__}: {err})") from None
     return config_from_json(data, str(path))

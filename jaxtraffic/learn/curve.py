@@ -17,7 +17,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib import ticker  # noqa: E402
 
-from jaxtraffic.learn.checkpoint import atomic_write_text  # noqa: E402
+from jaxtraffic.learn.checkpoint import atomic_write_bytes, atomic_write_text  # noqa: E402
 from jaxtraffic.sim.metrics import REWARD_TARGET  # noqa: E402
 
 DPI = 110
@@ -44,7 +44,11 @@ def append_curve(path: Path, row: dict, fields: list[str] = CURVE_FIELDS) -> Non
     so a resumed run's CSV matches its checkpoint."""
     buf = io.StringIO()
     csv.DictWriter(buf, fieldnames=fields, extrasaction="ignore").writerow(row)
-    with open(path, "a", newline="") as f:
+    try:  # (not through a symbolic link: write_curve made the file; a link put there since is refused)
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_NOFOLLOW)
+    except OSError as err:
+        raise ValueError(f"{path}: cannot append to it ({err.strerror})") from None
+    with os.fdopen(fd, "a", newline="") as f:
         f.write(buf.getvalue())
         f.flush()
         os.fsync(f.fileno())
@@ -53,8 +57,10 @@ def append_curve(path: Path, row: dict, fields: list[str] = CURVE_FIELDS) -> Non
 def save_figure(fig: plt.Figure, png_path: str | Path) -> Path:
     png_path = Path(png_path)
     png_path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(png_path, dpi=DPI, bbox_inches="tight")
+    buf = io.BytesIO()  # written atomically: replaces a symbolic link at png_path instead of following it
+    fig.savefig(buf, format="png", dpi=DPI, bbox_inches="tight")
     plt.close(fig)
+    atomic_write_bytes(png_path, buf.getvalue())
     return png_path
 
 

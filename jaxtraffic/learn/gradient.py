@@ -51,6 +51,7 @@ from jaxtraffic.control.networks import SMALL_HIDDEN, ActorCritic
 from jaxtraffic.control.stability import GROWTH_TOL, model_growth_rates, wavenumbers
 from jaxtraffic.model.linear import linearize
 from jaxtraffic.model.params import TrafficParams
+from jaxtraffic.model.solver import is_physical
 from jaxtraffic.sim.initial import paper_initial_condition
 from jaxtraffic.sim.rollout import simulate
 from jaxtraffic.sim.sharding import batch_mesh, gathered, local_copy, replicate, sharded_batch, spans_processes
@@ -235,6 +236,24 @@ def make_controller(theta: Any, cfg: GradientConfig, base: TrafficParams) -> Con
 def weights_of(cfg: GradientConfig) -> Weights:
     return Weights(*(jnp.asarray(getattr(cfg, f"{n}_weight"), jnp.float32)
                      for n in ("reward", "wave", "comfort", "effort")))
+
+
+def check_scenarios(cfg: GradientConfig, base: TrafficParams) -> None:
+    """``ValueError`` naming the flag if a training scenario is one the plant cannot represent: a delay beyond
+    the buffer, an initial state outside the physical region, a sampling interval longer than the horizon."""
+    cap = base.max_delay_steps
+    beyond = [d for d in cfg.delays if round(d / float(base.dt)) > cap]
+    if beyond:
+        raise ValueError(f"train_delays = {beyond} (--train-delays): beyond the delay buffer's "
+                         f"{cap * float(base.dt):g} s (--max-delay-steps {cap} x dt {float(base.dt):g} s); raise "
+                         "--max-delay-steps")
+    if cfg.record_every * float(base.dt) > cfg.horizon_s:
+        raise ValueError(f"record_every = {cfg.record_every} (--record-every): must be <= the training horizon "
+                         f"(--train-horizon-s {cfg.horizon_s:g} s = {round(cfg.horizon_s / float(base.dt))} steps)")
+    sc = training_scenarios(cfg, base)
+    if not bool(jnp.all(jax.vmap(is_physical)(sc.rho0, sc.v0, sc.params))):
+        raise ValueError(f"train_amplitudes = {list(cfg.amplitudes)} (--train-amplitudes, veh/m): an initial state "
+                         "leaves the physical region (0 < rho < 1/l, v >= 0); use smaller amplitudes")
 
 
 def horizon_steps(cfg: GradientConfig, dt: float) -> int:

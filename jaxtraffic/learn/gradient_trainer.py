@@ -40,11 +40,13 @@ from jaxtraffic.learn.session import (
     StopSignals,
     TrainingInterrupted,
     agree_stop,
+    check_finite,
     check_out_dir,
     check_resumable,
+    claim_run_dir,
     finish_together,
     fmt_time,
-    open_run_dir,
+    own_run_dir,
     report_interruption,
 )
 from jaxtraffic.model.linear import gain_law_wave_speed, linearize
@@ -113,12 +115,14 @@ def train_gradient(tc: TrainConfig) -> Path:
         check_resumable(run_dir)
         flat = tc.flat()
         tc = load_config(run_dir).replace(**{k: flat[k] for k in (*RUN_CONTROL, "grad_steps")})
+        ckpt.check_problem(tc, ckpt.load_checkpoint(run_dir)[1].get(ckpt.PROBLEM), run_dir / ckpt.CHECKPOINT)
+    claim_run_dir(run_dir, tc.run.resume, tc.run.overwrite)  # refuse another run's directory before compiling
     cfg, plant = gradient_setup(tc)  # validates: fail before creating the run directory
+    G.check_scenarios(cfg, plant)
     writer = distributed.is_writer()  # process 0 prints and writes; the others only compute
     say = (lambda *a: None) if tc.run.quiet or not writer else (lambda *a: print(*a, flush=True))
-    if writer:
-        open_run_dir(run_dir, say)
-    with finish_together("jaxtraffic.train_gradient"), StopSignals(say) as stop:
+    with own_run_dir(run_dir, tc.run.resume, tc.run.overwrite, writer, say), \
+            finish_together("jaxtraffic.train_gradient"), StopSignals(say) as stop:
         return _train_gradient(tc, cfg, plant, run_dir, say, stop, writer)
 
 
@@ -128,12 +132,13 @@ def _train_gradient(tc: TrainConfig, cfg: G.GradientConfig, plant: TrafficParams
     t_start = time.perf_counter()
     init, train_chunk = G.make_train(cfg, plant)
     state = init(jax.random.PRNGKey(run.seed))
-    meta: dict = {"updates": 0, "env_steps": 0, "wall_s": 0.0, "rows": []}
+    meta: dict = {"updates": 0, "env_steps": 0, "wall_s": 0.0, "rows": [], ckpt.PROBLEM: ckpt.problem_of(tc)}
     if run.resume and (run_dir / ckpt.CHECKPOINT).exists():
-        saved, meta = ckpt.load_checkpoint(run_dir)
+        saved, saved_meta = ckpt.load_checkpoint(run_dir)  # (its problem was checked by train_gradient)
+        meta = {**meta, **saved_meta}
         state = serialization.from_state_dict(state, saved)
         say(f"resumed {run_dir} at update {meta['updates']} ({meta['wall_s']:.1f} s)")
-    elif writer:
+    if writer:  # (on resume: the run-control values this session was given, recorded)
         ckpt.write_json(run_dir / ckpt.CONFIG, config_json(tc, jax_version=jax.__version__))
     eval_steps = max(1, round(run.eval_horizon_s / tc.plant.dt))
     ref = evaluation(adapt(backstepping(tc.plant.delay), baseline_grid(plant), plant), plant, eval_steps,
@@ -150,6 +155,9 @@ def _train_gradient(tc: TrainConfig, cfg: G.GradientConfig, plant: TrafficParams
         while meta["updates"] < cfg.steps and signum is None:
             state, m = train_chunk(state)
             jax.block_until_ready(m)
+            check_finite("the objective, gradient or parameters", {"objective": m["objective"], "grad_norm":
+                                                                   m["grad_norm"], "theta": state.theta}, run_dir,
+                         f"{meta['updates']} Adam steps")
             ev = policy_evaluation(state.theta, cfg, plant, eval_steps)
             t_prev = meta["rows"][-1]["wall_s"] if meta["rows"] else wall0
             meta["updates"] += cfg.steps_per_chunk

@@ -2,12 +2,16 @@
 
 ``StopSignals`` turns SIGINT / SIGTERM into a flag checked between chunks; ``TrainingInterrupted``
 is raised after what could be saved was saved (``exit_code`` 130 / 143); ``check_out_dir``,
-``check_resumable`` and ``open_run_dir`` give clear errors for unusable run directories.
+``check_resumable`` and ``open_run_dir`` give clear errors for unusable run directories; ``RunLock`` and
+``claim_run_dir`` make a run directory belong to one run (a lock while training; a fresh run refuses a
+directory holding another run's results unless told to clear it); ``check_finite`` stops a training whose
+parameters or loss went NaN/inf (``NonFiniteTraining``) before anything of that chunk is written.
 """
 
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import math
 import os
 import signal
@@ -15,11 +19,19 @@ import sys
 import threading
 from pathlib import Path
 
+import jax
+import numpy as np
+
 from jaxtraffic import distributed
 from jaxtraffic.learn import checkpoint as ckpt
 
-__all__ = ["StopSignals", "TrainingInterrupted", "check_out_dir", "check_resumable", "fmt_time", "open_run_dir",
-           "report_interruption"]
+__all__ = ["NonFiniteTraining", "RunLock", "StopSignals", "TrainingInterrupted", "check_finite", "check_out_dir",
+           "check_resumable", "claim_run_dir", "fmt_time", "open_run_dir", "own_run_dir", "report_interruption"]
+
+LOCK = ".lock"  # held (flock) by the training that writes the directory
+# what a run writes: a fresh run in a directory holding any of them would mix two runs
+RUN_FILES = (ckpt.CONFIG, ckpt.CHECKPOINT, ckpt.BEST, ckpt.SUMMARY, "learning_curve.csv", "learning_curve.png")
+RESULTS = (ckpt.CHECKPOINT, ckpt.BEST, ckpt.SUMMARY)  # what a fresh run would mix with
 
 
 class TrainingInterrupted(KeyboardInterrupt):
@@ -32,11 +44,11 @@ class TrainingInterrupted(KeyboardInterrupt):
 
 
 class StopSignals:
-    """While active (main thread only), SIGINT and SIGTERM set ``signum`` instead of raising inside
+    """While active (main thread only), SIGINT, SIGTERM and SIGHUP set ``signum`` instead of raising inside
     XLA; a second one exits at once (exit 128 + signal, nothing more is written). The previous
     handlers are restored on exit."""
 
-    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+    SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
     def __init__(self, say):
         self.signum: int | None = None
@@ -132,14 +144,86 @@ def report_interruption(signum: int, run_dir: Path, any_chunk: bool, new_chunk: 
     return msg
 
 
-def open_run_dir(run_dir: Path, say) -> None:
-    """Create the run directory (clear error if impossible) and remove stale temporary files."""
+def open_run_dir(run_dir: Path) -> None:
+    """Create the run directory (clear error if impossible)."""
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise ValueError(f"--out-dir {run_dir}: cannot create it ({err.strerror})") from None
-    stale = ckpt.clean_stale_tmp(run_dir)
-    if stale:
-        say(f"removed {len(stale)} temporary file(s) left by an interrupted write: {', '.join(p.name for p in stale)}")
 
 
+@contextlib.contextmanager
+def own_run_dir(run_dir: Path, resume: bool, overwrite: bool, writer: bool, say):
+    """The writing process's hold on the run directory for a training: created, locked (``RunLock``),
+    another run's files cleared (a fresh run with ``overwrite``; ``claim_run_dir``) and temporary files of an
+    interrupted write removed; the other processes of a multi-process run only compute."""
+    if not writer:
+        yield
+        return
+    open_run_dir(run_dir)
+    with RunLock(run_dir):
+        claim_run_dir(run_dir, resume, overwrite, clear=True)
+        stale = ckpt.clean_stale_tmp(run_dir)
+        if stale:
+            say(f"removed {len(stale)} temporary file(s) left by an interrupted write: "
+                f"{', '.join(p.name for p in stale)}")
+        yield
+
+
+class NonFiniteTraining(ValueError):
+    """The parameters or the loss of a training went NaN/inf; nothing of that chunk was written."""
+
+
+def check_finite(what: str, tree, run_dir: Path, progress: str) -> None:
+    """``NonFiniteTraining`` unless every leaf of ``tree`` (parameters, losses) is finite."""
+    bad = [jax.tree_util.keystr(path) for path, leaf in jax.tree_util.tree_leaves_with_path(jax.device_get(tree))
+           if not np.all(np.isfinite(np.asarray(leaf, dtype=float)))]
+    if bad:
+        kept = (f"the last finite checkpoint ({progress}) is kept in {run_dir}" if (run_dir / ckpt.CHECKPOINT).exists()
+                else f"no checkpoint was written to {run_dir}")
+        raise NonFiniteTraining(f"training went non-finite: {what} {', '.join(bad[:4])}{' ...' if len(bad) > 4 else ''}"
+                                f" became NaN/inf; {kept}. Lower the learning rate or the scales that blew up")
+
+
+def claim_run_dir(run_dir: Path, resume: bool, overwrite: bool, clear: bool = False) -> None:
+    """A run directory holds one run. A fresh run refuses a directory holding another run's results
+    (``ValueError``) unless ``overwrite``; with ``clear`` (the writer, under ``RunLock``) those files are
+    removed first. A directory holding no results (no checkpoint, best policy or summary: a run stopped before
+    its first chunk completed) is taken over without asking."""
+    if resume or not run_dir.is_dir():
+        return
+    present = [n for n in RUN_FILES if (run_dir / n).exists() or (run_dir / n).is_symlink()]
+    if any(n in RESULTS for n in present) and not overwrite:
+        raise ValueError(f"--out-dir {run_dir}: holds a run already ({', '.join(present)}); continue it with "
+                         "--resume, or give --overwrite to clear it and start afresh")
+    if clear:
+        for name in present:
+            (run_dir / name).unlink()
+
+
+class RunLock:
+    """An exclusive lock on the run directory while a training writes it (``flock`` on ``.lock``: released
+    when the process ends, however it ends). A second training of the same directory gets a ``ValueError``."""
+
+    def __init__(self, run_dir: Path, active: bool = True):
+        self.path, self.active, self.fd = run_dir / LOCK, active, None
+
+    def __enter__(self):
+        if not self.active:
+            return self
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise ValueError(f"--out-dir {self.path.parent}: another training is writing to it (it holds "
+                             f"{self.path.name}); wait for it to end or choose another --out-dir") from None
+        self.fd = fd
+        return self
+
+    def __exit__(self, *exc):
+        if self.fd is not None:
+            fcntl.flock(self.fd, fcntl.LOCK_UN)
+            os.close(self.fd)
+            self.fd = None
+        return False

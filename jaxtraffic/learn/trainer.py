@@ -69,14 +69,16 @@ from jaxtraffic.learn.session import (
     StopSignals,
     TrainingInterrupted,
     agree_stop,
+    check_finite,
     check_out_dir,
     check_resumable,
+    claim_run_dir,
     finish_together,
     fmt_time,
-    open_run_dir,
+    own_run_dir,
     report_interruption,
 )
-from jaxtraffic.learn.validate import check_devices
+from jaxtraffic.learn.validate import check_devices, check_initial_amplitudes, check_memory
 from jaxtraffic.model.linear import gain_law_wave_speed, linearize
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.provenance import provenance
@@ -107,6 +109,8 @@ def build(s: TrainConfig) -> tuple[ppo.PPOConfig, learn_env.EnvParams]:
                         **{f.name: algo[f.name] for f in dataclasses.fields(ppo.PPOConfig) if f.name in algo})
     ppo.validate_config(cfg)
     check_devices(s, len(jax.devices()))
+    check_memory(s)
+    check_initial_amplitudes(s, traffic)
     return cfg, env_params
 
 
@@ -191,13 +195,16 @@ def _certified(gains: np.ndarray, candidate: np.ndarray, s: TrainConfig) -> np.n
                      for g, c in zip(np.asarray(gains), np.asarray(candidate), strict=True)])
 
 
+LOSSES = ("mean_reward", "value_loss", "entropy", "approx_kl")  # a chunk's metrics that must stay finite
+
+
 def _save(run_dir: Path, runner: ppo.Runner, meta: dict, best: dict, writer: bool) -> None:
     """The checkpoint and the best checkpoints (the runner is gathered on every process: a collective;
     process 0 writes)."""
     host = distributed.to_host(runner)
     if writer:
         ckpt.save_checkpoint(run_dir, host, meta)
-        ckpt.save_best(run_dir, best)
+        ckpt.save_best(run_dir, best, meta.get(ckpt.PROBLEM))
 
 
 def _plot_curve(run_dir: Path) -> None:
@@ -223,18 +230,20 @@ def train(s: TrainConfig, callbacks: Sequence[Callable[[dict], None]] = ()) -> P
     if s.run.resume:
         check_resumable(run_dir)
         s = _config_for_resume(s, run_dir)
-    cfg, env_params = build(s)  # validates: fail before creating the run directory
+    claim_run_dir(run_dir, s.run.resume, s.run.overwrite)  # refuse another run's directory before compiling
     state = None
-    if s.run.resume:  # read (and verify) the checkpoint before compiling anything
+    if s.run.resume:  # read (and verify) the checkpoint before anything else: is it this config's?
         state, saved_meta = ckpt.load_checkpoint(run_dir)
+        ckpt.check_problem(s, saved_meta.get(ckpt.PROBLEM), run_dir / ckpt.CHECKPOINT)
+    cfg, env_params = build(s)  # validates: fail before creating the run directory
+    if state is not None:
         ckpt.check_device_count(state, len(jax.devices()), run_dir / ckpt.CHECKPOINT)
     writer = distributed.is_writer()  # process 0 prints and writes; the others only compute
     say = (lambda *a: None) if s.run.quiet or not writer else (lambda *a: print(*a, flush=True))
     owned = [TensorBoardWriter(s.run.tensorboard)] if s.run.tensorboard and writer else []  # needs tensorboardX
-    if writer:
-        open_run_dir(run_dir, say)
     try:
-        with finish_together("jaxtraffic.train"), StopSignals(say) as stop:  # an interruption is agreed (agree_stop)
+        with own_run_dir(run_dir, s.run.resume, s.run.overwrite, writer, say), finish_together("jaxtraffic.train"), \
+                StopSignals(say) as stop:  # an interruption is agreed (agree_stop)
             return _train(s, cfg, env_params, run_dir, state, saved_meta if state is not None else None, say, stop,
                           [*callbacks, *owned])
     finally:
@@ -259,7 +268,8 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
     writer = distributed.is_writer()
     runner = init(jax.random.PRNGKey(s.run.seed))
     rep = members.replicated(runner)  # the shared leaves on this process: once per chunk (a collective)
-    meta = {"env_steps": 0, "wall_s": 0.0, "rows": [], "seconds_to_stop_rule": None, "stopped": False}
+    meta = {"env_steps": 0, "wall_s": 0.0, "rows": [], "seconds_to_stop_rule": None, "stopped": False,
+            ckpt.PROBLEM: ckpt.problem_of(s)}
 
     def policy():  # the current (params, obs mean, obs var), leading member axis
         host = jax.device_get(rep)
@@ -267,7 +277,7 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
 
     best = validation.new_best(*policy())
     if state is not None:
-        meta = saved_meta
+        meta = {ckpt.PROBLEM: ckpt.problem_of(s), **saved_meta}  # (a checkpoint from before the binding has none)
         # every leaf placed like the fresh runner's (sharded over the mesh): uncommitted arrays would recompile
         restored = ckpt.restore_runner(runner, state, run_dir / ckpt.CHECKPOINT)
         runner = distributed.put_like(runner, restored)
@@ -278,7 +288,7 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
         if s.run.keep_going:
             meta["stopped"] = False
         say(f"resumed {run_dir} at {meta['env_steps']} env steps ({meta['wall_s']:.1f} s)")
-    elif writer:
+    if writer:  # (on resume: the run-control values this session was given, recorded)
         ckpt.write_json(run_dir / ckpt.CONFIG, config_dict(s, cfg, env_params))
     curve_csv = run_dir / "learning_curve.csv"
     if writer:
@@ -299,6 +309,9 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
             runner, m = train_chunk(runner)
             rep = members.replicated(runner)
             jax.block_until_ready(m)
+            check_finite("the losses, statistics or parameters", {"losses": {k: m[k] for k in LOSSES},
+                                                                  "params": rep.params, "stats": rep.stats}, run_dir,
+                         f"{saved_steps} env steps")
             last_eval = evaluate(runner)
             meta["env_steps"] += steps_per_chunk
             ev = last_eval["final_reward"]
@@ -359,7 +372,7 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
                 _save(run_dir, runner, meta, best, writer)
                 saved_steps = meta["env_steps"]
             elif writer and best_saved is not best:
-                ckpt.save_best(run_dir, best)
+                ckpt.save_best(run_dir, best, meta.get(ckpt.PROBLEM))
             best_saved = best
             if writer:
                 append_curve(curve_csv, row)

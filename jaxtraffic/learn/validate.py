@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import numbers
+import os
 from typing import Any
 
 # field -> (lo, lo_inclusive, hi, hi_inclusive); None: unbounded on that side. Every float must be
@@ -21,7 +22,8 @@ from typing import Any
 RULES: dict[str, tuple[float | None, bool, float | None, bool]] = {
     # plant
     "delay": (0.0, True, None, False), "alpha": (0.0, True, 1.0, True), "alpha_noise": (0.0, True, None, False),
-    "n_points": (3, True, None, False), "dt": (0.0, False, None, False), "max_delay_steps": (0, True, None, False),
+    "n_points": (3, True, None, False), "dt": (0.0, False, None, False),
+    "max_delay_steps": (0, True, 10**6, True),
     "substeps": (1, True, None, False), "filter_sigma": (0.0, True, None, False),
     "controller_points": (3, True, None, False),
     # env
@@ -53,6 +55,8 @@ RULES: dict[str, tuple[float | None, bool, float | None, bool]] = {
     "certificate_weight": (0.0, True, None, False),
     "grad_gain_max": (0.0, False, None, False),
 }
+FLOAT32_MAX = 3.4028234663852886e38
+MAX_STEPS = 10**8  # time steps of one rollout (a longer one would not fit the step counters, nor finish)
 ALLOW_INF = {"max_wall_s", "val_target"}  # inf: no wall-clock limit / no validation condition
 PAIR_RULES = {"delay_range": (0.0, None), "alpha_range": (0.0, 1.0), "amp_range": (0.0, None),
               "wavenumber_range": (0, None)}  # (lo bound, hi bound) of LO,HI pairs, with LO <= HI
@@ -93,6 +97,8 @@ def _scalar(name: str, kind: str, value: Any) -> Any:
         value = float(value)
         if math.isnan(value) or (math.isinf(value) and name not in ALLOW_INF):
             raise _fail(name, value, "must be finite")
+        if math.isfinite(value) and abs(value) > FLOAT32_MAX:  # the programs compute in float32: it would be inf
+            raise _fail(name, value, f"must be finite in float32 (|x| <= {FLOAT32_MAX:.3g})")
         return value
     if kind == "bool":
         if not isinstance(value, bool) and type(value).__name__ != "bool_":
@@ -181,10 +187,10 @@ def check_config(cfg: Any) -> None:
     if not run.out_dir:
         raise _fail("out_dir", run.out_dir, "must not be empty")
     batch = al.num_envs * al.num_steps
-    if batch % al.num_minibatches:
+    if run.algo == "ppo" and batch % al.num_minibatches:  # (PPO's rules do not block a gradient run)
         raise _fail("num_minibatches", al.num_minibatches,
                     f"must divide the batch num_envs * num_steps = {al.num_envs} * {al.num_steps} = {batch}")
-    if al.num_minibatches > batch:
+    if run.algo == "ppo" and al.num_minibatches > batch:
         raise _fail("num_minibatches", al.num_minibatches, f"must be <= the batch num_envs * num_steps = {batch}")
     cp = en.controller_points
     if cp is not None and (cp > pl.n_points or (pl.n_points - 1) % (cp - 1)):
@@ -199,6 +205,12 @@ def check_config(cfg: Any) -> None:
         value = getattr(en if name == "horizon_s" else run, name)
         if value < pl.dt:
             raise _fail(name, value, f"must be >= one time step dt = {pl.dt} s")
+    for name, section in (("horizon_s", en), ("eval_horizon_s", run), ("val_horizon_s", run),
+                          ("train_horizon_s", cfg.grad)):
+        if getattr(section, name) / pl.dt > MAX_STEPS:
+            raise _fail(name, getattr(section, name), f"must be at most {MAX_STEPS:.0e} time steps of dt = {pl.dt} s")
+    if len(cfg.grad.init_gains) != 3:
+        raise _fail("init_gains", cfg.grad.init_gains, "must be three gains eta1,eta2,eta3")
 
 
 def _check_reference_validation(pl: Any) -> None:
@@ -227,3 +239,41 @@ def check_devices(cfg: Any, n_devices: int) -> None:
     if local % al.num_minibatches:
         raise _fail("num_minibatches", al.num_minibatches,
                     f"must divide the batch of each device, num_envs / devices * num_steps = {local}")
+
+
+def memory_estimate(cfg: Any) -> float:
+    """A lower bound of the bytes PPO's programs hold (float32): every environment's state (fields, delay
+    buffer) and one update's rollout (observations, actions, rewards, values... per step)."""
+    n, envs = cfg.plant.n_points, cfg.algo.num_envs * cfg.run.seeds
+    state = (cfg.plant.max_delay_steps + 6) * n
+    transition = 2 * (3 * n + 3) + 12
+    return 4.0 * envs * (state + cfg.algo.num_steps * transition)
+
+
+def check_memory(cfg: Any, have: float | None = None) -> None:
+    """PPO's rollouts must fit this machine's memory (``have`` bytes; default: the physical memory)."""
+    if have is None:
+        try:
+            have = float(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+        except (ValueError, OSError, AttributeError):
+            return
+    need = memory_estimate(cfg)
+    if need > 0.8 * have:
+        al = cfg.algo
+        raise _fail("num_envs", al.num_envs, f"with num_steps = {al.num_steps} and {cfg.run.seeds} seed(s) "
+                    f"(--num-steps, --seeds) the rollouts alone need about {need / 2**30:.3g} GiB, more than this "
+                    f"machine's {have / 2**30:.3g} GiB; use fewer environments or steps")
+
+
+def check_initial_amplitudes(cfg: Any, traffic: Any) -> None:
+    """Every PPO episode must start inside the physical region: both ends of ``amp_range`` (veh/m) on
+    ``traffic`` (concrete ``TrafficParams``)."""
+    from jaxtraffic.model.solver import is_physical
+    from jaxtraffic.sim.initial import paper_initial_condition
+
+    en = cfg.env
+    for amp in en.amp_range:
+        rho0, v0 = paper_initial_condition(traffic, amp, float(en.wavenumber_range[0]))
+        if not bool(is_physical(rho0, v0, traffic)):
+            raise _fail("amp_range", tuple(en.amp_range), f"an initial state of amplitude {amp:g} veh/m leaves the "
+                        "physical region (0 < rho < 1/l, v >= 0); use smaller amplitudes")

@@ -27,7 +27,8 @@ FLOAT_FIELDS = ("L", "l", "q_in", "alpha", "tau_acc", "tau_m", "h_bar", "h_m", "
                 "alpha_noise")
 MODELS = ("arz", "linear")
 # the reference plant's grid (``TrafficParams.reference``): the coarsest level of the convergence study
-# (benchmarks/convergence_study.py) whose convergent metrics are within 5 % of the next finer one's
+# (benchmarks/convergence_study.py) at which every convergent metric of every closed loop is within 5 % of the
+# next finer level's but the shock-carrying Lyapunov loop's speed L2 (docs/model.md section 15.2)
 REFERENCE_POINTS, REFERENCE_SUBSTEPS = 801, 2
 
 
@@ -108,6 +109,22 @@ class TrafficParams:
     def x(self) -> jax.Array:
         """Grid point positions x_i = i dx, m, shape (n_points,)."""
         return jnp.linspace(0.0, 1.0, self.n_points) * self.L
+
+
+def params_valid(p: TrafficParams) -> jax.Array:
+    """Whether the (possibly traced) parameters are usable, as a boolean array: the range checks of
+    ``validate`` that can be done inside a program (every float finite, lengths and times > 0, alpha in
+    [0, 1], alpha_noise >= 0, h_min < h_bar <= h_max... , 0 <= delay <= max_delay_steps dt). ``sim.plant``
+    freezes a plant whose parameters fail it at step 0 (``DIVERGED_PARAMS``) instead of running a
+    different system."""
+    f = {k: jnp.asarray(getattr(p, k), jnp.float32) for k in FLOAT_FIELDS}
+    ok = jnp.all(jnp.stack([jnp.all(jnp.isfinite(v)) for v in f.values()]))
+    for name in ("L", "l", "q_in", "tau_acc", "tau_m", "h_bar", "h_m", "dt", "h_min"):
+        ok &= jnp.all(f[name] > 0)
+    ok &= jnp.all((f["alpha"] >= 0) & (f["alpha"] <= 1)) & jnp.all(f["alpha_noise"] >= 0)
+    ok &= jnp.all(f["h_max"] > f["h_min"]) & jnp.all((f["h_bar"] >= f["h_min"]) & (f["h_bar"] <= f["h_max"]))
+    d = jnp.round(f["delay"] / f["dt"])
+    return ok & jnp.all(f["delay"] >= 0) & jnp.all(d <= p.max_delay_steps)
 
 
 def _concrete(value: object) -> np.ndarray | None:

@@ -17,7 +17,11 @@ learning environment (``learn.env``) and every trainer are scans of it. Order of
 ``PlantState.diverged_reason`` says why a plant was frozen: ``DIVERGED_NONE`` (0, healthy),
 ``DIVERGED_STATE`` (1, the state left the physical region), ``DIVERGED_CONTROL`` (2, the
 controller returned a non-finite time gap), ``DIVERGED_INITIAL`` (3, the initial state was not
-finite or not physical; only reachable with traced inputs, concrete ones are rejected).
+finite or not physical; only reachable with traced inputs, concrete ones are rejected),
+``DIVERGED_PARAMS`` (4, traced parameters outside their valid range, ``model.params.params_valid``: a delay
+beyond the buffer, a negative one, alpha outside [0, 1], ...; concrete ones are rejected by ``validate``).
+A controller whose traced settings are invalid (backstepping with a NaN or negative assumed delay) returns
+a non-finite time gap, hence ``DIVERGED_CONTROL``.
 """
 
 from __future__ import annotations
@@ -33,16 +37,17 @@ from flax import struct
 from jaxtraffic.control.base import Controller, Observation, saturate
 from jaxtraffic.model import delay as delay_buffer
 from jaxtraffic.model.linear import linear_step, linearize
-from jaxtraffic.model.params import TrafficParams
+from jaxtraffic.model.params import TrafficParams, params_valid
 from jaxtraffic.model.solver import arz_step, is_physical, local_cfl
 from jaxtraffic.sim import metrics as M
 
 Array = jax.Array
 
-DIVERGED_NONE, DIVERGED_STATE, DIVERGED_CONTROL, DIVERGED_INITIAL = 0, 1, 2, 3
+DIVERGED_NONE, DIVERGED_STATE, DIVERGED_CONTROL, DIVERGED_INITIAL, DIVERGED_PARAMS = 0, 1, 2, 3, 4
 DIVERGED_REASONS = {DIVERGED_NONE: "not diverged", DIVERGED_STATE: "state left the physical region",
                     DIVERGED_CONTROL: "controller output not finite",
-                    DIVERGED_INITIAL: "initial state not finite or not physical"}
+                    DIVERGED_INITIAL: "initial state not finite or not physical",
+                    DIVERGED_PARAMS: "parameters outside their valid range"}
 
 
 @struct.dataclass
@@ -75,12 +80,14 @@ def initial_state(p: TrafficParams, rho0: Array, v0: Array,
     chex.assert_shape([rho0, v0], (p.n_points,))
     h0 = jnp.full_like(rho0, p.h_bar)
     buf = delay_buffer.init_buffer(h0, p.max_delay_steps) if sent is None else delay_buffer.restart(sent, h0)
-    bad = ~is_physical(rho0, v0, p)
+    bad_params = ~params_valid(p)
+    bad = bad_params | ~is_physical(rho0, v0, p)
     return PlantState(
         rho=rho0, v=v0, sent=buf, h_prev=h0,
         step=jnp.zeros((), jnp.int32), diverged=bad,
         diverged_step=jnp.where(bad, 0, -1).astype(jnp.int32),
-        diverged_reason=jnp.where(bad, DIVERGED_INITIAL, DIVERGED_NONE).astype(jnp.int32),
+        diverged_reason=jnp.where(bad_params, DIVERGED_PARAMS,
+                                  jnp.where(bad, DIVERGED_INITIAL, DIVERGED_NONE)).astype(jnp.int32),
     )
 
 

@@ -1,0 +1,257 @@
+"""A run directory belongs to one run (issue 28): a fresh run refuses another run's directory unless
+``--overwrite`` (which clears it), a lock while training, ``--resume`` keeps the saved run control, and a
+training gone NaN stops with a clear error, keeping the last finite checkpoint. Tiny grids."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from tiny_runs import TINY
+
+from jaxtraffic.cli import train as train_cli
+from jaxtraffic.learn import checkpoint as ckpt
+from jaxtraffic.learn.config import load_config
+from jaxtraffic.learn.session import NonFiniteTraining, RunLock, check_finite, claim_run_dir
+
+GRAD = ["--algo", "gradient", "--policy", "gains", "--n-points", "21", "--train-delays", "1",
+        "--train-horizon-s", "2", "--steps-per-chunk", "1", "--eval-horizon-s", "2", "--quiet"]
+
+
+def test_a_fresh_run_refuses_another_runs_directory_unless_told_to_clear_it(tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / ckpt.CONFIG).write_text("{}")
+    (run / "learning_curve.csv").write_text("update\n")
+    claim_run_dir(run, resume=False, overwrite=False)  # no results: a run stopped before its first chunk
+    for name in (ckpt.CHECKPOINT, ckpt.BEST):
+        (run / name).write_text("x")
+    (run / "notes.txt").write_text("mine")
+    with pytest.raises(ValueError, match=r"holds a run already \(config.json, checkpoint.msgpack, best.msgpack, "
+                                         r"learning_curve.csv\); continue it with --resume, or give --overwrite"):
+        claim_run_dir(run, resume=False, overwrite=False)
+    claim_run_dir(run, resume=True, overwrite=False)  # resuming is what the directory is for
+    claim_run_dir(run, resume=False, overwrite=True)  # allowed, nothing removed yet
+    assert (run / ckpt.CHECKPOINT).exists()
+    claim_run_dir(run, resume=False, overwrite=True, clear=True)
+    assert sorted(p.name for p in run.iterdir()) == ["notes.txt"]  # only the run's own files are removed
+
+
+def test_one_training_at_a_time_holds_the_lock(tmp_path):
+    with RunLock(tmp_path):
+        with pytest.raises(ValueError, match="another training is writing to it"):
+            with RunLock(tmp_path):
+                pass
+    with RunLock(tmp_path):  # released when the first ended
+        pass
+    with RunLock(tmp_path, active=False), RunLock(tmp_path):  # a non-writing process takes no lock
+        pass
+
+
+def test_check_finite_names_the_leaves_that_blew_up(tmp_path):
+    check_finite("x", {"a": np.ones(3), "b": np.float32(2.0)}, tmp_path, "0 steps")
+    with pytest.raises(NonFiniteTraining, match=r"the parameters \['b'\]\['w'\] became NaN/inf; no checkpoint"):
+        check_finite("the parameters", {"a": np.ones(3), "b": {"w": np.array([1.0, np.inf])}}, tmp_path, "0 steps")
+    (tmp_path / ckpt.CHECKPOINT).write_bytes(b"")
+    with pytest.raises(NonFiniteTraining, match=r"the last finite checkpoint \(64 env steps\) is kept"):
+        check_finite("the parameters", {"w": np.array(np.nan)}, tmp_path, "64 env steps")
+
+
+def _main(argv, capsys) -> tuple[int, str]:
+    with pytest.raises(SystemExit) as exc:
+        train_cli.main(argv)
+    return exc.value.code, capsys.readouterr().err
+
+
+def test_cli_run_directory_ownership_and_resume_keeps_the_saved_run_control(tmp_path, capsys):
+    run = tmp_path / "g"
+    train_cli.main(GRAD + ["--out-dir", str(run), "--grad-steps", "2"])
+    assert json.loads((run / ckpt.SUMMARY).read_text())["updates"] == 2
+    # a second fresh run into it: one line, exit 2, before anything is compiled or written
+    before = {p.name: p.stat().st_mtime_ns for p in run.iterdir()}
+    code, err = _main(GRAD + ["--out-dir", str(run), "--grad-steps", "3"], capsys)
+    assert code == 2 and "holds a run already" in err and err.count("\n") == 1
+    assert {p.name: p.stat().st_mtime_ns for p in run.iterdir()} == before
+    # --resume alone keeps the run's 2 Adam steps (not the default); a changed problem is refused
+    train_cli.main(["--resume", "--out-dir", str(run), "--quiet"])
+    assert json.loads((run / ckpt.SUMMARY).read_text())["updates"] == 2
+    code, err = _main(["--resume", "--out-dir", str(run), "--n-points", "41"], capsys)
+    assert code == 2 and "--n-points 41 (the run's value: 21)" in err
+    # a run-control flag applies, and is recorded
+    train_cli.main(["--resume", "--out-dir", str(run), "--grad-steps", "3", "--quiet"])
+    assert json.loads((run / ckpt.SUMMARY).read_text())["updates"] == 3 and load_config(run).grad.grad_steps == 3
+    # --overwrite clears the old run first
+    train_cli.main(GRAD + ["--out-dir", str(run), "--grad-steps", "1", "--overwrite"])
+    assert json.loads((run / ckpt.SUMMARY).read_text())["updates"] == 1
+    assert len((run / "learning_curve.csv").read_text().splitlines()) == 2  # header + one row: nothing mixed
+
+
+def test_config_and_checkpoint_are_bound_together(tiny_run_a, tmp_path):
+    import shutil
+
+    from jaxtraffic.learn import load_policy
+
+    run = tmp_path / "a"
+    shutil.copytree(tiny_run_a, run)
+    load_policy(run)
+    cfg = json.loads((run / ckpt.CONFIG).read_text())
+    cfg["config"]["env"]["gain_max"] = 0.123  # edited after training: another controller
+    (run / ckpt.CONFIG).write_text(json.dumps(cfg))
+    with pytest.raises(ValueError, match=r"gain_max = 0.123, but best.msgpack was trained with .*do not belong"):
+        load_policy(run)
+    cfg["config"]["env"]["gain_max"] = load_config(tiny_run_a).env.gain_max
+    cfg["config"]["run"]["total_steps"] = 10**9  # run control is not part of the trained problem
+    (run / ckpt.CONFIG).write_text(json.dumps(cfg))
+    load_policy(run)
+    (run / ckpt.BEST).unlink()  # never silently another policy
+    with pytest.raises(ValueError, match=r"best.msgpack is missing, though summary.json says the run kept"):
+        load_policy(run)
+    load_policy(run, checkpoint="last")
+
+
+def test_symlinks_in_a_run_directory_are_replaced_not_followed(tmp_path):
+    import os
+
+    from jaxtraffic.learn.curve import append_curve, plot_learning_curve, write_curve
+
+    outside = tmp_path / "precious.txt"
+    outside.write_text("keep")
+    run = tmp_path / "run"
+    run.mkdir()
+    rows = [{"update": i, "env_steps": 64 * i, "wall_s": 1.0 * i, "mean_reward": -0.6, "eval_reward": -0.5}
+            for i in (1, 2)]
+    os.symlink(outside, run / "learning_curve.png")
+    os.symlink(outside, run / "learning_curve.csv")
+    write_curve(run / "learning_curve.csv", rows)
+    plot_learning_curve(run / "learning_curve.csv", run / "learning_curve.png")
+    assert outside.read_text() == "keep" and not (run / "learning_curve.png").is_symlink()
+    os.remove(run / "learning_curve.csv")
+    os.symlink(outside, run / "learning_curve.csv")
+    with pytest.raises(ValueError, match="cannot append to it"):
+        append_curve(run / "learning_curve.csv", rows[0])
+    assert outside.read_text() == "keep"
+
+
+def test_a_compilation_cache_others_can_write_is_not_used(tmp_path, capsys):
+    from jaxtraffic import compile_cache
+
+    shared = tmp_path / "cache"
+    shared.mkdir()
+    shared.chmod(0o777)
+    assert not compile_cache.private(shared)
+    assert "writable by other users" in capsys.readouterr().err
+    shared.chmod(0o700)
+    assert compile_cache.private(shared) and capsys.readouterr().err == ""
+
+
+def test_ppo_gone_nan_stops_with_an_error_and_no_summary(tmp_path, capsys):
+    run = tmp_path / "nan"
+    code, err = _main([*TINY, "--out-dir", str(run), "--total-steps", "256", "--lr", "1e30", "--val-horizon-s", "0"],
+                      capsys)
+    assert code == 2 and "training went non-finite" in err and "Traceback" not in err, err
+    assert not (run / ckpt.SUMMARY).exists() and not (run / ckpt.BEST).exists()
+
+
+# --- evaluate.py: outputs whole or not at all, signals (cli.staging) ---------------------------------------------
+
+def test_publish_replaces_what_the_job_wrote_and_leaves_the_rest(tmp_path):
+    from jaxtraffic.cli import staging
+
+    out = tmp_path / "results"
+    (out / "reference").mkdir(parents=True)
+    (out / "REPORT.md").write_text("old")
+    (out / "reference" / "stale.png").write_text("old")
+    (out / "convergence").mkdir()  # another tool's output in the same directory
+    work = staging.staging_dir(out)
+    assert work.parent == tmp_path and work.name.startswith(".results.partial-")
+    (work / "reference").mkdir(parents=True)
+    (work / "REPORT.md").write_text("new")
+    (work / "reference" / "metrics.json").write_text("{}")
+    staging.publish(work, out)
+    assert not work.exists() and (out / "REPORT.md").read_text() == "new"
+    assert sorted(p.name for p in (out / "reference").iterdir()) == ["metrics.json"]  # whole, not mixed
+    assert (out / "convergence").is_dir() and sorted(p.name for p in out.iterdir()) == [
+        "REPORT.md", "convergence", "reference"]
+    dead = tmp_path / ".results.partial-999999999"  # a killed run's leftovers (no such process)
+    dead.mkdir()
+    staging.staging_dir(out)
+    assert not dead.exists()
+
+
+@pytest.mark.parametrize("outcome", ["done", "signal", "error"])
+def test_evaluate_writes_whole_or_nothing(outcome, tmp_path, monkeypatch, capsys):
+    import signal
+
+    from jaxtraffic.cli import evaluate as evaluate_cli
+    from jaxtraffic.cli import staging
+
+    out = tmp_path / "results"
+    out.mkdir()
+    (out / "REPORT.md").write_text("earlier")
+
+    def fake_main(args, *rest):
+        (args.out / "REPORT.md").parent.mkdir(parents=True, exist_ok=True)
+        (args.out / "REPORT.md").write_text("new")
+        if outcome == "signal":
+            raise staging.Stopped(signal.SIGTERM)
+        if outcome == "error":
+            raise ValueError("runs/x/config.json: broken")
+        return {"ok": True}
+
+    monkeypatch.setattr(evaluate_cli, "_main", fake_main)
+    argv = ["--out", str(out), "--run", str(tmp_path)]
+    (tmp_path / "config.json").write_text("{}")
+    (tmp_path / "checkpoint.msgpack").write_bytes(b"")
+    if outcome == "done":
+        assert evaluate_cli.main(argv) == {"ok": True}
+        assert (out / "REPORT.md").read_text() == "new"
+    else:
+        with pytest.raises(SystemExit) as exc:
+            evaluate_cli.main(argv)
+        err = capsys.readouterr().err
+        assert exc.value.code == (143 if outcome == "signal" else 2) and err.count("\n") == 1, err
+        assert ("interrupted (SIGTERM)" if outcome == "signal" else "error: runs/x/config.json: broken") in err
+        assert (out / "REPORT.md").read_text() == "earlier"
+    assert [p.name for p in tmp_path.iterdir() if ".partial-" in p.name] == []
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["--train-delays", "50"], r"train_delays = \[50.0\] \(--train-delays\): beyond the delay buffer's 10 s"),
+    (["--record-every", "1000000"], r"record_every = 1000000 \(--record-every\): must be <= the training horizon"),
+    (["--train-amplitudes", "-1"], r"--train-amplitudes, veh/m\): an initial state leaves the physical region"),
+    (["--num-envs", "7", "--tensorboard", "tb"], r"--num-envs, --tensorboard: used by --algo ppo only"),
+    (["--total-steps", "7"], r"--total-steps: used by --algo ppo only, and this run is --algo gradient \(its length"),
+])
+def test_gradient_scenarios_the_plant_cannot_represent_and_flags_of_the_other_algorithm(argv, match, tmp_path,
+                                                                                        capsys):
+    code, err = _main([*GRAD, "--out-dir", str(tmp_path / "r"), *argv], capsys)
+    assert code == 2 and err.count("\n") == 1, err
+    assert __import__("re").search(match, err), err
+    assert not (tmp_path / "r").exists()  # nothing half-made
+
+
+def test_ppo_rules_do_not_block_a_gradient_run_and_gradient_flags_do_not_pass_for_ppo(tmp_path, capsys):
+    from jaxtraffic.learn.config import TrainConfig
+
+    TrainConfig.from_flat(algo="gradient", num_minibatches=7)  # PPO's batch rule does not apply
+    code, err = _main([*TINY, "--out-dir", str(tmp_path / "p"), "--grad-steps", "3"], capsys)
+    assert code == 2 and "--grad-steps: used by --algo gradient only, and this run is --algo ppo" in err
+    code, err = _main([*TINY, "--out-dir", str(tmp_path / "p"), "--amp-range", "1,1"], capsys)
+    assert code == 2 and "amp_range = (1.0, 1.0) (--amp-range): an initial state of amplitude 1 veh/m" in err
+
+
+def test_sizes_and_horizons_beyond_what_can_run_are_flag_errors(tmp_path, capsys):
+    from jaxtraffic.learn.config import TrainConfig
+    from jaxtraffic.learn.validate import check_memory
+
+    for flags, match in ((["--horizon-s", "1e30"], "horizon_s = 1e+30 (--horizon-s): must be at most 1e+08 time steps"),
+                         (["--max-delay-steps", "2147483648"], "(--max-delay-steps): must lie in [0, 1000000]"),
+                         (["--num-envs", "2147483648"], "the rollouts alone need about"),
+                         (["--algo", "gradient", "--init-gains", "1,2"], "(--init-gains): must be three gains")):
+        args = [*TINY, *flags] if flags[0] != "--algo" else [*GRAD, *flags[2:]]
+        code, err = _main([*args, "--out-dir", str(tmp_path / "r")], capsys)
+        assert code == 2 and match in err and err.count("\n") == 1, err
+    with pytest.raises(ValueError, match=r"num_envs = 1024 \(--num-envs\): with num_steps = 100 and 4 seed"):
+        check_memory(TrainConfig.from_flat(num_envs=1024, num_steps=100, seeds=4), have=2.0**20)
+    check_memory(TrainConfig(), have=2.0**34)  # the defaults fit 16 GiB

@@ -159,6 +159,11 @@ def test_traced_parameters_out_of_range_are_flagged_not_run(field, value):
     assert int(ok["diverged_reason"]) == DIVERGED_NONE  # the buffer's full 10 s is allowed
 
 
+def test_given_alphas_outside_zero_one_are_an_error():
+    with pytest.raises(ValueError, match=r"alphas must lie in \[0, 1\] \(ACC shares\), got values in \[-1, -1\]"):
+        jt.simulate(P21, n_steps=5, alphas=-np.ones(5))
+
+
 @pytest.mark.parametrize("delay", [jnp.nan, -4.0])
 def test_traced_invalid_backstepping_delay_is_flagged_not_lyapunov(delay):
     m = jax.jit(lambda d: jt.simulate(P21, jt.backstepping(d), n_steps=5).metrics)(jnp.float32(delay))

@@ -201,6 +201,11 @@ def _check_alphas(params: TrafficParams, alphas: Array | None, n_steps: int, noi
     if (shape[1:] if batched else shape) not in ok:
         lead = "(B, ...) with " if batched else ""
         raise ValueError(f"alphas needs shape {lead}{ok[0]} or {ok[1]}, got {shape}")
+    if not isinstance(alphas, jax.core.Tracer):  # (traced sequences are not checked)
+        a = np.asarray(alphas, np.float64)
+        if not np.all((a >= 0) & (a <= 1)):
+            raise ValueError(f"alphas must lie in [0, 1] (ACC shares), got values in [{np.nanmin(a):g}, "
+                             f"{np.nanmax(a):g}]" + (" and NaN" if np.isnan(a).any() else ""))
 
 
 def _check_initial_condition(params: TrafficParams, rho0: Array | None, v0: Array | None) -> None:

@@ -255,3 +255,13 @@ def test_sizes_and_horizons_beyond_what_can_run_are_flag_errors(tmp_path, capsys
     with pytest.raises(ValueError, match=r"num_envs = 1024 \(--num-envs\): with num_steps = 100 and 4 seed"):
         check_memory(TrainConfig.from_flat(num_envs=1024, num_steps=100, seeds=4), have=2.0**20)
     check_memory(TrainConfig(), have=2.0**34)  # the defaults fit 16 GiB
+
+
+def test_module_entry_points_and_the_gradient_chunk_rule(tmp_path, capsys):
+    import jaxtraffic.__main__ as entry
+
+    assert entry.main([]) == 0 and "python -m jaxtraffic {train,evaluate}" in capsys.readouterr().out
+    assert entry.main(["bogus"]) == 2
+    code, err = _main([*GRAD, "--grad-steps", "6", "--steps-per-chunk", "5", "--out-dir", str(tmp_path / "r")], capsys)
+    assert code == 2 and "grad_steps = 6 (--grad-steps): must be a multiple of --steps-per-chunk (5)" in err
+    assert not (tmp_path / "r").exists()

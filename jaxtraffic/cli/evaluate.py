@@ -314,3 +314,7 @@ def _main(args: argparse.Namespace, argv: list[str] | None, t0: float, nd: int, 
     _log(f"total {time.perf_counter() - t0:.1f} s; verdicts: "
          + "; ".join(f"{k}: {json.dumps(m['meta']['claims'])}" for k, m in results.items()))
     return metrics
+
+
+if __name__ == "__main__":  # python -m jaxtraffic.cli.evaluate
+    main()

@@ -143,3 +143,6 @@ def main(argv: list[str] | None = None) -> Path:
         print(f"train.py: error: {err}", file=sys.stderr)
         raise SystemExit(2) from err
 
+
+if __name__ == "__main__":  # python -m jaxtraffic.cli.train
+    main()

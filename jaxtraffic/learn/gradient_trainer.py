@@ -119,6 +119,9 @@ def train_gradient(tc: TrainConfig) -> Path:
     claim_run_dir(run_dir, tc.run.resume, tc.run.overwrite)  # refuse another run's directory before compiling
     cfg, plant = gradient_setup(tc)  # validates: fail before creating the run directory
     G.check_scenarios(cfg, plant)
+    if cfg.steps % cfg.steps_per_chunk:  # a chunk is one compiled program of steps_per_chunk Adam steps
+        raise ValueError(f"grad_steps = {cfg.steps} (--grad-steps): must be a multiple of --steps-per-chunk "
+                         f"({cfg.steps_per_chunk}), the Adam steps of one compiled chunk")
     writer = distributed.is_writer()  # process 0 prints and writes; the others only compute
     say = (lambda *a: None) if tc.run.quiet or not writer else (lambda *a: print(*a, flush=True))
     with own_run_dir(run_dir, tc.run.resume, tc.run.overwrite, writer, say), \
@@ -213,8 +216,9 @@ def _train_gradient(tc: TrainConfig, cfg: G.GradientConfig, plant: TrafficParams
     if writer:
         ckpt.write_json(run_dir / ckpt.SUMMARY, summary)
     say(f"done: {meta['updates']} Adam steps in {meta['wall_s']:.1f} s; final rho L2 "
-        f"{ev['final_rho_L2'] * 1e3:.3f} veh/km, J_comfort {ev['J_comfort']:.4g}; first beat backstepping "
-        f"after {meta.get('seconds_to_beat_backstepping') or float('nan'):.1f} s; outputs in {run_dir}")
+        f"{ev['final_rho_L2'] * 1e3:.3f} veh/km, J_comfort {ev['J_comfort']:.4g}; "
+        + (f"first beat backstepping after {beat:.1f} s" if (beat := meta.get("seconds_to_beat_backstepping"))
+           is not None else "never beat backstepping") + f"; outputs in {run_dir}")
     if interrupted:
         raise TrainingInterrupted(signum, msg if writer else "")
     return run_dir

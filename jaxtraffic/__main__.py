@@ -1,0 +1,24 @@
+"""``python -m jaxtraffic train|evaluate [flags]``: the two command lines (``train.py``, ``evaluate.py``)."""
+
+from __future__ import annotations
+
+import sys
+
+USAGE = "usage: python -m jaxtraffic {train,evaluate} [flags]   (python -m jaxtraffic train --help lists them)"
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if not argv or argv[0] not in ("train", "evaluate"):
+        print(USAGE, file=sys.stderr if argv else sys.stdout)
+        return 2 if argv else 0
+    if argv[0] == "train":
+        from jaxtraffic.cli.train import main as run
+    else:
+        from jaxtraffic.cli.evaluate import main as run
+    run(argv[1:])
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -38,13 +38,14 @@ from jaxtraffic.cli import staging
 from jaxtraffic.cli import train as train_cli
 from jaxtraffic.learn.checkpoint import atomic_write_text, load_policy, policy_grid
 from jaxtraffic.learn.config import TrainConfig
+from jaxtraffic.learn.validate import MAX_STEPS
 from jaxtraffic.model.params import TrafficParams
 
 _REF = TrafficParams.reference()
 DEFAULT_RUN = Path("runs/default")
 PLANTS = ("paper", "reference")
 MAX_CELLS = 10_000  # of a robustness map (the paper's is 17 x 12 = 204)
-MAX_HORIZON_S = 1e7  # 1e8 control steps of 0.1 s: longer would not fit the step counters, nor finish
+MAX_HORIZON_S = MAX_STEPS * float(TrafficParams().dt)  # a rollout's step bound (learn.validate) at the paper's dt
 # wall-clock cap of the PPO training the main job starts when runs/default is missing: a run that has
 # not met its stop rule by then keeps its best checkpoint so far (the main job stays bounded)
 MAIN_JOB_PPO_WALL_S = 600.0

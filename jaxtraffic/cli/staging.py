@@ -1,10 +1,10 @@
 """``evaluate.py``'s outputs made whole or not at all, and its signals handled like the trainers'.
 
-``staged(out)`` gives a hidden sibling directory (``.NAME.partial-PID``) to write into; when the job ends
+``staging_dir(out)`` gives a hidden sibling directory (``.NAME.partial-PID``) to write into; when the job ends
 normally each entry written there replaces the entry of the same name in ``out`` at once (files by
 ``os.replace``, directories by a rename), so ``out`` never holds a half-written report beside an older
-one; entries of ``out`` this job did not write are left alone. On an error or a signal the staging
-directory is removed and ``out`` is unchanged.
+one (``publish``); entries of ``out`` this job did not write are left alone. On an error or a signal the staging
+directory is removed (``discard``) and ``out`` is unchanged.
 
 ``signals_raise()`` turns SIGINT, SIGTERM and SIGHUP into ``Stopped`` in the main thread (a
 ``BaseException``: no ``except Exception`` swallows it). ``leave(code)`` exits with ``code``; while one

@@ -128,10 +128,11 @@ def main(argv: list[str] | None = None) -> Path:
         cluster = [getattr(args, k) for k in distributed.FLAGS]
         distributed.initialize(*cluster)
         compile_cache.enable()  # before the first compilation (jaxtraffic.compile_cache)
+        given = explicit_flags(argv)
         if config.run.resume:
             check_resumable(Path(config.run.out_dir))
-            config = resume_settings(config, explicit_flags(argv))
-        check_flags_apply(config.run.algo, explicit_flags(argv))  # (on resume: the run's algorithm)
+            config = resume_settings(config, given)
+        check_flags_apply(config.run.algo, given)  # (on resume: the run's algorithm)
         return train_gradient(config) if config.run.algo == "gradient" else train(config)
     except TrainingInterrupted as exc:  # the trainer has said what is saved
         raise SystemExit(exc.exit_code) from None

@@ -1,50 +1,44 @@
 #!/usr/bin/env python
-"""How far can the three-gain law reach on the robustness map? (issue 13, robust PPO)
+"""How far can the three-gain law reach on the robustness map? The oracle rows (``jaxtraffic.paper.oracle``).
 
-The robustness map (``evaluate.py``, ``paper.scenarios.run_robustness``) counts the cells
-(plant delay D x plant alpha, 600 s, no noise, nominal model alpha = 0.15) where a controller
-stabilises the road: not diverged and final spatial standard deviation of rho < 0.5 veh/km.
-Backstepping, given the true plant delay, stabilises 82 of the 204 cells.
+Rolls out a grid of constant gain triples (eta1, eta2, eta3) of the filtered three-gain law on every cell of
+the robustness map (plant delay x plant alpha, 600 s, no noise; *stabilised*: not diverged and final
+std_x(rho) < 0.5 veh/km) and reports three oracles chosen with knowledge of the outcome: the best single
+triple, the best triple per delay (a law told the delay, not alpha, as backstepping is) and the best per
+cell. ``--out DIR`` writes ``DIR/PLANT.json``, which ``evaluate.py --oracle-dir DIR`` draws beside the
+controllers' maps and tabulates in REPORT.md.
 
-A PPO gain policy outputs the three gains of ``control.gain_law``; on one cell the best such
-policy can do is at least as well as the best *constant* gains for that cell. This script searches
-a grid of constant gains (eta1, eta2, eta3) on every cell and reports, per cell, whether *any* of
-them stabilises it: an oracle gain schedule (a different gain triple per cell, chosen with
-knowledge of the outcome). Its count is the ceiling a policy that only schedules constant gains
-by (D, alpha) could reach on this gain grid, and it is compared with backstepping's map. Also
-reported: a schedule by the delay alone (backstepping is told the plant delay, not its alpha):
-per delay, the one triple that stabilises most alphas; and the best single triple for the map.
-
-    python benchmarks/gain_oracle.py                      # coarse grid (280 triples), JSON to stdout
-    python benchmarks/gain_oracle.py --eta1=0.6,0.7,0.8,0.9,0.97 --eta2=-3,-2.5,-2,-1.5,-1 \
-        --eta3=-3,-2.770561,-2.5,-2.25,-2                 # finer, around the coarse grid's best
+    python benchmarks/gain_oracle.py --plant reference --out docs/results/oracle   # 9 x 6 map, 90 triples
+    python benchmarks/gain_oracle.py --plant paper --out docs/results/oracle       # 17 x 12 map
+    python benchmarks/gain_oracle.py --eta1=0 --eta2=-1 --eta3=-1.5,-2             # a few triples, JSON to stdout
 """
 
 from __future__ import annotations
 
 import argparse
-import itertools
 import json
 import sys
 import time
 from pathlib import Path
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from machine import cpu_model  # noqa: E402  (benchmarks/machine.py)
+from machine import cpu_model, load  # noqa: E402  (benchmarks/machine.py)
 
-from jaxtraffic import constant_gains, paper_initial_condition, simulate_batch, stack_params  # noqa: E402
-from jaxtraffic.paper.scenarios import EvalConfig  # noqa: E402
+from jaxtraffic.control.gain_law import FILTER_SIGMA  # noqa: E402
+from jaxtraffic.learn.checkpoint import write_json  # noqa: E402
+from jaxtraffic.paper.oracle import (  # noqa: E402
+    DEFAULT_GRID,
+    gain_grid_map,
+    grid_triples,
+    oracle_json,
+    oracle_rows,
+)
+from jaxtraffic.paper.scenarios import EvalConfig, robust_axis  # noqa: E402
+from jaxtraffic.provenance import provenance  # noqa: E402
 
-STD_MAX = 0.5e-3  # veh/m: the map's "stabilised" threshold (0.5 veh/km)
-
-
-def _picture(mask: np.ndarray) -> list[str]:
-    """One string per delay row: '#' stabilised, '.' not."""
-    return ["".join("#" if x else "." for x in row) for row in mask]
+MAPS = {"paper": (17, 12), "reference": (9, 6)}  # evaluate.py's default map sizes per plant
 
 
 def _floats(text: str) -> list[float]:
@@ -53,58 +47,39 @@ def _floats(text: str) -> list[float]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--eta1", type=_floats, default=_floats("-0.8,-0.4,0,0.4,0.8"))
-    ap.add_argument("--eta2", type=_floats, default=_floats("-3,-2,-1,0,1,2,3"))
-    ap.add_argument("--eta3", type=_floats, default=_floats("-3,-2.770561,-2,-1,0,1,2,3"))  # with Lyapunov's
+    ap.add_argument("--plant", choices=tuple(MAPS), default="reference")
+    for name, values in DEFAULT_GRID.items():
+        ap.add_argument(f"--{name}", type=_floats, default=list(values))
+    ap.add_argument("--filter-sigma", type=float, default=FILTER_SIGMA, help="the law's filter width, m")
     ap.add_argument("--horizon-s", type=float, default=600.0)
-    ap.add_argument("--combos-per-call", type=int, default=20, help="gain triples per batched call")
+    ap.add_argument("--out", type=Path, default=None, help="write PLANT.json here (default: JSON to stdout)")
     args = ap.parse_args()
 
-    cfg = EvalConfig(horizon_s=args.horizon_s)
-    nom = cfg.nominal()
-    n_steps = cfg.n_steps
-    dd, aa = np.meshgrid(np.asarray(cfg.robust_delays), np.asarray(cfg.robust_alphas), indexing="ij")
-    cells = [(float(d), float(a)) for d, a in zip(dd.ravel(), aa.ravel(), strict=True)]
-    combos = list(itertools.product(args.eta1, args.eta2, args.eta3))
-    rho0, v0 = paper_initial_condition(nom)
-    template = constant_gains()
-
-    @jax.jit
-    def run(params, gains):
-        b = gains.shape[0]
-        res = simulate_batch(params, template.replace(settings=gains), n_steps=n_steps, nominal=nom,
-                             rho0=jnp.broadcast_to(rho0, (b, nom.n_points)),
-                             v0=jnp.broadcast_to(v0, (b, nom.n_points)), batch_controller=True)
-        return res.metrics["diverged"], jnp.std(res.final.rho, axis=-1)
-
-    stab = np.zeros((len(combos), len(cells)), bool)
+    nd, na = MAPS[args.plant]
+    axes = {"robust_delays": robust_axis(nd, 0.0, 8.0, 0.1), "robust_alphas": robust_axis(na, 0.05, 0.6),
+            "robust_horizon_s": args.horizon_s, "numerics_check": False}
+    cfg = EvalConfig.reference(**axes) if args.plant == "reference" else EvalConfig(**axes)
+    triples = grid_triples(args.eta1, args.eta2, args.eta3)
     t0 = time.perf_counter()
-    for lo in range(0, len(combos), args.combos_per_call):
-        part = combos[lo:lo + args.combos_per_call]
-        envs = [nom.replace(delay=d, alpha=a) for _ in part for d, a in cells]
-        gains = jnp.asarray([g for g in part for _ in cells], jnp.float32)
-        div, std = jax.device_get(run(stack_params(*envs), gains))
-        stab[lo:lo + len(part)] = ((~div) & (std < STD_MAX)).reshape(len(part), len(cells))
-        print(f"  {lo + len(part)}/{len(combos)} gain triples, {time.perf_counter() - t0:.0f} s", file=sys.stderr)
-    any_cell = stab.any(axis=0).reshape(dd.shape)
-    per_combo = stab.sum(axis=1)
-    best = int(np.argmax(per_combo))
-    # a schedule by the delay alone (what backstepping is told): per delay row, the best triple
-    rows = stab.reshape(len(combos), *dd.shape)
-    per_delay = rows.sum(axis=2).max(axis=0)
-    out = {
-        "machine": cpu_model(), "horizon_s": args.horizon_s, "n_cells": len(cells), "n_gain_triples": len(combos),
+    div, std = gain_grid_map(cfg, triples, args.filter_sigma, log=lambda m: print(m, file=sys.stderr, flush=True))
+    rows = oracle_rows(triples, div, std)
+    stab = ~div & (std < 0.5e-3)
+    per_triple = stab.reshape(len(triples), -1).sum(axis=1)
+    out = oracle_json(cfg, triples, rows, args.filter_sigma, extra={
         "grid": {"eta1": args.eta1, "eta2": args.eta2, "eta3": args.eta3},
-        "oracle_schedule_cells": int(any_cell.sum()),
-        "delay_schedule_cells": int(per_delay.sum()), "delay_schedule_per_delay": per_delay.tolist(),
-        "best_single_triple": {"gains": combos[best], "cells": int(per_combo[best]),
-                               "map": _picture(stab[best].reshape(dd.shape))},
-        "top_triples": [{"gains": combos[i], "cells": int(per_combo[i])} for i in np.argsort(-per_combo)[:8]],
-        "oracle_map": _picture(any_cell),
-        "delays_s": list(map(float, cfg.robust_delays)), "alphas": list(map(float, cfg.robust_alphas)),
-        "wall_s": round(time.perf_counter() - t0, 1),
-    }
-    print(json.dumps(out, indent=1))
+        "top_triples": [{"gains": triples[i], "stabilised": int(per_triple[i]),
+                         "diverged": int(div[i].sum())} for i in np.argsort(-per_triple, kind="stable")[:8]],
+        "wall_s": round(time.perf_counter() - t0, 1), "machine": cpu_model(), "load": load(),
+        "provenance": provenance()})
+    summary = {k: (r["stabilised_cells"], r["diverged_cells"]) for k, r in out["rows"].items()}
+    print(f"{args.plant}: {len(triples)} triples x {div[0].size} cells in {out['wall_s']} s; "
+          f"(stabilised, diverged): {summary}", file=sys.stderr)
+    if args.out is None:
+        print(json.dumps(out, indent=1))
+    else:
+        args.out.mkdir(parents=True, exist_ok=True)
+        write_json(args.out / f"{args.plant}.json", out)
+        print(f"wrote {args.out / (args.plant + '.json')}", file=sys.stderr)
 
 
 if __name__ == "__main__":

@@ -39,12 +39,23 @@ def test_evaluate_end_to_end(tiny_run, tmp_path):
     # the tiny gradient-trained gains run is where evaluate.py looks for it (the other gradient runs are absent)
     runs_root = tiny_run.parent / GRADIENT_ROOT
     assert (runs_root / "gradient-gains" / "config.json").is_file()
+    # oracle rows of the paper plant's map (3 triples), which the evaluation draws and tabulates
+    from jaxtraffic.paper.oracle import gain_grid_map, oracle_json, oracle_rows
+    from jaxtraffic.paper.scenarios import EvalConfig, robust_axis
+
+    map_cfg = EvalConfig(n_points=21, robust_delays=robust_axis(2, 0.0, 8.0, 0.1),
+                         robust_alphas=robust_axis(2, 0.05, 0.6), robust_horizon_s=12.0, numerics_check=False)
+    triples = [(0.0, -1.0, -1.5), (0.0, 0.0, -2.0), (0.0, -0.5, -1.0)]
+    rows = oracle_rows(triples, *gain_grid_map(map_cfg, triples, log=lambda _: None))
+    (tmp_path / "oracle").mkdir()
+    (tmp_path / "oracle" / "paper.json").write_text(json.dumps(oracle_json(map_cfg, triples, rows, 25.0)))
     metrics = evaluate.main(["--run", str(tiny_run), "--out", str(out), "--horizon", "6", "--seeds", "2",
                              "--robust-grid", "2x2", "--gradient", "existing", "--runs-root", str(runs_root),
-                             "--reference-grid", "41x1", "--reference-robust-grid", "2x1"])
+                             "--reference-grid", "41x1", "--reference-robust-grid", "2x1",
+                             "--oracle-dir", str(tmp_path / "oracle")])
     on_disk = json.loads((out / "metrics.json").read_text())
     assert "units" in on_disk and "meta" in on_disk
-    skipped = {"grad_network"}
+    skipped = {"grad_network"}  # (grad_gains and grad_robust are there)
     expected = {s.name: set(s.controllers) - skipped for s in SCENARIOS}
     assert "grad_gains" in expected["delay4"]
     assert set(expected) == {"delay0", "delay4", "alpha_noise", "alpha_noise_held_1s", "alpha_noise_held_10s",
@@ -71,6 +82,13 @@ def test_evaluate_end_to_end(tiny_run, tmp_path):
     report = (out / "REPORT.md").read_text()
     assert "Beyond the paper: PPO and gradient-based training" in report
     assert "gradient: 3 constant gains" in report and "gradient-gains" in report
+    # the robust delay schedule: on the map (told each cell's delay) with the offset from the plant's own
+    # equilibrium, in the scenarios, and the oracle rows on the paper plant only (the reference map differs)
+    assert "gradient: delay schedule (robust)" in report and "grad_robust" in on_disk["delay4"]
+    robust = json.loads((out / "robustness.json").read_text())["controllers"]
+    assert {"grad_robust", "backstepping"} <= set(robust) and "final_rho_offset" in robust["grad_robust"]
+    assert "oracle: gains by delay" in report
+    assert "oracle: gains by delay" not in (out / "reference" / "REPORT.md").read_text()
     # both readings with units, the numerical check beside Table 2, claim 5 per reading
     assert "J_fuel_kmh" in on_disk["units"] and "J_comfort_kmh" in on_disk["delay4"]["open_loop"]
     rel = on_disk["numerics"]["rel_diff"]
@@ -91,7 +109,7 @@ def test_evaluate_end_to_end(tiny_run, tmp_path):
     # the evaluated controllers themselves, loadable from the results
     from jaxtraffic.learn import load_policy
 
-    assert {p.name for p in (out / "runs").iterdir()} == {"ppo", "grad_gains"}
+    assert {p.name for p in (out / "runs").iterdir()} == {"ppo", "grad_gains", "grad_robust"}
     load_policy(out / "runs" / "ppo")
     load_policy(out / "runs" / "grad_gains")
     # every learned run's certificate, in its summary and in the report

@@ -95,6 +95,11 @@ def train_runs(root: Path) -> None:
     train_gradient(TrainConfig.from_flat(algo="gradient", out_dir=str(root / GRADIENT_ROOT / "gradient-gains"),
                                          n_points=21, train_delays=(4.0,), train_horizon_s=6.0, steps_per_chunk=1,
                                          grad_steps=1, eval_horizon_s=6.0, quiet=True))
+    # and a tiny robust delay schedule (CEM, 2 candidates x 2 plants), evaluated as grad_robust
+    train_gradient(TrainConfig.from_flat(algo="gradient", policy="schedule", n_points=21, train_delays=(2.0, 6.0),
+                                         out_dir=str(root / GRADIENT_ROOT / "gradient-robust"), train_alphas=(0.15,),
+                                         train_horizon_s=6.0, steps_per_chunk=1, grad_steps=1, cem_population=2,
+                                         eval_horizon_s=6.0, quiet=True))
     (root / "A.done").touch()  # run A (and the gradient run) complete: test_evaluate.py can start
     b = _cli(root / "B", "--total-steps", str(2 * CHUNK), "--keep-going")
     shutil.copytree(b, root / "B_first")

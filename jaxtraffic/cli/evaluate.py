@@ -4,7 +4,8 @@
 
 Without ``--run`` it uses ``runs/default`` if that holds a trained run (config.json and
 checkpoint.msgpack), else trains one with ``train.py``'s defaults first; likewise the gradient-trained
-runs (``GRADIENT_RUNS``, trained on the reference plant). Every experiment runs on two plants
+runs (``GRADIENT_RUNS``: the gains and the network trained on the reference plant, the robust delay schedule
+on MUSCL at 401 points). Every experiment runs on two plants
 (``--plants``): the paper's grid (upwind, the PPO run's points; outputs in ``--out``) and the reference
 plant (``TrafficParams.reference``: MUSCL, 801 points, 2 solver steps per 0.1 s; outputs in
 ``--out``/reference), each controller acting on its own grid (``control.adapter``); ``plants.md`` and
@@ -40,6 +41,7 @@ from jaxtraffic.learn.checkpoint import atomic_write_text, load_policy, policy_g
 from jaxtraffic.learn.config import TrainConfig
 from jaxtraffic.learn.validate import MAX_STEPS
 from jaxtraffic.model.params import TrafficParams
+from jaxtraffic.paper.oracle import load_oracle
 
 _REF = TrafficParams.reference()
 DEFAULT_RUN = Path("runs/default")
@@ -49,11 +51,16 @@ MAX_HORIZON_S = MAX_STEPS * float(TrafficParams().dt)  # a rollout's step bound 
 # wall-clock cap of the PPO training the main job starts when runs/default is missing: a run that has
 # not met its stop rule by then keeps its best checkpoint so far (the main job stays bounded)
 MAIN_JOB_PPO_WALL_S = 600.0
-# the gradient-trained controllers evaluated beside PPO: name -> (run directory under --runs-root,
-# train.py flags); they train on the reference plant (--reference-grid) with the controller on the paper's grid
+# the gradient-trained controllers evaluated beside PPO: name -> (run directory under --runs-root, train.py
+# flags, training plant). "reference": the reference plant (--reference-grid) with the controller on the paper's
+# grid; "half": MUSCL on the paper's grid refined once (401 points, one solver step), the controller on the paper's
+# grid: it agrees with the reference plant on which high-alpha plants diverge (MUSCL on the paper's grid does not)
+# at a quarter of its cost, so that the robust schedule's CEM (36 plants x 600 s x 24 candidates x 10
+# generations) fits its 10-minute budget (BENCHMARKS.md "A robust learned controller")
 GRADIENT_RUNS = {
-    "grad_gains": ("gradient-gains", ["--algo", "gradient", "--policy", "gains"]),
-    "grad_network": ("gradient-network", ["--algo", "gradient", "--policy", "network"]),
+    "grad_gains": ("gradient-gains", ["--algo", "gradient", "--policy", "gains"], "reference"),
+    "grad_network": ("gradient-network", ["--algo", "gradient", "--policy", "network"], "reference"),
+    "grad_robust": ("gradient-robust", ["--algo", "gradient", "--policy", "schedule"], "half"),
 }
 
 
@@ -75,7 +82,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--robust-horizon", type=float, default=None,
                     help="simulated time of the robustness map, s (default 2 x --horizon)")
     ap.add_argument("--gradient", choices=("auto", "existing", "none"), default="auto",
-                    help="gradient-trained controllers (RUNS_ROOT/" + ", ".join(d for d, _ in GRADIENT_RUNS.values())
+                    help="gradient-trained controllers (RUNS_ROOT/" + ", ".join(d for d, _, _ in GRADIENT_RUNS.values())
                     + "): auto = use them, training the missing ones first; existing = only those already "
                     "trained; none = skip")
     ap.add_argument("--runs-root", type=Path, default=Path("runs"), help="where the gradient runs live")
@@ -88,6 +95,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                     "training plant")
     ap.add_argument("--reference-robust-grid", default="9x6",
                     help="NDxNA of the robustness map on the reference plant (default 9x6: 1 s x 0.11 steps)")
+    ap.add_argument("--oracle-dir", type=Path, default=Path("docs/results/oracle"),
+                    help="oracle rows of the robustness maps (PLANT.json from benchmarks/gain_oracle.py --out DIR), "
+                    "drawn and tabulated beside the controllers when computed on the same map (default "
+                    "docs/results/oracle, the committed ones; a missing file leaves them out)")
     ap.add_argument("--no-numerics-check", action="store_true",
                     help="skip rerunning Table 2's scenario on each plant refined twice and with the other scheme")
     distributed.add_flags(ap)
@@ -124,21 +135,23 @@ def find_or_train_run(run: Path | None, n_points: int | None) -> Path:
     return Path(train_cli.main(targv))
 
 
-def gradient_controllers(mode: str, root: Path, plant_flags: list[str]
+def gradient_controllers(mode: str, root: Path, plant_flags: dict[str, list[str]]
                          ) -> tuple[dict[str, Any], dict[str, Any], dict[str, dict]]:
     """(name -> controller on its own grid, name -> its grid, name -> {"summary", "curve", "run_dir"}) of
     the gradient-trained runs (``GRADIENT_RUNS`` under ``root``), training the missing ones first (with
-    ``plant_flags``: the training plant and controller grid) when ``mode`` is "auto"."""
+    ``plant_flags``: per training plant of ``GRADIENT_RUNS``, its flags and the controller grid) when ``mode`` is
+    "auto"."""
     ctrls, grids, runs = {}, {}, {}
-    for name, (sub, flags) in GRADIENT_RUNS.items() if mode != "none" else ():
+    for name, (sub, flags, plant) in GRADIENT_RUNS.items() if mode != "none" else ():
+        flags = [*flags, *plant_flags[plant]]
         run_dir = root / sub
         if not (run_dir / "summary.json").exists():
             if mode != "auto":
                 continue
             resume = ["--resume"] if (run_dir / "checkpoint.msgpack").exists() else []  # an interrupted training
             _log(f"no trained run at {run_dir}: {'continuing' if resume else 'training'} it first "
-                 f"(train.py {' '.join(flags + plant_flags + resume)})")
-            train_cli.main([*flags, *plant_flags, "--out-dir", str(run_dir), *resume])
+                 f"(train.py {' '.join(flags + resume)})")
+            train_cli.main([*flags, "--out-dir", str(run_dir), *resume])
         ctrl, config = load_policy(run_dir)
         ctrls[name], grids[name] = ctrl, policy_grid(config)
         runs[name] = {"run_dir": str(run_dir), "summary": json.loads((run_dir / "summary.json").read_text()),
@@ -278,8 +291,10 @@ def _main(args: argparse.Namespace, argv: list[str] | None, t0: float, nd: int, 
     policy0 = desc0 or {**policy, "description": f"the D = 4 s policy ({policy['description']}); "
                         "no D = 0 run was given"}
     ref_n, ref_s = parse_grid(args.reference_grid, "--reference-grid")
-    plant_flags = ["--n-points", str(ref_n), "--scheme", "muscl", "--substeps", str(ref_s),
-                   "--controller-points", str(n_points)]
+    plant_flags = {"reference": ["--n-points", str(ref_n), "--scheme", "muscl", "--substeps", str(ref_s),
+                                 "--controller-points", str(n_points)],
+                   "half": ["--n-points", str(2 * (n_points - 1) + 1), "--scheme", "muscl", "--controller-points",
+                            str(n_points)]}
     grad, grad_grids, grad_runs = gradient_controllers(args.gradient, args.runs_root, plant_flags)
     grids.update(grad_grids)
     lc = run_dir / "learning_curve.csv"
@@ -300,9 +315,12 @@ def _main(args: argparse.Namespace, argv: list[str] | None, t0: float, nd: int, 
     for plant in args.plants:
         out = args.out if plant == "paper" else args.out / plant
         _log(f"== {plant} plant: {configs[plant].describe()} -> {out}")
+        oracle = load_oracle(args.oracle_dir / f"{plant}.json", configs[plant])
+        _log(f"   oracle rows: {args.oracle_dir / (plant + '.json')}" if oracle else
+             f"   no oracle rows for this map in {args.oracle_dir} (benchmarks/gain_oracle.py --plant {plant})")
         results[plant] = paper.evaluate_all({"ppo": ppo, **grad}, configs[plant], out, {**meta, "plant": plant},
                                             ppo_delay0=ppo0, learning_curve_csv=lc, log=_log,
-                                            learned_runs=learned_runs, grids=grids)
+                                            learned_runs=learned_runs, grids=grids, oracle=oracle)
     if distributed.is_writer():
         export_runs(learned_runs, args.out / "runs")
         if len(results) > 1:

@@ -1,7 +1,7 @@
 """The control layer (imports only ``model``): the controller interface, the baselines, the
 three-gain law and the learned gain policy as a controller (it does not import the trainer)."""
 
-from jaxtraffic.control.base import Controller, Observation, saturate
+from jaxtraffic.control.base import Controller, Observation, saturate, takes_delay, tell_delay
 from jaxtraffic.control.baselines import (
     BacksteppingSettings,
     LyapunovSettings,
@@ -12,7 +12,15 @@ from jaxtraffic.control.baselines import (
     open_loop,
     predict,
 )
-from jaxtraffic.control.gain_law import GAIN_NAMES, constant_gains, gain_law, lyapunov_equivalent_gains
+from jaxtraffic.control.gain_law import (
+    GAIN_NAMES,
+    DelaySchedule,
+    constant_gains,
+    gain_law,
+    lyapunov_equivalent_gains,
+    schedule_gains,
+    scheduled_gains,
+)
 from jaxtraffic.control.gain_policy import (
     equilibrium_gains,
     gain_target_controller,
@@ -20,8 +28,8 @@ from jaxtraffic.control.gain_policy import (
 )
 
 __all__ = [
-    "GAIN_NAMES", "BacksteppingSettings", "Controller", "LyapunovSettings", "Observation", "backstepping",
-    "constant_gains", "equilibrium_gains", "gain_law", "gain_target_controller", "lyapunov",
+    "GAIN_NAMES", "BacksteppingSettings", "Controller", "DelaySchedule", "LyapunovSettings", "Observation",
+    "backstepping", "constant_gains", "equilibrium_gains", "gain_law", "gain_target_controller", "lyapunov",
     "lyapunov_equivalent_gains", "lyapunov_input", "lyapunov_law", "open_loop", "policy_controller", "predict",
-    "saturate",
+    "saturate", "schedule_gains", "scheduled_gains", "takes_delay", "tell_delay",
 ]

@@ -68,3 +68,25 @@ def saturate(h: Array, p: TrafficParams) -> Array:
     defined value: the closed loop also flags such a step, see ``sim.plant``), +-inf a bound."""
     return jnp.clip(jnp.where(jnp.isnan(h), p.h_bar, h), p.h_min, p.h_max)
 
+
+
+def takes_delay(controller: Controller) -> bool:
+    """Whether ``controller`` is told the input delay it compensates (its settings have a ``delay``
+    field: backstepping, a delay schedule)."""
+    return hasattr(controller.settings, "delay")
+
+
+def tell_delay(controller: Controller, delay: float | Array) -> Controller:
+    """``controller`` told the delay ``delay`` (s). A (B,) array of delays gives a batch of B controllers
+    (every other setting broadcast to a leading axis of B; run them with ``batch_controller=True``).
+    ``ValueError`` if the controller takes no delay (``takes_delay``)."""
+    if not takes_delay(controller):
+        raise ValueError(f"{controller.name or 'this controller'} is not told a delay (its settings have no "
+                         "'delay' field)")
+    delay = jnp.asarray(delay, jnp.result_type(controller.settings.delay))
+    settings = controller.settings
+    if delay.ndim == 1:
+        settings = jax.tree.map(lambda x: jnp.broadcast_to(x, delay.shape + jnp.shape(x)), settings)
+    elif delay.ndim != 0:
+        raise ValueError(f"delay must be a scalar or a (B,) batch, got shape {delay.shape}")
+    return controller.replace(settings=settings.replace(delay=delay))

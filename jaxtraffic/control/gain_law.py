@@ -15,6 +15,7 @@ import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
+from flax import struct
 
 from jaxtraffic.control.base import Controller, Observation
 from jaxtraffic.model.linear import linearize
@@ -96,3 +97,47 @@ def sigma_nodes(filter_sigma: float, dx: float) -> float:
         raise ValueError(f"filter_sigma must be a finite width >= 0 m, got {filter_sigma}")
     return float(filter_sigma) / float(dx)
 
+
+
+@struct.dataclass
+class DelaySchedule:
+    """Settings of ``scheduled_gains``: a family of gain triples scheduled in the input delay.
+
+    knots: (K,) increasing delays, s; table: (K, 3) gains [eta1, eta2, eta3] at the knots (dimensionless);
+    delay: the delay the controller is told it must compensate, s (as backstepping is; not the plant's
+    alpha). The gains used are the table interpolated linearly at ``delay``, held beyond the end knots.
+    """
+
+    knots: Array
+    table: Array
+    delay: Array
+
+
+def schedule_gains(s: DelaySchedule) -> Array:
+    """The gains (3,) of the schedule ``s`` at its told delay."""
+    chex.assert_rank([s.knots, s.table, s.delay], [1, 2, 0])
+    return jax.vmap(lambda column: jnp.interp(s.delay, s.knots, column), in_axes=1)(s.table)
+
+
+def scheduled_gains(table: Array, knots: Array, delay: float | Array = 4.0, filter_sigma: float = FILTER_SIGMA,
+                    dx: float = 5.0) -> Controller:
+    """The three-gain law with gains scheduled in the told delay (``DelaySchedule``): ``table`` (K, 3) at the
+    ``knots`` (K,) s; ``filter_sigma`` (m, static) and ``dx`` (m) as in ``constant_gains``. ``tell_delay``
+    (``control.base``) sets the delay, or a batch of delays."""
+    if not isinstance(knots, jax.core.Tracer) and np.any(np.diff(np.asarray(knots, float)) <= 0):
+        raise ValueError(f"the schedule's knots must increase, got {np.asarray(knots).tolist()}")
+    knots = jnp.asarray(knots, float)
+    table = jnp.asarray(table, float)
+    if knots.ndim != 1 or table.shape != (knots.shape[0], 3) or knots.shape[0] < 1:
+        raise ValueError(f"a delay schedule needs knots (K,) and a table (K, 3), got {knots.shape} and {table.shape}")
+    settings = DelaySchedule(knots=knots, table=table, delay=jnp.asarray(delay, float))
+    return Controller(settings=settings, act_fn=_scheduled_act(sigma_nodes(filter_sigma, dx)),
+                      name=f"delay-scheduled gains (sigma {filter_sigma:g} m)")
+
+
+@functools.cache
+def _scheduled_act(sigma_nodes: float):
+    def act(settings, cstate, obs, nominal, key):
+        return gain_law(schedule_gains(settings), obs, nominal, sigma_nodes=sigma_nodes), cstate
+
+    return act

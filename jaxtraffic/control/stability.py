@@ -37,6 +37,7 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 import numpy as np
 
+from jaxtraffic.control.gain_law import DelaySchedule, schedule_gains
 from jaxtraffic.model.linear import LinearModel, linearize
 from jaxtraffic.model.params import TrafficParams
 
@@ -202,13 +203,16 @@ def certify(gains: Array, p: TrafficParams, delay: float, sigma: float = 0.0, sy
 
 
 def certify_controller(controller: Any, nominal: TrafficParams, delay: float, sigma: float) -> Certificate:
-    """``certify`` of a gain controller (constant gains, a policy) at the gains it settles to while the plant
-    sits at ``nominal``'s equilibrium (``gain_policy.equilibrium_gains``; ``nominal`` on the controller's own
-    grid, its dt the control period), with its filter width ``sigma`` (m)."""
+    """``certify`` of a gain controller (constant gains, a delay schedule at its told delay, a policy) at the
+    gains it settles to while the plant sits at ``nominal``'s equilibrium (``gain_policy.equilibrium_gains``;
+    ``nominal`` on the controller's own grid, its dt the control period), with its filter width ``sigma`` (m)."""
     from jaxtraffic.control.gain_policy import equilibrium_gains
 
     settings = controller.settings
-    gains = settings if getattr(settings, "shape", None) == (3,) else equilibrium_gains(controller, nominal)
+    if isinstance(settings, DelaySchedule):  # the gains it applies at its told delay
+        gains = schedule_gains(settings)
+    else:
+        gains = settings if getattr(settings, "shape", None) == (3,) else equilibrium_gains(controller, nominal)
     return certify(gains, nominal, delay, sigma)
 
 

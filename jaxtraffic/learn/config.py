@@ -21,7 +21,7 @@ from typing import Any
 from jaxtraffic.control.gain_law import FILTER_SIGMA
 from jaxtraffic.control.networks import PAPER_HIDDEN, SMALL_HIDDEN
 from jaxtraffic.learn.env import EnvParams
-from jaxtraffic.learn.gradient import POLICIES, POLICY_DEFAULTS, GradientConfig
+from jaxtraffic.learn.gradient_config import METHODS, POLICIES, POLICY_DEFAULTS, GradientConfig
 from jaxtraffic.learn.ppo import PPOConfig
 from jaxtraffic.model.params import SCHEMES, TrafficParams
 from jaxtraffic.sim.metrics import REWARD_TARGET
@@ -137,28 +137,40 @@ class GradConfig:
     of a rollout objective over a grid of training scenarios. ``None``: the policy's default."""
 
     policy: str = _f(_GRAD.policy, "gains: three constant gains; network: the actor network PPO trains "
-                     "(state-dependent gains)", choices=POLICIES)
+                     "(state-dependent gains); schedule: gains scheduled in the delay the controller is told "
+                     "(--schedule-knots), trained over the robustness map's delays and alphas", choices=POLICIES)
     grad_steps: int | None = _f(None, f"Adam steps ({_by_policy('steps')})")
     grad_lr: float | None = _f(None, f"Adam step size ({_by_policy('lr')})")
     train_delays: tuple[float, ...] | None = _f(None, "plant delays of the training scenarios, s "
                                                  f"({_by_policy('delays')})")
-    train_alphas: tuple[float, ...] = _f(_GRAD.alphas, "plant alphas of the training scenarios")
+    train_alphas: tuple[float, ...] | None = _f(None, "plant alphas of the training scenarios "
+                                                 f"({_by_policy('alphas')})")
     train_amplitudes: tuple[float, ...] = _f(_GRAD.amplitudes, "initial perturbation amplitudes, veh/m")
     train_wavenumbers: tuple[int, ...] = _f(_GRAD.wavenumbers, "initial perturbation wavenumbers")
     train_phases: tuple[float, ...] = _f(_GRAD.phases, "initial perturbation phases, rad")
-    train_horizon_s: float = _f(_GRAD.horizon_s, "rollout length of the objective, s")
+    train_horizon_s: float | None = _f(None, f"rollout length of the objective, s ({_by_policy('horizon_s')})")
     record_every: int = _f(_GRAD.record_every, "steps between objective samples (also the checkpointed chunk)")
     steps_per_chunk: int = _f(_GRAD.steps_per_chunk, "Adam steps per compiled chunk (progress/checkpoint interval)")
-    reward_weight: float = _f(_GRAD.reward_weight, "objective weight of -mean reward (dimensionless)")
-    waves_weight: float = _f(_GRAD.wave_weight, "objective weight of mean log(1 + var_x rho/100 + var_x v) "
-                             "(rho in veh/km, v in m/s): wave amplitude, blind to a uniform offset")
-    comfort_weight: float = _f(_GRAD.comfort_weight, "objective weight of J_comfort")
+    reward_weight: float | None = _f(None, "objective weight of -mean reward (dimensionless; "
+                                     f"{_by_policy('reward_weight')})")
+    waves_weight: float | None = _f(None, "objective weight of the mean of log(1 + var_x rho/100 + var_x v) "
+                                    "weighted by t/T (rho in veh/km, v in m/s): wave amplitude, blind to a uniform "
+                                    f"offset ({_by_policy('wave_weight')})")
+    comfort_weight: float | None = _f(None, f"objective weight of J_comfort ({_by_policy('comfort_weight')})")
     effort_weight: float = _f(_GRAD.effort_weight, "objective weight of mean (h - h_bar)^2, 1/s^2")
-    scenario_clip: float = _f(_GRAD.scenario_clip, "> 0: clip each scenario's gradient to this norm before "
-                              "averaging; 0: off")
+    scenario_clip: float | None = _f(None, "> 0: clip each scenario's gradient to this norm before averaging; 0: "
+                                     f"off ({_by_policy('scenario_clip')})")
     certificate_weight: float = _f(_GRAD.certificate_weight, "objective weight of the certificate penalty: by how "
                                    "much the law's largest growth rate (1/s, control.stability) exceeds 1e-3/s")
-    init_gains: tuple[float, ...] = _f(_GRAD.init_gains, "initial gains eta1,eta2,eta3")
+    init_gains: tuple[float, ...] | None = _f(None, "initial gains eta1,eta2,eta3 (schedule: at every knot; "
+                                              f"{_by_policy('init_gains')})")
+    schedule_knots: tuple[float, ...] = _f(_GRAD.knots, "schedule policy: the knot delays of its gain table, s")
+    grad_method: str | None = _f(None, "adam: Adam on the objective's gradient; cem: the cross-entropy method on the "
+                                 "robustness map's counts (stabilised, diverged) over the training scenarios, "
+                                 f"derivative-free, --grad-steps generations ({_by_policy('method')})",
+                                 choices=METHODS)
+    cem_population: int = _f(_GRAD.cem_population, "cem: parameter sets rolled out per generation")
+    cem_sigma: float = _f(_GRAD.cem_sigma, "cem: initial standard deviation of the search over the gains")
     grad_gain_max: float | None = _f(None, f"network policy: |eta_i| bound (default {_GRAD.gain_max}; PPO's is "
                                      "--gain-max)")
 
@@ -166,15 +178,17 @@ class GradConfig:
         """The algorithm's ``GradientConfig`` (gain filter from ``env``, network from ``algo``; the gain bound is
         ``grad_gain_max``, not PPO's ``env.gain_max``: the gradient results were measured with 3)."""
         given = {"steps": self.grad_steps, "lr": self.grad_lr, "delays": self.train_delays,
-                 "gain_max": self.grad_gain_max}
+                 "gain_max": self.grad_gain_max, "alphas": self.train_alphas, "horizon_s": self.train_horizon_s,
+                 "reward_weight": self.reward_weight, "wave_weight": self.waves_weight,
+                 "comfort_weight": self.comfort_weight, "scenario_clip": self.scenario_clip,
+                 "init_gains": None if self.init_gains is None else tuple(self.init_gains), "method": self.grad_method}
         return GradientConfig.for_policy(
-            self.policy, **{k: v for k, v in given.items() if v is not None}, alphas=self.train_alphas,
+            self.policy, **{k: v for k, v in given.items() if v is not None},
             amplitudes=self.train_amplitudes, wavenumbers=self.train_wavenumbers, phases=self.train_phases,
-            horizon_s=self.train_horizon_s, record_every=self.record_every, steps_per_chunk=self.steps_per_chunk,
-            hidden=hidden, gain_filter=env.gain_filter, reward_weight=self.reward_weight,
-            wave_weight=self.waves_weight, comfort_weight=self.comfort_weight, effort_weight=self.effort_weight,
-            scenario_clip=self.scenario_clip, init_gains=tuple(self.init_gains), filter_sigma=env.filter_sigma,
-            certificate_weight=self.certificate_weight,
+            record_every=self.record_every, steps_per_chunk=self.steps_per_chunk,
+            hidden=hidden, gain_filter=env.gain_filter, effort_weight=self.effort_weight,
+            filter_sigma=env.filter_sigma, certificate_weight=self.certificate_weight,
+            knots=tuple(self.schedule_knots), cem_population=self.cem_population, cem_sigma=self.cem_sigma,
             controller_points=env.controller_points or 0)
 
 

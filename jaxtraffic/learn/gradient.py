@@ -8,7 +8,11 @@ Two policies are trained this way:
 * ``"gains"``: the paper's three-gain law with three constant gains (eta1, eta2, eta3);
 * ``"network"``: the same actor network PPO trains (``control.networks.ActorCritic``; its critic is not
   used), whose deterministic gains gain_max * tanh(mean) pass through the same first-order gain
-  filter as PPO's and act through the same three-gain law (``control.gain_policy.policy_controller``).
+  filter as PPO's and act through the same three-gain law (``control.gain_policy.policy_controller``);
+* ``"schedule"``: a family of gain triples scheduled in the input delay (``control.gain_law.scheduled_gains``:
+  a (K, 3) table at the ``knots``, interpolated at the delay the controller is told). In training every
+  scenario's controller is told its plant's delay; it is not told the plant's alpha. Its defaults train it
+  over the robustness map's ranges of delay and alpha on scenarios offset from both maps' cells.
 
 Objective (minimised, dimensionless), averaged over the training scenarios s:
 
@@ -17,7 +21,8 @@ Objective (minimised, dimensionless), averaged over the training scenarios s:
 
 with r the paper's reward (dimensionless) sampled every ``record_every`` steps t_k, var_x the
 spatial variance of density (veh/km)^2 and speed (m/s)^2 (the "waves" term: zero for any uniform
-state, so it does not penalise the steady offset a plant with another alpha settles to),
+state, so it does not penalise the steady offset a plant with another alpha settles to; its mean over k
+is weighted by t_k / T, so that late waves, which the robustness map judges, count most),
 J_comfort in the units of ``metrics`` (rho in veh/km, a in m/s^2) and effort the RMS of h - h_bar
 in s (both sampled every ``record_every`` steps; the square is used directly, since the gradient of
 an RMS is not finite at zero). Default weights: w_r = 1, w_w = 0, w_c = 1e-5, w_e = 0.
@@ -33,7 +38,6 @@ from __future__ import annotations
 
 import functools
 import itertools
-from dataclasses import dataclass
 from typing import Any
 
 import chex
@@ -45,10 +49,11 @@ from jax.sharding import Mesh
 
 from jaxtraffic.control.adapter import ControllerGrid, on_grid
 from jaxtraffic.control.base import Controller
-from jaxtraffic.control.gain_law import FILTER_SIGMA, constant_gains, sigma_nodes
+from jaxtraffic.control.gain_law import constant_gains, schedule_gains, scheduled_gains, sigma_nodes
 from jaxtraffic.control.gain_policy import equilibrium_gains, feature_size, policy_controller
-from jaxtraffic.control.networks import SMALL_HIDDEN, ActorCritic
+from jaxtraffic.control.networks import ActorCritic
 from jaxtraffic.control.stability import GROWTH_TOL, model_growth_rates, wavenumbers
+from jaxtraffic.learn.gradient_config import GradientConfig
 from jaxtraffic.model.linear import linearize
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.model.solver import is_physical
@@ -57,94 +62,10 @@ from jaxtraffic.sim.rollout import simulate
 from jaxtraffic.sim.sharding import batch_mesh, gathered, local_copy, replicate, sharded_batch, spans_processes
 
 Array = jax.Array
-POLICIES = ("gains", "network")
 OBS_SCALE = 0.1  # std assumed for the normalised field deviations of the observation (dimensionless)
 # m: the road of every training config (learn.config has no road-length field); the filter's width in nodes
 # is static, so it is computed from this rather than from the traced base.L
 ROAD_LENGTH = float(TrafficParams().L)
-
-
-@dataclass(frozen=True)
-class GradientConfig:
-    """Gradient-training settings. Shape-setting fields (scenario grid, horizon, policy, network)
-    are static; the objective weights and Adam's settings are traced (``Weights``, ``lr``...).
-
-    The training scenarios are the Cartesian product of ``delays`` (s, multiples of dt) x
-    ``alphas`` x ``amplitudes`` (veh/m) x ``wavenumbers`` x ``phases`` (rad) of the initial
-    cosine perturbation (``sim.initial.paper_initial_condition``).
-    """
-
-    policy: str = "gains"
-    delays: tuple[float, ...] = (3.0, 4.0, 5.0)
-    alphas: tuple[float, ...] = (0.15,)
-    amplitudes: tuple[float, ...] = (0.010,)
-    wavenumbers: tuple[int, ...] = (4,)
-    phases: tuple[float, ...] = (0.0,)
-    horizon_s: float = 300.0
-    record_every: int = 10
-    steps_per_chunk: int = 5
-    hidden: tuple[int, ...] = SMALL_HIDDEN
-    gain_max: float = 3.0
-    gain_filter: float = 0.2
-    lr: float = 0.05
-    max_grad_norm: float = 1.0
-    reward_weight: float = 1.0
-    wave_weight: float = 0.0
-    comfort_weight: float = 1e-5
-    effort_weight: float = 0.0
-    init_gains: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    steps: int = 40  # Adam steps in all
-    scenario_clip: float = 0.0  # > 0: clip each scenario's gradient to this norm (``objective_and_grad``)
-    filter_sigma: float = FILTER_SIGMA  # m, the gain law's Gaussian filter (``control.gain_law``); 0: pointwise
-    controller_points: int = 0  # the controller's own grid (``control.adapter``); 0: the plant's
-    certificate_weight: float = 0.0  # objective += w * ``certificate_penalty`` (1/s)
-
-    def __post_init__(self) -> None:
-        if self.policy not in POLICIES:
-            raise ValueError(f"policy must be one of {POLICIES}, got {self.policy!r}")
-        for name in ("delays", "alphas", "amplitudes", "wavenumbers", "phases"):
-            if len(getattr(self, name)) < 1:
-                raise ValueError(f"{name} needs at least one value")
-        if min(self.delays) < 0:
-            raise ValueError(f"delays must be >= 0 s, got {self.delays}")
-        if not all(0.0 < a <= 1.0 for a in self.alphas):
-            raise ValueError(f"alphas must lie in (0, 1], got {self.alphas}")
-        if self.record_every < 1 or self.steps_per_chunk < 1 or self.steps < 1:
-            raise ValueError("record_every, steps_per_chunk and steps must be >= 1")
-        for name in ("lr", "max_grad_norm", "gain_max"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        if not 0.0 < self.gain_filter <= 1.0:
-            raise ValueError(f"gain_filter must lie in (0, 1], got {self.gain_filter}")
-        for name in ("reward_weight", "wave_weight", "comfort_weight", "effort_weight", "scenario_clip",
-                     "certificate_weight"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
-        if not self.filter_sigma >= 0 or self.controller_points < 0 or self.controller_points in (1, 2):
-            raise ValueError(f"filter_sigma must be >= 0 m and controller_points 0 or >= 3, got "
-                             f"{self.filter_sigma}, {self.controller_points}")
-        if self.policy == "network" and max(abs(g) for g in self.init_gains) >= self.gain_max:
-            raise ValueError(f"init_gains {self.init_gains} must lie inside (-gain_max, gain_max)")
-
-    @classmethod
-    def for_policy(cls, policy: str = "gains", **overrides: Any) -> GradientConfig:
-        """The defaults of ``policy`` (``POLICY_DEFAULTS`` over the field defaults), then ``overrides``."""
-        if policy not in POLICIES:
-            raise ValueError(f"policy must be one of {POLICIES}, got {policy!r}")
-        return cls(policy=policy, **{**POLICY_DEFAULTS[policy], **overrides})
-
-    @property
-    def n_scenarios(self) -> int:
-        return (len(self.delays) * len(self.alphas) * len(self.amplitudes) * len(self.wavenumbers)
-                * len(self.phases))
-
-
-# The network policy: a smaller step (its first layer sees 3 n + 3 inputs), half the steps, and
-# plant delays 0-6 s (it is meant to stabilise all of them)
-POLICY_DEFAULTS: dict[str, dict[str, Any]] = {
-    "gains": {},
-    "network": {"lr": 3e-3, "steps": 20, "delays": (0.0, 3.0, 6.0)},
-}
 
 
 @struct.dataclass
@@ -204,6 +125,8 @@ def init_theta(cfg: GradientConfig, base: TrafficParams, key: Array) -> Any:
     g0 = jnp.asarray(cfg.init_gains, jnp.result_type(float))
     if cfg.policy == "gains":
         return g0
+    if cfg.policy == "schedule":
+        return jnp.tile(g0, (len(cfg.knots), 1))
     n = cfg.controller_points or base.n_points
     params = _network(cfg).init(key, jnp.zeros((feature_size(n),)))
     actor = params["params"]["actor"]
@@ -212,24 +135,39 @@ def init_theta(cfg: GradientConfig, base: TrafficParams, key: Array) -> Any:
     return {"params": {**params["params"], "actor": {**actor, last: {**actor[last], "bias": bias}}}}
 
 
-def own_controller(theta: Any, cfg: GradientConfig, n_points: int, dx: float) -> Controller:
+def own_controller(theta: Any, cfg: GradientConfig, n_points: int, dx: float, delay: float | Array = 4.0
+                   ) -> Controller:
     """The controller of parameters ``theta`` (deterministic) on its own grid of ``n_points`` nodes, spacing
-    ``dx`` (m, for the filter width in nodes)."""
+    ``dx`` (m, for the filter width in nodes); ``delay`` (s): the delay a schedule is told."""
     nodes = sigma_nodes(cfg.filter_sigma, dx)
     if cfg.policy == "gains":
         chex.assert_shape(theta, (3,))
         return constant_gains(theta[0], theta[1], theta[2], cfg.filter_sigma, dx)
+    if cfg.policy == "schedule":
+        return scheduled_gains(theta, cfg.knots, delay, cfg.filter_sigma, dx)
     mean, var = obs_statistics(n_points)
     return policy_controller(theta, mean, var, cfg.gain_max, hidden=tuple(cfg.hidden), gain_filter=cfg.gain_filter,
                              sigma_nodes=nodes)
 
 
-def make_controller(theta: Any, cfg: GradientConfig, base: TrafficParams) -> Controller:
+def fixed_gains(theta: Any, cfg: GradientConfig, delay: float | Array) -> Array | None:
+    """The gains (3,) a gains or schedule policy applies when told ``delay`` (s); None for a network (its gains
+    depend on the state)."""
+    if cfg.policy == "gains":
+        return jnp.asarray(theta)
+    if cfg.policy == "schedule":
+        return schedule_gains(own_controller(theta, cfg, 3, 1.0, delay).settings)
+    return None
+
+
+def make_controller(theta: Any, cfg: GradientConfig, base: TrafficParams, delay: float | Array | None = None
+                    ) -> Controller:
     """The controller of parameters ``theta`` on its own grid, acting on the plant grid of ``base``
-    (``control.adapter.on_grid``: restricted observation, interpolated time gap; the period is dt)."""
+    (``control.adapter.on_grid``: restricted observation, interpolated time gap; the period is dt);
+    ``delay`` (s): the delay a schedule is told (default ``base.delay``)."""
     n = cfg.controller_points or base.n_points
     r = (base.n_points - 1) // (n - 1)
-    ctrl = own_controller(theta, cfg, n, ROAD_LENGTH / (n - 1))
+    ctrl = own_controller(theta, cfg, n, ROAD_LENGTH / (n - 1), base.delay if delay is None else delay)
     return ctrl if r == 1 else on_grid(ctrl, ControllerGrid(n, 0.0, base.max_delay_steps), r, 1)
 
 
@@ -265,11 +203,12 @@ def scenario_objective(theta: Any, params: TrafficParams, rho0: Array, v0: Array
                        cfg: GradientConfig, base: TrafficParams, n_steps: int, remat: bool = True
                        ) -> tuple[Array, dict]:
     """(J_s, metrics) of one scenario (plant ``params``, initial fields (n,)); see the module docstring."""
-    res = simulate(params, make_controller(theta, cfg, base), n_steps=n_steps, rho0=rho0, v0=v0, nominal=base,
-                   record_every=cfg.record_every, remat=remat)
+    res = simulate(params, make_controller(theta, cfg, base, params.delay), n_steps=n_steps, rho0=rho0, v0=v0,
+                   nominal=base, record_every=cfg.record_every, remat=remat)
     tr, m = res.trajectory, res.metrics
     waves = jnp.log1p(jnp.var(tr.rho * 1000.0, axis=-1) / 100.0 + jnp.var(tr.v, axis=-1))
-    j = (-w.reward * jnp.mean(tr.reward) + w.waves * jnp.mean(waves) + w.comfort * m["J_comfort"]
+    late = jnp.arange(1, waves.shape[0] + 1, dtype=waves.dtype)  # t_k / T up to a factor
+    j = (-w.reward * jnp.mean(tr.reward) + w.waves * jnp.sum(late * waves) / jnp.sum(late) + w.comfort * m["J_comfort"]
          + w.effort * jnp.mean((tr.h - base.h_bar) ** 2))
     return j, m
 
@@ -312,9 +251,8 @@ def certificate_penalty(theta: Any, cfg: GradientConfig, base: TrafficParams, pe
     device: XLA's CPU ``eig`` inside a program over several devices waits forever on a collective."""
     n = cfg.controller_points or base.n_points
     nominal = base.replace(n_points=n, substeps=1)
-    if cfg.policy == "gains":
-        gains = theta
-    else:
+    gains = fixed_gains(theta, cfg, base.delay)
+    if gains is None:
         gains = equilibrium_gains(own_controller(theta, cfg, n, ROAD_LENGTH / (n - 1)), nominal)
     lm = linearize(nominal)
     k = jnp.asarray(wavenumbers(ROAD_LENGTH, n=96))

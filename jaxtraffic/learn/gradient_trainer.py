@@ -1,4 +1,5 @@
-"""Training loop around ``gradient.make_train``: chunks, evaluation, checkpoints, outputs.
+"""Training loop around ``gradient.make_train`` (or ``cem.make_train``, ``method = "cem"``: its generations in
+place of the Adam steps): chunks, evaluation, checkpoints, outputs.
 
 The run directory has the same files as a PPO run (config.json with the same config tree,
 checkpoint.msgpack, learning_curve.csv/.png, summary.json) and loads with ``learn.load_policy``. After every chunk
@@ -32,6 +33,7 @@ from jaxtraffic.control.adapter import adapt, baseline_grid
 from jaxtraffic.control.base import Controller
 from jaxtraffic.control.baselines import backstepping
 from jaxtraffic.control.gain_policy import equilibrium_gains
+from jaxtraffic.learn import cem
 from jaxtraffic.learn import checkpoint as ckpt
 from jaxtraffic.learn import gradient as G
 from jaxtraffic.learn.config import RUN_CONTROL, TrainConfig, config_json, load_config
@@ -71,7 +73,7 @@ def load_gradient_policy(run_dir: str | Path, cfg: TrainConfig) -> Controller:
     template = G.init_theta(gcfg, plant, jax.random.PRNGKey(0))
     theta = serialization.from_state_dict(template, state["theta"])
     n = gcfg.controller_points or plant.n_points
-    return G.own_controller(jax.tree.map(jnp.asarray, theta), gcfg, n, G.ROAD_LENGTH / (n - 1))
+    return G.own_controller(jax.tree.map(jnp.asarray, theta), gcfg, n, G.ROAD_LENGTH / (n - 1), cfg.plant.delay)
 
 
 def evaluation(ctrl: Controller, plant: TrafficParams, n_steps: int, gains: Any | None,
@@ -90,9 +92,10 @@ def evaluation(ctrl: Controller, plant: TrafficParams, n_steps: int, gains: Any 
 def policy_evaluation(theta: Any, cfg: G.GradientConfig, plant: TrafficParams, n_steps: int) -> dict:
     """``evaluation`` of the controller of ``theta`` acting on ``plant``."""
     n = cfg.controller_points or plant.n_points
-    own = (G.own_controller(theta, cfg, n, G.ROAD_LENGTH / (n - 1)), plant.replace(n_points=n, substeps=1))
-    return evaluation(G.make_controller(theta, cfg, plant), plant, n_steps,
-                      theta if cfg.policy == "gains" else None, own)
+    own = (G.own_controller(theta, cfg, n, G.ROAD_LENGTH / (n - 1), plant.delay),
+           plant.replace(n_points=n, substeps=1))
+    return evaluation(G.make_controller(theta, cfg, plant), plant, n_steps, G.fixed_gains(theta, cfg, plant.delay),
+                      own)
 
 
 def beats(ev: dict, ref: dict) -> bool:
@@ -133,7 +136,7 @@ def _train_gradient(tc: TrainConfig, cfg: G.GradientConfig, plant: TrafficParams
                     stop: StopSignals, writer: bool) -> Path:
     run = tc.run
     t_start = time.perf_counter()
-    init, train_chunk = G.make_train(cfg, plant)
+    init, train_chunk = (cem.make_train if cfg.method == "cem" else G.make_train)(cfg, plant)
     state = init(jax.random.PRNGKey(run.seed))
     meta: dict = {"updates": 0, "env_steps": 0, "wall_s": 0.0, "rows": [], ckpt.PROBLEM: ckpt.problem_of(tc)}
     if run.resume and (run_dir / ckpt.CHECKPOINT).exists():
@@ -147,10 +150,12 @@ def _train_gradient(tc: TrainConfig, cfg: G.GradientConfig, plant: TrafficParams
     ref = evaluation(adapt(backstepping(tc.plant.delay), baseline_grid(plant), plant), plant, eval_steps,
                      gains=jnp.zeros(3))
     n_steps = G.horizon_steps(cfg, tc.plant.dt)
-    steps_per_update = cfg.n_scenarios * n_steps
+    steps_per_update = cfg.n_scenarios * n_steps * (cfg.cem_population if cfg.method == "cem" else 1)
     wall0 = float(meta["wall_s"])
-    say(f"training by gradient ({cfg.policy}): {cfg.n_scenarios} scenarios x {n_steps} steps per Adam step, "
-        f"{cfg.steps_per_chunk} steps/chunk, plant D = {tc.plant.delay:g} s; backstepping reference: "
+    step = ("Adam step" if cfg.method == "adam" else f"CEM generation of {cfg.cem_population} candidates")
+    say(f"training by {'gradient' if cfg.method == 'adam' else 'CEM'} ({cfg.policy}): {cfg.n_scenarios} scenarios x "
+        f"{n_steps} steps per {step}, {cfg.steps_per_chunk} steps/chunk, plant D = {tc.plant.delay:g} s; "
+        "backstepping reference: "
         f"rho L2 {ref['final_rho_L2'] * 1e3:.3f} veh/km, J_comfort {ref['J_comfort']:.4g}")
     ev, updates_at_start = {}, meta["updates"]
     signum = agree_stop(False, False, stop)[2]
@@ -178,7 +183,8 @@ def _train_gradient(tc: TrainConfig, cfg: G.GradientConfig, plant: TrafficParams
                 if hit and meta.get(f"seconds_to_{key}") is None:
                     meta[f"seconds_to_{key}"] = meta["wall_s"]
                     meta[f"updates_to_{key}"] = meta["updates"]
-            say(f"[update {meta['updates']:>4d}] objective {row['objective']:.4f} | |grad| {row['grad_norm']:.3g} | "
+            spread = "|grad|" if cfg.method == "adam" else "spread"
+            say(f"[update {meta['updates']:>4d}] objective {row['objective']:.4f} | {spread} {row['grad_norm']:.3g} | "
                 f"eval reward {row['eval_reward']:.4f} | rho L2 {row['eval_rho_L2_veh_km']:.3f} veh/km | "
                 f"J_comfort {row['eval_J_comfort']:.4g} | gains ({g[0]:+.2f}, {g[1]:+.2f}, {g[2]:+.2f}) | "
                 f"{fmt_time(meta['wall_s'])} ({meta['wall_s'] - t_prev:.1f} s/chunk)"
@@ -210,8 +216,10 @@ def _train_gradient(tc: TrainConfig, cfg: G.GradientConfig, plant: TrafficParams
                                            "seconds_to_beat_backstepping", "updates_to_beat_backstepping")}}
     if cfg.policy == "gains":
         summary["gains"] = np.asarray(state.theta).tolist()
+    if cfg.policy == "schedule":
+        summary["schedule"] = {"knots_s": list(cfg.knots), "gains": np.asarray(state.theta).tolist()}
     n = cfg.controller_points or plant.n_points
-    own = G.own_controller(jax.device_get(state.theta), cfg, n, G.ROAD_LENGTH / (n - 1))
+    own = G.own_controller(jax.device_get(state.theta), cfg, n, G.ROAD_LENGTH / (n - 1), plant.delay)
     summary["certificate"] = ckpt.policy_certificate(own, tc)
     if writer:
         ckpt.write_json(run_dir / ckpt.SUMMARY, summary)

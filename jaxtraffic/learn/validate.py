@@ -52,7 +52,8 @@ RULES: dict[str, tuple[float | None, bool, float | None, bool]] = {
     "steps_per_chunk": (1, True, None, False), "reward_weight": (0.0, True, None, False),
     "waves_weight": (0.0, True, None, False), "comfort_weight": (0.0, True, None, False),
     "effort_weight": (0.0, True, None, False), "scenario_clip": (0.0, True, None, False),
-    "certificate_weight": (0.0, True, None, False),
+    "certificate_weight": (0.0, True, None, False), "cem_population": (2, True, None, False),
+    "cem_sigma": (0.0, False, None, False),
     "grad_gain_max": (0.0, False, None, False),
 }
 FLOAT32_MAX = 3.4028234663852886e38
@@ -168,7 +169,7 @@ def check_section(section: Any) -> None:
         if typed is not value:
             object.__setattr__(section, f.name, typed)
         choices = f.metadata.get("choices")
-        if choices and typed not in choices:
+        if choices and typed is not None and typed not in choices:
             raise _fail(f.name, typed, f"must be one of {tuple(choices)}")
         if isinstance(typed, tuple) and f.name in RULES:  # each element in range (gain_max)
             for x in typed:
@@ -207,9 +208,9 @@ def check_config(cfg: Any) -> None:
             raise _fail(name, value, f"must be >= one time step dt = {pl.dt} s")
     for name, section in (("horizon_s", en), ("eval_horizon_s", run), ("val_horizon_s", run),
                           ("train_horizon_s", cfg.grad)):
-        if getattr(section, name) / pl.dt > MAX_STEPS:
+        if (getattr(section, name) or 0.0) / pl.dt > MAX_STEPS:
             raise _fail(name, getattr(section, name), f"must be at most {MAX_STEPS:.0e} time steps of dt = {pl.dt} s")
-    if len(cfg.grad.init_gains) != 3:
+    if cfg.grad.init_gains is not None and len(cfg.grad.init_gains) != 3:
         raise _fail("init_gains", cfg.grad.init_gains, "must be three gains eta1,eta2,eta3")
 
 

@@ -71,8 +71,8 @@ class _Background:
 def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: str | Path,
                  meta: dict[str, Any], ppo_delay0: Controller | None = None,
                  learning_curve_csv: str | Path | None = None, log: Callable[[str], None] = print,
-                 learned_runs: dict[str, dict] | None = None, grids: dict[str, ControllerGrid] | None = None
-                 ) -> dict[str, Any]:
+                 learned_runs: dict[str, dict] | None = None, grids: dict[str, ControllerGrid] | None = None,
+                 oracle: dict[str, dict] | None = None) -> dict[str, Any]:
     """Run every scenario and the robustness map, write all outputs; return the metrics dict.
 
     ``controllers`` must hold "ppo" (the D = 4 s policy); the baselines are added if missing.
@@ -82,7 +82,8 @@ def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: s
     ``grids``: the grid each learned controller acts on (``learn.checkpoint.policy_grid``; "ppo" also
     for ``ppo_delay0``); every controller is adapted from its grid to the evaluation plant (baselines:
     ``adapter.baseline_grid``; ``numerics.deploy``). With ``cfg.numerics_check`` Table 2's scenario is
-    rerun on a refined plant and with the other scheme.
+    rerun on a refined plant and with the other scheme. ``oracle``: the oracle rows of this map
+    (``paper.oracle.load_oracle``), drawn beside the controllers' waves and tabulated in REPORT.md.
 
     In a multi-process run (``jaxtraffic.distributed``) every process must call it with the same
     arguments: the batched rollouts are split over every process's devices, every process gets
@@ -139,7 +140,7 @@ def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: s
         log("[3/4] figures")
         figures = early.join(log)  # the scenario figures, drawn while the robustness map ran
         figures += make_figures(results, robust, cfg, out_dir, lc, log, fig7_scenario=fig7,
-                                select=lambda name: name in FIG7 + ROBUSTNESS)
+                                select=lambda name: name in FIG7 + ROBUSTNESS, oracle=oracle)
         log("[4/4] tables, metrics.json, REPORT.md")
         write_table2(table2_rows(metrics, cfg, numerics), out_dir, cfg.n_steps * cfg.dt, metrics, numerics)
     nom = cfg.nominal()
@@ -177,13 +178,15 @@ def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: s
     metrics["meta"] = meta
     metrics = to_jsonable(metrics)
     if writer:
-        _write(out_dir, claims, metrics, meta, figures, robust, robust_json, cfg, numerics, lc_data, learned_runs)
+        _write(out_dir, claims, metrics, meta, figures, robust, robust_json, cfg, numerics, lc_data, learned_runs,
+               oracle)
     log(f"done in {meta['runtime_s']:.1f} s -> {out_dir}")
     return metrics
 
 
 def _write(out_dir: Path, claims: list, metrics: dict, meta: dict, figures: list, robust: dict, robust_json: dict,
-           cfg: EvalConfig, numerics: dict | None, lc_data: Any, learned_runs: dict | None) -> None:
+           cfg: EvalConfig, numerics: dict | None, lc_data: Any, learned_runs: dict | None,
+           oracle: dict[str, dict] | None) -> None:
     """robustness.json, metrics.json, REPORT.md and claims.json."""
     (out_dir / "robustness.json").write_text(json.dumps(to_jsonable(robust_json), indent=1, allow_nan=False))
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=1, allow_nan=False))
@@ -191,7 +194,7 @@ def _write(out_dir: Path, claims: list, metrics: dict, meta: dict, figures: list
     if lc_data is None:
         notes.append("- No learning curve was available, so figure 3a is missing.")
     sections = readings_summary(claims, metrics, cfg) + numerics_summary(numerics, metrics, cfg)
-    sections += robustness_summary(robust, cfg) + comparison_section(
+    sections += robustness_summary(robust, cfg, oracle) + comparison_section(
         metrics, learned_runs or {}, robust, tuple(cfg.robust_alphas), tuple(cfg.robust_delays))
     write_report(out_dir / "REPORT.md", claims, metrics, meta, figures, notes, sections=sections)
     (out_dir / "claims.json").write_text(json.dumps(to_jsonable(

@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from jaxtraffic.model.params import equilibrium
+from jaxtraffic.paper.learned import STABLE_STD
+from jaxtraffic.paper.oracle import ORACLE_LABELS
 from jaxtraffic.paper.scenarios import (
     CTRL_DELAY,
     EXTRA_LEARNED,
@@ -28,11 +30,12 @@ LEARNING_CURVE = "fig3a_learning_curve.png"
 def make_figures(results: dict[str, dict[str, Outcome]], robust: dict[str, dict[str, np.ndarray]],
                  cfg: EvalConfig, out_dir: Path, learning_curve_csv: Path | None,
                  log: Callable[[str], None] = print, fig7_scenario: str = "alpha_noise",
-                 select: Callable[[str], bool] | None = None) -> list[str]:
+                 select: Callable[[str], bool] | None = None, oracle: dict[str, dict] | None = None) -> list[str]:
     """Write every figure into ``out_dir``; returns the file names written. ``fig7_scenario``: the
     reading of the alpha noise shown as figure 7 (``claims.paper_like_reading``). ``select``: draw only
     the figures whose file name it accepts (default: all), e.g. the scenario figures while the
-    robustness map is still running (``FIG7`` and ``ROBUSTNESS`` need later results)."""
+    robustness map is still running (``FIG7`` and ``ROBUSTNESS`` need later results). ``oracle``: oracle rows
+    (``paper.oracle``) drawn as further panels of the waves map."""
     from jaxtraffic.paper import plotting as P
 
     want = select or (lambda name: True)
@@ -121,9 +124,10 @@ def make_figures(results: dict[str, dict[str, Outcome]], robust: dict[str, dict[
              "plant ACC rate\n(includes the steady offset a proportional law keeps when alpha != 0.15)",
              nominal=(CTRL_DELAY, 0.15), initial_l2=initial_norms(cfg)[0])
         maps = {names[c]: (r["final_rho_spatial_std"], r["diverged"]) for c, r in robust.items()}
+        maps.update({ORACLE_LABELS[k]: (r["final_rho_spatial_std"], r["diverged"]) for k, r in (oracle or {}).items()})
         draw(ROBUSTNESS[1], P.plot_robustness_map, delays, alphas, maps,
              f"Remaining density waves after {horizon:g} s: spatial standard deviation of rho "
              "(blind to a uniform offset)", nominal=(CTRL_DELAY, 0.15), initial_l2=initial_norms(cfg)[0],
-             quantity="final std_x(rho) (veh/km)")
+             quantity="final std_x(rho) (veh/km)", stable_below=STABLE_STD)
     return written
 

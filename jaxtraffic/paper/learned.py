@@ -16,9 +16,10 @@ from typing import Any
 
 import numpy as np
 
-STABLE_STD = 0.5e-3  # veh/m: 0.5 veh/km
+from jaxtraffic.sim.metrics import STABLE_STD
+
 LEARNED_LABELS = {"ppo": "PPO", "ppo_robust": "PPO (robust)", "grad_gains": "gradient: 3 constant gains",
-                  "grad_network": "gradient: network", "grad_robust": "gradient: network (robust)"}
+                  "grad_network": "gradient: network", "grad_robust": "gradient: delay schedule (robust)"}
 
 
 def stabilised_cells(r: dict[str, np.ndarray]) -> int:

@@ -25,7 +25,7 @@ from jaxtraffic.paper.summaries import _fmt
 CLAIMS = {1: "learning curve; PPO converges, the open loop does not", 2: "D = 0: PPO vs Lyapunov",
           3: "D = 4 s: Lyapunov fails, backstepping and PPO stabilise", 4: "Table 2 (300 s, D = 4 s)",
           5: "alpha noise: PPO stabilises, backstepping fails", 6: "mismatched delay 3 s / 5 s"}
-DELAY4 = ("open_loop", "lyapunov", "backstepping", "ppo", "grad_gains", "grad_network")
+DELAY4 = ("open_loop", "lyapunov", "backstepping", "ppo", "grad_gains", "grad_network", "grad_robust")
 TITLE = "## The experiments on the reference plant"
 
 
@@ -92,7 +92,7 @@ def _numerics_lines(table: dict[str, Any], plants: list[str], results: dict[str,
              "|---|---|---|---|---|---|"]
     for p in plants:
         rel = table["numerics_rel_diff"].get(p) or {}
-        for c in ("backstepping", "ppo", "grad_gains", "grad_network"):
+        for c in ("backstepping", "ppo", "grad_gains", "grad_network", "grad_robust"):
             if c not in rel.get("refined", {}):
                 continue
             cells = [rel[v][c].get(k) for v in ("refined", "scheme") for k in ("final_rho_L2", "J_comfort")]

@@ -52,7 +52,7 @@ CONTROLLER_STYLE = {
 }
 LABELS = {"open_loop": "open loop", "lyapunov": "Lyapunov", "backstepping": "backstepping",
           "ppo": "PPO", "grad_gains": "gradient gains", "grad_network": "gradient network",
-          "grad_robust": "gradient network (robust)"}
+          "grad_robust": "gradient delay schedule (robust)"}
 
 
 def _style(label: str) -> dict:
@@ -229,7 +229,7 @@ def plot_robustness_map(
     png_path: str | Path, delays: np.ndarray, alphas: np.ndarray,
     maps: Mapping[str, tuple[np.ndarray, np.ndarray]], title: str,
     nominal: tuple[float, float] | None = (4.0, 0.15), initial_l2: float | None = None,
-    quantity: str = "final ||rho - rho_bar||_L2 (veh/km)",
+    quantity: str = "final ||rho - rho_bar||_L2 (veh/km)", stable_below: float | None = None,
 ) -> Path:
     """Heatmaps of a final density deviation (given in veh/m, shown in veh/km on a log colour
     scale) over plant delay (rows of the arrays, s) x plant ACC rate alpha (columns), one panel
@@ -238,6 +238,7 @@ def plot_robustness_map(
     ``maps``: label -> (value (ND, NA) in veh/m, diverged (ND, NA) bool). Diverged cells are
     drawn grey with hatching. ``nominal`` marks the training point (D, alpha) with a red star;
     ``initial_l2`` (veh/m), if given, is marked on the colour bar. ``quantity`` labels the bar.
+    ``stable_below`` (veh/m): also count, in each panel's title, the cells below it that did not diverge.
     """
     delays, alphas = np.asarray(delays, float), np.asarray(alphas, float)
     k = len(maps)
@@ -269,7 +270,8 @@ def plot_robustness_map(
         if nominal is not None:
             ax.plot([nominal[1]], [nominal[0]], marker="*", ms=14, color="red", mec="white", ls="none")
         nd = int(div.sum())
-        ax.set_title(f"{label}  ({nd}/{div.size} diverged)", fontsize=10)
+        stable = "" if stable_below is None else f"{int((~div & (v < stable_below * VEH_PER_KM)).sum())} stabilised, "
+        ax.set_title(f"{label}  ({stable}{nd}/{div.size} diverged)", fontsize=10)
         ax.set_xlabel("plant ACC penetration rate alpha")
         ax.set_ylabel("plant input delay D (s)")
     for ax in list(axes.flat)[k:]:

@@ -41,7 +41,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxtraffic.control import Controller, backstepping
+from jaxtraffic.control import Controller, backstepping, takes_delay, tell_delay
 from jaxtraffic.control.adapter import adapt, baseline_grid
 from jaxtraffic.model.params import TrafficParams, equilibrium, steps_for
 from jaxtraffic.sim import metrics as M
@@ -81,7 +81,7 @@ class Scenario:
 
 
 # learned controllers beyond the paper's PPO, evaluated wherever PPO is when they are given
-EXTRA_LEARNED = ("grad_gains", "grad_network")
+EXTRA_LEARNED = ("grad_gains", "grad_network", "grad_robust")
 _L = ("ppo", *EXTRA_LEARNED)
 SCENARIOS = (
     Scenario("delay0", 0.0, 0.0, ("open_loop", "lyapunov", *_L), "plant delay D = 0"),
@@ -106,7 +106,7 @@ SCENARIOS = (
 )
 SCENARIO_BY_NAME = {s.name: s for s in SCENARIOS}
 NOISE_SCENARIOS = tuple(s.name for s in SCENARIOS if s.seeded)  # the readings of the alpha noise (claim 5)
-ROBUST_CONTROLLERS = ("open_loop", "lyapunov", "backstepping", "ppo", *EXTRA_LEARNED, "grad_robust")
+ROBUST_CONTROLLERS = ("open_loop", "lyapunov", "backstepping", "ppo", *EXTRA_LEARNED)
 
 
 @dataclass
@@ -296,34 +296,40 @@ def run_scenarios(controllers: dict[str, Controller], cfg: EvalConfig,
 def run_robustness(controllers: dict[str, Controller], cfg: EvalConfig,
                    log: Callable[[str], None] = print) -> dict[str, dict[str, np.ndarray]]:
     """Final density L2 over plant delay x plant alpha (no noise), one batched rollout per
-    controller. Backstepping assumes the true plant delay (a batched controller setting); the
-    other controllers ignore the delay. Returns name -> {"final_rho_L2", "diverged",
-    "final_v_L2", "final_reward", "final_rho_spatial_std"} arrays of shape (len(delays),
-    len(alphas)); final_rho_spatial_std (veh/m) is the standard deviation over x of the final
-    density: the remaining wave amplitude, blind to a uniform offset from the nominal target."""
+    controller. A controller told the delay it compensates (``control.takes_delay``: backstepping,
+    a delay schedule) is told the true plant delay (a batched controller setting); the others
+    ignore the delay. Returns name -> {"final_rho_L2", "diverged", "final_v_L2", "final_reward",
+    "final_rho_spatial_std", "final_rho_offset"} arrays of shape (len(delays), len(alphas));
+    final_rho_spatial_std (veh/m) is the standard deviation over x of the final density: the
+    remaining wave amplitude, blind to a uniform offset from the nominal target;
+    final_rho_offset (veh/m) is the final density's mean over x minus the plant's own
+    equilibrium density (its alpha, the nominal time gap h_bar: where the open loop would rest)."""
     if not cfg.robust_delays or not cfg.robust_alphas:
         return {}
     cfg = replace(cfg, horizon_s=cfg.robust_horizon_s)
     nom = cfg.nominal()
     dd, aa = np.meshgrid(np.asarray(cfg.robust_delays), np.asarray(cfg.robust_alphas), indexing="ij")
     envs = [nom.replace(delay=float(d), alpha=float(a)) for d, a in zip(dd.ravel(), aa.ravel(), strict=True)]
+    own_rho = np.array([float(equilibrium(e)[0]) for e in envs]).reshape(dd.shape)  # veh/m, at h_bar
     out = {}
     for name in ROBUST_CONTROLLERS:
         if name not in controllers:
             continue
         ctrl, batched, chunk = controllers[name], False, None
         if name == "backstepping":
-            ctrl = backstepping(delay=jnp.asarray(dd.ravel(), jnp.float32), k=jnp.ones(dd.size))
-            ctrl = adapt(ctrl, baseline_grid(nom), nom)
+            ctrl = adapt(backstepping(CTRL_DELAY, 1.0), baseline_grid(nom), nom)
             # the predictor's loop runs to the largest assumed delay of its chunk: one delay per
             # chunk (the batch is delay-major and dealt over the devices), 20 % faster than 64
-            batched, chunk = True, -(-dd.shape[1] // host_mesh().size)
+            chunk = -(-dd.shape[1] // host_mesh().size)
+        if takes_delay(ctrl):
+            ctrl, batched = tell_delay(ctrl, jnp.asarray(dd.ravel(), jnp.float32)), True
         t0 = time.perf_counter()
         res = run_batch(ctrl, envs, [0] * len(envs), cfg, record=False, batch_controller=batched,
                         chunk_size=chunk)
         out[name] = {k: np.asarray(res.metrics[k]).reshape(dd.shape)
                      for k in ("final_rho_L2", "final_v_L2", "final_reward", "diverged")}
         out[name]["final_rho_spatial_std"] = np.std(np.asarray(res.final.rho), axis=-1).reshape(dd.shape)
+        out[name]["final_rho_offset"] = np.mean(np.asarray(res.final.rho), axis=-1).reshape(dd.shape) - own_rho
         log(f"  robustness {name:<13s} {len(envs):3d} envs x {cfg.n_steps} steps"
             f"  {time.perf_counter() - t0:6.1f} s")
     return out

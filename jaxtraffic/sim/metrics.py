@@ -31,6 +31,9 @@ VEH_PER_KM = 1000.0  # veh/m -> veh/km
 FUEL_B0, FUEL_B1, FUEL_B3, FUEL_B4 = 25e-3, 24.5e-6, 32.5e-9, 125e-6  # Treiber & Kesting
 KMH = 3.6  # m/s -> km/h
 REWARD_TARGET = -0.1  # the paper's stop rule on the reward
+# veh/m (0.5 veh/km): a plant of the robustness map is *stabilised* when it did not diverge and the spatial standard
+# deviation of its final density (the remaining waves, blind to a uniform offset) is below this
+STABLE_STD = 0.5e-3
 REWARD_DX = 5.0  # m, the paper's grid spacing: the reward's per-node sum is weighted by dx / REWARD_DX
 
 

@@ -1,0 +1,119 @@
+"""Derivative-free training by the cross-entropy method (CEM) on the robustness map's own criterion.
+
+The map counts a plant as *stabilised* when it did not diverge and its final std_x(rho) is below
+``sim.metrics.STABLE_STD`` (0.5 veh/km), and as *diverged* when it left the physical region. Both are counts:
+their gradient is zero almost everywhere, and the smooth wave objectives of ``learn.gradient`` trade them
+badly (measured, BENCHMARKS.md "A robust learned controller"). CEM optimises the counts themselves, on the
+training scenarios of a ``GradientConfig`` (plants offset from the map's cells):
+
+    fitness(theta) = #stabilised - DIVERGED_COST #diverged - TIE_WEIGHT mean_s log(final std_s + 1e-3 veh/km)
+
+(the last term only orders laws of equal counts: by how far their waves decayed). Each generation samples
+``cem_population`` parameter sets from a diagonal Gaussian (the current mean is always one of them, so the
+mean's own fitness is known), rolls every one out on every scenario (one batched, forward-only
+``simulate_batch``), and refits the Gaussian to the best fifth (the elites; a floor
+``SIGMA_MIN`` keeps it searching). The policy (``CemState.theta``) is the best parameter set evaluated so far.
+Deterministic for a given key. ``make_train`` has the signature of ``gradient.make_train``, so the same
+host loop (``gradient_trainer``) runs, checkpoints and resumes it.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from jaxtraffic.learn.gradient import horizon_steps, init_theta, make_controller, training_scenarios
+from jaxtraffic.learn.gradient_config import GradientConfig
+from jaxtraffic.model.params import TrafficParams
+from jaxtraffic.sim.metrics import STABLE_STD, VEH_PER_KM
+from jaxtraffic.sim.rollout import simulate_batch
+
+Array = jax.Array
+DIVERGED_COST = 2.0  # a diverged plant costs two stabilised ones
+TIE_WEIGHT = 0.01
+SIGMA_MIN = 0.05  # floor of the search distribution's standard deviation (dimensionless gains)
+ELITE_FRACTION = 5  # the elites are the best population / ELITE_FRACTION (rounded, at least 2)
+DIVERGED_STD = 50.0  # veh/km: the tie-breaker's wave amplitude of a diverged plant (a jam-scale wave)
+
+
+@struct.dataclass
+class CemState:
+    """The policy (``theta``: the best parameters evaluated so far, and its ``fitness``), the search
+    distribution (``mean``, ``sigma``, same shape as theta), the PRNG key and the generations done (``update``)."""
+
+
+    theta: Array
+    fitness: Array
+    mean: Array
+    sigma: Array
+    key: Array
+    update: Array
+
+
+def fitness(thetas: Array, cfg: GradientConfig, base: TrafficParams, n_steps: int) -> tuple[Array, Array, Array]:
+    """(fitness, stabilised count, diverged count), each (P,), of P parameter sets ``thetas`` (P, ...) on the
+    training scenarios of ``cfg`` (module docstring)."""
+    scen = training_scenarios(cfg, base)
+    n_p, n_s = thetas.shape[0], scen.rho0.shape[0]
+    params = jax.tree.map(lambda x: jnp.tile(x, n_p), scen.params)
+    tiled = jnp.repeat(thetas, n_s, axis=0)
+    # every (theta, scenario) pair is one environment; each controller is told its plant's delay
+    ctrl = jax.vmap(lambda th, d: make_controller(th, cfg, base, d))(tiled, params.delay)
+    res = simulate_batch(params, ctrl, n_steps=n_steps, nominal=base, rho0=jnp.tile(scen.rho0, (n_p, 1)),
+                         v0=jnp.tile(scen.v0, (n_p, 1)), batch_controller=True)
+    div = res.metrics["diverged"].reshape(n_p, n_s)
+    std = jnp.std(res.final.rho, axis=-1).reshape(n_p, n_s)
+    stab = (~div & (std < STABLE_STD)).sum(axis=1)
+    n_div = div.sum(axis=1)
+    tie = jnp.mean(jnp.log(jnp.where(div, DIVERGED_STD, std * VEH_PER_KM) + 1e-3), axis=1)
+    return stab - DIVERGED_COST * n_div - TIE_WEIGHT * tie, stab, n_div
+
+
+def _generation(state: CemState, cfg: GradientConfig, base: TrafficParams, n_steps: int) -> tuple[CemState, dict]:
+    key, sub = jax.random.split(state.key)
+    noise = jax.random.normal(sub, (cfg.cem_population, *state.mean.shape), state.mean.dtype)
+    pop = (state.mean + state.sigma * noise).at[0].set(state.mean)
+    fit, stab, n_div = fitness(pop, cfg, base, n_steps)
+    order = jnp.argsort(-fit)
+    elites = pop[order[:max(2, round(cfg.cem_population / ELITE_FRACTION))]]
+    top = order[0]
+    better = fit[top] > state.fitness
+    new = CemState(theta=jnp.where(better, pop[top], state.theta), fitness=jnp.where(better, fit[top], state.fitness),
+                   mean=elites.mean(axis=0), sigma=jnp.maximum(elites.std(axis=0), SIGMA_MIN), key=key,
+                   update=state.update + 1)
+    return new, {"objective": -new.fitness, "grad_norm": jnp.sqrt(jnp.sum(new.sigma**2)),
+                 "stabilised": stab[top], "diverged": n_div[top], "mean_stabilised": stab[0],
+                 "mean_diverged": n_div[0]}
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "n_steps"))
+def _train_chunk(state: CemState, base: TrafficParams, cfg: GradientConfig, n_steps: int) -> tuple[CemState, dict]:
+    return jax.lax.scan(lambda s, _: _generation(s, cfg, base, n_steps), state, None, length=cfg.steps_per_chunk)
+
+
+def make_train(cfg: GradientConfig, base: TrafficParams, devices: list | None = None):
+    """``(init, train_chunk)`` as ``gradient.make_train``: ``init(key) -> CemState`` (the mean at ``init_theta``,
+    sigma ``cfg.cem_sigma``); ``train_chunk(state) -> (state, metrics)`` runs ``steps_per_chunk`` generations
+    in one compiled ``lax.scan``; metrics per generation: objective (-fitness of the policy), grad_norm (the
+    norm of sigma: how widely it still searches), the best member's stabilised and diverged counts and the
+    mean's. The rollouts are split over this process's devices (``simulate_batch``); ``devices`` is accepted
+    for the signature and must be None."""
+    if devices is not None or jax.process_count() > 1:
+        raise ValueError("the CEM trainer runs in one process, on its devices (devices=None)")
+    if cfg.policy not in ("gains", "schedule"):
+        raise ValueError(f"method 'cem' trains the gains or schedule policy, not {cfg.policy!r}")
+    n_steps = horizon_steps(cfg, base.dt)
+
+    def init(key: Array) -> CemState:
+        theta = init_theta(cfg, base, key)
+        return CemState(theta=theta, fitness=jnp.asarray(-jnp.inf, theta.dtype), mean=theta,
+                        sigma=jnp.full_like(theta, cfg.cem_sigma), key=key, update=jnp.zeros((), jnp.int32))
+
+    def train_chunk(state: CemState) -> tuple[CemState, dict[str, Any]]:
+        return _train_chunk(state, base, cfg, n_steps)
+
+    return init, train_chunk

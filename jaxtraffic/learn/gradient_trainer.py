@@ -223,7 +223,8 @@ def _train_gradient(tc: TrainConfig, cfg: G.GradientConfig, plant: TrafficParams
     summary["certificate"] = ckpt.policy_certificate(own, tc)
     if writer:
         ckpt.write_json(run_dir / ckpt.SUMMARY, summary)
-    say(f"done: {meta['updates']} Adam steps in {meta['wall_s']:.1f} s; final rho L2 "
+    say(f"done: {meta['updates']} {'Adam steps' if cfg.method == 'adam' else 'CEM generations'} in "
+        f"{meta['wall_s']:.1f} s; final rho L2 "
         f"{ev['final_rho_L2'] * 1e3:.3f} veh/km, J_comfort {ev['J_comfort']:.4g}; "
         + (f"first beat backstepping after {beat:.1f} s" if (beat := meta.get("seconds_to_beat_backstepping"))
            is not None else "never beat backstepping") + f"; outputs in {run_dir}")

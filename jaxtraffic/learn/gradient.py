@@ -49,7 +49,7 @@ from jax.sharding import Mesh
 
 from jaxtraffic.control.adapter import ControllerGrid, on_grid
 from jaxtraffic.control.base import Controller
-from jaxtraffic.control.gain_law import constant_gains, schedule_gains, scheduled_gains, sigma_nodes
+from jaxtraffic.control.gain_law import DelaySchedule, constant_gains, schedule_gains, scheduled_gains, sigma_nodes
 from jaxtraffic.control.gain_policy import equilibrium_gains, feature_size, policy_controller
 from jaxtraffic.control.networks import ActorCritic
 from jaxtraffic.control.stability import GROWTH_TOL, model_growth_rates, wavenumbers
@@ -156,7 +156,8 @@ def fixed_gains(theta: Any, cfg: GradientConfig, delay: float | Array) -> Array 
     if cfg.policy == "gains":
         return jnp.asarray(theta)
     if cfg.policy == "schedule":
-        return schedule_gains(own_controller(theta, cfg, 3, 1.0, delay).settings)
+        return schedule_gains(DelaySchedule(knots=jnp.asarray(cfg.knots, theta.dtype), table=theta,
+                                            delay=jnp.asarray(delay, theta.dtype)))
     return None
 
 

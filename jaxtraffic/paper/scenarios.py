@@ -41,8 +41,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxtraffic.control import Controller, backstepping, takes_delay, tell_delay
-from jaxtraffic.control.adapter import adapt, baseline_grid
+from jaxtraffic.control import Controller, takes_delay, tell_delay
 from jaxtraffic.model.params import TrafficParams, equilibrium, steps_for
 from jaxtraffic.sim import metrics as M
 from jaxtraffic.sim.initial import paper_initial_condition
@@ -296,9 +295,10 @@ def run_scenarios(controllers: dict[str, Controller], cfg: EvalConfig,
 def run_robustness(controllers: dict[str, Controller], cfg: EvalConfig,
                    log: Callable[[str], None] = print) -> dict[str, dict[str, np.ndarray]]:
     """Final density L2 over plant delay x plant alpha (no noise), one batched rollout per
-    controller. A controller told the delay it compensates (``control.takes_delay``: backstepping,
-    a delay schedule) is told the true plant delay (a batched controller setting); the others
-    ignore the delay. Returns name -> {"final_rho_L2", "diverged", "final_v_L2", "final_reward",
+    controller (each acting on ``cfg``'s plant, e.g. through ``numerics.deploy``). A controller told
+    the delay it compensates (``control.takes_delay``: backstepping, a delay schedule) is told the
+    true plant delay (a batched controller setting); the others ignore the delay. Returns name ->
+    {"final_rho_L2", "diverged", "final_v_L2", "final_reward",
     "final_rho_spatial_std", "final_rho_offset"} arrays of shape (len(delays), len(alphas));
     final_rho_spatial_std (veh/m) is the standard deviation over x of the final density: the
     remaining wave amplitude, blind to a uniform offset from the nominal target;
@@ -317,7 +317,6 @@ def run_robustness(controllers: dict[str, Controller], cfg: EvalConfig,
             continue
         ctrl, batched, chunk = controllers[name], False, None
         if name == "backstepping":
-            ctrl = adapt(backstepping(CTRL_DELAY, 1.0), baseline_grid(nom), nom)
             # the predictor's loop runs to the largest assumed delay of its chunk: one delay per
             # chunk (the batch is delay-major and dealt over the devices), 20 % faster than 64
             chunk = -(-dd.shape[1] // host_mesh().size)

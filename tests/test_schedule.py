@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from conftest import SMALL
 
-from jaxtraffic import TrafficParams, simulate, simulate_batch, stack_params
+from jaxtraffic import TrafficParams, equilibrium, paper_initial_condition, simulate, simulate_batch, stack_params
 from jaxtraffic.cli.train import settings_from_args
 from jaxtraffic.control import backstepping, constant_gains, schedule_gains, scheduled_gains, takes_delay, tell_delay
 from jaxtraffic.learn import gradient as G
@@ -64,17 +64,19 @@ def test_tell_delay_sets_one_delay_or_a_batch():
 def test_each_map_cell_is_told_its_plant_delay():
     """On the robustness map a schedule acts at every cell as the constant law of its plant delay's gains."""
     cfg = EvalConfig(n_points=SMALL["n_points"], dt=SMALL["dt"], robust_delays=robust_axis(3, 0.0, 8.0, SMALL["dt"]),
-                     robust_alphas=(0.15,), robust_horizon_s=20.0, numerics_check=False)
+                     robust_alphas=(0.3,), robust_horizon_s=20.0, numerics_check=False)
     sched = scheduled_gains(TABLE, KNOTS, 4.0, filter_sigma=0.0)
     res = run_robustness({"grad_robust": sched}, cfg, log=lambda _: None)["grad_robust"]
     nom = cfg.nominal()
     n = round(20.0 / SMALL["dt"])
+    rho0, v0 = paper_initial_condition(nom)  # the map starts every plant from the nominal target's perturbation
     for i, (d, gains) in enumerate(zip(cfg.robust_delays, TABLE, strict=True)):
-        plant = nom.replace(delay=d)
-        alone = simulate(plant, constant_gains(*map(float, gains)), n_steps=n, nominal=nom)
+        plant = nom.replace(delay=d, alpha=0.3)  # its own equilibrium is not the nominal target
+        alone = simulate(plant, constant_gains(*map(float, gains)), n_steps=n, nominal=nom, rho0=rho0, v0=v0)
         np.testing.assert_allclose(res["final_rho_L2"][i, 0], float(alone.metrics["final_rho_L2"]), rtol=1e-5)
-    # the offset from the plant's own equilibrium: zero for the nominal plant's open loop at rest
-    assert np.all(np.isfinite(res["final_rho_offset"]))
+        # the offset: the final mean density minus the plant's own equilibrium density (at h_bar)
+        offset = float(jnp.mean(alone.final.rho)) - float(equilibrium(plant)[0])
+        np.testing.assert_allclose(res["final_rho_offset"][i, 0], offset, rtol=1e-4, atol=1e-8)
 
 
 def test_schedule_gradient_matches_central_differences_and_stays_on_its_knots(x64):

@@ -11,9 +11,10 @@ Also measured: the compile time of a 3000-step single-environment rollout (``sim
 in a fresh subprocess, the peak resident memory (VmHWM) of a batch of 4096 environments over
 300 s (3000 steps) with the Lyapunov controller, without trajectories.
 
-Devices: by default nothing is set here: ``import jaxtraffic`` splits the host into one XLA CPU
-device per core and ``simulate_batch`` shards the batch over them (what a user gets with no flags).
-``--devices N`` sets ``--xla_force_host_platform_device_count=N`` instead (1: one device).
+Devices: by default the host is split into one XLA CPU device per core (``jaxtraffic.split_host_devices``,
+what the command lines do) and ``simulate_batch`` shards the batch over them. ``--devices N`` sets
+``--xla_force_host_platform_device_count=N`` instead (1: one device, what ``import jaxtraffic`` alone
+gives a program; ``benchmarks/bench_device_split.py`` compares the two).
 
 Ratio to numpy: every row also times the same closed loop (Lyapunov law + upwind ARZ step) written
 as plain batched numpy (``benchmarks/numpy_ref.py``) at the same batch size, in the same process,
@@ -51,7 +52,7 @@ def _parse() -> argparse.Namespace:
     ap.add_argument("--repeats", type=int, default=3, help="timed calls per configuration")
     ap.add_argument("--controllers", default="open_loop,lyapunov", help="open_loop and/or lyapunov")
     ap.add_argument("--devices", type=int, default=0,
-                    help="force N XLA host devices (default 0: the library's default, one per core)")
+                    help="force N XLA host devices (default 0: one per core, as the command lines split)")
     ap.add_argument("--numpy-steps", type=int, default=100, help="steps of each timed numpy rollout")
     ap.add_argument("--chunk-size", type=int, default=64,
                     help="simulate_batch chunk_size (environments per sequential chunk; 0: one vmap)")
@@ -68,6 +69,10 @@ if ARGS.devices:
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
                                + f" --xla_force_host_platform_device_count={ARGS.devices}")
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
+if not ARGS.devices:
+    from jaxtraffic import split_host_devices
+
+    split_host_devices()  # one device per core, before jax starts
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402

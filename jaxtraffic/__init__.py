@@ -11,9 +11,10 @@ Layers (imports flow one way, model <- control <- sim <- learn <- paper <- cli):
 Gymnasium: when gymnasium is installed, ``import jaxtraffic`` registers ``"jaxtraffic/Gain-v0"``
 (``jaxtraffic._registration``; the environment module is imported only by ``gymnasium.make``).
 
-Devices: on a CPU-only machine ``import jaxtraffic`` splits the host into one XLA device per core
-(unless XLA_FLAGS already chooses, jax already started, or JAXTRAFFIC_NO_DEVICE_SPLIT=1; see
-``jaxtraffic._devices``), and the batched entry points shard their batch over ``jax.devices()``.
+Devices: the batched entry points shard their batch over ``jax.devices()``. XLA shows a CPU host as
+one device; ``split_host_devices()``, called before any JAX computation, makes it one device per core
+(the command lines do this; ``import jaxtraffic`` changes nothing in your process; see
+``jaxtraffic._devices``).
 
 Public API (see README.md for a module map):
     TrafficParams, equilibrium                      -- parameters and equilibrium
@@ -23,7 +24,7 @@ Public API (see README.md for a module map):
     open_loop, lyapunov, backstepping, constant_gains, Controller, Observation -- controllers
 """
 
-from jaxtraffic import _devices  # noqa: F401  (first: one XLA CPU device per core, see _devices)
+from jaxtraffic._devices import split_host_devices
 from jaxtraffic._registration import register_gymnasium
 from jaxtraffic._version import __version__
 from jaxtraffic.control import (
@@ -54,5 +55,5 @@ __all__ = [
     "__version__", "Controller", "Observation", "SimResult", "TrafficParams", "Trajectory", "backstepping",
     "cfl_number", "constant_gains", "equilibrium", "equilibrium_state", "gain_law", "lyapunov",
     "open_loop", "paper_initial_condition", "plant_alphas", "saturate", "simulate", "simulate_batch",
-    "stack_params", "steps_for",
+    "split_host_devices", "stack_params", "steps_for",
 ]

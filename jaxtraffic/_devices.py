@@ -1,7 +1,12 @@
-"""One XLA CPU device per core, by default (run at ``import jaxtraffic``, before jax starts).
+"""One XLA CPU device per core: ``split_host_devices()``, called by the command lines before jax starts.
 
 XLA's CPU backend presents the whole host as ONE device, and a jit-compiled batched rollout on
-one device keeps about one core busy. Unless
+one device keeps about one core busy. The command lines (``train.py``, ``evaluate.py``,
+``jaxtraffic-train``, ``python -m jaxtraffic``) call ``split_host_devices()`` when ``jaxtraffic.cli``
+is imported; ``import jaxtraffic`` itself changes nothing in the process (a library must not change
+``jax.local_device_count()`` for every other library). A program of your own may call
+``jaxtraffic.split_host_devices()`` first thing, before any JAX computation, for the same split.
+It does nothing when
 
   * ``JAXTRAFFIC_NO_DEVICE_SPLIT`` is set to a non-empty value other than ``0`` (opt-out),
   * the user's ``XLA_FLAGS`` already contain ``--xla_force_host_platform_device_count``
@@ -9,10 +14,10 @@ one device keeps about one core busy. Unless
   * jax's backends have been initialised already (importing jax first is fine; having called
     ``jax.devices()`` or run a computation is not: the flag would be ignored),
 
-``import jaxtraffic`` appends ``--xla_force_host_platform_device_count=<cores>`` to ``XLA_FLAGS``
+otherwise it appends ``--xla_force_host_platform_device_count=<cores>`` to ``XLA_FLAGS``
 (cores: the CPUs this process may run on, ``os.sched_getaffinity``). The flag only shapes the
 CPU platform: on a GPU/TPU machine ``jax.devices()`` still lists the accelerators. Nothing is
-changed on a one-core machine. ``DEVICE_SPLIT`` records what was done (None: nothing).
+changed on a one-core machine. What it costs not to split: BENCHMARKS.md, "The device split".
 
 The batched entry points (``simulate_batch``, the evaluation, the trainers) shard their batch
 over ``jax.devices()``; see ``jaxtraffic.sim.sharding``. A rollout's numbers do not depend on the
@@ -43,9 +48,10 @@ def _backends_initialised() -> bool:
     return bool(getattr(xb, "_backends", None)) if xb is not None else False
 
 
-def split_host(env: dict | None = None) -> int | None:
+def split_host_devices(env: dict | None = None) -> int | None:
     """Add the device-count flag to ``env`` (default ``os.environ``) where allowed (see the module
-    docstring); return the device count set, or None when nothing was changed."""
+    docstring); return the device count set, or None when nothing was changed. Call it before the
+    first JAX computation (importing jax first is fine)."""
     env = os.environ if env is None else env
     if env.get(OPT_OUT, "") not in ("", "0"):
         return None
@@ -58,5 +64,3 @@ def split_host(env: dict | None = None) -> int | None:
     env["XLA_FLAGS"] = f"{flags} {FLAG}={n}".strip()
     return n
 
-
-DEVICE_SPLIT = split_host()

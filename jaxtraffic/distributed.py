@@ -17,7 +17,7 @@ gradient trainer splits its scenarios over them. The decisions (stop, budget, si
 0's (``agree``), and only process 0 prints and writes files (``is_writer``). Every process runs
 the same program on the same inputs (SPMD) and must see the run directories (a shared file system).
 
-``import jaxtraffic`` splits each process's host into one CPU device per core: with N processes
+The command lines split each process's host into one CPU device per core: with N processes
 on one machine set ``JAXTRAFFIC_NO_DEVICE_SPLIT=1`` (one device each) so the devices do not
 oversubscribe the cores.
 """

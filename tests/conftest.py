@@ -7,12 +7,17 @@ of that test (``jax.enable_x64`` context manager), never globally.
 Training: the suite trains once. ``tiny_runs_root`` (session scope) holds the run directories of the
 one tiny training session (``tiny_runs.py``) that ``test_train.py`` reads; ``test_evaluate.py``
 evaluates its run A (``tiny_run_a``). The session starts in the background right after collection.
+
+Workers (pytest-xdist, ``-n 2``): the controlling process gives every worker one directory for the
+training session and one compilation cache (``pytest_configure``); worker gw0 trains, the others wait for
+its files (``tiny_runs.wait_*``), and gw0 waits for the training to end before it leaves.
 """
 
 from __future__ import annotations
 
 import os
 import shutil
+import subprocess
 import tempfile
 from pathlib import Path
 
@@ -27,8 +32,9 @@ xla_flags.apply()
 # The command-line jobs' persistent compilation cache (jaxtraffic.compile_cache) goes to a directory of
 # this session, never the user's ~/.cache; the suite's train.py / evaluate.py runs share it (.ci/run sets
 # one for both tiers).
+_WORKER = os.environ.get("PYTEST_XDIST_WORKER")  # "gw0", "gw1", ... in a pytest-xdist worker, else None
 _OWN_CACHE = None
-if "JAXTRAFFIC_COMPILATION_CACHE" not in os.environ:
+if "JAXTRAFFIC_COMPILATION_CACHE" not in os.environ:  # (a worker has its controller's, see pytest_configure)
     _OWN_CACHE = tempfile.mkdtemp(prefix="jaxtraffic-xla-cache-")
     os.environ["JAXTRAFFIC_COMPILATION_CACHE"] = _OWN_CACHE
 
@@ -67,13 +73,24 @@ def small() -> TrafficParams:
 _TRAINING: dict = {}
 _NEEDS = {"two_devices": {"two_device_proc"}, "train": {"tiny_runs_root", "tiny_run_a"}}
 _SHARED_ROOT = os.environ.get("JAXTRAFFIC_TEST_RUNS")
+_OWN_ROOT = None  # the controlling process's shared directory for its workers (removed at its end)
+_TRAINS = _WORKER in (None, "gw0")  # this process runs the training session (else it waits for it)
+
+
+def pytest_configure(config):
+    """In the controlling process of pytest-xdist workers: one training directory and one compilation cache
+    for all of them (the workers inherit the environment)."""
+    global _OWN_ROOT
+    if _WORKER is None and getattr(config.option, "numprocesses", None) and not _SHARED_ROOT:
+        _OWN_ROOT = tempfile.mkdtemp(prefix="jaxtraffic-tiny-runs-")
+        os.environ["JAXTRAFFIC_TEST_RUNS"] = _OWN_ROOT
 
 
 def _start_training(*parts: str) -> dict:
     if "root" not in _TRAINING:
         if _SHARED_ROOT:
             root = Path(_SHARED_ROOT)
-            if not (root / tiny_runs.DONE).exists():  # absent, or left by an interrupted session
+            if _TRAINS and not (root / tiny_runs.DONE).exists():  # absent, or left by an interrupted session
                 shutil.rmtree(root, ignore_errors=True)
             root.mkdir(parents=True, exist_ok=True)
         else:
@@ -83,18 +100,27 @@ def _start_training(*parts: str) -> dict:
     if "two_devices" in parts and "two_devices" not in _TRAINING:
         _TRAINING["two_devices"] = tiny_runs.start_two_devices()
     if "train" in parts and "train" not in _TRAINING:
-        _TRAINING["train"] = None if (root / tiny_runs.DONE).exists() else tiny_runs.start_train_runs(root)
+        trains = _TRAINS and not (root / tiny_runs.DONE).exists()
+        _TRAINING["train"] = tiny_runs.start_train_runs(root) if trains else None
     return _TRAINING
 
 
 def pytest_collection_finish(session):
     used = set().union(*(getattr(item, "fixturenames", ()) for item in session.items))
-    parts = [part for part, fixtures in _NEEDS.items() if fixtures & used]
+    # under xdist every worker collects every test: the training starts in gw0 only (_TRAINS), and the
+    # two-device run in the worker whose test asks for it
+    parts = [part for part, fixtures in _NEEDS.items() if fixtures & used and (_WORKER is None or part == "train")]
     if parts:
         _start_training(*parts)
 
 
 def pytest_sessionfinish(session, exitstatus):
+    train = _TRAINING.get("train")
+    if train is not None and train.poll() is None and _WORKER is not None and exitstatus == 0:
+        try:  # another worker may still wait for these runs
+            train.wait(timeout=900)
+        except subprocess.TimeoutExpired:
+            pass
     for name in ("two_devices", "train"):
         proc = _TRAINING.get(name)
         if proc is not None and proc.poll() is None:
@@ -102,6 +128,8 @@ def pytest_sessionfinish(session, exitstatus):
             proc.communicate()
     if "root" in _TRAINING and not _SHARED_ROOT:
         shutil.rmtree(_TRAINING["root"], ignore_errors=True)
+    if _OWN_ROOT:
+        shutil.rmtree(_OWN_ROOT, ignore_errors=True)
     if _OWN_CACHE:
         shutil.rmtree(_OWN_CACHE, ignore_errors=True)
 

@@ -15,8 +15,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from extras import need
 
-gym = pytest.importorskip("gymnasium")
+gym = need("gymnasium")
 from gymnasium.utils.env_checker import check_env  # noqa: E402
 
 from jaxtraffic.control.gain_policy import feature_size  # noqa: E402
@@ -33,7 +34,7 @@ OBS = feature_size(N, EnvParams().obs_segments)  # the training default: the poo
 def test_check_env_and_make():
     env = gym.make(ENV_ID, **CONFIG)
     assert isinstance(env.unwrapped, GainEnv)
-    check_env(env.unwrapped, skip_render_check=True)
+    check_env(env.unwrapped)
     assert env.action_space == gym.spaces.Box(-1.0, 1.0, (3,), np.float32)
     assert env.observation_space.shape == (OBS,) and env.observation_space.dtype == np.float32
     obs, info = env.reset(seed=3)
@@ -78,7 +79,8 @@ def test_make_after_plain_import_or_with_module_prefix(how):
 
 
 def test_vector_env_same_step_autoreset_and_seeding():
-    venv = gym.make_vec(ENV_ID, num_envs=4, vectorization_mode="vector_entry_point", **CONFIG)
+    venv = gym.make_vec(ENV_ID, num_envs=4, vectorization_mode="vector_entry_point", autoreset_mode="SAME_STEP",
+                        **CONFIG)
     assert isinstance(venv, GainVectorEnv) and venv.num_envs == 4
     assert venv.metadata["autoreset_mode"] == gym.vector.AutoresetMode.SAME_STEP
     assert venv.single_action_space == gym.spaces.Box(-1.0, 1.0, (3,), np.float32)
@@ -109,10 +111,86 @@ def test_vector_env_same_step_autoreset_and_seeding():
             assert "final_obs" not in info
     venv.close()
     # with randomised initial amplitudes the seed matters
-    rand = GainVectorEnv(num_envs=4, **{**CONFIG, "amp_range": (0.005, 0.015)})
+    rand = GainVectorEnv(num_envs=4, autoreset_mode="SAME_STEP", **{**CONFIG, "amp_range": (0.005, 0.015)})
     a, b, c = (rand.reset(seed=s)[0] for s in (0, 0, 1))
     np.testing.assert_array_equal(a, b)
     assert not np.array_equal(a, c)
+
+
+def _run(venv, actions, seed=0):
+    venv.reset(seed=seed)
+    return [venv.step(a) for a in actions]
+
+
+def test_vector_env_next_step_autoreset_is_the_default_and_matches_same_step():
+    """NEXT_STEP (Gymnasium's default): the finishing step returns the episode's last observation, the
+    next one resets (reward 0, not done) to the first observation SAME_STEP returned a step earlier."""
+    venv = gym.make_vec(ENV_ID, num_envs=3, vectorization_mode="vector_entry_point", **CONFIG)
+    assert venv.metadata["autoreset_mode"] == gym.vector.AutoresetMode.NEXT_STEP
+    same = GainVectorEnv(num_envs=3, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP, **CONFIG)
+    venv.action_space.seed(1)
+    acts = [venv.action_space.sample() for _ in range(11)]
+    nxt, sam = _run(venv, acts), _run(same, acts[:10])
+    for t in range(10):  # the same episode step by step; at t = 9 NEXT_STEP returns the last observation
+        np.testing.assert_array_equal(nxt[t][1], sam[t][1])
+        np.testing.assert_array_equal(nxt[t][3], sam[t][3])
+        expected = np.stack(sam[t][4]["final_obs"]) if t == 9 else sam[t][0]
+        np.testing.assert_array_equal(nxt[t][0], expected)
+        assert "final_obs" not in nxt[t][4]
+    obs, r, term, trunc, info = nxt[10]  # the reset step: the first observation of the next episode
+    np.testing.assert_array_equal(obs, sam[9][0])
+    assert not (term.any() or trunc.any()) and np.all(r == 0.0) and np.all(info["gains"] == 0.0)
+    obs, r, term, trunc, _ = venv.step(acts[0])  # and the new episode goes on
+    assert np.abs(obs[:, -3:]).max() > 0 and np.all(r != 0.0) and not trunc.any()
+
+
+def test_vector_wrappers_of_gymnasium_work_on_the_next_step_env():
+    from gymnasium.wrappers.vector import NormalizeObservation, TransformObservation
+
+    venv = gym.make_vec(ENV_ID, num_envs=2, vectorization_mode="vector_entry_point", **CONFIG)
+    venv = TransformObservation(NormalizeObservation(venv), lambda o: np.clip(o, -5, 5), venv.observation_space)
+    obs, _ = venv.reset(seed=0)
+    for _ in range(12):  # through an automatic reset
+        obs, r, term, trunc, _ = venv.step(np.zeros((2, 3), np.float32))
+    assert obs.shape == (2, OBS) and np.isfinite(obs).all() and np.abs(obs).max() <= 5
+
+
+def test_reset_mask_and_one_seed_per_environment():
+    venv = GainVectorEnv(num_envs=4, **{**CONFIG, "amp_range": (0.005, 0.015)})
+    obs, _ = venv.reset(seed=[7, 8, 7, None])
+    np.testing.assert_array_equal(obs[0], obs[2])  # the same seed, the same episode
+    assert not np.array_equal(obs[0], obs[1])
+    first = [venv.step(np.full((4, 3), 0.5, np.float32))[0] for _ in range(3)][-1]
+    mask = np.array([False, True, False, False])
+    again, _ = venv.reset(seed=[0, 8, 0, 0], options={"reset_mask": mask})
+    np.testing.assert_array_equal(again[1], obs[1])  # env 1 starts again from seed 8
+    np.testing.assert_array_equal(again[~mask], first[~mask])  # the others keep their episodes
+    assert np.isfinite(venv.step(np.full((4, 3), 0.5, np.float32))[0]).all()
+    with pytest.raises(ValueError, match="reset_mask"):
+        venv.reset(options={"reset_mask": [True]})
+    with pytest.raises(ValueError, match="one seed per environment"):
+        venv.reset(seed=[1, 2])
+
+
+def test_render_rgb_array_is_the_episode_as_a_space_time_picture():
+    env = gym.make(ENV_ID, render_mode="rgb_array", **{**CONFIG, "amp_range": (0.01, 0.01)})
+    env.reset(seed=0)
+    frames = [env.render()]
+    for _ in range(10):
+        env.step(np.full(3, -0.5, np.float32))
+        frames.append(env.render())
+    assert all(f.shape == (200, 400, 3) and f.dtype == np.uint8 for f in frames)
+    grey = [np.mean(np.all(f == 217, axis=-1)) for f in frames]  # steps not reached yet are grey
+    assert grey[0] > 0.85 and grey[-1] < 0.01 and all(a >= b for a, b in zip(grey, grey[1:], strict=False))
+    assert frames[-1].std() > 5  # the wave is drawn, not one colour
+    venv = GainVectorEnv(num_envs=2, render_mode="rgb_array", **CONFIG)
+    venv.reset(seed=0)
+    venv.step(np.zeros((2, 3), np.float32))
+    images = venv.render()
+    assert len(images) == 2 and images[0].shape == (200, 400, 3)
+    assert GainEnv(**CONFIG).render() is None
+    with pytest.raises(ValueError, match="render_mode"):
+        GainEnv(render_mode="human", **CONFIG)
 
 
 def test_vector_env_step_matches_single_env_spaces():
@@ -123,8 +201,8 @@ def test_vector_env_step_matches_single_env_spaces():
         venv.step(np.zeros((2, 3), np.float32))
 
 
-def test_sb3_vec_env_adapter_and_example():
-    pytest.importorskip("stable_baselines3")
+def test_sb3_vec_env_adapter_and_example(tmp_path):
+    need("stable_baselines3")
     from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
     from jaxtraffic.ecosystem.sb3 import SB3VecEnv
@@ -139,10 +217,36 @@ def test_sb3_vec_env_adapter_and_example():
         assert dones.all() == (t == 9) and len(infos) == 3
     assert all(i["TimeLimit.truncated"] and i["terminal_observation"].shape == (OBS,) for i in infos)
     assert venv.get_attr("render_mode") == [None] * 3 and venv.env_is_wrapped(object) == [False] * 3
+    with pytest.raises(ValueError, match="SAME_STEP"):
+        SB3VecEnv(GainVectorEnv(num_envs=2, **CONFIG))
+    from stable_baselines3.common.env_util import make_vec_env
+
+    made = make_vec_env(ENV_ID, n_envs=2, env_kwargs=CONFIG)  # SB3's own helper: render_mode="rgb_array"
+    assert made.reset().shape == (2, OBS) and made.render_mode == "rgb_array"
+    assert made.get_images()[0].shape == (200, 400, 3)
 
     spec = importlib.util.spec_from_file_location("sb3_ppo", REPO / "examples" / "sb3_ppo.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
+    saved = tmp_path / "sb3.zip"
     res = mod.main(["--n-points", str(N), "--horizon-s", "1", "--num-envs", "8", "--n-steps", "16",
-                    "--total-timesteps", "256"])
+                    "--total-timesteps", "256", "--save", str(saved)])
     assert res["num_timesteps"] >= 256 and len(res["returns"]) > 0 and np.isfinite(res["returns"]).all()
+    # the saved model as a controller (evaluate.py --controller sb3=examples/sb3_ppo.py:controller:PATH): it
+    # applies what SB3's predict chooses for the environment's own observation
+    from jaxtraffic import simulate
+    from jaxtraffic.control.gain_policy import policy_features
+    from jaxtraffic.model.params import equilibrium
+    from jaxtraffic.sim import initial_state, paper_initial_condition
+
+    ctrl, grid = mod.controller(str(saved))
+    ep = GainEnv(n_points=N, horizon_s=1.0).env_params  # the environment it was trained on
+    plant = ep.traffic
+    assert grid.n_points == N and np.isfinite(float(simulate(plant, ctrl, n_steps=20).metrics["J_comfort"]))
+    obs = initial_state(plant, *paper_initial_condition(plant)).observation(plant)
+    x = np.asarray(policy_features(obs, np.zeros(3, np.float32), plant, ep.gain_max, equilibrium(plant),
+                                   ep.obs_segments))
+    _, gains = ctrl.act(ctrl.init(obs, plant), obs, plant, None)
+    a = np.clip(res["model"].predict(x, deterministic=True)[0], -1, 1)
+    np.testing.assert_allclose(np.asarray(gains), ep.gain_filter * a * np.asarray(ep.gain_max), rtol=1e-4, atol=1e-6)
+

@@ -11,9 +11,9 @@ import sys
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
+from extras import need
 
-pytest.importorskip("gymnax")
+need("gymnax")
 from gymnax.environments import environment, spaces  # noqa: E402
 from gymnax.wrappers.purerl import FlattenObservationWrapper, LogWrapper  # noqa: E402
 from tiny_runs import REPO, xla_env  # noqa: E402

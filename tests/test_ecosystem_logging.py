@@ -5,9 +5,9 @@ installed). One tiny run (21 nodes, 4 environments x 8 steps, 3 chunks)."""
 from __future__ import annotations
 
 import csv
-import importlib.util
 
 import pytest
+from extras import available
 
 from jaxtraffic.learn.config import TrainConfig
 from jaxtraffic.learn.curve import CURVE_FIELDS
@@ -21,7 +21,7 @@ CHUNK = 4 * 8 * 2
 
 @pytest.mark.slow
 def test_callbacks_csv_progress_and_tensorboard(tmp_path, capsys):
-    has_tb = importlib.util.find_spec("tensorboardX") is not None
+    has_tb = available("tensorboardX")
     seen: list[dict] = []
     cfg = TrainConfig.from_flat(**TINY, total_steps=3 * CHUNK, out_dir=str(tmp_path / "run"),
                                 tensorboard=str(tmp_path / "tb") if has_tb else None)

@@ -11,7 +11,7 @@ import json
 import math
 
 import pytest
-from tiny_runs import GRADIENT_ROOT
+from tiny_runs import GRADIENT_ROOT, REPO
 
 import evaluate
 from jaxtraffic.paper import REQUIRED_KEYS, SCENARIOS
@@ -52,11 +52,15 @@ def test_evaluate_end_to_end(tiny_run, tmp_path):
     metrics = evaluate.main(["--run", str(tiny_run), "--out", str(out), "--horizon", "6", "--seeds", "2",
                              "--robust-grid", "2x2", "--gradient", "existing", "--runs-root", str(runs_root),
                              "--reference-grid", "41x1", "--reference-robust-grid", "2x1",
-                             "--oracle-dir", str(tmp_path / "oracle")])
+                             "--oracle-dir", str(tmp_path / "oracle"),
+                             "--controller", f"ppo_predict={REPO / 'tests' / 'external_controller.py'}:"
+                             f"predict_controller:{tiny_run}"])
     on_disk = json.loads((out / "metrics.json").read_text())
     assert "units" in on_disk and "meta" in on_disk
     skipped = {"grad_network"}  # (grad_gains and grad_robust are there)
-    expected = {s.name: set(s.controllers) - skipped for s in SCENARIOS}
+    # --controller ppo_predict (the PPO run as a plain predict(obs), bridged back): wherever PPO is
+    expected = {s.name: set(s.controllers) - skipped | ({"ppo_predict"} if "ppo" in s.controllers else set())
+                for s in SCENARIOS}
     assert "grad_gains" in expected["delay4"]
     assert set(expected) == {"delay0", "delay4", "alpha_noise", "alpha_noise_held_1s", "alpha_noise_held_10s",
                              "alpha_noise_node_held_10s", "alpha_noise_model_sees", "delay_mismatch_3",
@@ -106,6 +110,13 @@ def test_evaluate_end_to_end(tiny_run, tmp_path):
     plants = json.loads((out / "plants.json").read_text())
     assert set(plants["claims"]) == {"paper", "reference"} and set(plants["claims"]["reference"]) == set("123456")
     assert "The experiments on the reference plant" in report and (out / "fig_plants_delay4.png").stat().st_size
+    # the controller brought in: the PPO run bridged through predict(obs) scores as the run itself, on both
+    # plants, and stands in REPORT.md's tables (the map, the numerical check, the learned controllers' section)
+    for m in (on_disk, ref):
+        for scenario in ("delay4", "delay_mismatch_5", "alpha_noise"):
+            for key in ("J_comfort", "final_rho_L2"):
+                assert m[scenario]["ppo_predict"][key] == pytest.approx(m[scenario]["ppo"][key], rel=1e-3, abs=1e-8)
+    assert "ppo_predict" in robust and "ppo_predict" in rel["refined"] and "| ppo_predict |" in report
     # the evaluated controllers themselves, loadable from the results
     from jaxtraffic.learn import load_policy
 

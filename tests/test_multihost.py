@@ -99,6 +99,7 @@ def _rows(run) -> list[dict]:
 
 
 @pytest.mark.slow
+@pytest.mark.cluster
 @pytest.mark.skipif(not _gloo(), reason="this jaxlib has no gloo CPU collectives")
 def test_two_processes_match_two_devices(tmp_path):
     port = _free_port()

@@ -65,6 +65,7 @@ def _numbers(obj, path=""):
 
 
 @pytest.mark.slow
+@pytest.mark.cluster
 @pytest.mark.skipif(not _gloo(), reason="this jaxlib has no gloo CPU collectives")
 def test_gradient_training_and_evaluation_in_two_processes(tmp_path):
     port = _free_port()

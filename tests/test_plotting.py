@@ -1,4 +1,5 @@
-"""Smoke tests: every plotting function writes a non-empty PNG from small synthetic data."""
+"""Smoke tests: every plotting function returns a figure and writes a non-empty PNG from small synthetic
+data; the figures are drawn without pyplot, into an ``ax=`` / ``fig=`` of the caller's when given."""
 
 from __future__ import annotations
 
@@ -13,7 +14,12 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 RHO_BAR, V_BAR, H_BAR = 0.10735931, 3.104839, 1.5
 
 
-def assert_png(path) -> None:
+def assert_png(path, fig=None) -> None:
+    """A real PNG at ``path``; ``fig``: the returned figure (a matplotlib Figure with axes)."""
+    from matplotlib.figure import Figure
+
+    if fig is not None:
+        assert isinstance(fig, Figure) and fig.axes
     assert path.exists(), path
     data = path.read_bytes()
     assert data[:8] == PNG_MAGIC
@@ -36,7 +42,7 @@ def test_learning_curve(tmp_path):
         lines.append(f"{u},{(u + 1) * 1000},{1.5 * u:.2f},{-80.0 * math.exp(-u / 3.0):.4f},{ev},x")
     csv.write_text("\n".join(lines) + "\n")
     out = P.plot_learning_curve(csv, tmp_path / "lc.png")
-    assert_png(out)
+    assert_png(tmp_path / "lc.png", out)
     data = P.read_learning_curve(csv)
     assert np.isnan(data["eval_reward"][1]) and data["env_steps"][-1] == 12000
 
@@ -54,7 +60,7 @@ def test_reward(tmp_path, series):
     out = P.plot_reward(tmp_path / "reward.png", t,
                         {"open loop (D = 4 s)": -grow, "PPO (D = 4 s)": seeds, "Lyapunov (D = 0)": -decay},
                         markers={"open loop (D = 4 s)": 20.0})
-    assert_png(out)
+    assert_png(tmp_path / "reward.png", out)
 
 
 def test_spacetime(tmp_path, series):
@@ -67,34 +73,33 @@ def test_spacetime(tmp_path, series):
             "PPO": (RHO_BAR + 0.5 * (rho - RHO_BAR), v, H_BAR + 0.2 * wave)}
     out = P.plot_spacetime(tmp_path / "st.png", t, x, rows, (RHO_BAR, V_BAR, H_BAR), "synthetic",
                            diverged_at={"open loop": 25.0})
-    assert_png(out)
+    assert_png(tmp_path / "st.png", out)
 
 
 def test_fields_on_uniform_grids_are_images_placed_on_their_cells():
     """``_field_image``: recorded float32 times (spacing varying by ~1e-5 s) count as uniform and are
     drawn as one image whose pixels are centred on (t, x); a non-uniform grid falls back to a mesh."""
-    import matplotlib.pyplot as plt
     from matplotlib.collections import QuadMesh
+    from matplotlib.figure import Figure
     from matplotlib.image import AxesImage
 
     t = np.append(np.arange(300, dtype=np.float32) * np.float32(1.0000001), np.float32(300.0))
     x = np.linspace(0.0, 1000.0, 21)
     f = np.zeros((t.size, x.size))
-    fig, ax = plt.subplots()
+    ax = Figure().subplots()
     img = P._field_image(ax, t, x, f)
     assert isinstance(img, AxesImage)
     np.testing.assert_allclose(img.get_extent(), (-0.5, 300.5, -25.0, 1025.0), rtol=1e-6)
     assert isinstance(P._field_image(ax, t, x ** 1.5, f), QuadMesh)
-    plt.close(fig)
 
 
 def test_l2_norms_and_panels(tmp_path, series):
     t, decay, grow = series
     s = {"backstepping": (0.007 * decay, 0.2 * decay),
          "PPO": (np.stack([0.007 * decay, 0.008 * decay]), np.stack([0.2 * decay, 0.3 * decay]))}
-    assert_png(P.plot_l2_norms(tmp_path / "l2.png", t, s, "synthetic L2"))
-    assert_png(P.plot_l2_panels(tmp_path / "l2p.png", t, {"D = 3 s": s, "D = 5 s": {"open loop": (
-        0.007 * grow, 0.2 * grow)}}, "synthetic panels"))
+    assert_png(tmp_path / "l2.png", P.plot_l2_norms(tmp_path / "l2.png", t, s, "synthetic L2"))
+    assert_png(tmp_path / "l2p.png", P.plot_l2_panels(tmp_path / "l2p.png", t, {"D = 3 s": s, "D = 5 s": {
+        "open loop": (0.007 * grow, 0.2 * grow)}}, "synthetic panels"))
 
 
 def test_robustness_map(tmp_path):
@@ -107,11 +112,11 @@ def test_robustness_map(tmp_path):
             "none": (np.where(div, np.nan, base), np.zeros_like(div))}
     out = P.plot_robustness_map(tmp_path / "robust.png", delays, alphas, maps, "synthetic robustness",
                                 initial_l2=0.007)
-    assert_png(out)
+    assert_png(tmp_path / "robust.png", out)
     # a single controller, a single cell
     out = P.plot_robustness_map(tmp_path / "one.png", delays[:1], alphas[:1],
                                 {"PPO": (base[:1, :1], div[:1, :1])}, "one cell", nominal=None)
-    assert_png(out)
+    assert_png(tmp_path / "one.png", out)
 
 
 def test_learning_curve_renamed_column(tmp_path):
@@ -125,3 +130,41 @@ def test_learning_curve_renamed_column(tmp_path):
     write_curve(new, [{"update": 1, "eval_rho_L2": 0.5}])  # a row saved by an older run, then resumed
     data = read_learning_curve(new)
     assert list(data) == CURVE_FIELDS and data["eval_rho_L2_veh_km"][0] == 0.5
+
+
+def test_draws_into_the_callers_axes_and_subfigures_without_a_file(series):
+    """``ax=`` / ``fig=``: the figures compose into one of the caller's; no path, no file."""
+    from matplotlib.figure import Figure
+
+    t, decay, grow = series
+    fig = Figure(figsize=(12, 8), layout="constrained")
+    left, right = fig.subfigures(1, 2)
+    ax = left.subplots()
+    assert P.plot_reward(None, t, {"PPO (D = 4 s)": -decay}, ax=ax) is left  # the (sub)figure of ax
+    assert ax.get_yscale() == "log" and ax.lines
+    s = {"backstepping": (0.007 * decay, 0.2 * decay)}
+    assert P.plot_l2_norms(None, t, s, "into a subfigure", fig=right) is right
+    assert len(right.axes) == 2 and len(fig.axes) == 3
+
+
+def test_importing_the_library_and_plotting_leave_matplotlib_alone():
+    """No backend switch and no pyplot figures: ``import jaxtraffic`` and the plotting functions leave a
+    notebook's matplotlib as it was (the backend is chosen by matplotlib, not by the library)."""
+    import subprocess
+    import sys
+
+    code = """
+import matplotlib
+before = matplotlib.rcParams._get_backend_or_none()
+import numpy as np
+import jaxtraffic
+from jaxtraffic.paper import plotting as P
+P.plot_reward(None, np.arange(3.0), {"PPO": -np.ones(3)})
+import sys
+print(before, matplotlib.rcParams._get_backend_or_none(), "matplotlib.pyplot" in sys.modules)
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                         env={**__import__("os").environ, "MPLBACKEND": ""})
+    assert out.returncode == 0, out.stderr[-2000:]
+    before, after, pyplot = out.stdout.split()
+    assert before == after == "None" and pyplot == "False"

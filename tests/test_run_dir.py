@@ -220,7 +220,7 @@ def test_evaluate_writes_whole_or_nothing(outcome, tmp_path, monkeypatch, capsys
     (["--train-delays", "50"], r"train_delays = \[50.0\] \(--train-delays\): beyond the delay buffer's 10 s"),
     (["--record-every", "1000000"], r"record_every = 1000000 \(--record-every\): must be <= the training horizon"),
     (["--train-amplitudes", "-1"], r"--train-amplitudes, veh/m\): an initial state leaves the physical region"),
-    (["--num-envs", "7", "--tensorboard", "tb"], r"--num-envs, --tensorboard: used by --algo ppo only"),
+    (["--num-envs", "7", "--tensorboard", "tb"], r"error: --num-envs: used by --algo ppo only"),
     (["--total-steps", "7"], r"--total-steps: used by --algo ppo only, and this run is --algo gradient \(its length"),
 ])
 def test_gradient_scenarios_the_plant_cannot_represent_and_flags_of_the_other_algorithm(argv, match, tmp_path,

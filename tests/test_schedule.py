@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import SMALL
+from extras import available
 
 from jaxtraffic import TrafficParams, equilibrium, paper_initial_condition, simulate, simulate_batch, stack_params
 from jaxtraffic.cli.train import settings_from_args
@@ -119,10 +120,14 @@ def test_a_schedule_run_trains_saves_and_loads(tmp_path):
     out = tmp_path / "s"
     tc = settings_from_args(["--algo", "gradient", "--policy", "schedule", "--out-dir", str(out), "--quiet",
                              "--n-points", "21", "--train-delays", "2,6", "--train-alphas", "0.15",
-                             "--train-horizon-s", "10", "--grad-steps", "5", "--eval-horizon-s", "10"])
+                             "--train-horizon-s", "10", "--grad-steps", "5", "--eval-horizon-s", "10",
+                             *(["--tensorboard", str(tmp_path / "tb")] if available("tensorboardX") else [])])
     from jaxtraffic.learn.gradient_trainer import train_gradient
 
     train_gradient(tc)
+    if tc.run.tensorboard:  # the gradient trainer writes its curve's rows as TensorBoard scalars too
+        events = list((tmp_path / "tb").glob("events.out.tfevents.*"))
+        assert len(events) == 1 and b"train/objective" in events[0].read_bytes()
     ctrl, config = load_policy(out)
     assert takes_delay(ctrl) and float(ctrl.settings.delay) == config.plant.delay == 4.0
     summary = (out / "summary.json").read_text()

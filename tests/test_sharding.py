@@ -21,19 +21,53 @@ def test_split_host_rules(monkeypatch):
     monkeypatch.setattr(_devices, "host_cores", lambda: 4)
     monkeypatch.setattr(_devices, "_backends_initialised", lambda: True)
     on = {}  # the default: split
-    assert _devices.split_host(dict(on)) is None  # too late: jax already started
+    assert _devices.split_host_devices(dict(on)) is None  # too late: jax already started
     monkeypatch.setattr(_devices, "_backends_initialised", lambda: False)
-    assert _devices.split_host({"JAXTRAFFIC_NO_DEVICE_SPLIT": "0"}) == 4  # "0" does not opt out
+    assert _devices.split_host_devices({"JAXTRAFFIC_NO_DEVICE_SPLIT": "0"}) == 4  # "0" does not opt out
     env = dict(on)
-    assert _devices.split_host(env) == 4 and env["XLA_FLAGS"] == "--xla_force_host_platform_device_count=4"
+    assert _devices.split_host_devices(env) == 4 and env["XLA_FLAGS"] == "--xla_force_host_platform_device_count=4"
     env = {**on, "XLA_FLAGS": "--xla_cpu_foo=1"}
-    assert _devices.split_host(env) == 4 and env["XLA_FLAGS"].endswith("device_count=4")
+    assert _devices.split_host_devices(env) == 4 and env["XLA_FLAGS"].endswith("device_count=4")
     for env in ({**on, "XLA_FLAGS": "--xla_force_host_platform_device_count=3"},
                 {**on, "JAXTRAFFIC_NO_DEVICE_SPLIT": "1"}, {**on, "JAX_NUM_CPU_DEVICES": "2"}):
         before = dict(env)
-        assert _devices.split_host(env) is None and env == before  # the user's choice wins
+        assert _devices.split_host_devices(env) is None and env == before  # the user's choice wins
     monkeypatch.setattr(_devices, "host_cores", lambda: 1)
-    assert _devices.split_host(dict(on)) is None
+    assert _devices.split_host_devices(dict(on)) is None
+
+
+IMPORTS = r"""
+import json, os, sys
+import jaxtraffic
+library = os.environ.get("XLA_FLAGS", "")
+import jax
+n_library = jax.local_device_count() if sys.argv[1] == "library" else None
+if sys.argv[1] == "cli":
+    from jaxtraffic import cli
+    n_cli = jax.local_device_count()
+    print("RESULT " + json.dumps({"flags": library, "split": cli.DEVICE_SPLIT, "devices": n_cli}))
+else:
+    print("RESULT " + json.dumps({"flags": library, "devices": n_library}))
+"""
+
+
+@pytest.mark.parametrize("what", ["library", "cli"])
+def test_import_jaxtraffic_leaves_the_devices_alone_and_the_command_lines_split(what):
+    """``import jaxtraffic`` changes neither XLA_FLAGS nor the device count (a library user's process
+    keeps jax's one CPU device); importing the command lines (``jaxtraffic.cli``) splits the host."""
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAXTRAFFIC_NO_DEVICE_SPLIT",
+                                                             "JAX_NUM_CPU_DEVICES")}
+    env.update(JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO))
+    out = subprocess.run([sys.executable, "-c", IMPORTS, what], env=env, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-3000:]
+    res = json.loads(next(x for x in out.stdout.splitlines() if x.startswith("RESULT "))[7:])
+    assert res["flags"] == ""  # nothing set by import jaxtraffic
+    cores = _devices.host_cores()
+    if what == "library":
+        assert res["devices"] == 1
+    else:
+        assert res["split"] == (cores if cores > 1 else None)
+        assert res["devices"] == max(cores, 1)
 
 
 CHILD = r"""

@@ -47,6 +47,7 @@ TINY = ["--seeds", "1", "--n-points", "21", "--delay", "0.5", "--max-delay-steps
 CHUNK = 4 * 8 * 2  # env steps per chunk
 RUNS = ("A", "B", "I", "C", "S", "W", "R", "R_half")
 DONE = "done.json"  # written last: the session is complete
+FAILED = "failed.txt"  # written instead when the training failed (for the test processes that only wait)
 GRADIENT_ROOT = "runs"  # root/runs/gradient-gains: the tiny gradient-trained run (evaluate.py --runs-root)
 
 
@@ -179,7 +180,7 @@ def start_train_runs(root: Path) -> subprocess.Popen:
     """``train_runs(root)`` started in a subprocess (single CPU device, unoptimised XLA backend);
     its output goes to ``root/train_runs.log``."""
     code = "import sys; from pathlib import Path; sys.path[:0] = ['.', 'tests']; import tiny_runs; " \
-           "tiny_runs.train_runs(Path(sys.argv[1]))"
+           "tiny_runs.train_runs_or_mark(Path(sys.argv[1]))"
     log = open(root / "train_runs.log", "w")  # closed by wait_train_runs
     proc = subprocess.Popen([sys.executable, "-c", code, str(root)], cwd=REPO, env=xla_env(), stdout=log,
                             stderr=subprocess.STDOUT, text=True)
@@ -187,15 +188,36 @@ def start_train_runs(root: Path) -> subprocess.Popen:
     return proc
 
 
+def train_runs_or_mark(root: Path) -> None:
+    """``train_runs``, leaving ``FAILED`` (the traceback) in ``root`` if it raises."""
+    try:
+        train_runs(root)
+    except BaseException:
+        import traceback
+
+        (root / FAILED).write_text(traceback.format_exc())
+        raise
+
+
 def _log_tail(root: Path) -> str:
     return (root / "train_runs.log").read_text()[-4000:]
 
 
+def _wait_for(root: Path, marker: str, timeout: float) -> None:
+    """Wait for ``root / marker``, written by a training another test process runs (pytest-xdist workers
+    share one session, ``conftest.py``), or by an earlier session; fail at once if that training failed."""
+    t0 = time.monotonic()
+    while not (root / marker).exists():
+        assert not (root / FAILED).exists(), (root / FAILED).read_text()[-4000:]
+        assert time.monotonic() - t0 < timeout, f"{root / marker} not written in time"
+        time.sleep(0.5)
+
+
 def wait_train_runs(proc: subprocess.Popen | None, root: Path, timeout: float = 900.0) -> None:
     """Wait until every run of ``train_runs`` is written; fail with the subprocess's output if it failed.
-    ``proc`` None: the runs were written by an earlier session (conftest's JAXTRAFFIC_TEST_RUNS)."""
+    ``proc`` None: the runs are written by another test process or were by an earlier session."""
     if proc is None:
-        assert (root / DONE).exists(), root
+        _wait_for(root, DONE, timeout)
         return
     proc.wait(timeout=timeout)
     proc.log.close()
@@ -204,9 +226,12 @@ def wait_train_runs(proc: subprocess.Popen | None, root: Path, timeout: float = 
 
 def wait_run_a(proc: subprocess.Popen | None, root: Path, timeout: float = 900.0) -> Path:
     """Run A as soon as it is complete (``A.done``), while the other runs may still be training."""
+    if proc is None:
+        _wait_for(root, "A.done", timeout)
+        return root / "A"
     t0 = time.monotonic()
     while not (root / "A.done").exists():
-        assert proc is not None and (proc.poll() is None or (root / "A.done").exists()), _log_tail(root)
+        assert proc.poll() is None or (root / "A.done").exists(), _log_tail(root)
         assert time.monotonic() - t0 < timeout, "run A not written in time"
         time.sleep(0.5)
     return root / "A"

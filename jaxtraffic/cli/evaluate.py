@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from jaxtraffic import compile_cache, distributed, paper
-from jaxtraffic.cli import staging
+from jaxtraffic.cli import external, staging
 from jaxtraffic.cli import train as train_cli
 from jaxtraffic.learn.checkpoint import atomic_write_text, load_policy, policy_grid
 from jaxtraffic.learn.config import TrainConfig
@@ -99,6 +99,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                     help="oracle rows of the robustness maps (PLANT.json from benchmarks/gain_oracle.py --out DIR), "
                     "drawn and tabulated beside the controllers when computed on the same map (default "
                     "docs/results/oracle, the committed ones; a missing file leaves them out)")
+    ap.add_argument("--controller", action="append", default=[], metavar="NAME=SOURCE:FUNCTION[:ARGUMENT]",
+                    help="also judge a controller of your own, wherever PPO is (every scenario, the maps, the "
+                    "numerical check): FUNCTION(ARGUMENT) from a Python file or module returns a Controller or "
+                    "(Controller, ControllerGrid), e.g. a policy trained elsewhere "
+                    "(jaxtraffic.ecosystem.policy_as_controller; examples/sb3_ppo.py); repeatable")
     ap.add_argument("--no-numerics-check", action="store_true",
                     help="skip rerunning Table 2's scenario on each plant refined twice and with the other scheme")
     distributed.add_flags(ap)
@@ -168,6 +173,8 @@ def export_runs(learned_runs: dict[str, dict], root: Path) -> None:
     checkpoint.msgpack) in ``root/NAME``, loadable with ``load_policy(root/NAME)``."""
     for name, run in learned_runs.items():
         src, dst = Path(run["run_dir"]), root / name
+        if not src.is_dir():  # a --controller of the user's: no run directory
+            continue
         dst.mkdir(parents=True, exist_ok=True)
         ckpt = "best.msgpack" if (src / "best.msgpack").exists() else "checkpoint.msgpack"
         for f in (*RUN_FILES, ckpt):
@@ -204,6 +211,10 @@ def check_args(args: argparse.Namespace) -> tuple[int, int]:
     """Reject bad flags (``SystemExit(2)`` with a message naming the flag, the value and the allowed
     range) before anything is created or compiled; returns the robustness grid sizes."""
     nd, na = parse_grid(args.robust_grid, "--robust-grid")
+    try:
+        external.parse(args.controller)
+    except ValueError as err:
+        raise _fail(str(err)) from None
     plants = [p.strip() for p in args.plants.split(",") if p.strip()]
     if not plants or any(p not in PLANTS for p in plants) or len(set(plants)) != len(plants):
         raise _fail(f"--plants must name one or both of {PLANTS}, separated by a comma, got {args.plants!r}")
@@ -297,10 +308,13 @@ def _main(args: argparse.Namespace, argv: list[str] | None, t0: float, nd: int, 
                             str(n_points)]}
     grad, grad_grids, grad_runs = gradient_controllers(args.gradient, args.runs_root, plant_flags)
     grids.update(grad_grids)
+    own, own_grids = external.load(args.controller)  # --controller: the user's own, judged wherever PPO is
+    grids.update(own_grids)
     lc = run_dir / "learning_curve.csv"
     learned_runs = {"ppo": {"run_dir": str(run_dir), "curve": _curve(lc),
                             "summary": json.loads((run_dir / "summary.json").read_text())
-                            if (run_dir / "summary.json").exists() else {}}, **grad_runs}
+                            if (run_dir / "summary.json").exists() else {}}, **grad_runs,
+                    **{name: {"run_dir": f"--controller {name}", "summary": {}, "curve": None} for name in own}}
     common = {"dt": dt, "horizon_s": args.horizon, "seeds": tuple(range(args.seeds)),
               "robust_horizon_s": args.robust_horizon or 2.0 * args.horizon,
               "numerics_check": not args.no_numerics_check}
@@ -318,7 +332,7 @@ def _main(args: argparse.Namespace, argv: list[str] | None, t0: float, nd: int, 
         oracle = load_oracle(args.oracle_dir / f"{plant}.json", configs[plant])
         _log(f"   oracle rows: {args.oracle_dir / (plant + '.json')}" if oracle else
              f"   no oracle rows for this map in {args.oracle_dir} (benchmarks/gain_oracle.py --plant {plant})")
-        results[plant] = paper.evaluate_all({"ppo": ppo, **grad}, configs[plant], out, {**meta, "plant": plant},
+        results[plant] = paper.evaluate_all({"ppo": ppo, **grad, **own}, configs[plant], out, {**meta, "plant": plant},
                                             ppo_delay0=ppo0, learning_curve_csv=lc, log=_log,
                                             learned_runs=learned_runs, grids=grids, oracle=oracle)
     if distributed.is_writer():

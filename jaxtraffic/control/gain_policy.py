@@ -183,6 +183,72 @@ def policy_controller(params: Any, obs_mean: Array, obs_var: Array, gain_max: fl
     return Controller(settings=settings, act_fn=act, init_fn=zero_gains, name="ppo")
 
 
+# ----------------------------------------------------------------------------- a policy as a function
+ACTION_EPS = 1e-6  # a = +-1 would be an infinite pre-tanh action; the largest |a| used is 1 - ACTION_EPS
+
+
+def normalised_to_action(a: Array) -> Array:
+    """The environment's (pre-tanh) action for normalised gains ``a`` in [-1, 1]^3 (clipped): the target
+    gains are gain_max * a, up to float rounding (the convention of Gymnasium-style policies)."""
+    a = jnp.clip(jnp.asarray(a, jnp.float32), -1.0, 1.0)
+    return jnp.arctanh(a * (1.0 - ACTION_EPS))
+
+
+@struct.dataclass
+class FunctionSettings:
+    """Traced settings of a function policy: the gain bound(s) and the gain filter (dimensionless)."""
+
+    gain_max: Array
+    gain_filter: Array
+
+
+def _host_policy(fn: Any, batched: bool):
+    """``fn`` (numpy in, numpy out) called from traced code through ``jax.pure_callback``."""
+    def call(x: Array) -> Array:
+        def host(xn):
+            xn = np.asarray(xn, np.float32)
+            return np.asarray(fn(xn), np.float32).reshape(xn.shape[:-1] + (N_GAINS,))
+
+        shape = jax.ShapeDtypeStruct(x.shape[:-1] + (N_GAINS,), jnp.float32)
+        return jax.pure_callback(host, shape, x, vmap_method="broadcast_all" if batched else "sequential")
+
+    return call
+
+
+@functools.cache
+def _function_act_fn(fn: Any, host: bool, batched: bool, obs_segments: int, sigma_nodes: float):
+    policy = _host_policy(fn, batched) if host else fn
+
+    def act(settings: FunctionSettings, gains_prev, obs, nominal, key):
+        eq = equilibrium(nominal)
+        x = policy_features(obs, gains_prev, nominal, settings.gain_max, eq, obs_segments)
+        target = action_to_gains(normalised_to_action(policy(x)), settings.gain_max)
+        return filtered_gain_law(gains_prev, target, settings.gain_filter, obs, nominal, eq, sigma_nodes)
+
+    return act
+
+
+def function_controller(fn: Any, gain_max: float | Array, *, gain_filter: float | Array = 1.0,
+                        obs_segments: int = 0, sigma_nodes: float = 0.0, host: bool = True, batched: bool = False,
+                        name: str = "function") -> Controller:
+    """A policy given as a function as a controller: ``fn(obs) -> a``, from the gain environment's
+    observation (``policy_features``, shape (``feature_size``,), float32) to normalised gains ``a`` in
+    [-1, 1]^3, the action of the Gymnasium environment (``jaxtraffic.ecosystem``); the target gains
+    gain_max * a are filtered and applied through the three-gain law every control period, exactly as
+    the environment does. Its state is the gains applied at the previous step.
+
+    ``host=True``: ``fn`` is any Python function of numpy arrays (e.g. a Stable-Baselines3 model's
+    ``lambda obs: model.predict(obs, deterministic=True)[0]``), called through ``jax.pure_callback``
+    (one observation per call; ``batched=True``: a batch (B, F) at once under ``vmap``, returning
+    (B, 3)). ``host=False``: ``fn`` is a JAX function, traced into the rollout. ``fn`` must be hashable
+    (functions are): the compiled rollout is cached per function."""
+    gain_max = jnp.asarray(gain_max, float)
+    settings = FunctionSettings(gain_max=gain_max,
+                                gain_filter=jnp.broadcast_to(jnp.asarray(gain_filter, float), gain_max.shape))
+    act = _function_act_fn(fn, bool(host), bool(batched), int(obs_segments), float(sigma_nodes))
+    return Controller(settings=settings, act_fn=act, init_fn=zero_gains, name=name)
+
+
 def equilibrium_gains(controller: Controller, nominal: TrafficParams, n_iter: int = 300) -> Array:
     """Gains (shape (3,), dimensionless) that a gain controller settles to while the plant sits at
     the equilibrium of ``nominal``: the fixed point of its filtered gains, iterated ``n_iter`` steps

@@ -13,6 +13,9 @@
       # without importing jaxtraffic first: gymnasium.make("jaxtraffic:jaxtraffic/Gain-v0")
 
 * ``ecosystem.sb3.SB3VecEnv`` (``[sb3]``): the vector environment as a Stable-Baselines3 ``VecEnv``.
+* ``policy_as_controller(fn, **config)``: a policy trained on the environment elsewhere, as a ``Controller``
+  judged like jaxtraffic's own (``simulate``, ``evaluate.py --controller``); and the other way round,
+  ``learn.export.load_predict(run_dir)``: a trained run's policy as a plain ``predict(obs) -> a``.
 
 Common to all of them:
 
@@ -31,19 +34,19 @@ Common to all of them:
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
-import jax
-import jax.numpy as jnp
-
 from jaxtraffic._registration import ENV_ID, register_gymnasium
+from jaxtraffic.control.adapter import ControllerGrid
+from jaxtraffic.control.base import Controller
+from jaxtraffic.control.gain_policy import ACTION_EPS, function_controller, normalised_to_action
 from jaxtraffic.learn import env as E
 
 N_GAINS = E.GainEnv.action_size
-# a = +-1 would be an infinite pre-tanh action; the largest |a| used is 1 - ACTION_EPS
-ACTION_EPS = 1e-6
 
-__all__ = ["ACTION_EPS", "ENV_ID", "N_GAINS", "make_env_params", "normalised_to_action", "register_gymnasium"]
+__all__ = ["ACTION_EPS", "ENV_ID", "N_GAINS", "controller_grid", "make_env_params", "normalised_to_action",
+           "policy_as_controller", "register_gymnasium"]
 
 
 def make_env_params(env_params: E.EnvParams | None = None, **config: Any) -> E.EnvParams:
@@ -59,8 +62,20 @@ def make_env_params(env_params: E.EnvParams | None = None, **config: Any) -> E.E
     return build(TrainConfig.from_flat(**config))[1]
 
 
-def normalised_to_action(a: jax.Array) -> jax.Array:
-    """The environment's action (pre-tanh, ``learn.env.action_to_gains``) for normalised gains ``a``
-    in [-1, 1]^3 (clipped): target gains = gain_max * a, up to float rounding."""
-    a = jnp.clip(jnp.asarray(a, jnp.float32), -1.0, 1.0)
-    return jnp.arctanh(a * (1.0 - ACTION_EPS))
+def policy_as_controller(fn: Callable[[Any], Any], env_params: E.EnvParams | None = None, *, host: bool = True,
+                         batched: bool = False, name: str = "external", **config: Any) -> Controller:
+    """A policy trained on this environment elsewhere (Stable-Baselines3, rejax, a gymnax PPO, ...) as a
+    ``Controller`` that ``simulate``, ``simulate_batch`` and ``evaluate.py --controller`` judge like
+    jaxtraffic's own: ``fn(obs) -> a`` maps the environment's observation to its action, normalised gains
+    in [-1, 1]^3 (e.g. ``lambda o: model.predict(o, deterministic=True)[0]``). ``env_params`` / ``config``:
+    the environment it was trained on (as for ``GainEnv``); the controller acts on that environment's grid
+    (``controller_grid``) with its gain bound, filter and observation. ``host`` and ``batched``: see
+    ``control.gain_policy.function_controller`` (``host=False`` for a JAX function)."""
+    ep = make_env_params(env_params, **config)
+    return function_controller(fn, ep.gain_max, gain_filter=ep.gain_filter, obs_segments=ep.obs_segments,
+                               sigma_nodes=ep.filter_nodes, host=host, batched=batched, name=name)
+
+
+def controller_grid(env_params: E.EnvParams | None = None, **config: Any) -> ControllerGrid:
+    """The grid a controller of this environment acts on (its plant's points, period and delay buffer)."""
+    return ControllerGrid.of(make_env_params(env_params, **config).traffic)

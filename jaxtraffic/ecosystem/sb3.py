@@ -19,6 +19,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv
 
 from jaxtraffic.ecosystem.gym_env import GainVectorEnv
@@ -27,11 +28,16 @@ __all__ = ["SB3VecEnv"]
 
 
 class SB3VecEnv(VecEnv):
-    """SB3 ``VecEnv`` over ``GainVectorEnv`` (``venv``, or one built from ``num_envs`` and ``config``)."""
+    """SB3 ``VecEnv`` over ``GainVectorEnv`` (``venv``, or one built from ``num_envs`` and ``config``, e.g.
+    ``render_mode="rgb_array"``), which must reset finished environments within the step (``SAME_STEP``)."""
 
     def __init__(self, venv: GainVectorEnv | None = None, num_envs: int = 16, **config: Any):
-        self.venv = GainVectorEnv(num_envs, **config) if venv is None else venv
-        self.render_mode = None
+        if venv is None:
+            venv = GainVectorEnv(num_envs, autoreset_mode=AutoresetMode.SAME_STEP, **config)
+        if venv.metadata["autoreset_mode"] != AutoresetMode.SAME_STEP:
+            raise ValueError("SB3VecEnv needs a GainVectorEnv with autoreset_mode=SAME_STEP (SB3 resets in the step)")
+        self.venv = venv
+        self.render_mode = venv.render_mode
         super().__init__(self.venv.num_envs, self.venv.single_observation_space, self.venv.single_action_space)
         self._actions: np.ndarray | None = None
 
@@ -56,6 +62,11 @@ class SB3VecEnv(VecEnv):
 
     def close(self) -> None:
         self.venv.close()
+
+    def get_images(self) -> list[np.ndarray | None]:
+        """One space-time picture per environment (``render_mode="rgb_array"``; SB3's ``render``)."""
+        images = self.venv.render()
+        return [None] * self.num_envs if images is None else list(images)
 
     def _count(self, indices) -> int:
         return len(list(self._get_indices(indices)))

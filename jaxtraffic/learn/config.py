@@ -299,8 +299,7 @@ ONLY_FOR = {
     "ppo": (_names(AlgoConfig) - {"network"})
     | (_names(EnvConfig) - {"gain_filter", "filter_sigma", "controller_points"})
     | {"seeds", "total_steps", "keep_going", "target_reward", "min_wave_speed", "require_certificate",
-       "stop_patience", "restart_steps", "val_horizon_s", "val_plant", "val_target", "checkpoint_every",
-       "tensorboard"},
+       "stop_patience", "restart_steps", "val_horizon_s", "val_plant", "val_target", "checkpoint_every"},
 }
 
 

@@ -1,5 +1,10 @@
 """The learning curve of a training run: learning_curve.csv (written atomically) and its figure
-(paper fig. 3a). The paper's figures (``paper.plotting``) share ``save_figure`` and ``reward_axis``.
+(paper fig. 3a). The paper's figures (``paper.plotting``) share ``new_figure``, ``finish_figure`` and
+``reward_axis``.
+
+Figures are drawn on ``matplotlib.figure.Figure`` objects, never through pyplot: no backend is
+chosen and nothing global changes, so the plotting functions work the same in a script, under the
+command lines and in a notebook (where the returned figure displays itself).
 """
 
 from __future__ import annotations
@@ -10,15 +15,13 @@ import math
 import os
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+from matplotlib import ticker
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure, SubFigure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib import ticker  # noqa: E402
-
-from jaxtraffic.learn.checkpoint import atomic_write_bytes, atomic_write_text  # noqa: E402
-from jaxtraffic.sim.metrics import REWARD_TARGET  # noqa: E402
+from jaxtraffic.learn.checkpoint import atomic_write_bytes, atomic_write_text
+from jaxtraffic.sim.metrics import REWARD_TARGET
 
 DPI = 110
 CURVE_FIELDS = ["update", "env_steps", "wall_s", "mean_reward", "eval_reward", "eval_reward_min",
@@ -54,14 +57,28 @@ def append_curve(path: Path, row: dict, fields: list[str] = CURVE_FIELDS) -> Non
         os.fsync(f.fileno())
 
 
-def save_figure(fig: plt.Figure, png_path: str | Path) -> Path:
+def new_figure(fig: Figure | SubFigure | None = None, **kwargs) -> Figure | SubFigure:
+    """``fig`` (a figure or subfigure of the caller's to draw into), else a new ``Figure`` with constrained
+    layout (``kwargs``: e.g. ``figsize``), made without pyplot."""
+    return Figure(layout="constrained", **kwargs) if fig is None else fig
+
+
+def save_figure(fig: Figure | SubFigure, png_path: str | Path) -> Path:
+    """Write ``fig`` (the whole figure a subfigure belongs to) as a PNG at ``png_path``, atomically."""
     png_path = Path(png_path)
     png_path.parent.mkdir(parents=True, exist_ok=True)
     buf = io.BytesIO()  # written atomically: replaces a symbolic link at png_path instead of following it
-    fig.savefig(buf, format="png", dpi=DPI, bbox_inches="tight")
-    plt.close(fig)
+    root = fig.figure if isinstance(fig, SubFigure) else fig
+    root.savefig(buf, format="png", dpi=DPI, bbox_inches="tight")
     atomic_write_bytes(png_path, buf.getvalue())
     return png_path
+
+
+def finish_figure(fig: Figure | SubFigure, png_path: str | Path | None) -> Figure | SubFigure:
+    """Save ``fig`` at ``png_path`` when one is given; return it."""
+    if png_path is not None:
+        save_figure(fig, png_path)
+    return fig
 
 
 def read_learning_curve(csv_path: str | Path) -> dict[str, np.ndarray]:
@@ -83,7 +100,7 @@ def read_learning_curve(csv_path: str | Path) -> dict[str, np.ndarray]:
     return out
 
 
-def reward_axis(ax: plt.Axes, values: np.ndarray) -> None:
+def reward_axis(ax: Axes, values: np.ndarray) -> None:
     """Linear y axis, or symlog when the rewards span decades below the stop rule."""
     finite = values[np.isfinite(values)]
     if finite.size and np.min(finite) < 20 * REWARD_TARGET:
@@ -92,8 +109,10 @@ def reward_axis(ax: plt.Axes, values: np.ndarray) -> None:
     ax.grid(alpha=0.3, which="both")
 
 
-def plot_learning_curve(csv_path: str | Path, png_path: str | Path, title: str | None = None) -> Path:
-    """Paper fig. 3a: training reward against environment steps and against wall-clock seconds.
+def plot_learning_curve(csv_path: str | Path, png_path: str | Path | None = None, title: str | None = None, *,
+                        fig: Figure | SubFigure | None = None) -> Figure | SubFigure:
+    """Paper fig. 3a: training reward against environment steps and against wall-clock seconds; returns
+    the figure (drawn into ``fig`` if given), saved as a PNG at ``png_path`` if given.
 
     Reads ``csv_path`` (header ``update,env_steps,wall_s,mean_reward,eval_reward,...``) and plots
     the mean training reward and the deterministic evaluation reward (of the best member, in a
@@ -112,8 +131,8 @@ def plot_learning_curve(csv_path: str | Path, png_path: str | Path, title: str |
              if k in data and np.isfinite(data[k]).any()]
     if not xaxes:
         xaxes = [("update", "PPO update")]
-    fig, axes = plt.subplots(1, len(xaxes), figsize=(6.2 * len(xaxes), 4.2), squeeze=False,
-                             constrained_layout=True)
+    fig = new_figure(fig, figsize=(6.2 * len(xaxes), 4.2))
+    axes = fig.subplots(1, len(xaxes), squeeze=False)
     allv = np.concatenate([data[k] for k, _ in series])
     for ax, (xk, xlab) in zip(axes[0], xaxes, strict=True):
         for (yk, ylab), col in zip(series, ("tab:green", "tab:purple"), strict=False):
@@ -132,6 +151,6 @@ def plot_learning_curve(csv_path: str | Path, png_path: str | Path, title: str |
     handles, labels = axes[0, 0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="outside lower center", ncol=3, fontsize=9)
     fig.suptitle(title or "PPO learning curve (paper fig. 3a)")
-    return save_figure(fig, png_path)
+    return finish_figure(fig, png_path)
 
 

@@ -181,7 +181,8 @@ def step_env(key: Array, state: EnvState, action: Array, params: EnvParams):
     """Apply the gains ``action`` for one dt; returns (obs, state, reward, done, info).
 
     info: ``terminal_obs`` (observation before any reset), ``truncated`` and ``terminated``
-    (bool), ``gains`` (applied, shape (3,)).
+    (bool), ``gains`` (applied, shape (3,)), ``terminal_rho`` (the density before any reset, veh/m,
+    shape (n,): what a rendering draws).
     """
     chex.assert_shape(action, (gp.N_GAINS,))
     k_plant, k_reset = jax.random.split(key)
@@ -208,7 +209,8 @@ def step_env(key: Array, state: EnvState, action: Array, params: EnvParams):
     new_state = EnvState(plant=select_state(done, fresh.plant, plant),
                          plant_params=pick(fresh.plant_params, stepped.plant_params),
                          t=pick(fresh.t, t), gains=pick(fresh.gains, gains))
-    info = {"terminal_obs": terminal_obs, "truncated": truncated, "terminated": terminated, "gains": gains}
+    info = {"terminal_obs": terminal_obs, "truncated": truncated, "terminated": terminated, "gains": gains,
+            "terminal_rho": plant.rho}
     return obs, new_state, r, done, info
 
 

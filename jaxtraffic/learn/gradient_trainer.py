@@ -18,6 +18,7 @@ number of processes and devices (to float rounding: the scenario split changes t
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import time
 from pathlib import Path
@@ -38,6 +39,7 @@ from jaxtraffic.learn import checkpoint as ckpt
 from jaxtraffic.learn import gradient as G
 from jaxtraffic.learn.config import RUN_CONTROL, TrainConfig, config_json, load_config
 from jaxtraffic.learn.curve import plot_learning_curve, write_curve
+from jaxtraffic.learn.metrics_writer import TensorBoardWriter
 from jaxtraffic.learn.session import (
     StopSignals,
     TrainingInterrupted,
@@ -127,13 +129,16 @@ def train_gradient(tc: TrainConfig) -> Path:
                          f"({cfg.steps_per_chunk}), the Adam steps of one compiled chunk")
     writer = distributed.is_writer()  # process 0 prints and writes; the others only compute
     say = (lambda *a: None) if tc.run.quiet or not writer else (lambda *a: print(*a, flush=True))
+    # --tensorboard DIR: the curve's rows as TensorBoard scalars too (needs tensorboardX: checked before compiling)
+    board = TensorBoardWriter(tc.run.tensorboard) if tc.run.tensorboard and writer else None
     with own_run_dir(run_dir, tc.run.resume, tc.run.overwrite, writer, say), \
-            finish_together("jaxtraffic.train_gradient"), StopSignals(say) as stop:
-        return _train_gradient(tc, cfg, plant, run_dir, say, stop, writer)
+            finish_together("jaxtraffic.train_gradient"), StopSignals(say) as stop, \
+            (contextlib.closing(board) if board else contextlib.nullcontext()):
+        return _train_gradient(tc, cfg, plant, run_dir, say, stop, writer, board)
 
 
 def _train_gradient(tc: TrainConfig, cfg: G.GradientConfig, plant: TrafficParams, run_dir: Path, say,
-                    stop: StopSignals, writer: bool) -> Path:
+                    stop: StopSignals, writer: bool, board: TensorBoardWriter | None = None) -> Path:
     run = tc.run
     t_start = time.perf_counter()
     init, train_chunk = (cem.make_train if cfg.method == "cem" else G.make_train)(cfg, plant)
@@ -192,6 +197,8 @@ def _train_gradient(tc: TrainConfig, cfg: G.GradientConfig, plant: TrafficParams
             if writer:
                 ckpt.save_checkpoint(run_dir, state, meta)
                 write_curve(run_dir / "learning_curve.csv", meta["rows"], CURVE_FIELDS)
+            if board is not None:
+                board(row)
             _, over_budget, signum = agree_stop(False, meta["wall_s"] > run.max_wall_s, stop)
             if over_budget:
                 say(f"stopping: wall-clock budget {run.max_wall_s:g} s reached")

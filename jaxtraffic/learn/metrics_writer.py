@@ -1,4 +1,5 @@
-"""Optional metrics writers for ``trainer.train``'s callback hook (each receives a learning-curve row).
+"""Optional metrics writers, fed the learning-curve rows of both trainers (PPO's callback hook, the gradient
+trainer's chunks).
 
 ``TensorBoardWriter(logdir)`` writes every numeric field of a row as a scalar ``train/<field>``
 against ``env_steps`` (tensorboardX, ``pip install 'jaxtraffic[tb]'``; ``jaxtraffic-train

@@ -17,6 +17,7 @@ import numpy as np
 
 from jaxtraffic.control.gain_law import FILTER_SIGMA
 from jaxtraffic.control.stability import GROWTH_TOL, growth_rates, stable_region, wavenumbers
+from jaxtraffic.learn.curve import new_figure, save_figure
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.paper.learned import LEARNED_LABELS
 
@@ -31,12 +32,11 @@ def _certificates(learned_runs: dict[str, dict]) -> dict[str, dict]:
 
 
 def plot_certificate(png: Path, certs: dict[str, dict], delay: float = 4.0) -> None:
-    import matplotlib.pyplot as plt
-
     p = TrafficParams(alpha=0.15)
     k = wavenumbers(float(p.L))
     wl = 2 * np.pi / k
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    fig = new_figure(figsize=(11, 4.2))
+    axes = fig.subplots(1, 2)
     ax = axes[0]
     for i, (name, c) in enumerate(certs.items()):
         color = f"C{i}"
@@ -64,9 +64,7 @@ def plot_certificate(png: Path, certs: dict[str, dict], delay: float = 4.0) -> N
         ax.set_title(f"max growth, D = {delay:g} s, alpha 0.15, eta1 = 0, sigma {sigma:g} m\n(black: {GROWTH_TOL:g}/s)")
         fig.colorbar(im, ax=ax, label="1/s")
     axes[1].legend(fontsize=6, loc="lower left")
-    fig.tight_layout()
-    fig.savefig(png, dpi=100)
-    plt.close(fig)
+    save_figure(fig, png)
 
 
 def certificate_section(learned_runs: dict[str, dict], out_dir: str | Path,

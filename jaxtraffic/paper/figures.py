@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -13,12 +14,13 @@ from jaxtraffic.paper.learned import STABLE_STD
 from jaxtraffic.paper.oracle import ORACLE_LABELS
 from jaxtraffic.paper.scenarios import (
     CTRL_DELAY,
-    EXTRA_LEARNED,
     NOISE_STD,
     SCENARIO_BY_NAME,
     EvalConfig,
     Outcome,
     initial_norms,
+    learned,
+    others,
 )
 
 # ----------------------------------------------------------------------------- figures
@@ -44,12 +46,13 @@ def make_figures(results: dict[str, dict[str, Outcome]], robust: dict[str, dict[
     rho_bar, v_bar = (float(x) for x in equilibrium(nom))
     eq = (rho_bar, v_bar, float(nom.h_bar))
     x = np.asarray(nom.x())
-    lab = P.LABELS
+    lab = {**P.LABELS, **{c: c for c in others(results["delay4"])}}  # a controller brought in: its own name
     written: list[str] = []
 
-    def draw(name: str, plot: Callable[..., Path], *args, **kwargs) -> None:
+    def draw(name: str, plot: Callable[..., Any], *args, **kwargs) -> None:
         if want(name):
-            written.append(plot(out_dir / name, *args, **kwargs).name)
+            plot(out_dir / name, *args, **kwargs)
+            written.append(name)
             log(f"  wrote {name}")
 
     if want(LEARNING_CURVE) and learning_curve_csv is not None and Path(learning_curve_csv).exists():
@@ -98,7 +101,7 @@ def make_figures(results: dict[str, dict[str, Outcome]], robust: dict[str, dict[
         draw(fname, P.plot_spacetime, t, x, rows, eq, title, diverged_at=div)
 
     def l2(s, ctrls):  # the extra learned controllers are added where they were evaluated
-        ctrls = (*ctrls, *(c for c in EXTRA_LEARNED if c in results[s]))
+        ctrls = (*ctrls, *(c for c in learned(results[s]) if c not in ctrls))
         return {lab[c]: (results[s][c].rho_L2, results[s][c].v_L2) for c in ctrls}
 
     draw("fig4_l2_delay0.png", P.plot_l2_norms, t, l2("delay0", ("open_loop", "lyapunov", "ppo")),
@@ -115,7 +118,7 @@ def make_figures(results: dict[str, dict[str, Outcome]], robust: dict[str, dict[
     if robust and any(want(name) for name in ROBUSTNESS):
         names = {"open_loop": "open loop", "lyapunov": "Lyapunov",
                  "backstepping": "backstepping (assumes the true plant delay)",
-                 "ppo": "PPO (trained D = 4 s)", **{c: lab[c] for c in ("grad_gains", "grad_network", "grad_robust")}}
+                 "ppo": "PPO (trained D = 4 s)", **{c: lab.get(c, c) for c in learned(robust) if c != "ppo"}}
         delays, alphas = np.asarray(cfg.robust_delays), np.asarray(cfg.robust_alphas)
         horizon = replace(cfg, horizon_s=cfg.robust_horizon_s).n_steps * cfg.dt
         maps = {names[c]: (r["final_rho_L2"], r["diverged"]) for c, r in robust.items()}

@@ -17,7 +17,7 @@ import numpy as np
 
 from jaxtraffic.control import Controller
 from jaxtraffic.control.adapter import ControllerGrid, adapt, baseline_grid
-from jaxtraffic.paper.scenarios import CTRL_DELAY, EvalConfig, run_batch
+from jaxtraffic.paper.scenarios import CTRL_DELAY, EvalConfig, others, run_batch
 
 NUMERICS_CONTROLLERS = ("open_loop", "backstepping", "ppo", "grad_gains", "grad_network", "grad_robust")
 NUMERICS_INDICES = ("J_TTT", "J_fuel", "J_comfort", "J_comfort_a2", "J_comfort_at2", "J_comfort_no_switch_on",
@@ -56,7 +56,7 @@ def _rel(a: float, b: float) -> float | None:
 
 def run_numerics(controllers: dict[str, Controller], grids: dict[str, ControllerGrid], cfg: EvalConfig,
                  log: Callable[[str], None] = print) -> dict[str, Any]:
-    """Scenario delay4 for ``NUMERICS_CONTROLLERS`` under each of ``variants(cfg)``.
+    """Scenario delay4 for ``NUMERICS_CONTROLLERS`` (and any ``others``) under each of ``variants(cfg)``.
 
     ``controllers``: on their own grids (``grids``; baselines absent, see ``deploy``). Independent of the
     evaluation on ``cfg`` itself, so it can run alongside it; ``relative_to`` then adds the differences to it.
@@ -70,7 +70,7 @@ def run_numerics(controllers: dict[str, Controller], grids: dict[str, Controller
         out["variants"][vname] = describe(vcfg)
         out["delay4"][vname] = {}
         nom = vcfg.nominal(delay=CTRL_DELAY)
-        chosen = {c: controllers[c] for c in NUMERICS_CONTROLLERS if c in controllers}
+        chosen = {c: controllers[c] for c in (*NUMERICS_CONTROLLERS, *others(controllers)) if c in controllers}
         for c, ctrl in deploy(chosen, grids, vcfg).items():
             res = run_batch(ctrl, [nom], [0], vcfg, record=False)
             out["delay4"][vname][c] = {k: float(np.asarray(res.metrics[k])[0]) for k in NUMERICS_INDICES}
@@ -95,7 +95,8 @@ def survives(numerics: dict[str, Any], metrics: dict, cfg: EvalConfig) -> list[t
     from jaxtraffic.paper.summaries import equilibrium_indices
 
     eq = equilibrium_indices(cfg)
-    tables = {"base": {c: metrics["delay4"][c] for c in NUMERICS_CONTROLLERS if c in metrics["delay4"]}}
+    tables = {"base": {c: metrics["delay4"][c] for c in (*NUMERICS_CONTROLLERS, *others(metrics["delay4"]))
+                       if c in metrics["delay4"]}}
     tables.update(numerics.get("delay4", {}))
     checks: list[tuple[str, Callable[[dict], bool]]] = [
         ("open loop worse than backstepping and PPO on J_TTT, J_fuel, J_comfort",

@@ -18,8 +18,9 @@ from typing import Any
 import numpy as np
 
 from jaxtraffic.learn.checkpoint import atomic_write_text, write_json
+from jaxtraffic.learn.curve import new_figure, save_figure
 from jaxtraffic.paper.learned import LEARNED_LABELS, STABLE_STD
-from jaxtraffic.paper.scenarios import EvalConfig
+from jaxtraffic.paper.scenarios import EvalConfig, learned, others
 from jaxtraffic.paper.summaries import _fmt
 
 CLAIMS = {1: "learning curve; PPO converges, the open loop does not", 2: "D = 0: PPO vs Lyapunov",
@@ -47,7 +48,7 @@ def plant_table(results: dict[str, dict], configs: dict[str, EvalConfig]) -> dic
     """The machine-readable comparison (``plants.json``)."""
     d4 = {p: {c: {k: m["delay4"][c].get(k) for k in ("J_TTT", "J_fuel", "J_comfort", "J_comfort_no_switch_on",
                                                       "J_comfort_a2", "final_rho_L2", "diverged")}
-              for c in DELAY4 if c in m["delay4"]} for p, m in results.items()}
+              for c in (*DELAY4, *others(m["delay4"])) if c in m["delay4"]} for p, m in results.items()}
     return {"plants": {p: {"description": configs[p].describe(), "n_points": configs[p].n_points,
                            "scheme": configs[p].scheme, "substeps": configs[p].substeps, "dt_s": configs[p].dt}
                        for p in results},
@@ -69,7 +70,7 @@ def _delay4_lines(table: dict[str, Any], plants: list[str]) -> list[str]:
     lines = ["| controller | " + " | ".join(f"rho L2 300 s (veh/km), {p}" for p in plants) + " | "
              + " | ".join(f"J_comfort, {p}" for p in plants) + " | vs backstepping (L2, J_comfort) on each |",
              "|---|" + "---|" * (2 * len(plants) + 1)]
-    for c in DELAY4:
+    for c in (*DELAY4, *others(next(iter(table["delay4"].values())))):
         if not all(c in table["delay4"][p] for p in plants):
             continue
         e = [table["delay4"][p][c] for p in plants]
@@ -92,7 +93,7 @@ def _numerics_lines(table: dict[str, Any], plants: list[str], results: dict[str,
              "|---|---|---|---|---|---|"]
     for p in plants:
         rel = table["numerics_rel_diff"].get(p) or {}
-        for c in ("backstepping", "ppo", "grad_gains", "grad_network", "grad_robust"):
+        for c in ("backstepping", *learned(rel.get("refined", {}))):
             if c not in rel.get("refined", {}):
                 continue
             cells = [rel[v][c].get(k) for v in ("refined", "scheme") for k in ("final_rho_L2", "J_comfort")]
@@ -117,10 +118,10 @@ def _map_lines(robust: dict[str, dict], plants: list[str]) -> list[str]:
 
 def plot_plants(png: Path, table: dict[str, Any], plants: list[str]) -> None:
     """Bars: density L2 at 300 s and J_comfort at D = 4 s, per controller, one colour per plant (log axes)."""
-    import matplotlib.pyplot as plt
-
-    names = [c for c in DELAY4 if c != "open_loop" and all(c in table["delay4"][p] for p in plants)]
-    fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
+    names = [c for c in (*DELAY4, *others(table["delay4"][plants[0]])) if c != "open_loop"
+             and all(c in table["delay4"][p] for p in plants)]
+    fig = new_figure(figsize=(11, 3.8))
+    axes = fig.subplots(1, 2)
     width = 0.8 / len(plants)
     for ax, key, scale, label in ((axes[0], "final_rho_L2", 1e3, "density L2 at 300 s (veh/km)"),
                                   (axes[1], "J_comfort", 1.0, "J_comfort over 300 s")):
@@ -135,9 +136,7 @@ def plot_plants(png: Path, table: dict[str, Any], plants: list[str]) -> None:
         ax.grid(axis="y", alpha=0.3)
     axes[0].legend(title="plant")
     fig.suptitle("D = 4 s, the paper's initial condition: the same controllers on the two plants")
-    fig.tight_layout()
-    fig.savefig(png, dpi=110)
-    plt.close(fig)
+    save_figure(fig, png)
 
 
 def compare_plants(results: dict[str, dict], configs: dict[str, EvalConfig], out_dir: str | Path,

@@ -1,13 +1,17 @@
 """Figures of the paper's section 4 (docs/model.md section 11) from plain numpy arrays.
 
-Every function takes numpy arrays (no rollout objects), writes one PNG and returns its path, so
-it can be smoke-tested on synthetic data. Units on the axes: x in m, t in s, density in veh/km,
-speed in m/s, time gap in s. Space-time maps use a diverging colour map centred on the
-equilibrium value with symmetric, robust limits (the 99.5th percentile of |deviation| over all
-panels of a column), so the stop-and-go waves are visible and the controllers are comparable.
+Every function takes numpy arrays (no rollout objects) and returns a matplotlib figure, drawn
+without pyplot (no backend switch: usable in a notebook, where it displays itself); given a path it
+also writes the figure as a PNG there. ``plot_reward`` draws into an ``ax=`` of yours, the
+multi-panel ones into a ``fig=`` (a ``Figure`` or a ``SubFigure``, e.g. from ``fig.subfigures``).
+
+Units on the axes: x in m, t in s, density in veh/km, speed in m/s, time gap in s. Space-time maps
+use a diverging colour map centred on the equilibrium value with symmetric, robust limits (the
+99.5th percentile of |deviation| over all panels of a column), so the stop-and-go waves are visible
+and the controllers are comparable.
 
 Functions:
-    plot_learning_curve(csv_path, png_path)          -- paper fig. 3a (from learn.curve)
+    plot_learning_curve(csv_path, png_path=None)     -- paper fig. 3a (from learn.curve)
     plot_reward(png_path, t, series, ...)            -- paper fig. 3b (reward over time)
     plot_spacetime(png_path, t, x, rows, ...)        -- paper figs. 4, 5, 7 (rho, v, h over x, t)
     plot_l2_norms(png_path, t, series, ...)          -- paper figs. 6, 8 (L2 norms over time)
@@ -22,19 +26,13 @@ import textwrap
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+from matplotlib import colors, ticker
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure, SubFigure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib import colors, ticker  # noqa: E402
-
-from jaxtraffic.learn.curve import (  # noqa: E402
-    plot_learning_curve,
-    read_learning_curve,
-    save_figure,
-)
-from jaxtraffic.sim.metrics import REWARD_TARGET, VEH_PER_KM  # noqa: E402
+from jaxtraffic.learn.curve import finish_figure, new_figure, plot_learning_curve, read_learning_curve
+from jaxtraffic.sim.metrics import REWARD_TARGET, VEH_PER_KM
 
 __all__ = ["plot_l2_norms", "plot_l2_panels", "plot_learning_curve", "plot_reward", "plot_robustness_map",
            "plot_spacetime", "read_learning_curve"]
@@ -73,15 +71,18 @@ def _mean_band(y: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray
 
 
 # ----------------------------------------------------------------------------- reward over time
-def plot_reward(png_path: str | Path, t: np.ndarray, series: Mapping[str, np.ndarray],
+def plot_reward(png_path: str | Path | None, t: np.ndarray, series: Mapping[str, np.ndarray],
                 title: str = "Reward over time (paper fig. 3b)",
-                markers: Mapping[str, float] | None = None) -> Path:
-    """Reward r(t) of several controllers; plotted as -r on a log axis (r <= 0 always).
+                markers: Mapping[str, float] | None = None, *, ax: Axes | None = None) -> Figure | SubFigure:
+    """Reward r(t) of several controllers; plotted as -r on a log axis (r <= 0 always). Drawn into
+    ``ax`` if given (else a new figure); returns the figure, saved at ``png_path`` if given.
 
     ``series``: label -> array (T,) or (S, T) (several seeds: mean with a min-max band).
     ``markers``: label -> time (s) at which that run diverged (drawn as a cross).
     """
-    fig, ax = plt.subplots(figsize=(8.5, 4.6), constrained_layout=True)
+    if ax is None:
+        ax = new_figure(figsize=(8.5, 4.6)).subplots()
+    fig = ax.figure
     floor = 1e-8
     for i, (label, y) in enumerate(series.items()):
         m, lo, hi = _mean_band(-np.asarray(y, float))
@@ -103,7 +104,7 @@ def plot_reward(png_path: str | Path, t: np.ndarray, series: Mapping[str, np.nda
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8, loc="best")
     ax.set_title(title)
-    return save_figure(fig, png_path)
+    return finish_figure(fig, png_path)
 
 
 # ----------------------------------------------------------------------------- space-time maps
@@ -129,11 +130,11 @@ def _field_image(ax, t: np.ndarray, x: np.ndarray, f: np.ndarray, **kw):
 
 
 def plot_spacetime(
-    png_path: str | Path, t: np.ndarray, x: np.ndarray,
+    png_path: str | Path | None, t: np.ndarray, x: np.ndarray,
     rows: Mapping[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
     equilibrium: tuple[float, float, float], title: str,
-    diverged_at: Mapping[str, float | None] | None = None,
-) -> Path:
+    diverged_at: Mapping[str, float | None] | None = None, *, fig: Figure | SubFigure | None = None,
+) -> Figure | SubFigure:
     """Space-time maps of density, speed and time gap (paper figs. 4, 5, 7).
 
     ``rows``: label -> (rho (T, N) in veh/m, v (T, N) in m/s, h (T, N) in s); one row per
@@ -146,7 +147,8 @@ def plot_spacetime(
             ("speed v (m/s)", 1.0, v_bar, "RdBu_r"),
             ("ACC time gap h (s)", 1.0, h_bar, "PuOr_r")]
     n = len(rows)
-    fig, axes = plt.subplots(n, 3, figsize=(15, 2.9 * n + 0.6), squeeze=False, constrained_layout=True)
+    fig = new_figure(fig, figsize=(15, 2.9 * n + 0.6))
+    axes = fig.subplots(n, 3, squeeze=False)
     labels = list(rows)
     for j, (cname, scale, center, cmap) in enumerate(cols):
         fields = [np.asarray(rows[lab][j], float) * scale for lab in labels]
@@ -171,7 +173,7 @@ def plot_spacetime(
                 ax.text(td, x[-1], f" diverged at {td:.0f} s; frozen after", fontsize=7, va="top",
                         ha="right" if td > 0.6 * t[-1] else "left")
     fig.suptitle(textwrap.fill(title, 150), fontsize=12)  # a long title would widen the saved figure
-    return save_figure(fig, png_path)
+    return finish_figure(fig, png_path)
 
 
 # ----------------------------------------------------------------------------- L2 norms
@@ -196,41 +198,46 @@ def _l2_axes(axes, t, series, styles_dash: Mapping[str, str] | None = None) -> N
         ax.legend(fontsize=8)
 
 
-def plot_l2_norms(png_path: str | Path, t: np.ndarray, series: Mapping[str, tuple[np.ndarray, np.ndarray]],
-                  title: str) -> Path:
+def plot_l2_norms(png_path: str | Path | None, t: np.ndarray,
+                  series: Mapping[str, tuple[np.ndarray, np.ndarray]], title: str, *,
+                  fig: Figure | SubFigure | None = None) -> Figure | SubFigure:
     """L2 norms of the density and speed deviations over time (paper figs. 6, 8).
 
     ``series``: label -> (rho_L2 in veh/m, v_L2 in m/s), each (T,) or (S, T) (mean, min-max band).
     """
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.2), constrained_layout=True)
+    fig = new_figure(fig, figsize=(12, 4.2))
+    axes = fig.subplots(1, 2)
     _l2_axes(axes, t, series)
     axes[0].set_title("density deviation")
     axes[1].set_title("speed deviation")
     fig.suptitle(title)
-    return save_figure(fig, png_path)
+    return finish_figure(fig, png_path)
 
 
-def plot_l2_panels(png_path: str | Path, t: np.ndarray,
-                   panels: Mapping[str, Mapping[str, tuple[np.ndarray, np.ndarray]]], title: str) -> Path:
+def plot_l2_panels(png_path: str | Path | None, t: np.ndarray,
+                   panels: Mapping[str, Mapping[str, tuple[np.ndarray, np.ndarray]]], title: str, *,
+                   fig: Figure | SubFigure | None = None) -> Figure | SubFigure:
     """Several L2 comparisons (e.g. plant delay 3 s and 5 s, paper fig. 8): one column per panel,
     rows density and speed. ``panels``: panel title -> series as in ``plot_l2_norms``."""
     k = len(panels)
-    fig, axes = plt.subplots(2, k, figsize=(6.2 * k, 7.5), squeeze=False, constrained_layout=True)
+    fig = new_figure(fig, figsize=(6.2 * k, 7.5))
+    axes = fig.subplots(2, k, squeeze=False)
     for j, (ptitle, series) in enumerate(panels.items()):
         _l2_axes([axes[0, j], axes[1, j]], t, series)
         axes[0, j].set_title(f"{ptitle}: density deviation")
         axes[1, j].set_title(f"{ptitle}: speed deviation")
     fig.suptitle(title)
-    return save_figure(fig, png_path)
+    return finish_figure(fig, png_path)
 
 
 # ----------------------------------------------------------------------------- robustness map
 def plot_robustness_map(
-    png_path: str | Path, delays: np.ndarray, alphas: np.ndarray,
+    png_path: str | Path | None, delays: np.ndarray, alphas: np.ndarray,
     maps: Mapping[str, tuple[np.ndarray, np.ndarray]], title: str,
     nominal: tuple[float, float] | None = (4.0, 0.15), initial_l2: float | None = None,
-    quantity: str = "final ||rho - rho_bar||_L2 (veh/km)", stable_below: float | None = None,
-) -> Path:
+    quantity: str = "final ||rho - rho_bar||_L2 (veh/km)", stable_below: float | None = None, *,
+    fig: Figure | SubFigure | None = None,
+) -> Figure | SubFigure:
     """Heatmaps of a final density deviation (given in veh/m, shown in veh/km on a log colour
     scale) over plant delay (rows of the arrays, s) x plant ACC rate alpha (columns), one panel
     per controller.
@@ -258,8 +265,8 @@ def plot_robustness_map(
         return np.concatenate([[c[0] - (mid[0] - c[0])], mid, [c[-1] + (c[-1] - mid[-1])]])
 
     ae, de = edges(alphas), edges(delays)
-    fig, axes = plt.subplots(nrow, ncol, figsize=(6.4 * ncol, 4.6 * nrow), squeeze=False,
-                             constrained_layout=True)
+    fig = new_figure(fig, figsize=(6.4 * ncol, 4.6 * nrow))
+    axes = fig.subplots(nrow, ncol, squeeze=False)
     mesh = None
     for ax, (label, (_, div)), v in zip(axes.flat, maps.items(), vals, strict=False):
         div = np.asarray(div, bool) | ~np.isfinite(v)
@@ -289,4 +296,4 @@ def plot_robustness_map(
             cb.ax.text(1.05, initial_l2 * VEH_PER_KM, " initial", color="red", fontsize=7,
                        transform=cb.ax.get_yaxis_transform(), va="center")
     fig.suptitle(title)
-    return save_figure(fig, png_path)
+    return finish_figure(fig, png_path)

@@ -13,7 +13,14 @@ from jaxtraffic.paper.claims import CRITERIA, _t
 from jaxtraffic.paper.learned import STABLE_STD
 from jaxtraffic.paper.numerics import NUMERICS_CONTROLLERS, survives
 from jaxtraffic.paper.oracle import ORACLE_LABELS, stabilised_and_diverged
-from jaxtraffic.paper.scenarios import CTRL_DELAY, SCENARIO_BY_NAME, SETTLE_FRACTION, EvalConfig, initial_norms
+from jaxtraffic.paper.scenarios import (
+    CTRL_DELAY,
+    SCENARIO_BY_NAME,
+    SETTLE_FRACTION,
+    EvalConfig,
+    initial_norms,
+    others,
+)
 from jaxtraffic.paper.summaries import INDICES, PAPER_TABLE2, _fmt
 from jaxtraffic.provenance import describe
 
@@ -81,7 +88,7 @@ def numerics_summary(numerics: dict | None, metrics: dict, cfg: EvalConfig) -> l
     def pct(x):
         return "n/a" if x is None else f"{100 * x:+.2f} %"
 
-    for c in NUMERICS_CONTROLLERS:
+    for c in (*NUMERICS_CONTROLLERS, *others(metrics["delay4"])):
         for v in vs:
             r = numerics["rel_diff"].get(v, {}).get(c)
             if r is None:

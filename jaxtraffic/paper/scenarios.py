@@ -82,6 +82,20 @@ class Scenario:
 # learned controllers beyond the paper's PPO, evaluated wherever PPO is when they are given
 EXTRA_LEARNED = ("grad_gains", "grad_network", "grad_robust")
 _L = ("ppo", *EXTRA_LEARNED)
+BASELINES = ("open_loop", "lyapunov", "backstepping")
+
+
+def others(names) -> tuple[str, ...]:
+    """The names among ``names`` that are neither a baseline nor one of jaxtraffic's learned controllers: the
+    controllers a user brings (``evaluate.py --controller``, e.g. a policy trained elsewhere), evaluated
+    wherever PPO is, in the order given."""
+    return tuple(n for n in names if n not in BASELINES and n not in _L)
+
+
+def learned(names) -> tuple[str, ...]:
+    """The learned controllers among ``names``: PPO and the ``EXTRA_LEARNED`` (in that order), then ``others``."""
+    names = tuple(names)
+    return tuple(n for n in _L if n in names) + others(names)
 SCENARIOS = (
     Scenario("delay0", 0.0, 0.0, ("open_loop", "lyapunov", *_L), "plant delay D = 0"),
     Scenario("delay4", 4.0, 0.0, ("open_loop", "lyapunov", "backstepping", *_L), "plant delay D = 4 s"),
@@ -241,7 +255,8 @@ def run_scenarios(controllers: dict[str, Controller], cfg: EvalConfig,
     """Evaluate every scenario; all scenarios and seeds of one controller in one batched rollout.
 
     ``controllers``: name -> Controller for the names used in SCENARIOS ("ppo" included; the
-    ``EXTRA_LEARNED`` ones are evaluated when given, skipped otherwise).
+    ``EXTRA_LEARNED`` ones are evaluated when given, skipped otherwise), and any other name (``others``),
+    evaluated wherever PPO is.
     ``scenario_controllers``: (scenario, name) -> Controller overrides (e.g. a separate D = 0 PPO
     policy for "delay0"); each distinct override runs as its own batch, and so does each reading
     of the alpha noise other than the default one (``Scenario.reading``).
@@ -253,7 +268,7 @@ def run_scenarios(controllers: dict[str, Controller], cfg: EvalConfig,
     overrides = scenario_controllers or {}
     groups: dict[tuple[str, str, NoiseReading | None], list[tuple[str, int]]] = {}
     for sc in SCENARIOS:
-        for name in sc.controllers:
+        for name in (*sc.controllers, *(others(controllers) if "ppo" in sc.controllers else ())):
             if name in EXTRA_LEARNED and name not in controllers:
                 continue
             gid = (name, sc.name if (sc.name, name) in overrides else "", _program_reading(sc.reading(cfg.dt, name)))
@@ -289,7 +304,8 @@ def run_scenarios(controllers: dict[str, Controller], cfg: EvalConfig,
                 h=h[idx], reward=reward[idx], rho_L2=rho_l2[idx], v_L2=v_l2[idx],
                 controller_label=getattr(ctrl, "name", name),
             )
-    return {s: {n: results[s][n] for n in SCENARIO_BY_NAME[s].controllers if n in results[s]} for s in results}
+    return {s: {n: results[s][n] for n in (*SCENARIO_BY_NAME[s].controllers, *others(controllers)) if n in results[s]}
+            for s in results}
 
 
 def run_robustness(controllers: dict[str, Controller], cfg: EvalConfig,
@@ -312,7 +328,7 @@ def run_robustness(controllers: dict[str, Controller], cfg: EvalConfig,
     envs = [nom.replace(delay=float(d), alpha=float(a)) for d, a in zip(dd.ravel(), aa.ravel(), strict=True)]
     own_rho = np.array([float(equilibrium(e)[0]) for e in envs]).reshape(dd.shape)  # veh/m, at h_bar
     out = {}
-    for name in ROBUST_CONTROLLERS:
+    for name in (*ROBUST_CONTROLLERS, *others(controllers)):
         if name not in controllers:
             continue
         ctrl, batched, chunk = controllers[name], False, None

@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from extras import available
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -19,6 +21,10 @@ def test_quickstart_notebook_runs(monkeypatch):
     namespace: dict = {"__name__": "__notebook__"}
     for i, source in enumerate(cells):
         exec(compile(source, f"quickstart.ipynb cell {i}", "exec"), namespace)  # noqa: S102
-    assert isinstance(namespace["fig"], Figure) and namespace["fig"].axes
+    assert isinstance(namespace["fig"], Figure) and len(namespace["fig"].axes) == 2  # reward and L2 panels
+    frame_fig = namespace["frame_fig"]  # the rendered episode, when gymnasium is installed
+    assert (frame_fig is None) != available("gymnasium")
+    if frame_fig is not None:
+        assert frame_fig.axes[0].images and frame_fig.axes[0].images[0].get_array().shape == (200, 400, 3)
     runs = namespace["runs"]
     assert float(runs["backstepping"].metrics["final_rho_L2"]) < float(runs["open loop"].metrics["final_rho_L2"])

@@ -27,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import cpu_model, load  # noqa: E402  (benchmarks/machine.py)
 
 from jaxtraffic.control.gain_law import FILTER_SIGMA  # noqa: E402
-from jaxtraffic.learn.checkpoint import write_json  # noqa: E402
+from jaxtraffic.files import write_json  # noqa: E402
 from jaxtraffic.paper.oracle import (  # noqa: E402
     DEFAULT_GRID,
     gain_grid_map,

@@ -28,7 +28,7 @@ from conftest import leaves_equal
 from tiny_runs import xla_env
 
 import jaxtraffic as jt
-from jaxtraffic import TrafficParams
+from jaxtraffic import TrafficParams, files
 from jaxtraffic.cli import evaluate as evaluate_cli
 from jaxtraffic.cli import train as train_cli
 from jaxtraffic.control import Controller, saturate
@@ -183,11 +183,11 @@ def test_nan_action_terminates_the_training_environment():
 def test_json_distinguishes_nan_from_never(tmp_path):
     obj = {"final_reward": np.float32(np.nan), "time_to_reward_target_s": np.inf, "low": -np.inf,
            "arr": np.array([1.0, np.nan]), "diverged_at_s": None}
-    js = ckpt.to_jsonable(obj)
+    js = files.to_jsonable(obj)
     assert js == {"final_reward": "nan", "time_to_reward_target_s": None, "low": "-inf", "arr": [1.0, "nan"],
                   "diverged_at_s": None}
-    ckpt.write_json(tmp_path / "x.json", obj)  # strict JSON (no NaN literal)
-    back = ckpt.from_jsonable(json.loads((tmp_path / "x.json").read_text()))
+    files.write_json(tmp_path / "x.json", obj)  # strict JSON (no NaN literal)
+    back = files.from_jsonable(json.loads((tmp_path / "x.json").read_text()))
     assert np.isnan(back["final_reward"]) and back["time_to_reward_target_s"] is None and back["low"] == -np.inf
 
 
@@ -254,11 +254,11 @@ def test_controllers_can_be_built_inside_jit():
 def test_written_files_honour_the_umask(tmp_path):
     old = os.umask(0o027)
     try:
-        ckpt.atomic_write_text(tmp_path / "a.txt", "x")
+        files.atomic_write_text(tmp_path / "a.txt", "x")
     finally:
         os.umask(old)
     assert stat.S_IMODE((tmp_path / "a.txt").stat().st_mode) == 0o640
-    ckpt.atomic_write_text(tmp_path / "b.txt", "x")
+    files.atomic_write_text(tmp_path / "b.txt", "x")
     assert stat.S_IMODE((tmp_path / "b.txt").stat().st_mode) == 0o666 & ~old
 
 
@@ -333,7 +333,7 @@ def test_resume_refuses_a_directory_without_checkpoint(tmp_path, capsys):
     assert not empty.exists()
     cfg_only = tmp_path / "cfg_only"
     cfg_only.mkdir()
-    (cfg_only / "config.json").write_text(json.dumps(ckpt.to_jsonable({"version": 2, "config": {}})))
+    (cfg_only / "config.json").write_text(json.dumps(files.to_jsonable({"version": 2, "config": {}})))
     with pytest.raises(SystemExit) as exc:
         train_cli.main(["--out-dir", str(cfg_only), "--resume"])
     err = capsys.readouterr().err

@@ -37,7 +37,8 @@ from typing import Any
 from jaxtraffic import compile_cache, distributed, paper
 from jaxtraffic.cli import external, staging
 from jaxtraffic.cli import train as train_cli
-from jaxtraffic.learn.checkpoint import atomic_write_text, load_policy, policy_grid
+from jaxtraffic.files import atomic_write_text
+from jaxtraffic.learn.checkpoint import load_policy, policy_grid
 from jaxtraffic.learn.config import TrainConfig
 from jaxtraffic.learn.validate import MAX_STEPS
 from jaxtraffic.model.params import TrafficParams

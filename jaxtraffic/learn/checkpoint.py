@@ -7,23 +7,14 @@ A checkpoint file is a msgpack map ``{"format": "jaxtraffic-checkpoint", "versio
 (same format) holds each member's best-scoring policy (``params``, observation ``mean`` / ``var``,
 ``score``, ``env_steps``; ``learn.selection``), which ``load_policy`` loads by default. The loaders
 check the digest, so a truncated, empty or corrupted file is an error naming it, never a silent load (files
-written before the checksum, a bare payload, still load). Every write goes to a temporary file in
-the same directory (mode 0666 less the umask, like any other file), is flushed and fsynced, then
-``os.replace``d over the target, so an interruption never leaves a half-written file; a temporary
-file left by a killed process (``.*.tmp``) is removed by ``clean_stale_tmp`` when training starts.
-
-JSON outputs (``to_jsonable``): ``null`` means "never" / "none" / unbounded (+inf: a time that is
-never reached, no wall-clock limit); a value that could not be computed, NaN, is the string
-``"nan"``, and -inf is ``"-inf"``. ``from_jsonable`` reads them back as floats.
+written before the checksum, a bare payload, still load). Every file is written whole or not at
+all (``jaxtraffic.files``: atomic writes, JSON with non-finite numbers).
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import math
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -39,6 +30,7 @@ from jaxtraffic.control.base import Controller
 from jaxtraffic.control.gain_law import sigma_nodes
 from jaxtraffic.control.gain_policy import feature_size, policy_controller
 from jaxtraffic.control.stability import certify_controller
+from jaxtraffic.files import atomic_write_bytes, from_jsonable, read_json, to_jsonable
 from jaxtraffic.learn.config import RUN_CONTROL, TrainConfig, load_config
 from jaxtraffic.model.params import TrafficParams
 
@@ -49,77 +41,6 @@ BEST = "best.msgpack"
 _BEST_ARRAYS = ("mean", "var", "score", "env_steps")
 FORMAT = "jaxtraffic-checkpoint"
 FORMAT_VERSION = 1
-
-
-def _umask() -> int:
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
-def atomic_write_bytes(path: str | Path, data: bytes) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        os.fchmod(fd, 0o666 & ~_umask())  # mkstemp creates 0600: results readable like any file
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException as err:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        if isinstance(err, OSError) and err.filename is None:  # e.g. ENOSPC from write: name the file
-            raise type(err)(err.errno, err.strerror, str(path)) from None
-        raise
-
-
-def atomic_write_text(path: str | Path, text: str) -> None:
-    atomic_write_bytes(path, text.encode())
-
-
-def clean_stale_tmp(run_dir: str | Path) -> list[Path]:
-    """Remove the temporary files (``.<name>.XXXX.tmp``) that a killed process left in ``run_dir``;
-    returns them. Call it only when no other process writes to the directory."""
-    stale = sorted(p for p in Path(run_dir).glob(".*.tmp") if p.is_file())
-    for p in stale:
-        p.unlink(missing_ok=True)
-    return stale
-
-
-def to_jsonable(x: Any) -> Any:
-    """Convert numpy/jax scalars and arrays to JSON types. +inf becomes None (null: "never",
-    unbounded), NaN the string "nan" (not computable: kept distinct from null), -inf "-inf"."""
-    if isinstance(x, dict):
-        return {str(k): to_jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [to_jsonable(v) for v in x]
-    if isinstance(x, (jax.Array, np.ndarray, np.generic)):
-        return to_jsonable(np.asarray(x).tolist())
-    if isinstance(x, float) and not math.isfinite(x):
-        return "nan" if math.isnan(x) else (None if x > 0 else "-inf")
-    return x
-
-
-NONFINITE = {"nan": math.nan, "inf": math.inf, "-inf": -math.inf}
-
-
-def from_jsonable(x: Any) -> Any:
-    """Inverse of ``to_jsonable`` for non-finite values: the strings "nan", "inf", "-inf" become
-    floats (anywhere in dicts and lists); null stays None."""
-    if isinstance(x, dict):
-        return {k: from_jsonable(v) for k, v in x.items()}
-    if isinstance(x, list):
-        return [from_jsonable(v) for v in x]
-    if isinstance(x, str) and x in NONFINITE:
-        return NONFINITE[x]
-    return x
-
-
-def write_json(path: str | Path, obj: Any) -> None:
-    atomic_write_text(path, json.dumps(to_jsonable(obj), indent=2, sort_keys=False, allow_nan=False) + "\n")
 
 
 def _write_checked(path: Path, state: dict) -> None:
@@ -298,9 +219,9 @@ def load_run(run_dir: str | Path, checkpoint: str = "best") -> tuple[dict, Saved
     cfg_path = run_dir / CONFIG
     if not cfg_path.exists():
         raise FileNotFoundError(f"{run_dir} is not a run directory (no {CONFIG})")
-    config = _read_json(cfg_path)
+    config = read_json(cfg_path)
     summary_path = run_dir / SUMMARY
-    summary = from_jsonable(_read_json(summary_path)) if summary_path.exists() else {}
+    summary = from_jsonable(read_json(summary_path)) if summary_path.exists() else {}
     if not isinstance(summary, dict):
         raise ValueError(f"{summary_path}: not a summary.json written by train.py")
     best = load_best(run_dir) if checkpoint == "best" else None
@@ -320,13 +241,6 @@ def load_run(run_dir: str | Path, checkpoint: str = "best") -> tuple[dict, Saved
             raise ValueError(f"{run_dir / CHECKPOINT}: no policy in the saved state "
                              f"({type(err).__name__}: {err})") from None
     return config, policy, summary
-
-
-def _read_json(path: Path) -> Any:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as err:
-        raise ValueError(f"{path}: unreadable or not valid JSON ({type(err).__name__}: {err})") from None
 
 
 def policy_grid(config: TrainConfig) -> ControllerGrid:

@@ -20,10 +20,10 @@ from matplotlib import ticker
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure, SubFigure
 
-from jaxtraffic.learn.checkpoint import atomic_write_bytes, atomic_write_text
+from jaxtraffic.drawing import finish_figure, new_figure
+from jaxtraffic.files import atomic_write_text
 from jaxtraffic.sim.metrics import REWARD_TARGET
 
-DPI = 110
 CURVE_FIELDS = ["update", "env_steps", "wall_s", "mean_reward", "eval_reward", "eval_reward_min",
                 "eval_reward_max", "eval_J_comfort", "eval_rho_L2_veh_km", "eval_wave_speed", "val_score",
                 "best_val_score", "eta1", "eta2", "eta3", "entropy", "approx_kl", "value_loss", "restarts"]
@@ -55,30 +55,6 @@ def append_curve(path: Path, row: dict, fields: list[str] = CURVE_FIELDS) -> Non
         f.write(buf.getvalue())
         f.flush()
         os.fsync(f.fileno())
-
-
-def new_figure(fig: Figure | SubFigure | None = None, **kwargs) -> Figure | SubFigure:
-    """``fig`` (a figure or subfigure of the caller's to draw into), else a new ``Figure`` with constrained
-    layout (``kwargs``: e.g. ``figsize``), made without pyplot."""
-    return Figure(layout="constrained", **kwargs) if fig is None else fig
-
-
-def save_figure(fig: Figure | SubFigure, png_path: str | Path) -> Path:
-    """Write ``fig`` (the whole figure a subfigure belongs to) as a PNG at ``png_path``, atomically."""
-    png_path = Path(png_path)
-    png_path.parent.mkdir(parents=True, exist_ok=True)
-    buf = io.BytesIO()  # written atomically: replaces a symbolic link at png_path instead of following it
-    root = fig.figure if isinstance(fig, SubFigure) else fig
-    root.savefig(buf, format="png", dpi=DPI, bbox_inches="tight")
-    atomic_write_bytes(png_path, buf.getvalue())
-    return png_path
-
-
-def finish_figure(fig: Figure | SubFigure, png_path: str | Path | None) -> Figure | SubFigure:
-    """Save ``fig`` at ``png_path`` when one is given; return it."""
-    if png_path is not None:
-        save_figure(fig, png_path)
-    return fig
 
 
 def read_learning_curve(csv_path: str | Path) -> dict[str, np.ndarray]:

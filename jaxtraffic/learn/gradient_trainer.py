@@ -34,6 +34,7 @@ from jaxtraffic.control.adapter import adapt, baseline_grid
 from jaxtraffic.control.base import Controller
 from jaxtraffic.control.baselines import backstepping
 from jaxtraffic.control.gain_policy import equilibrium_gains
+from jaxtraffic.files import write_json
 from jaxtraffic.learn import cem
 from jaxtraffic.learn import checkpoint as ckpt
 from jaxtraffic.learn import gradient as G
@@ -150,7 +151,7 @@ def _train_gradient(tc: TrainConfig, cfg: G.GradientConfig, plant: TrafficParams
         state = serialization.from_state_dict(state, saved)
         say(f"resumed {run_dir} at update {meta['updates']} ({meta['wall_s']:.1f} s)")
     if writer:  # (on resume: the run-control values this session was given, recorded)
-        ckpt.write_json(run_dir / ckpt.CONFIG, config_json(tc, jax_version=jax.__version__))
+        write_json(run_dir / ckpt.CONFIG, config_json(tc, jax_version=jax.__version__))
     eval_steps = max(1, round(run.eval_horizon_s / tc.plant.dt))
     ref = evaluation(adapt(backstepping(tc.plant.delay), baseline_grid(plant), plant), plant, eval_steps,
                      gains=jnp.zeros(3))
@@ -229,7 +230,7 @@ def _train_gradient(tc: TrainConfig, cfg: G.GradientConfig, plant: TrafficParams
     own = G.own_controller(jax.device_get(state.theta), cfg, n, G.ROAD_LENGTH / (n - 1), plant.delay)
     summary["certificate"] = ckpt.policy_certificate(own, tc)
     if writer:
-        ckpt.write_json(run_dir / ckpt.SUMMARY, summary)
+        write_json(run_dir / ckpt.SUMMARY, summary)
     say(f"done: {meta['updates']} {'Adam steps' if cfg.method == 'adam' else 'CEM generations'} in "
         f"{meta['wall_s']:.1f} s; final rho L2 "
         f"{ev['final_rho_L2'] * 1e3:.3f} veh/km, J_comfort {ev['J_comfort']:.4g}; "

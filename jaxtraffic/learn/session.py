@@ -23,6 +23,7 @@ import jax
 import numpy as np
 
 from jaxtraffic import distributed
+from jaxtraffic.files import clean_stale_tmp
 from jaxtraffic.learn import checkpoint as ckpt
 
 __all__ = ["NonFiniteTraining", "RunLock", "StopSignals", "TrainingInterrupted", "check_finite", "check_out_dir",
@@ -163,7 +164,7 @@ def own_run_dir(run_dir: Path, resume: bool, overwrite: bool, writer: bool, say)
     open_run_dir(run_dir)
     with RunLock(run_dir):
         claim_run_dir(run_dir, resume, overwrite, clear=True)
-        stale = ckpt.clean_stale_tmp(run_dir)
+        stale = clean_stale_tmp(run_dir)
         if stale:
             say(f"removed {len(stale)} temporary file(s) left by an interrupted write: "
                 f"{', '.join(p.name for p in stale)}")

@@ -59,6 +59,7 @@ import numpy as np
 from jaxtraffic import distributed
 from jaxtraffic.control.gain_policy import equilibrium_gains, policy_controller
 from jaxtraffic.control.stability import certify
+from jaxtraffic.files import write_json
 from jaxtraffic.learn import checkpoint as ckpt
 from jaxtraffic.learn import env as learn_env
 from jaxtraffic.learn import members, ppo, validation
@@ -289,7 +290,7 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
             meta["stopped"] = False
         say(f"resumed {run_dir} at {meta['env_steps']} env steps ({meta['wall_s']:.1f} s)")
     if writer:  # (on resume: the run-control values this session was given, recorded)
-        ckpt.write_json(run_dir / ckpt.CONFIG, config_dict(s, cfg, env_params))
+        write_json(run_dir / ckpt.CONFIG, config_dict(s, cfg, env_params))
     curve_csv = run_dir / "learning_curve.csv"
     if writer:
         write_curve(curve_csv, meta["rows"])  # header (+ the checkpoint's rows on resume) once; rows appended below
@@ -422,9 +423,9 @@ def _train(s: TrainConfig, cfg: ppo.PPOConfig, env_params: learn_env.EnvParams, 
         "eval_horizon_s": s.run.eval_horizon_s,
     }
     if writer:
-        ckpt.write_json(run_dir / ckpt.SUMMARY, summary)  # load_policy reads best_seed from it
+        write_json(run_dir / ckpt.SUMMARY, summary)  # load_policy reads best_seed from it
         summary["certificate"] = ckpt.policy_certificate(ckpt.load_policy(run_dir)[0], s)
-        ckpt.write_json(run_dir / ckpt.SUMMARY, summary)
+        write_json(run_dir / ckpt.SUMMARY, summary)
     rule = (f"first reached after {meta['seconds_to_stop_rule']:.1f} s" if summary["stop_rule_reached"]
             else "not reached")
     say(f"done: {meta['env_steps']} env steps in {meta['wall_s']:.1f} s; eval reward per seed {np.round(ev, 4)};"

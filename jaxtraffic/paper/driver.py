@@ -15,7 +15,7 @@ import jax
 from jaxtraffic import distributed
 from jaxtraffic.control import Controller, backstepping, lyapunov, open_loop
 from jaxtraffic.control.adapter import ControllerGrid
-from jaxtraffic.learn.checkpoint import to_jsonable
+from jaxtraffic.files import to_jsonable
 from jaxtraffic.model.params import equilibrium
 from jaxtraffic.paper.claims import evaluate_claims, paper_like_reading
 from jaxtraffic.paper.figures import FIG7, ROBUSTNESS, make_figures

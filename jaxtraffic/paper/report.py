@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from jaxtraffic.learn.checkpoint import from_jsonable
+from jaxtraffic.files import from_jsonable
 from jaxtraffic.paper.claims import CRITERIA, _t
 from jaxtraffic.paper.learned import STABLE_STD
 from jaxtraffic.paper.numerics import NUMERICS_CONTROLLERS, survives

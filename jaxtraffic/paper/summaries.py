@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from jaxtraffic.learn.checkpoint import to_jsonable
+from jaxtraffic.files import to_jsonable
 from jaxtraffic.model.params import equilibrium
 from jaxtraffic.paper.scenarios import SETTLE_FRACTION, EvalConfig, Outcome
 from jaxtraffic.sim import metrics as M

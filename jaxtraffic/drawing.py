@@ -1,0 +1,43 @@
+"""Figures drawn without pyplot, written atomically: the lowest layer's plotting helpers.
+
+Figures are ``matplotlib.figure.Figure`` objects, never made through pyplot: no backend is chosen and
+nothing global changes, so plotting works the same in a script, under the command lines and in a
+notebook (where a returned figure displays itself). Imports nothing of jaxtraffic but ``files``.
+"""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+from matplotlib.figure import Figure, SubFigure
+
+from jaxtraffic.files import atomic_write_bytes
+
+__all__ = ["DPI", "finish_figure", "new_figure", "save_figure"]
+
+DPI = 110  # dots per inch of every PNG
+
+
+def new_figure(fig: Figure | SubFigure | None = None, **kwargs) -> Figure | SubFigure:
+    """``fig`` (a figure or subfigure of the caller's to draw into), else a new ``Figure`` with constrained
+    layout (``kwargs``: e.g. ``figsize``), made without pyplot."""
+    return Figure(layout="constrained", **kwargs) if fig is None else fig
+
+
+def save_figure(fig: Figure | SubFigure, png_path: str | Path) -> Path:
+    """Write ``fig`` (the whole figure a subfigure belongs to) as a PNG at ``png_path``, atomically."""
+    png_path = Path(png_path)
+    png_path.parent.mkdir(parents=True, exist_ok=True)
+    buf = io.BytesIO()  # written atomically: replaces a symbolic link at png_path instead of following it
+    root = fig.figure if isinstance(fig, SubFigure) else fig
+    root.savefig(buf, format="png", dpi=DPI, bbox_inches="tight")
+    atomic_write_bytes(png_path, buf.getvalue())
+    return png_path
+
+
+def finish_figure(fig: Figure | SubFigure, png_path: str | Path | None) -> Figure | SubFigure:
+    """Save ``fig`` at ``png_path`` when one is given; return it."""
+    if png_path is not None:
+        save_figure(fig, png_path)
+    return fig

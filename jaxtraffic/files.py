@@ -1,0 +1,110 @@
+"""Files written whole or not at all, and JSON with non-finite numbers: the lowest layer's I/O.
+
+Every write goes to a temporary file in the same directory (mode 0666 less the umask, like any other
+file), is flushed and fsynced, then ``os.replace``d over the target, so an interruption never leaves a
+half-written file; a temporary file left by a killed process (``.*.tmp``) is removed by
+``clean_stale_tmp``.
+
+JSON outputs (``to_jsonable``): ``null`` means "never" / "none" / unbounded (+inf: a time that is
+never reached, no wall-clock limit); a value that could not be computed, NaN, is the string
+``"nan"``, and -inf is ``"-inf"``. ``from_jsonable`` reads them back as floats.
+
+Imports nothing of jaxtraffic: every layer may use it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+__all__ = ["atomic_write_bytes", "atomic_write_text", "clean_stale_tmp", "from_jsonable", "read_json",
+           "to_jsonable", "write_json"]
+
+
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> None:
+    """Write ``data`` at ``path`` atomically (module docstring); an ``OSError`` names the file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        os.fchmod(fd, 0o666 & ~_umask())  # mkstemp creates 0600: results readable like any file
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException as err:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        if isinstance(err, OSError) and err.filename is None:  # e.g. ENOSPC from write: name the file
+            raise type(err)(err.errno, err.strerror, str(path)) from None
+        raise
+
+
+def atomic_write_text(path: str | Path, text: str) -> None:
+    """``atomic_write_bytes`` of UTF-8 text."""
+    atomic_write_bytes(path, text.encode())
+
+
+def clean_stale_tmp(run_dir: str | Path) -> list[Path]:
+    """Remove the temporary files (``.<name>.XXXX.tmp``) that a killed process left in ``run_dir``;
+    returns them. Call it only when no other process writes to the directory."""
+    stale = sorted(p for p in Path(run_dir).glob(".*.tmp") if p.is_file())
+    for p in stale:
+        p.unlink(missing_ok=True)
+    return stale
+
+
+def to_jsonable(x: Any) -> Any:
+    """Convert numpy/jax scalars and arrays to JSON types. +inf becomes None (null: "never",
+    unbounded), NaN the string "nan" (not computable: kept distinct from null), -inf "-inf"."""
+    if isinstance(x, dict):
+        return {str(k): to_jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [to_jsonable(v) for v in x]
+    if isinstance(x, (jax.Array, np.ndarray, np.generic)):
+        return to_jsonable(np.asarray(x).tolist())
+    if isinstance(x, float) and not math.isfinite(x):
+        return "nan" if math.isnan(x) else (None if x > 0 else "-inf")
+    return x
+
+
+NONFINITE = {"nan": math.nan, "inf": math.inf, "-inf": -math.inf}
+
+
+def from_jsonable(x: Any) -> Any:
+    """Inverse of ``to_jsonable`` for non-finite values: the strings "nan", "inf", "-inf" become
+    floats (anywhere in dicts and lists); null stays None."""
+    if isinstance(x, dict):
+        return {k: from_jsonable(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [from_jsonable(v) for v in x]
+    if isinstance(x, str) and x in NONFINITE:
+        return NONFINITE[x]
+    return x
+
+
+def write_json(path: str | Path, obj: Any) -> None:
+    """``obj`` as strict JSON (``to_jsonable``), indented, written atomically."""
+    atomic_write_text(path, json.dumps(to_jsonable(obj), indent=2, sort_keys=False, allow_nan=False) + "\n")
+
+
+def read_json(path: Path) -> Any:
+    """The JSON content of ``path``; ``ValueError`` naming it if it is unreadable or not JSON."""
+    try:
+        return json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as err:
+        raise ValueError(f"{path}: unreadable or not valid JSON ({type(err).__name__}: {err})") from None

@@ -31,13 +31,13 @@ from benchmarks.machine import cpu_model, load  # noqa: E402
 MEMORY_SNIPPET = r"""
 import resource, sys, time, jax, jax.numpy as jnp
 from jaxtraffic import TrafficParams
-from jaxtraffic.learn import gradient as G
+from jaxtraffic.learn.gradient import objective
 remat, n_d, n_a = sys.argv[1] == "1", int(sys.argv[2]), int(sys.argv[3])
-cfg = G.GradientConfig(delays=tuple(float(d) for d in range(n_d)),
+cfg = objective.GradientConfig(delays=tuple(float(d) for d in range(n_d)),
                        alphas=tuple(0.05 + 0.5 * i / max(1, n_a - 1) for i in range(n_a)), horizon_s=300.0)
 base = TrafficParams(delay=4.0)
-scen, w = G.training_scenarios(cfg, base), G.weights_of(cfg)
-f = jax.jit(jax.grad(lambda t: G.objective(t, scen, w, cfg, base, remat=remat)[0]))
+scen, w = objective.training_scenarios(cfg, base), objective.weights_of(cfg)
+f = jax.jit(jax.grad(lambda t: objective.objective(t, scen, w, cfg, base, remat=remat)[0]))
 theta = jnp.asarray([-0.3, -0.6, -0.6])
 jax.block_until_ready(f(theta))
 t0 = time.perf_counter(); jax.block_until_ready(f(theta)); t = time.perf_counter() - t0

@@ -5,7 +5,7 @@ Both build ``(init, train_chunk)`` for the same config (default ``train.py`` set
 say otherwise) in one process, compile, then time ``--chunks`` chunks each, interleaved (pmap,
 shard_map, pmap, ...) so that a changing machine load hits both alike. Wall and process-CPU seconds
 per chunk are reported (best and median), and whether the two runners agree bit for bit. The
-pmap version is ``jaxtraffic/learn/ppo.py`` at ``--pmap-rev`` (git show), imported as a module of
+pmap version is ``jaxtraffic/learn/ppo/algorithm.py`` at ``--pmap-rev`` (git show), imported as a module of
 its own; it shares the rest of the library with the working tree.
 
     XLA_FLAGS=--xla_force_host_platform_device_count=2 python benchmarks/bench_ppo_sharding.py --chunks 4
@@ -32,13 +32,13 @@ from machine import cpu_model, load  # noqa: E402  (benchmarks/machine.py)
 
 from jaxtraffic.learn import ppo  # noqa: E402
 from jaxtraffic.learn.config import TrainConfig  # noqa: E402
-from jaxtraffic.learn.env import GainEnv  # noqa: E402
-from jaxtraffic.learn.trainer import build  # noqa: E402
+from jaxtraffic.learn.env import TrafficEnv  # noqa: E402
+from jaxtraffic.learn.ppo.trainer import build  # noqa: E402
 
 
 def pmap_module(rev: str):
-    """``jaxtraffic/learn/ppo.py`` of git revision ``rev`` as the module ``ppo_pmap``."""
-    src = subprocess.run(["git", "show", f"{rev}:jaxtraffic/learn/ppo.py"], cwd=REPO, check=True,
+    """``jaxtraffic/learn/ppo/algorithm.py`` of git revision ``rev`` as the module ``ppo_pmap``."""
+    src = subprocess.run(["git", "show", f"{rev}:jaxtraffic/learn/ppo/algorithm.py"], cwd=REPO, check=True,
                          capture_output=True, text=True).stdout
     path = Path(tempfile.mkdtemp()) / "ppo_pmap.py"
     path.write_text(src)
@@ -63,7 +63,7 @@ def main() -> None:
            "num_envs": cfg.num_envs, "steps_per_chunk": cfg.steps_per_update * cfg.updates_per_chunk,
            "load_start": load()}
     for name, mod in (("pmap", old), ("shard_map", ppo)):
-        init, chunk = mod.make_train(cfg, env_params, env=GainEnv)
+        init, chunk = mod.make_train(cfg, env_params, env=TrafficEnv)
         t0 = time.perf_counter()
         runner = jax.block_until_ready(init(jax.random.PRNGKey(0)))
         runner, m = jax.block_until_ready(chunk(runner))

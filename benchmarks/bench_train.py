@@ -43,10 +43,10 @@ from machine import cpu_model, load  # noqa: E402  (benchmarks/machine.py)
 
 from jaxtraffic import backstepping, open_loop, simulate  # noqa: E402
 from jaxtraffic.learn import ppo  # noqa: E402
-from jaxtraffic.learn.checkpoint import load_policy  # noqa: E402
 from jaxtraffic.learn.config import TrainConfig  # noqa: E402
-from jaxtraffic.learn.env import GainEnv  # noqa: E402
-from jaxtraffic.learn.trainer import build, make_evaluator  # noqa: E402
+from jaxtraffic.learn.env import TrafficEnv  # noqa: E402
+from jaxtraffic.learn.policy import load_policy  # noqa: E402
+from jaxtraffic.learn.ppo.trainer import build, make_evaluator  # noqa: E402
 
 SIM_STEPS = 3000  # 300 s at dt = 0.1 s
 
@@ -63,7 +63,7 @@ def throughput(num_envs: int, chunks: int) -> dict:
     steps_per_chunk = cfg.steps_per_update * cfg.updates_per_chunk
     load0 = load()
     t0 = time.perf_counter()
-    init, train_chunk = ppo.make_train(cfg, env_params, env=GainEnv)
+    init, train_chunk = ppo.make_train(cfg, env_params, env=TrafficEnv)
     runner = _block(init(jax.random.PRNGKey(0)))
     t_init = time.perf_counter() - t0
     t0 = time.perf_counter()

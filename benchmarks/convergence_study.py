@@ -37,7 +37,7 @@ import numpy as np
 import jaxtraffic as jt
 from jaxtraffic.control.adapter import adapt, baseline_grid
 from jaxtraffic.files import atomic_write_text, write_json  # noqa: E402
-from jaxtraffic.learn.checkpoint import load_policy, policy_grid
+from jaxtraffic.learn.policy import load_policy, policy_grid
 from jaxtraffic.provenance import provenance
 
 LEVELS = ((201, 1), (401, 1), (801, 2), (1601, 4), (3201, 8))  # the fewest solver steps the CFL bound allows

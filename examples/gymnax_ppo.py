@@ -3,7 +3,7 @@
 
 The PPO below is a purejaxrl-style loop (continuous actions, one jit-compiled ``train`` function,
 ``lax.map`` over seeds: a ``vmap`` would batch the orthogonal initialisers' QR decompositions, which
-can deadlock XLA:CPU's thread pool on small machines, see ``learn/ppo.py``) written against
+can deadlock XLA:CPU's thread pool on small machines, see ``learn/ppo/algorithm.py``) written against
 gymnax's interface only: it knows nothing of jaxtraffic but the environment's constructor. It
 runs the environment under gymnax's wrappers
 (``LogWrapper(FlattenObservationWrapper(env))``), samples Gaussian actions that the environment

@@ -1,13 +1,13 @@
 """A controller brought in by ``evaluate.py --controller`` in the end-to-end test: a trained run's policy as a
-plain ``predict(obs)`` (``learn.export.load_predict``), made a controller through the bridge a policy trained
+plain ``predict(obs)`` (``learn.ppo.export.load_predict``), made a controller through the bridge a policy trained
 elsewhere takes (``ecosystem.policy_as_controller``), on the run's grid. It must score as the run itself."""
 
 from __future__ import annotations
 
 from jaxtraffic.ecosystem import policy_as_controller
-from jaxtraffic.learn.checkpoint import load_policy, policy_grid
-from jaxtraffic.learn.export import load_predict
-from jaxtraffic.learn.trainer import build
+from jaxtraffic.learn.policy import load_policy, policy_grid
+from jaxtraffic.learn.ppo.export import load_predict
+from jaxtraffic.learn.ppo.trainer import build
 
 
 def predict_controller(run_dir: str):

@@ -39,7 +39,7 @@ def test_reset_step_shapes_and_reward():
     obs, st = reset_jit(jax.random.PRNGKey(0), ep)
     assert obs.shape == (3 * N + 3,) == (learn_env.obs_size(ep),)
     np.testing.assert_array_equal(obs[3 * N:], 0.0)  # no gains applied yet
-    assert learn_env.GainEnv.action_size == 3
+    assert learn_env.TrafficEnv.action_size == 3
     assert int(st.t) == 0 and st.plant.rho.shape == (N,)
     obs2, st2, r, done, info = step_jit(jax.random.PRNGKey(1), st, jnp.array([0.3, -0.2, 0.1]), ep)
     assert obs2.shape == (3 * N + 3,) and r.shape == () and done.shape == () and done.dtype == jnp.bool_

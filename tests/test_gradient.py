@@ -13,18 +13,19 @@ from conftest import SMALL
 
 from jaxtraffic import TrafficParams, simulate
 from jaxtraffic.cli.train import settings_from_args
-from jaxtraffic.learn import gradient as G
 from jaxtraffic.learn import load_policy
 from jaxtraffic.learn.config import TrainConfig
-from jaxtraffic.learn.gradient_trainer import gradient_setup, train_gradient
+from jaxtraffic.learn.gradient import objective
+from jaxtraffic.learn.gradient.policy import gradient_setup
+from jaxtraffic.learn.gradient.trainer import train_gradient
 
 BASE = TrafficParams(delay=2.0, **SMALL)  # 41 nodes, dt = 0.5 s
-CFG = G.GradientConfig(delays=(1.0, 2.0), horizon_s=60.0, record_every=10, steps_per_chunk=2)
+CFG = objective.GradientConfig(delays=(1.0, 2.0), horizon_s=60.0, record_every=10, steps_per_chunk=2)
 
 
 def _objective(theta, cfg=CFG, base=BASE, remat=True):
-    scen = G.training_scenarios(cfg, base)
-    return G.objective(theta, scen, G.weights_of(cfg), cfg, base, remat=remat)[0]
+    scen = objective.training_scenarios(cfg, base)
+    return objective.objective(theta, scen, objective.weights_of(cfg), cfg, base, remat=remat)[0]
 
 
 def test_gradient_matches_central_differences(x64):
@@ -46,19 +47,20 @@ def test_checkpointed_gradient_equals_plain_one(x64):
 
 def test_no_nan_gradient_when_one_scenario_diverges():
     # these gains drive the large initial wave out of the physical region, not the small one
-    cfg = G.GradientConfig(delays=(0.0,), amplitudes=(0.001, 0.08), horizon_s=100.0, record_every=10)
+    cfg = objective.GradientConfig(delays=(0.0,), amplitudes=(0.001, 0.08), horizon_s=100.0, record_every=10)
     base = TrafficParams(delay=0.0, **SMALL)
     theta = jnp.asarray([0.0, -3.0, 3.0])
-    scen = G.training_scenarios(cfg, base)
-    (loss, aux), g = jax.value_and_grad(G.objective, has_aux=True)(theta, scen, G.weights_of(cfg), cfg, base)
+    scen = objective.training_scenarios(cfg, base)
+    loss_and_grad = jax.value_and_grad(objective.objective, has_aux=True)
+    (loss, aux), g = loss_and_grad(theta, scen, objective.weights_of(cfg), cfg, base)
     diverged = np.asarray(aux["diverged"])
     assert diverged.any() and not diverged.all(), diverged
     assert np.isfinite(float(loss)) and np.all(np.isfinite(np.asarray(g))), (loss, g)
 
 
 def test_a_few_steps_lower_the_objective():
-    cfg = G.GradientConfig(delays=(1.0, 2.0), horizon_s=60.0, steps_per_chunk=4)
-    init, chunk = G.make_train(cfg, BASE)
+    cfg = objective.GradientConfig(delays=(1.0, 2.0), horizon_s=60.0, steps_per_chunk=4)
+    init, chunk = objective.make_train(cfg, BASE)
     state, m = chunk(init(jax.random.PRNGKey(0)))
     obj = np.asarray(m["objective"])
     assert np.all(np.isfinite(obj)) and obj[-1] < 0.9 * obj[0], obj
@@ -79,7 +81,7 @@ def test_network_run_lowers_objective_round_trips_and_resumes_exactly(tmp_path):
     assert summary["provenance"]["versions"]["jax"] == jax.__version__ and summary["updates"] == 4
     # the same 4 steps in process: the loaded controller acts exactly like the trained parameters
     cfg, plant = gradient_setup(tc)
-    init, chunk = G.make_train(cfg, plant)
+    init, chunk = objective.make_train(cfg, plant)
     state, m1 = chunk(init(jax.random.PRNGKey(0)))
     state, m2 = chunk(state)
     obj = np.concatenate([np.asarray(m1["objective"]), np.asarray(m2["objective"])])
@@ -88,7 +90,7 @@ def test_network_run_lowers_objective_round_trips_and_resumes_exactly(tmp_path):
     def actions(c):
         return np.asarray(simulate(plant, c, n_steps=40, record_every=1).trajectory.h)
 
-    np.testing.assert_array_equal(actions(ctrl), actions(G.make_controller(state.theta, cfg, plant)))
+    np.testing.assert_array_equal(actions(ctrl), actions(objective.make_controller(state.theta, cfg, plant)))
     # 2 steps, then --resume to 4: the same policy as 4 steps in one go
     half = tc.replace(out_dir=str(tmp_path / "b"), grad_steps=2)
     train_gradient(half)
@@ -100,8 +102,9 @@ def test_train_cli_gradient_defaults_come_from_the_library():
     tc = settings_from_args(["--algo", "gradient", "--policy", "network"])
     cfg, _ = gradient_setup(tc)
     assert tc.run.out_dir == "runs/gradient-network"
-    assert cfg == G.GradientConfig.for_policy("network")
-    assert gradient_setup(settings_from_args(["--algo", "gradient"]))[0] == G.GradientConfig()
+    assert cfg == objective.GradientConfig.for_policy("network")
+    assert gradient_setup(settings_from_args(["--algo", "gradient"]))[0] == objective.GradientConfig()
     # the gain bound is the gradient trainer's own (PPO's --gain-max, per gain, does not apply)
-    assert gradient_setup(settings_from_args(["--algo", "gradient", "--gain-max", "1,2,2"]))[0] == G.GradientConfig()
+    per_gain = settings_from_args(["--algo", "gradient", "--gain-max", "1,2,2"])
+    assert gradient_setup(per_gain)[0] == objective.GradientConfig()
     assert gradient_setup(settings_from_args(["--algo", "gradient", "--grad-gain-max", "2"]))[0].gain_max == 2.0

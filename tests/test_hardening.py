@@ -32,10 +32,11 @@ from jaxtraffic import TrafficParams, files
 from jaxtraffic.cli import evaluate as evaluate_cli
 from jaxtraffic.cli import train as train_cli
 from jaxtraffic.control import Controller, saturate
-from jaxtraffic.learn import checkpoint as ckpt
 from jaxtraffic.learn.config import TrainConfig, load_config
-from jaxtraffic.learn.session import StopSignals
-from jaxtraffic.learn.validate import check_devices
+from jaxtraffic.learn.config.checks import check_devices
+from jaxtraffic.learn.policy import load_policy
+from jaxtraffic.learn.runs import checkpoint as ckpt
+from jaxtraffic.learn.runs.session import StopSignals
 from jaxtraffic.sim.plant import DIVERGED_CONTROL, DIVERGED_INITIAL, DIVERGED_NONE, DIVERGED_PARAMS
 
 REPO = Path(__file__).resolve().parents[1]
@@ -554,7 +555,7 @@ def test_broken_run_directory_gives_one_line_errors(case, ref_run, tmp_path, cap
     damage, match = BROKEN[case]
     damage(run)
     with pytest.raises(ValueError, match="^.*" + __import__("re").escape(match)):
-        ckpt.load_policy(run)
+        load_policy(run)
     with pytest.raises(SystemExit) as exc:  # evaluate.py --run: one line, no traceback
         evaluate_cli.main(["--run", str(run), "--out", str(tmp_path / "res"), "--horizon", "1"])
     err = capsys.readouterr().err

@@ -22,13 +22,13 @@ import pytest
 from tiny_runs import REPO, TINY, xla_env
 
 from jaxtraffic import distributed
-from jaxtraffic.learn import checkpoint as ckpt
+from jaxtraffic.learn.runs import checkpoint as ckpt
 
 CHILD = r"""
 import json, sys
 sys.path.insert(0, ".")
 import train
-from jaxtraffic.learn import ppo
+from jaxtraffic.learn.ppo import algorithm as ppo
 
 orig, cache = ppo.make_train, {}
 def shared(cfg, env_params, devices=None, *, env):  # the resume reuses the compiled program

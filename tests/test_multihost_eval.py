@@ -24,7 +24,7 @@ import pytest
 from test_multihost import _finish, _free_port, _gloo
 from tiny_runs import REPO, xla_env
 
-from jaxtraffic.learn import checkpoint as ckpt
+from jaxtraffic.learn.runs import checkpoint as ckpt
 
 CHILD = r"""
 import json, sys

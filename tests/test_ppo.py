@@ -17,7 +17,8 @@ import pytest
 from flax import struct
 
 from jaxtraffic.learn import env as learn_env
-from jaxtraffic.learn import ppo
+from jaxtraffic.learn.env import TrafficEnv
+from jaxtraffic.learn.ppo import algorithm as ppo
 from jaxtraffic.model.params import TrafficParams
 
 # ----------------------------------------------------------------------------------------- GAE
@@ -237,7 +238,7 @@ def test_ppo_updates_move_policy_toward_target(toy_run):
 def test_make_train_rejects_indivisible_batch():
     cfg = ppo.PPOConfig(num_envs=3, num_steps=5, num_minibatches=4)
     with pytest.raises(ValueError, match="num_minibatches"):
-        ppo.make_train(cfg, learn_env.make_env_params(TrafficParams(n_points=21, delay=0.5)), env=learn_env.GainEnv)
+        ppo.make_train(cfg, learn_env.make_env_params(TrafficParams(n_points=21, delay=0.5)), env=learn_env.TrafficEnv)
 
 
 def test_learning_rate_schedule():
@@ -268,19 +269,21 @@ def test_decayed_learning_rate_reaches_adam():
 SEVERAL_SEEDS = """
 import json
 import jax, jax.numpy as jnp, numpy as np
-from jaxtraffic.learn import env as learn_env, ppo
+from jaxtraffic.learn import env as learn_env
+from jaxtraffic.learn.ppo import algorithm as ppo
 from jaxtraffic.model.params import TrafficParams
 
 cfg = ppo.PPOConfig(num_envs=16, num_steps=8, update_epochs=1, num_minibatches=2, updates_per_chunk=1, num_seeds=2)
 ep = learn_env.make_env_params(TrafficParams(n_points=21, delay=4.0))
-init, train_chunk = ppo.make_train(cfg, ep, env=learn_env.GainEnv)
+init, train_chunk = ppo.make_train(cfg, ep, env=learn_env.TrafficEnv)
 for seed in range(4):  # the deadlock was a race: give it several chances
     runner = jax.block_until_ready(init(jax.random.PRNGKey(seed)))
 runner, m = train_chunk(runner)
 jax.block_until_ready((runner, m))
 # lax.map over the seeds gives each seed the network the one-seed vmap gives it (bit for bit) and
 # the same environments (a different XLA program: equal to a few float32 ulps)
-one = jax.jit(lambda ks: ppo._init_seeds(lambda k: ppo._init_seed(cfg, learn_env.GainEnv, ep, 16, k, jnp.int32(0)), ks))
+one = jax.jit(lambda ks: ppo._init_seeds(
+    lambda k: ppo._init_seed(cfg, TrafficEnv, ep, 16, k, jnp.int32(0)), ks))
 keys = jax.random.split(jax.random.PRNGKey(3), 2)
 both = init(jax.random.PRNGKey(3))
 alone = [one(keys[i:i + 1]) for i in range(2)]
@@ -324,8 +327,8 @@ def test_several_seeds_init_has_no_batched_lapack_call():
     cfg = ppo.PPOConfig(num_envs=8, num_seeds=2)
     ep = learn_env.make_env_params(TrafficParams(n_points=21, delay=4.0))
     keys = jax.random.split(jax.random.PRNGKey(0), 2)
-    text = jax.jit(lambda ks: ppo._init_seeds(lambda k: ppo._init_seed(cfg, learn_env.GainEnv, ep, 8, k, jnp.int32(0)),
-                                              ks)).lower(keys).as_text()
+    text = jax.jit(lambda ks: ppo._init_seeds(
+        lambda k: ppo._init_seed(cfg, TrafficEnv, ep, 8, k, jnp.int32(0)), ks)).lower(keys).as_text()
     shapes = re.findall(r"custom_call @lapack_\w+\(.*: \(tensor<([0-9x]+)x[a-z]+[0-9]*>", text)
     n_in = learn_env.obs_size(ep)  # the first layer's QR is of its kernel or of its transpose, the taller of the two
     assert {f"{max(n_in, 64)}x{min(n_in, 64)}", "64x64", "64x3", "64x1"} <= set(shapes), shapes  # geqrf + orgqr

@@ -11,9 +11,9 @@ import pytest
 from tiny_runs import TINY
 
 from jaxtraffic.cli import train as train_cli
-from jaxtraffic.learn import checkpoint as ckpt
 from jaxtraffic.learn.config import load_config
-from jaxtraffic.learn.session import NonFiniteTraining, RunLock, check_finite, claim_run_dir
+from jaxtraffic.learn.runs import checkpoint as ckpt
+from jaxtraffic.learn.runs.session import NonFiniteTraining, RunLock, check_finite, claim_run_dir
 
 GRAD = ["--algo", "gradient", "--policy", "gains", "--n-points", "21", "--train-delays", "1",
         "--train-horizon-s", "2", "--steps-per-chunk", "1", "--eval-horizon-s", "2", "--quiet"]
@@ -113,7 +113,7 @@ def test_config_and_checkpoint_are_bound_together(tiny_run_a, tmp_path):
 def test_symlinks_in_a_run_directory_are_replaced_not_followed(tmp_path):
     import os
 
-    from jaxtraffic.learn.curve import append_curve, plot_learning_curve, write_curve
+    from jaxtraffic.learn.runs.curve import append_curve, plot_learning_curve, write_curve
 
     outside = tmp_path / "precious.txt"
     outside.write_text("keep")
@@ -243,7 +243,7 @@ def test_ppo_rules_do_not_block_a_gradient_run_and_gradient_flags_do_not_pass_fo
 
 def test_sizes_and_horizons_beyond_what_can_run_are_flag_errors(tmp_path, capsys):
     from jaxtraffic.learn.config import TrainConfig
-    from jaxtraffic.learn.validate import check_memory
+    from jaxtraffic.learn.config.checks import check_memory
 
     for flags, match in ((["--horizon-s", "1e30"], "horizon_s = 1e+30 (--horizon-s): must be at most 1e+08 time steps"),
                          (["--max-delay-steps", "2147483648"], "(--max-delay-steps): must lie in [0, 1000000]"),

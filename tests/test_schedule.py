@@ -13,8 +13,8 @@ from extras import available
 from jaxtraffic import TrafficParams, equilibrium, paper_initial_condition, simulate, simulate_batch, stack_params
 from jaxtraffic.cli.train import settings_from_args
 from jaxtraffic.control import backstepping, constant_gains, schedule_gains, scheduled_gains, takes_delay, tell_delay
-from jaxtraffic.learn import gradient as G
-from jaxtraffic.learn.gradient_trainer import gradient_setup
+from jaxtraffic.learn.gradient import objective
+from jaxtraffic.learn.gradient.policy import gradient_setup
 from jaxtraffic.paper.scenarios import EvalConfig, robust_axis, run_robustness
 
 KNOTS = (0.0, 4.0, 8.0)
@@ -81,13 +81,13 @@ def test_each_map_cell_is_told_its_plant_delay():
 
 
 def test_schedule_gradient_matches_central_differences_and_stays_on_its_knots(x64):
-    cfg = G.GradientConfig(policy="schedule", knots=KNOTS, delays=(1.0, 3.0), alphas=(0.15, 0.3), horizon_s=40.0,
-                           record_every=10, reward_weight=0.0, wave_weight=1.0, comfort_weight=0.0,
-                           filter_sigma=0.0)
-    scen = G.training_scenarios(cfg, PLANT)
+    cfg = objective.GradientConfig(policy="schedule", knots=KNOTS, delays=(1.0, 3.0), alphas=(0.15, 0.3),
+                                   horizon_s=40.0, record_every=10, reward_weight=0.0, wave_weight=1.0,
+                                   comfort_weight=0.0, filter_sigma=0.0)
+    scen = objective.training_scenarios(cfg, PLANT)
 
     def obj(theta):
-        return G.objective(theta, scen, G.weights_of(cfg), cfg, PLANT)[0]
+        return objective.objective(theta, scen, objective.weights_of(cfg), cfg, PLANT)[0]
 
     theta = jnp.asarray(TABLE, jnp.float64)
     g = np.asarray(jax.grad(obj)(theta))
@@ -103,7 +103,7 @@ def test_schedule_gradient_matches_central_differences_and_stays_on_its_knots(x6
 def test_default_training_plants_are_held_out_from_both_maps():
     tc = settings_from_args(["--algo", "gradient", "--policy", "schedule"])
     cfg, _ = gradient_setup(tc)
-    assert cfg == G.GradientConfig.for_policy("schedule") and tc.run.out_dir == "runs/gradient-schedule"
+    assert cfg == objective.GradientConfig.for_policy("schedule") and tc.run.out_dir == "runs/gradient-schedule"
     dt = float(TrafficParams().dt)
     maps = {"paper": (robust_axis(17, 0.0, 8.0, dt), robust_axis(12, 0.05, 0.6)),
             "reference": (robust_axis(9, 0.0, 8.0, dt), robust_axis(6, 0.05, 0.6))}
@@ -122,7 +122,7 @@ def test_a_schedule_run_trains_saves_and_loads(tmp_path):
                              "--n-points", "21", "--train-delays", "2,6", "--train-alphas", "0.15",
                              "--train-horizon-s", "10", "--grad-steps", "5", "--eval-horizon-s", "10",
                              *(["--tensorboard", str(tmp_path / "tb")] if available("tensorboardX") else [])])
-    from jaxtraffic.learn.gradient_trainer import train_gradient
+    from jaxtraffic.learn.gradient.trainer import train_gradient
 
     train_gradient(tc)
     if tc.run.tensorboard:  # the gradient trainer writes its curve's rows as TensorBoard scalars too
@@ -138,25 +138,25 @@ def test_a_schedule_run_trains_saves_and_loads(tmp_path):
     assert not np.any(np.asarray(res.metrics["diverged"]))
 
 
-CEM_CFG = G.GradientConfig(policy="schedule", method="cem", knots=KNOTS, delays=(1.0, 5.0), alphas=(0.15, 0.3),
+CEM_CFG = objective.GradientConfig(policy="schedule", method="cem", knots=KNOTS, delays=(1.0, 5.0), alphas=(0.15, 0.3),
                            horizon_s=30.0, record_every=10, steps_per_chunk=2, cem_population=6, filter_sigma=0.0,
                            init_gains=(0.0, -1.0, -1.5))
 
 
 def test_cem_fitness_is_the_maps_counts():
     """Stabilised and diverged counts of the fitness agree with rolling each scenario out on its own."""
-    from jaxtraffic.learn import cem
+    from jaxtraffic.learn.gradient import cem
     from jaxtraffic.sim.metrics import STABLE_STD
 
-    n = G.horizon_steps(CEM_CFG, PLANT.dt)
+    n = objective.horizon_steps(CEM_CFG, PLANT.dt)
     thetas = jnp.stack([TABLE, jnp.tile(jnp.asarray([0.0, 3.0, 3.0]), (3, 1))])  # the second diverges somewhere
     fit, stab, div = cem.fitness(thetas, CEM_CFG, PLANT, n)
-    scen = G.training_scenarios(CEM_CFG, PLANT)
+    scen = objective.training_scenarios(CEM_CFG, PLANT)
     for p, theta in enumerate(thetas):
         s = d = 0
         for i in range(scen.rho0.shape[0]):
             plant = jax.tree.map(lambda x, i=i: x[i], scen.params)
-            res = simulate(plant, G.make_controller(theta, CEM_CFG, PLANT, plant.delay), n_steps=n,
+            res = simulate(plant, objective.make_controller(theta, CEM_CFG, PLANT, plant.delay), n_steps=n,
                            rho0=scen.rho0[i], v0=scen.v0[i], nominal=PLANT)
             gone = bool(res.metrics["diverged"])
             d += gone
@@ -166,7 +166,7 @@ def test_cem_fitness_is_the_maps_counts():
 
 
 def test_cem_keeps_its_best_and_is_deterministic():
-    from jaxtraffic.learn import cem
+    from jaxtraffic.learn.gradient import cem
 
     init, chunk = cem.make_train(CEM_CFG, PLANT)
     s1, m1 = chunk(init(jax.random.PRNGKey(3)))
@@ -176,7 +176,7 @@ def test_cem_keeps_its_best_and_is_deterministic():
     assert np.all(np.diff(obj) <= 0) and int(s1.update) == 2  # the best so far never gets worse
     np.testing.assert_array_less(np.full((3, 3), cem.SIGMA_MIN - 1e-7), np.asarray(s1.sigma))
     with pytest.raises(ValueError, match="cem"):
-        G.GradientConfig(policy="network", method="cem")
+        objective.GradientConfig(policy="network", method="cem")
 
 
 def test_oracle_rows_pick_what_they_promise():

@@ -125,13 +125,13 @@ def test_growth_rate_gradient_matches_finite_differences():
 def test_certificate_penalty_is_zero_when_certified_and_pushes_towards_it():
     """``learn.gradient.certificate_penalty``: 0 for certified gains, positive for pointwise gains at D = 4 s,
     and a small step against its gradient lowers it."""
-    from jaxtraffic.learn import gradient as G
+    from jaxtraffic.learn.gradient import objective
 
     base = jt.TrafficParams(delay=4.0)
-    cfg = G.GradientConfig(filter_sigma=0.0, certificate_weight=1.0)
-    pen, g = G.penalty_and_grad(jnp.asarray(POINTWISE), cfg, base, (40,))
+    cfg = objective.GradientConfig(filter_sigma=0.0, certificate_weight=1.0)
+    pen, g = objective.penalty_and_grad(jnp.asarray(POINTWISE), cfg, base, (40,))
     assert float(pen) > 0.03
-    pen2, _ = G.penalty_and_grad(jnp.asarray(POINTWISE) - 0.5 * g / jnp.linalg.norm(g), cfg, base, (40,))
+    pen2, _ = objective.penalty_and_grad(jnp.asarray(POINTWISE) - 0.5 * g / jnp.linalg.norm(g), cfg, base, (40,))
     assert float(pen2) < float(pen)
-    filtered = G.GradientConfig(filter_sigma=25.0)
-    assert float(G.penalty_and_grad(jnp.asarray(POINTWISE), filtered, base, (40,))[0]) == 0.0
+    filtered = objective.GradientConfig(filter_sigma=25.0)
+    assert float(objective.penalty_and_grad(jnp.asarray(POINTWISE), filtered, base, (40,))[0]) == 0.0

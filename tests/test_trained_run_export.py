@@ -1,4 +1,4 @@
-"""A trained run's policy as a plain ``predict(obs)`` (``learn.export.load_predict``), and back through
+"""A trained run's policy as a plain ``predict(obs)`` (``learn.ppo.export.load_predict``), and back through
 ``ecosystem.policy_as_controller``: the two bridges round-trip. Reads the suite's tiny training session
 (``tiny_runs.py``), late in the order so that it has been written by then."""
 
@@ -10,9 +10,9 @@ import pytest
 from jaxtraffic import simulate
 from jaxtraffic.control.gain_policy import feature_size
 from jaxtraffic.ecosystem import controller_grid, policy_as_controller
-from jaxtraffic.learn.checkpoint import load_policy, policy_grid
-from jaxtraffic.learn.export import load_predict
-from jaxtraffic.learn.trainer import build
+from jaxtraffic.learn.policy import load_policy, policy_grid
+from jaxtraffic.learn.ppo.export import load_predict
+from jaxtraffic.learn.ppo.trainer import build
 
 
 def test_predict_of_a_run_made_back_into_a_controller_acts_like_the_run(tiny_run_a):

@@ -1,4 +1,4 @@
-"""The validation suite of PPO checkpoints (jaxtraffic/learn/validation.py), tiny grid."""
+"""The validation suite of PPO checkpoints (jaxtraffic/learn/ppo/selection.py), tiny grid."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from jaxtraffic.control.baselines import backstepping, open_loop
-from jaxtraffic.learn.validation import BAD, make_validator
+from jaxtraffic.learn.ppo.selection import BAD, make_validator
 from jaxtraffic.model.params import TrafficParams
 
 TP = TrafficParams(n_points=21, delay=0.5)

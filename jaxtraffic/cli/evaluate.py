@@ -38,9 +38,9 @@ from jaxtraffic import compile_cache, distributed, paper
 from jaxtraffic.cli import external, staging
 from jaxtraffic.cli import train as train_cli
 from jaxtraffic.files import atomic_write_text
-from jaxtraffic.learn.checkpoint import load_policy, policy_grid
 from jaxtraffic.learn.config import TrainConfig
-from jaxtraffic.learn.validate import MAX_STEPS
+from jaxtraffic.learn.config.checks import MAX_STEPS
+from jaxtraffic.learn.policy import load_policy, policy_grid
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.paper.oracle import load_oracle
 
@@ -48,7 +48,7 @@ _REF = TrafficParams.reference()
 DEFAULT_RUN = Path("runs/default")
 PLANTS = ("paper", "reference")
 MAX_CELLS = 10_000  # of a robustness map (the paper's is 17 x 12 = 204)
-MAX_HORIZON_S = MAX_STEPS * float(TrafficParams().dt)  # a rollout's step bound (learn.validate) at the paper's dt
+MAX_HORIZON_S = MAX_STEPS * float(TrafficParams().dt)  # a rollout's step bound (learn.config.checks) at the paper's dt
 # wall-clock cap of the PPO training the main job starts when runs/default is missing: a run that has
 # not met its stop rule by then keeps its best checkpoint so far (the main job stays bounded)
 MAIN_JOB_PPO_WALL_S = 600.0
@@ -117,7 +117,7 @@ def _log(msg: str) -> None:
 
 
 def _curve(path: Path) -> dict | None:
-    from jaxtraffic.learn.curve import read_learning_curve
+    from jaxtraffic.learn.runs.curve import read_learning_curve
 
     try:
         return read_learning_curve(path) if path.exists() else None

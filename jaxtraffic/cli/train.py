@@ -21,8 +21,9 @@ from pathlib import Path
 
 from jaxtraffic import compile_cache, distributed
 from jaxtraffic.learn.config import RUN_CONTROL, SECTIONS, RunConfig, TrainConfig, check_flags_apply, load_config
-from jaxtraffic.learn.gradient_trainer import train_gradient
-from jaxtraffic.learn.trainer import TrainingInterrupted, check_resumable, train
+from jaxtraffic.learn.gradient.trainer import train_gradient
+from jaxtraffic.learn.ppo.trainer import train
+from jaxtraffic.learn.runs.session import TrainingInterrupted, check_resumable
 
 
 def _pair(kind):
@@ -121,7 +122,7 @@ def resume_settings(settings: TrainConfig, given: dict) -> TrainConfig:
 def main(argv: list[str] | None = None) -> Path:
     """Parse flags, start ``jax.distributed`` if asked (``jaxtraffic.distributed``: before anything
     runs on a device), train, return the run directory. Exit status 2 for invalid flags or a broken
-    run directory, 130 / 143 after SIGINT / SIGTERM (see ``learn.trainer``)."""
+    run directory, 130 / 143 after SIGINT / SIGTERM (see ``learn.ppo.trainer``)."""
     try:
         args = build_parser().parse_args(argv)
         config = _settings(args)

@@ -15,7 +15,7 @@
 * ``ecosystem.sb3.SB3VecEnv`` (``[sb3]``): the vector environment as a Stable-Baselines3 ``VecEnv``.
 * ``policy_as_controller(fn, **config)``: a policy trained on the environment elsewhere, as a ``Controller``
   judged like jaxtraffic's own (``simulate``, ``evaluate.py --controller``); and the other way round,
-  ``learn.export.load_predict(run_dir)``: a trained run's policy as a plain ``predict(obs) -> a``.
+  ``learn.ppo.export.load_predict(run_dir)``: a trained run's policy as a plain ``predict(obs) -> a``.
 
 Common to all of them:
 
@@ -41,28 +41,30 @@ from jaxtraffic._registration import ENV_ID, register_gymnasium
 from jaxtraffic.control.adapter import ControllerGrid
 from jaxtraffic.control.base import Controller
 from jaxtraffic.control.gain_policy import ACTION_EPS, function_controller, normalised_to_action
-from jaxtraffic.learn import env as E
+from jaxtraffic.learn import env as learn_env
+from jaxtraffic.learn.config import TrainConfig
+from jaxtraffic.learn.config.checks import check_initial_amplitudes
 
-N_GAINS = E.GainEnv.action_size
+N_GAINS = learn_env.TrafficEnv.action_size
 
-__all__ = ["ACTION_EPS", "ENV_ID", "N_GAINS", "controller_grid", "make_env_params", "normalised_to_action",
+__all__ = ["ACTION_EPS", "ENV_ID", "N_GAINS", "controller_grid", "resolve_env_params", "normalised_to_action",
            "policy_as_controller", "register_gymnasium"]
 
 
-def make_env_params(env_params: E.EnvParams | None = None, **config: Any) -> E.EnvParams:
+def resolve_env_params(env_params: learn_env.EnvParams | None = None, **config: Any) -> learn_env.EnvParams:
     """``env_params`` itself, or the environment of ``TrainConfig.from_flat(**config)`` (the training
-    defaults for the fields not given; ``learn.trainer.build`` validates them)."""
+    defaults for the fields not given, validated by the config and against the plant)."""
     if env_params is not None:
         if config:
             raise TypeError(f"give env_params or config fields, not both (got {sorted(config)})")
         return env_params
-    from jaxtraffic.learn.config import TrainConfig
-    from jaxtraffic.learn.trainer import build
+    train_config = TrainConfig.from_flat(**config)
+    env_params = train_config.env_params()
+    check_initial_amplitudes(train_config, env_params.traffic)
+    return env_params
 
-    return build(TrainConfig.from_flat(**config))[1]
 
-
-def policy_as_controller(fn: Callable[[Any], Any], env_params: E.EnvParams | None = None, *, host: bool = True,
+def policy_as_controller(fn: Callable[[Any], Any], env_params: learn_env.EnvParams | None = None, *, host: bool = True,
                          batched: bool = False, name: str = "external", **config: Any) -> Controller:
     """A policy trained on this environment elsewhere (Stable-Baselines3, rejax, a gymnax PPO, ...) as a
     ``Controller`` that ``simulate``, ``simulate_batch`` and ``evaluate.py --controller`` judge like
@@ -71,11 +73,11 @@ def policy_as_controller(fn: Callable[[Any], Any], env_params: E.EnvParams | Non
     the environment it was trained on (as for ``GainEnv``); the controller acts on that environment's grid
     (``controller_grid``) with its gain bound, filter and observation. ``host`` and ``batched``: see
     ``control.gain_policy.function_controller`` (``host=False`` for a JAX function)."""
-    ep = make_env_params(env_params, **config)
+    ep = resolve_env_params(env_params, **config)
     return function_controller(fn, ep.gain_max, gain_filter=ep.gain_filter, obs_segments=ep.obs_segments,
                                sigma_nodes=ep.filter_nodes, host=host, batched=batched, name=name)
 
 
-def controller_grid(env_params: E.EnvParams | None = None, **config: Any) -> ControllerGrid:
+def controller_grid(env_params: learn_env.EnvParams | None = None, **config: Any) -> ControllerGrid:
     """The grid a controller of this environment acts on (its plant's points, period and delay buffer)."""
-    return ControllerGrid.of(make_env_params(env_params, **config).traffic)
+    return ControllerGrid.of(resolve_env_params(env_params, **config).traffic)

@@ -52,9 +52,9 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
 
-from jaxtraffic.ecosystem import N_GAINS, make_env_params, normalised_to_action
+from jaxtraffic.ecosystem import N_GAINS, normalised_to_action, resolve_env_params
 from jaxtraffic.ecosystem.render import History, spacetime_rgb
-from jaxtraffic.learn import env as E
+from jaxtraffic.learn import env as learn_env
 from jaxtraffic.model.params import equilibrium
 
 __all__ = ["GainEnv", "GainVectorEnv", "RENDER_MODES"]
@@ -62,8 +62,8 @@ __all__ = ["GainEnv", "GainVectorEnv", "RENDER_MODES"]
 RENDER_MODES = ["rgb_array"]
 
 
-def _spaces(params: E.EnvParams) -> tuple[spaces.Box, spaces.Box]:
-    obs = spaces.Box(-np.inf, np.inf, (E.obs_size(params),), np.float32)
+def _spaces(params: learn_env.EnvParams) -> tuple[spaces.Box, spaces.Box]:
+    obs = spaces.Box(-np.inf, np.inf, (learn_env.obs_size(params),), np.float32)
     act = spaces.Box(-1.0, 1.0, (N_GAINS,), np.float32)
     return obs, act
 
@@ -78,21 +78,21 @@ def _check_render_mode(render_mode: str | None) -> str | None:
     return render_mode
 
 
-def _metadata(params: E.EnvParams, **extra: Any) -> dict[str, Any]:
+def _metadata(params: learn_env.EnvParams, **extra: Any) -> dict[str, Any]:
     return {"render_modes": RENDER_MODES, "render_fps": round(1.0 / float(params.traffic.dt)), **extra}
 
 
 def _step(key, state, action, params):
     """(next key, obs, state, reward, terminated, truncated, final obs, gains, final density): one step."""
     key, k = jax.random.split(key)
-    obs, state, reward, _, info = E.step_env(k, state, normalised_to_action(action), params)
+    obs, state, reward, _, info = learn_env.step_env(k, state, normalised_to_action(action), params)
     return (key, obs, state, reward, info["terminated"], info["truncated"], info["terminal_obs"], info["gains"],
             info["terminal_rho"])
 
 
 def _reset(key, params):
     key, k = jax.random.split(key)
-    obs, state = E.reset_env(k, params)
+    obs, state = learn_env.reset_env(k, params)
     return key, obs, state
 
 
@@ -101,9 +101,9 @@ class GainEnv(gym.Env):
 
     metadata = {"render_modes": RENDER_MODES}
 
-    def __init__(self, env_params: E.EnvParams | None = None, render_mode: str | None = None, **config: Any):
+    def __init__(self, env_params: learn_env.EnvParams | None = None, render_mode: str | None = None, **config: Any):
         self.render_mode = _check_render_mode(render_mode)
-        self.env_params = make_env_params(env_params, **config)
+        self.env_params = resolve_env_params(env_params, **config)
         self.metadata = _metadata(self.env_params)
         self.observation_space, self.action_space = _spaces(self.env_params)
         self._reset_fn = jax.jit(_reset)
@@ -159,14 +159,15 @@ class GainVectorEnv(gym.vector.VectorEnv):
 
     metadata = {"render_modes": RENDER_MODES, "autoreset_mode": AutoresetMode.NEXT_STEP}
 
-    def __init__(self, num_envs: int = 16, env_params: E.EnvParams | None = None, render_mode: str | None = None,
-                 autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP, **config: Any):
+    def __init__(self, num_envs: int = 16, env_params: learn_env.EnvParams | None = None,
+                 render_mode: str | None = None, autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
+                 **config: Any):
         self.render_mode = _check_render_mode(render_mode)
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         mode = _autoreset_mode(autoreset_mode)
         self.num_envs = int(num_envs)
-        self.env_params = make_env_params(env_params, **config)
+        self.env_params = resolve_env_params(env_params, **config)
         self.metadata = _metadata(self.env_params, autoreset_mode=mode)
         self.single_observation_space, self.single_action_space = _spaces(self.env_params)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)

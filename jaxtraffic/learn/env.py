@@ -218,7 +218,7 @@ reset = reset_env
 step = step_env
 
 
-class GainEnv:
+class TrafficEnv:
     """The traffic gain environment as an object with the gymnax-style interface that
     ``ppo.make_train`` expects: ``reset``, ``step``, ``obs_size(params)``, ``action_size``."""
 

@@ -11,7 +11,7 @@ use a diverging colour map centred on the equilibrium value with symmetric, robu
 and the controllers are comparable.
 
 Functions:
-    plot_learning_curve(csv_path, png_path=None)     -- paper fig. 3a (from learn.curve)
+    plot_learning_curve(csv_path, png_path=None)     -- paper fig. 3a (from learn.runs.curve)
     plot_reward(png_path, t, series, ...)            -- paper fig. 3b (reward over time)
     plot_spacetime(png_path, t, x, rows, ...)        -- paper figs. 4, 5, 7 (rho, v, h over x, t)
     plot_l2_norms(png_path, t, series, ...)          -- paper figs. 6, 8 (L2 norms over time)
@@ -32,7 +32,7 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure, SubFigure
 
 from jaxtraffic.drawing import finish_figure, new_figure
-from jaxtraffic.learn.curve import plot_learning_curve, read_learning_curve
+from jaxtraffic.learn.runs.curve import plot_learning_curve, read_learning_curve
 from jaxtraffic.sim.metrics import REWARD_TARGET, VEH_PER_KM
 
 __all__ = ["plot_l2_norms", "plot_l2_panels", "plot_learning_curve", "plot_reward", "plot_robustness_map",

@@ -160,7 +160,7 @@ def write_report(path: Path, claims: list[dict[str, Any]], metrics: dict, meta: 
                  figures: list[str], extra_notes: list[str], sections: list[str] | None = None) -> None:
     """REPORT.md: each claim, the checks with measured values and verdicts, the figures embedded;
     ``sections``: further markdown lines (e.g. the robustness summary) before the other figures.
-    ``metrics`` may be the JSON form (``learn.checkpoint.to_jsonable``: NaN as "nan")."""
+    ``metrics`` may be the JSON form (``learn.runs.checkpoint.to_jsonable``: NaN as "nan")."""
     metrics = from_jsonable(metrics)
     lines = ["# Reproduction report: PPO control of congested freeway traffic (paper section 4)", ""]
     pol = meta["policy"]

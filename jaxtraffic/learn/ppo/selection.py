@@ -20,7 +20,7 @@ plant does not diverge and is still converging.
 
 The trainer's checkpoint selection (below): ``scores`` of one evaluation per member, and the best
 checkpoint kept per member (``new_best``, ``update_best``; saved as best.msgpack by
-``learn.checkpoint``). Not to be confused with ``learn.validate``, which checks config values.
+``learn.runs.checkpoint``). Not to be confused with ``learn.config.checks``, which checks config values.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """The gradient trainer's settings (``GradientConfig``) and each policy's defaults (``POLICY_DEFAULTS``).
 
-``learn.gradient`` (the objective, Adam) and ``learn.cem`` (the cross-entropy method) read it; ``learn.config``
+``learn.gradient`` (the objective, Adam) and ``learn.gradient.cem`` (the cross-entropy method) read it; ``learn.config``
 builds it from the command line's flags.
 """
 
@@ -51,7 +51,7 @@ class GradientConfig:
     controller_points: int = 0  # the controller's own grid (``control.adapter``); 0: the plant's
     certificate_weight: float = 0.0  # objective += w * ``certificate_penalty`` (1/s)
     knots: tuple[float, ...] = (0.0, 2.0, 4.0, 6.0, 8.0)  # s, the schedule policy's knot delays
-    method: str = "adam"  # "cem": ``learn.cem`` (derivative-free; steps are its generations)
+    method: str = "adam"  # "cem": ``learn.gradient.cem`` (derivative-free; steps are its generations)
     cem_population: int = 24  # CEM: parameter sets per generation
     cem_sigma: float = 0.3  # CEM: initial standard deviation of the search distribution (dimensionless gains)
 
@@ -105,9 +105,9 @@ class GradientConfig:
 
 # The network policy: a smaller step (its first layer sees 3 n + 3 inputs), half the steps, and
 # plant delays 0-6 s (it is meant to stabilise all of them). The schedule: trained by CEM on the map's own counts
-# (learn.cem; the smooth wave objectives traded divergence badly, BENCHMARKS.md), over the robustness map's ranges
-# (delays 0-8 s, alphas 0.05-0.6) on plants offset from both maps' cells (the map is judged on held-out plants),
-# 600 s as the map, started from a law that stabilises the nominal plant; the wave objective is its Adam option
+# (learn.gradient.cem; the smooth wave objectives traded divergence badly, BENCHMARKS.md), over the robustness
+# map's ranges (delays 0-8 s, alphas 0.05-0.6) on plants offset from both maps' cells (the map is judged on held-out
+# plants), 600 s as the map, started from a law that stabilises the nominal plant; the wave objective is its Adam option
 POLICY_DEFAULTS: dict[str, dict[str, Any]] = {
     "gains": {},
     "network": {"lr": 3e-3, "steps": 20, "delays": (0.0, 3.0, 6.0)},

@@ -15,24 +15,16 @@ from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 import msgpack
 import numpy as np
 from flax import serialization
 
-from jaxtraffic.control.adapter import ControllerGrid, adapt
-from jaxtraffic.control.base import Controller
-from jaxtraffic.control.gain_law import sigma_nodes
-from jaxtraffic.control.gain_policy import feature_size, policy_controller
-from jaxtraffic.control.stability import certify_controller
-from jaxtraffic.files import atomic_write_bytes, from_jsonable, read_json, to_jsonable
-from jaxtraffic.learn.config import RUN_CONTROL, TrainConfig, load_config
-from jaxtraffic.model.params import TrafficParams
+from jaxtraffic.files import atomic_write_bytes, to_jsonable
+from jaxtraffic.learn.config import RUN_CONTROL, TrainConfig
 
 CHECKPOINT = "checkpoint.msgpack"
 CONFIG = "config.json"
@@ -196,124 +188,3 @@ def _flatten(tree: Any, prefix: str = "") -> list[tuple[str, Any]]:
             out += _flatten(v, f"{prefix}/{k}" if prefix else str(k))
         return out
     return [(prefix, tree)]
-
-
-@dataclass
-class SavedPolicy:
-    """Per-seed policy arrays of a run (device axis dropped): flax ``params`` and
-    observation statistics ``obs_mean`` / ``obs_var`` with a leading seed axis."""
-
-    params: Any
-    obs_mean: np.ndarray
-    obs_var: np.ndarray
-
-
-def load_run(run_dir: str | Path, checkpoint: str = "best") -> tuple[dict, SavedPolicy, dict]:
-    """(config.json content, saved policy, summary or {}) of a run directory (``learn.config.load_config``
-    turns the first into a ``TrainConfig``). ``checkpoint``: "best" (each member's best-scoring
-    checkpoint, best.msgpack, when the run has one; else the last) or "last" (the state training
-    stopped in, checkpoint.msgpack)."""
-    if checkpoint not in ("best", "last"):
-        raise ValueError(f"checkpoint must be 'best' or 'last', got {checkpoint!r}")
-    run_dir = Path(run_dir)
-    cfg_path = run_dir / CONFIG
-    if not cfg_path.exists():
-        raise FileNotFoundError(f"{run_dir} is not a run directory (no {CONFIG})")
-    config = read_json(cfg_path)
-    summary_path = run_dir / SUMMARY
-    summary = from_jsonable(read_json(summary_path)) if summary_path.exists() else {}
-    if not isinstance(summary, dict):
-        raise ValueError(f"{summary_path}: not a summary.json written by train.py")
-    best = load_best(run_dir) if checkpoint == "best" else None
-    if best is None and checkpoint == "best" and "best_val_score" in summary:
-        raise ValueError(f"{run_dir / BEST} is missing, though {SUMMARY} says the run kept its best checkpoint: "
-                         "restore it, or load the last state explicitly (checkpoint='last')")
-    if best is not None:  # the best checkpoint of each member (the trainer's selection)
-        policy = SavedPolicy(params=jax.tree.map(np.asarray, best["params"]), obs_mean=np.asarray(best["mean"]),
-                             obs_var=np.asarray(best["var"]))
-    else:
-        runner, _ = load_checkpoint(run_dir)
-        first = lambda x: np.asarray(x)[0]  # noqa: E731 - replicated across devices
-        try:
-            policy = SavedPolicy(params=jax.tree.map(first, runner["params"]),
-                                 obs_mean=first(runner["stats"]["mean"]), obs_var=first(runner["stats"]["var"]))
-        except (KeyError, IndexError, TypeError) as err:
-            raise ValueError(f"{run_dir / CHECKPOINT}: no policy in the saved state "
-                             f"({type(err).__name__}: {err})") from None
-    return config, policy, summary
-
-
-def policy_grid(config: TrainConfig) -> ControllerGrid:
-    """The grid a run's controller acts on: ``controller_points`` nodes (default the training plant's),
-    period dt, the training plant's delay buffer."""
-    pl = config.plant
-    return ControllerGrid(n_points=config.env.controller_points or pl.n_points, dt=float(pl.dt),
-                          max_delay_steps=pl.max_delay_steps)
-
-
-def policy_certificate(controller: Controller, config: TrainConfig) -> dict[str, Any]:
-    """The stability certificate (``control.stability``) of a run's controller on its own grid, at its
-    training plant's nominal delay and alpha, as a JSON-ready dict."""
-    grid = policy_grid(config)
-    nominal = config.plant.traffic().replace(n_points=grid.n_points, substeps=1, scheme="upwind", alpha_noise=0.0)
-    return certify_controller(controller, nominal, float(config.plant.delay), config.env.filter_sigma).to_json()
-
-
-def load_policy(run_dir: str | Path, seed: int | None = None, checkpoint: str = "best",
-                plant: TrafficParams | None = None) -> tuple[Controller, TrainConfig]:
-    """Controller and ``TrainConfig`` of a run directory written by ``train.py``.
-
-    The controller acts on its own grid (``policy_grid(config)``: the training plant's, or the
-    gradient trainer's ``controller_points``); with ``plant`` (concrete ``TrafficParams`` whose grid
-    and step refine it by integers) it is adapted to act on that plant's discretisation
-    (``control.adapter.adapt``: restricted observation, interpolated and held time gap).
-
-    ``checkpoint``: "best" (default: the best-scoring checkpoint of each member, which the PPO
-    trainer keeps in best.msgpack) or "last" (the state training stopped in). ``seed`` selects one
-    of the run's members (default: the best one, ``best_seed`` of ``summary.json``, else 0). A run
-    trained by gradient (``"algo": "gradient"`` in its config.json) loads through
-    ``gradient_trainer.load_gradient_policy``.
-    """
-    run_dir = Path(run_dir)
-    config = load_config(run_dir)
-    best = run_dir / BEST
-    if checkpoint == "best" and best.exists():
-        check_problem(config, load_best(run_dir).get(PROBLEM), best)
-    if (run_dir / CHECKPOINT).exists():
-        check_problem(config, load_checkpoint(run_dir)[1].get(PROBLEM), run_dir / CHECKPOINT)
-    try:
-        if config.run.algo == "gradient":
-            from jaxtraffic.learn.gradient_trainer import load_gradient_policy  # it imports this module
-
-            controller = load_gradient_policy(run_dir, config)
-        else:
-            controller = _load_ppo_policy(run_dir, config, seed, checkpoint)
-    except (KeyError, AttributeError, TypeError, IndexError) as err:  # e.g. config.json's algo or policy edited
-        raise ValueError(f"{run_dir}: {CONFIG} (algo {config.run.algo}, policy {config.grad.policy}) and the "
-                         f"checkpoint do not belong together ({type(err).__name__}: {err})") from None
-    return (controller if plant is None else adapt(controller, policy_grid(config), plant)), config
-
-
-def _load_ppo_policy(run_dir: Path, config: TrainConfig, seed: int | None, checkpoint: str) -> Controller:
-    _, saved, summary = load_run(run_dir, checkpoint)
-    if seed is None:
-        seed = summary.get("best_seed", 0) if summary else 0
-        if not isinstance(seed, int):
-            raise ValueError(f"{run_dir / SUMMARY}: best_seed = {seed!r} is not an integer")
-    n_seeds = saved.obs_mean.shape[0]
-    if not 0 <= seed < n_seeds:
-        raise ValueError(f"seed {seed} not in run with {n_seeds} seeds")
-    segments = config.env.obs_segments
-    expected = feature_size(config.plant.n_points, segments)
-    got = saved.obs_mean.shape[-1]
-    if got != expected:  # (a run from before the applied gains is recognised by its config.json, see config)
-        raise ValueError(f"{run_dir}: {CONFIG} says n_points = {config.plant.n_points}, obs_segments = {segments} (an "
-                         f"observation of {expected} values) but the checkpoint holds an observation of {got} values"
-                         + (f" ({got // 3 - 1} per field)" if got % 3 == 0 else "")
-                         + ": the two files do not belong together")
-    dx = float(TrafficParams().L) / (config.plant.n_points - 1)  # the training road (learn.config has no length)
-    return policy_controller(
-        jax.tree.map(lambda x: jnp.asarray(x[seed]), saved.params), saved.obs_mean[seed], saved.obs_var[seed],
-        config.env.gain_max, hidden=config.algo.hidden(), init_sigma=config.algo.init_sigma,
-        gain_filter=config.env.gain_filter, obs_segments=segments,
-        sigma_nodes=sigma_nodes(config.env.filter_sigma, dx))

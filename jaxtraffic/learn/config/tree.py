@@ -20,8 +20,8 @@ from typing import Any
 
 from jaxtraffic.control.gain_law import FILTER_SIGMA
 from jaxtraffic.control.networks import PAPER_HIDDEN, SMALL_HIDDEN
-from jaxtraffic.learn.env import EnvParams
-from jaxtraffic.learn.gradient_config import METHODS, POLICIES, POLICY_DEFAULTS, GradientConfig
+from jaxtraffic.learn.env import EnvParams, make_env_params
+from jaxtraffic.learn.gradient.config import METHODS, POLICIES, POLICY_DEFAULTS, GradientConfig
 from jaxtraffic.learn.ppo import PPOConfig
 from jaxtraffic.model.params import SCHEMES, TrafficParams
 from jaxtraffic.sim.metrics import REWARD_TARGET
@@ -225,7 +225,7 @@ class RunConfig:
     restart_steps: int = _f(1_500_000, "a member that has not met the stop rule within this many env steps of its "
                             "start is re-initialised from a new key (network, optimiser, environments, observation "
                             "statistics; its best checkpoint is kept); 0: never (also with --keep-going)")
-    val_horizon_s: float = _f(600.0, "validation suite (learn.validation): every member's deterministic policy from "
+    val_horizon_s: float = _f(600.0, "validation suite (learn.ppo.selection): every member's deterministic policy from "
                               "two initial conditions x the plant delays at the ends and the middle of the training "
                               "range, over this many seconds, scored against backstepping; the best-scoring "
                               "checkpoint of each member is kept (best.msgpack) and the best member is the run's "
@@ -267,7 +267,7 @@ class TrainConfig:
     run: RunConfig = RunConfig()
 
     def __post_init__(self) -> None:
-        from jaxtraffic.learn.validate import check_config  # every field's type and range (ValueError)
+        from jaxtraffic.learn.config.checks import check_config  # every field's type and range (ValueError)
         check_config(self)
 
     @classmethod
@@ -288,6 +288,21 @@ class TrainConfig:
     def replace(self, **values: Any) -> TrainConfig:
         """A copy with the given leaf fields changed."""
         return TrainConfig.from_flat(**{**self.flat(), **values})
+
+    def env_params(self) -> EnvParams:
+        """The environment's parameters (``learn.env.EnvParams``): the training plant, its episodes, domain
+        randomisation (delays rounded to whole steps) and reward shaping."""
+        pl, en = self.plant, self.env
+        d_lo, d_hi = en.delay_range or (max(0.0, pl.delay - en.delay_spread), pl.delay + en.delay_spread)
+        d_lo, d_hi = (round(d / pl.dt) * pl.dt for d in (d_lo, d_hi))
+        a_lo, a_hi = en.alpha_range or (pl.alpha, pl.alpha)
+        return make_env_params(
+            pl.traffic(), horizon=max(1, round(en.horizon_s / pl.dt)), gain_max=en.gain_max, amp_min=en.amp_range[0],
+            amp_max=en.amp_range[1], wavenumber_min=int(en.wavenumber_range[0]),
+            wavenumber_max=int(en.wavenumber_range[1]), phase_max=en.phase_max, delay_min=d_lo, delay_max=d_hi,
+            alpha_min=a_lo, alpha_max=a_hi, gain_filter=en.gain_filter, h_rate_weight=en.h_rate_weight,
+            wave_weight=en.wave_weight, wave_speed_min=en.wave_speed_min, obs_segments=en.obs_segments,
+            diverge_penalty=en.diverge_penalty, filter_sigma=en.filter_sigma)
 
 
 SECTIONS = {"plant": PlantConfig, "env": EnvConfig, "algo": AlgoConfig, "grad": GradConfig, "run": RunConfig}

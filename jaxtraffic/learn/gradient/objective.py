@@ -53,7 +53,7 @@ from jaxtraffic.control.gain_law import DelaySchedule, constant_gains, schedule_
 from jaxtraffic.control.gain_policy import equilibrium_gains, feature_size, policy_controller
 from jaxtraffic.control.networks import ActorCritic
 from jaxtraffic.control.stability import GROWTH_TOL, model_growth_rates, wavenumbers
-from jaxtraffic.learn.gradient_config import GradientConfig
+from jaxtraffic.learn.gradient.config import GradientConfig
 from jaxtraffic.model.linear import linearize
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.model.solver import is_physical

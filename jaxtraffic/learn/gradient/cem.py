@@ -26,8 +26,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from jaxtraffic.learn.gradient import horizon_steps, init_theta, make_controller, training_scenarios
-from jaxtraffic.learn.gradient_config import GradientConfig
+from jaxtraffic.learn.gradient.config import GradientConfig
+from jaxtraffic.learn.gradient.objective import horizon_steps, init_theta, make_controller, training_scenarios
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.sim.metrics import STABLE_STD, VEH_PER_KM
 from jaxtraffic.sim.rollout import simulate_batch

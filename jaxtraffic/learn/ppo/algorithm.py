@@ -336,7 +336,7 @@ def make_train(cfg: PPOConfig, env_params: Any, devices: list | None = None, *, 
 
     ``env`` is any object with gymnax-style ``reset(key, params)``, ``step(key, state, action,
     params) -> (obs, state, reward, done, info)`` (info with ``terminal_obs``, ``truncated``,
-    ``terminated``), ``obs_size(params)`` and ``action_size``, e.g. ``learn.env.GainEnv`` (passed
+    ``terminated``), ``obs_size(params)`` and ``action_size``, e.g. ``learn.env.TrafficEnv`` (passed
     explicitly: PPO does not depend on the traffic environment).
 
     Every leaf of the returned ``Runner`` has a leading device axis (sharded over the mesh,

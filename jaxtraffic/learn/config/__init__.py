@@ -1,0 +1,26 @@
+"""The training configuration: the config tree (``tree``: plant, env, algo, grad, run; config.json and its
+loader) and the checks every field passes when a tree is built (``checks``)."""
+
+from jaxtraffic.learn.config.tree import (
+    ALGOS,
+    BEFORE_FIELD,
+    CONFIG_VERSION,
+    ONLY_FOR,
+    POPULATION,
+    RUN_CONTROL,
+    SECTIONS,
+    AlgoConfig,
+    EnvConfig,
+    GradConfig,
+    PlantConfig,
+    RunConfig,
+    TrainConfig,
+    check_flags_apply,
+    config_from_json,
+    config_json,
+    load_config,
+)
+
+__all__ = ["ALGOS", "BEFORE_FIELD", "CONFIG_VERSION", "ONLY_FOR", "POPULATION", "RUN_CONTROL", "SECTIONS", "AlgoConfig",
+           "EnvConfig", "GradConfig", "PlantConfig", "RunConfig", "TrainConfig", "check_flags_apply",
+           "config_from_json", "config_json", "load_config"]

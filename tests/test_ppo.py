@@ -17,8 +17,9 @@ import pytest
 from flax import struct
 
 from jaxtraffic.learn import env as learn_env
+from jaxtraffic.learn import ppo
 from jaxtraffic.learn.env import TrafficEnv
-from jaxtraffic.learn.ppo import algorithm as ppo
+from jaxtraffic.learn.ppo import algorithm
 from jaxtraffic.model.params import TrafficParams
 
 # ----------------------------------------------------------------------------------------- GAE
@@ -194,7 +195,7 @@ def toy_run():
         return np.asarray(mean), float(v_zero), float(v_term)
 
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(ppo, "compute_gae", spy)
+        mp.setattr(algorithm, "compute_gae", spy)
         init, train_chunk = ppo.make_train(cfg, ToyParams(target=jnp.asarray(TARGET)), env=ToyEnv)
         runner = init(jax.random.PRNGKey(0))
         mean0, out["v_zero"], out["v_term"] = policy(runner)
@@ -270,7 +271,8 @@ SEVERAL_SEEDS = """
 import json
 import jax, jax.numpy as jnp, numpy as np
 from jaxtraffic.learn import env as learn_env
-from jaxtraffic.learn.ppo import algorithm as ppo
+from jaxtraffic.learn.ppo import algorithm
+from jaxtraffic.learn import ppo
 from jaxtraffic.model.params import TrafficParams
 
 cfg = ppo.PPOConfig(num_envs=16, num_steps=8, update_epochs=1, num_minibatches=2, updates_per_chunk=1, num_seeds=2)
@@ -282,8 +284,8 @@ runner, m = train_chunk(runner)
 jax.block_until_ready((runner, m))
 # lax.map over the seeds gives each seed the network the one-seed vmap gives it (bit for bit) and
 # the same environments (a different XLA program: equal to a few float32 ulps)
-one = jax.jit(lambda ks: ppo._init_seeds(
-    lambda k: ppo._init_seed(cfg, TrafficEnv, ep, 16, k, jnp.int32(0)), ks))
+one = jax.jit(lambda ks: algorithm._init_seeds(
+    lambda k: algorithm._init_seed(cfg, learn_env.TrafficEnv, ep, 16, k, jnp.int32(0)), ks))
 keys = jax.random.split(jax.random.PRNGKey(3), 2)
 both = init(jax.random.PRNGKey(3))
 alone = [one(keys[i:i + 1]) for i in range(2)]
@@ -327,8 +329,8 @@ def test_several_seeds_init_has_no_batched_lapack_call():
     cfg = ppo.PPOConfig(num_envs=8, num_seeds=2)
     ep = learn_env.make_env_params(TrafficParams(n_points=21, delay=4.0))
     keys = jax.random.split(jax.random.PRNGKey(0), 2)
-    text = jax.jit(lambda ks: ppo._init_seeds(
-        lambda k: ppo._init_seed(cfg, TrafficEnv, ep, 8, k, jnp.int32(0)), ks)).lower(keys).as_text()
+    text = jax.jit(lambda ks: algorithm._init_seeds(
+        lambda k: algorithm._init_seed(cfg, TrafficEnv, ep, 8, k, jnp.int32(0)), ks)).lower(keys).as_text()
     shapes = re.findall(r"custom_call @lapack_\w+\(.*: \(tensor<([0-9x]+)x[a-z]+[0-9]*>", text)
     n_in = learn_env.obs_size(ep)  # the first layer's QR is of its kernel or of its transpose, the taller of the two
     assert {f"{max(n_in, 64)}x{min(n_in, 64)}", "64x64", "64x3", "64x1"} <= set(shapes), shapes  # geqrf + orgqr

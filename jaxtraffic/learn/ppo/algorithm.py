@@ -22,7 +22,7 @@ traced leaves, so changing a learning rate or a clip range does not recompile.
 from __future__ import annotations
 
 import functools
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -34,6 +34,7 @@ from jax.sharding import PartitionSpec as P
 
 from jaxtraffic.control.gain_policy import normalize_obs
 from jaxtraffic.control.networks import SMALL_HIDDEN, ActorCritic
+from jaxtraffic.learn.ppo.losses import Batch, compute_gae, gaussian_log_prob, ppo_loss
 from jaxtraffic.sim.sharding import local_copy
 
 Array = jax.Array
@@ -115,65 +116,6 @@ class Runner:
 
 
 # --------------------------------------------------------------------------- pure PPO maths
-def gaussian_log_prob(x: Array, mean: Array, sigma: Array) -> Array:
-    """log N(x; mean, diag(sigma^2)) summed over the last axis.
-
-    Written out rather than taken from distrax (``MultivariateNormalDiag.log_prob``): two lines,
-    checked against the closed form in numpy in tests/test_ppo.py, and distrax would be one more dependency pinned to
-    jax releases for nothing else in the library."""
-    z = (x - mean) / sigma
-    return jnp.sum(-0.5 * z**2 - jnp.log(sigma) - 0.5 * jnp.log(2.0 * jnp.pi), axis=-1)
-
-
-def gaussian_entropy(sigma: Array) -> Array:
-    """Entropy of N(mean, diag(sigma^2)) summed over the last axis (nats); see ``gaussian_log_prob``."""
-    return jnp.sum(0.5 + 0.5 * jnp.log(2.0 * jnp.pi) + jnp.log(sigma), axis=-1)
-
-
-def compute_gae(rewards: Array, values: Array, dones: Array, last_value: Array, gamma, lam
-                ) -> tuple[Array, Array]:
-    """Generalised advantage estimates over a (T, ...) rollout.
-
-    ``dones[t]`` marks that the episode ended after step t (so V(s_{t+1}) is not used); a
-    truncated step must already carry the bootstrap gamma V(terminal obs) in ``rewards[t]``.
-    Returns (advantages, value targets = advantages + values).
-
-    Kept rather than taken from a library: it is a dozen tested lines, and it handles truncation
-    correctly (the bootstrap of a truncated episode enters through the reward, while ``dones`` cuts
-    the trace), where e.g. rejax's GAE treats a time-limit truncation like a termination.
-    """
-    def body(carry, xs):
-        gae, next_value = carry
-        r, v, d = xs
-        nonterminal = 1.0 - d
-        delta = r + gamma * next_value * nonterminal - v
-        gae = delta + gamma * lam * nonterminal * gae
-        return (gae, v), gae
-
-    _, adv = jax.lax.scan(body, (jnp.zeros_like(last_value), last_value),
-                          (rewards, values, dones.astype(values.dtype)), reverse=True)
-    return adv, adv + values
-
-
-def clipped_surrogate(logp: Array, old_logp: Array, adv: Array, clip_eps) -> Array:
-    """PPO-clip policy loss -E[min(ratio A, clip(ratio, 1-eps, 1+eps) A)]."""
-    ratio = jnp.exp(logp - old_logp)
-    return -jnp.mean(jnp.minimum(ratio * adv, jnp.clip(ratio, 1.0 - clip_eps, 1.0 + clip_eps) * adv))
-
-
-def ppo_loss(params, apply_fn, batch: dict, cfg: PPOConfig):
-    mean, sigma, value = apply_fn(params, batch["obs"])
-    logp = gaussian_log_prob(batch["action"], mean, sigma)
-    adv = batch["adv"]
-    adv = (adv - adv.mean()) / (adv.std() + 1e-8)
-    pg = clipped_surrogate(logp, batch["logp"], adv, cfg.clip_eps)
-    vf = 0.5 * jnp.mean((value - batch["target"]) ** 2)
-    ent = jnp.mean(gaussian_entropy(sigma))
-    loss = pg + cfg.vf_coef * vf - cfg.ent_coef * ent
-    return loss, {"policy_loss": pg, "value_loss": vf, "entropy": ent,
-                  "approx_kl": jnp.mean(batch["logp"] - logp), "sigma": jnp.mean(sigma)}
-
-
 def validate_config(cfg: PPOConfig) -> None:
     """Reject hyperparameters that make no sense (ValueError)."""
     if cfg.lr_decay_steps < 0 or not 0.0 <= cfg.lr_final <= 1.0:
@@ -244,15 +186,24 @@ def _pmean(x, axis_name: str | None):
     return jax.lax.pmean(x, axis_name) if axis_name else x
 
 
-def _update_seed(cfg: PPOConfig, env, env_params, runner: Runner, axis_name: str | None):
-    """One PPO update for one seed on this device's environments."""
-    net = cfg.network(env.action_size)
-    apply_fn = net.apply
-    tx = make_optimizer(cfg)
-    key, k_roll, k_perm = jax.random.split(runner.key, 3)
-    dev = _device_index(axis_name)
-    k_roll = jax.random.fold_in(k_roll, dev)
-    k_perm = jax.random.fold_in(k_perm, dev)
+class Transition(NamedTuple):
+    """One environment step of the rollout, per environment (leading axes (T, E) once scanned)."""
+
+    obs: Array  # normalised observation the policy saw
+    raw_obs: Array  # observation before normalisation (for the running statistics)
+    action: Array
+    logp: Array  # log-probability of the action under the rollout's policy
+    value: Array  # critic's value of obs
+    reward: Array  # training reward: scaled, plus the discounted value of a truncated episode's last observation
+    done: Array
+    raw_reward: Array  # the environment's reward
+    terminated: Array
+    gains: Array | None  # the gains the environment applied, when it reports them
+
+
+def _rollout(cfg: PPOConfig, env, env_params, runner: Runner, apply_fn, key: Array) -> tuple[Any, Array, Transition]:
+    """``cfg.num_steps`` steps of every environment under the current policy: (env state, last observation,
+    the transitions (T, E, ...))."""
     stats = runner.stats
     num_envs = runner.obs.shape[0]
 
@@ -267,29 +218,27 @@ def _update_seed(cfg: PPOConfig, env, env_params, runner: Runner, axis_name: str
             jax.random.split(k_env, num_envs), env_state, action, env_params)
         _, _, v_term = apply_fn(runner.params, stats.normalize(info["terminal_obs"]))
         r_train = cfg.reward_scale * r + cfg.gamma * v_term * info["truncated"]
-        tr = {"obs": nobs, "raw_obs": obs, "action": action, "logp": logp, "value": value,
-              "reward": r_train, "done": done, "raw_reward": r, "terminated": info["terminated"]}
-        if "gains" in info:
-            tr["gains"] = info["gains"]
-        return (env_state, obs2), tr
+        return (env_state, obs2), Transition(obs=nobs, raw_obs=obs, action=action, logp=logp, value=value,
+                                             reward=r_train, done=done, raw_reward=r,
+                                             terminated=info["terminated"], gains=info.get("gains"))
 
     (env_state, obs), traj = jax.lax.scan(env_step, (runner.env_state, runner.obs),
-                                          jax.random.split(k_roll, cfg.num_steps))
-    _, _, last_value = apply_fn(runner.params, stats.normalize(obs))
-    adv, target = compute_gae(traj["reward"], traj["value"], traj["done"], last_value, cfg.gamma,
-                              cfg.gae_lambda)
+                                          jax.random.split(key, cfg.num_steps))
+    return env_state, obs, traj
 
-    # observation statistics for the next rollout (averaged over devices)
-    flat_obs = traj["raw_obs"].reshape(-1, traj["raw_obs"].shape[-1])
+
+def _new_statistics(stats: RunningStats, raw_obs: Array, axis_name: str | None) -> RunningStats:
+    """The observation statistics for the next rollout, updated with this rollout's (averaged over devices)."""
+    flat_obs = raw_obs.reshape(-1, raw_obs.shape[-1])
     b_mean = _pmean(flat_obs.mean(0), axis_name)
     b_var = _pmean(((flat_obs - b_mean) ** 2).mean(0), axis_name)
     n_dev = jax.lax.psum(1, axis_name) if axis_name else 1
-    new_stats = stats.update(b_mean, b_var, jnp.asarray(flat_obs.shape[0] * n_dev, stats.count.dtype))
+    return stats.update(b_mean, b_var, jnp.asarray(flat_obs.shape[0] * n_dev, stats.count.dtype))
 
-    batch = {"obs": traj["obs"], "action": traj["action"], "logp": traj["logp"], "value": traj["value"],
-             "adv": adv, "target": target}
-    batch = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), batch)
-    n = batch["obs"].shape[0]
+
+def _learn(cfg: PPOConfig, apply_fn, tx, params, opt_state, batch: Batch, key: Array, axis_name: str | None):
+    """``cfg.update_epochs`` epochs of minibatch steps on ``batch``: (params, optimiser state, loss statistics)."""
+    n = batch.obs.shape[0]
     mb = n // cfg.num_minibatches
     grad_fn = jax.value_and_grad(ppo_loss, has_aux=True)
 
@@ -307,12 +256,30 @@ def _update_seed(cfg: PPOConfig, env, env_params, runner: Runner, axis_name: str
 
         return jax.lax.scan(minibatch, (params, opt_state), shuffled)
 
-    (params, opt_state), aux = jax.lax.scan(epoch, (runner.params, runner.opt_state),
-                                            jax.random.split(k_perm, cfg.update_epochs))
+    (params, opt_state), aux = jax.lax.scan(epoch, (params, opt_state), jax.random.split(key, cfg.update_epochs))
+    return params, opt_state, aux
+
+
+def _update_seed(cfg: PPOConfig, env, env_params, runner: Runner, axis_name: str | None):
+    """One PPO update for one seed on this device's environments: rollout, GAE, statistics, epochs."""
+    net = cfg.network(env.action_size)
+    apply_fn = net.apply
+    tx = make_optimizer(cfg)
+    key, k_roll, k_perm = jax.random.split(runner.key, 3)
+    dev = _device_index(axis_name)
+    k_roll = jax.random.fold_in(k_roll, dev)
+    k_perm = jax.random.fold_in(k_perm, dev)
+    env_state, obs, traj = _rollout(cfg, env, env_params, runner, apply_fn, k_roll)
+    _, _, last_value = apply_fn(runner.params, runner.stats.normalize(obs))
+    adv, target = compute_gae(traj.reward, traj.value, traj.done, last_value, cfg.gamma, cfg.gae_lambda)
+    new_stats = _new_statistics(runner.stats, traj.raw_obs, axis_name)
+    batch = Batch(obs=traj.obs, action=traj.action, logp=traj.logp, value=traj.value, adv=adv, target=target)
+    batch = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), batch)
+    params, opt_state, aux = _learn(cfg, apply_fn, tx, runner.params, runner.opt_state, batch, k_perm, axis_name)
     metrics = {k: v.mean() for k, v in aux.items()}
-    metrics.update({"mean_reward": traj["raw_reward"].mean(), "terminated_frac": traj["terminated"].mean()})
-    if "gains" in traj:
-        metrics.update({f"eta{i + 1}": traj["gains"][..., i].mean() for i in range(traj["gains"].shape[-1])})
+    metrics.update({"mean_reward": traj.raw_reward.mean(), "terminated_frac": traj.terminated.mean()})
+    if traj.gains is not None:
+        metrics.update({f"eta{i + 1}": traj.gains[..., i].mean() for i in range(traj.gains.shape[-1])})
     metrics = _pmean(metrics, axis_name)
     new = Runner(params=params, opt_state=opt_state, env_state=env_state, obs=obs, stats=new_stats, key=key,
                  update=runner.update + 1)

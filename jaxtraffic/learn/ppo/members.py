@@ -16,7 +16,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from jaxtraffic.learn.ppo import Runner
+from jaxtraffic.learn.ppo.algorithm import Runner
 from jaxtraffic.sim.sharding import local_copy
 
 __all__ = ["replicated", "restart_members"]

@@ -25,6 +25,7 @@ checkpoint kept per member (``new_best``, ``update_best``; saved as best.msgpack
 
 from __future__ import annotations
 
+import enum
 import math
 
 import jax
@@ -99,6 +100,7 @@ def make_validator(nominal, steps: int, delays, ics=DEFAULT_ICS, j_slack: float 
 
 # ----------------------------------------------------------------------------- checkpoint selection
 UNVALIDATED = 1e7  # score of a checkpoint that failed the cheap rule (not validated); BAD: validated and rejected
+# (kept numbers: the selection orders every member by one score; ``Validation.of`` names what a score says)
 
 
 def validation_delays(env_params) -> tuple[float, ...]:
@@ -144,6 +146,25 @@ def update_best(best: dict, score: np.ndarray, env_steps: int, policy) -> dict:
             "env_steps": np.where(better, env_steps, best["env_steps"])}
 
 
+class Validation(enum.Enum):
+    """What a checkpoint's score says (the value: its text on a progress line; ``message``: in words)."""
+
+    SCORED = "scored"
+    REJECTED = "bad"
+    NOT_VALIDATED = "-"
+
+    @classmethod
+    def of(cls, score: float) -> Validation:
+        """The status of one member's ``score`` (``scores``)."""
+        return cls.NOT_VALIDATED if score >= UNVALIDATED else cls.REJECTED if score >= BAD else cls.SCORED
+
+    @property
+    def message(self) -> str:
+        return {Validation.SCORED: "validated; the score is the suite's (<= 1: as good as backstepping)",
+                Validation.REJECTED: "validated and rejected: a rollout diverged or stopped converging",
+                Validation.NOT_VALIDATED: "not validated: the evaluation's rule failed (ranked by its reward)"}[self]
+
+
 def format_scores(score: np.ndarray) -> str:
-    """Scores for a progress line: "-" not validated, "bad" rejected."""
-    return ",".join("-" if x >= UNVALIDATED else "bad" if x >= BAD else f"{x:.2f}" for x in np.asarray(score))
+    """Scores for a progress line: the score, or the status's text when it is not a score ("-", "bad")."""
+    return ",".join(f"{x:.2f}" if (v := Validation.of(x)) is Validation.SCORED else v.value for x in np.asarray(score))

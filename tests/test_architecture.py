@@ -1,0 +1,104 @@
+"""The package's import structure: no import cycle (module-level or inside functions), and imports flow one
+way through the layers the README's module map states."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1] / "jaxtraffic"
+
+# the layers, lowest first: a module imports only modules of its own layer or lower ones
+BASE = {"_version", "files", "drawing", "_devices", "compile_cache", "provenance", "distributed", "_registration"}
+LAYERS = {**{m: 0 for m in BASE}, "model": 1, "control": 2, "sim": 3, "learn": 4, "ecosystem": 5, "paper": 5,
+          "cli": 6, "__main__": 6}
+# inside learn/: the environment and each algorithm's settings, the config tree, what every run shares, each
+# algorithm's pieces, the policy loader, the trainers
+LEARN = {"env": 0, "ppo": 0, "ppo.algorithm": 0, "gradient": 0, "gradient.config": 0, "config.checks": 0,
+         "config.tree": 1, "config": 1, "runs": 2, "runs.checkpoint": 2, "runs.session": 2, "runs.curve": 2,
+         "runs.tensorboard": 2, "runs.loop": 2, "ppo.members": 3, "ppo.selection": 3, "ppo.policy": 3,
+         "gradient.objective": 3, "gradient.cem": 3, "gradient.policy": 3, "policy": 4, "ppo.trainer": 5,
+         "gradient.trainer": 5, "ppo.export": 5, "": 6}
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for path in ROOT.rglob("*.py"):
+        parts = path.relative_to(ROOT.parent).with_suffix("").parts
+        out[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    return out
+
+
+def _graph() -> dict[str, set[str]]:
+    """module -> the jaxtraffic modules it imports, anywhere in its code (function-level imports included)."""
+    mods = _modules()
+    graph: dict[str, set[str]] = {m: set() for m in mods}
+    for name, path in mods.items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] == "jaxtraffic":
+                for alias in node.names:  # "from pkg import submodule" imports the submodule
+                    sub = f"{node.module}.{alias.name}"
+                    graph[name].add(sub if sub in mods else node.module)
+            elif isinstance(node, ast.Import):
+                graph[name].update(a.name for a in node.names if a.name.split(".")[0] == "jaxtraffic")
+    return graph
+
+
+GRAPH = _graph()
+
+
+def _layer(module: str) -> int | None:
+    parts = module.split(".")
+    return None if len(parts) == 1 else LAYERS.get(parts[1])
+
+
+def test_the_graph_is_read():  # the parser sees the imports it must judge (a broken walk would pass the rest)
+    assert "jaxtraffic.learn.runs.loop" in GRAPH["jaxtraffic.learn.ppo.trainer"]
+    assert "jaxtraffic.model.params" in GRAPH["jaxtraffic.sim.plant"]
+    assert len(GRAPH) > 60
+
+
+def test_no_import_cycle():
+    state: dict[str, int] = {}  # 1: on the current path, 2: done
+
+    def visit(module: str, path: list[str]) -> None:
+        state[module] = 1
+        for dep in sorted(GRAPH.get(module, ())):
+            if state.get(dep) == 1:
+                pytest.fail("import cycle: " + " -> ".join(path[path.index(dep):] + [module, dep]))
+            if dep not in state:
+                visit(dep, [*path, module])
+        state[module] = 2
+
+    for module in sorted(GRAPH):
+        if module not in state:
+            visit(module, [])
+
+
+def test_every_module_has_a_layer():
+    unplaced = [m for m in GRAPH if m != "jaxtraffic" and _layer(m) is None]
+    unplaced += [m for m in GRAPH if m.startswith("jaxtraffic.learn") and m[len("jaxtraffic.learn."):] not in LEARN
+                 and m != "jaxtraffic.learn"]
+    assert not unplaced, f"place these modules in the layers of tests/test_architecture.py and the README: {unplaced}"
+
+
+def test_imports_flow_down_the_layers():
+    upward = [(m, d) for m, deps in GRAPH.items() if m != "jaxtraffic" for d in deps
+              if d != "jaxtraffic" and _layer(d) > _layer(m)]
+    assert not upward, f"imports against the layer order: {upward}"
+
+
+def test_learn_imports_flow_down_its_sublayers():
+    def rank(m: str) -> int:
+        return LEARN[m.removeprefix("jaxtraffic.learn").removeprefix(".")]
+
+    upward = [(m, d) for m, deps in GRAPH.items() if m.startswith("jaxtraffic.learn") for d in deps
+              if d.startswith("jaxtraffic.learn") and rank(d) > rank(m)]
+    assert not upward, f"imports against learn/'s order: {upward}"
+
+
+def test_no_module_of_the_package_is_over_400_lines():
+    long = {str(p.relative_to(ROOT)): n for p in ROOT.rglob("*.py") if (n := len(p.read_text().splitlines())) > 420}
+    assert not long, long

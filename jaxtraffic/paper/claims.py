@@ -190,12 +190,9 @@ def _stop_rule_check(learning_curve: dict[str, np.ndarray] | None) -> Check:
     """Whether training's deterministic evaluation reward reached the stop rule (>= -0.1).
 
     Args:
-        learning_curve: columns of learning_curve.csv, or None. The best member's "eval_reward_max"
-            is used (a population stops on its first member that meets the rule); curves without
-            finite values there (older ones): the population mean "eval_reward".
-
-    Returns:
-        The check; not measurable without a curve or without a finite value.
+        learning_curve: columns of learning_curve.csv, or None (the check is then not measurable). The
+            best member's "eval_reward_max" is used (a population stops on its first member that meets
+            the rule); curves without finite values there (older ones): the population mean "eval_reward".
     """
     if learning_curve is None or "eval_reward" not in learning_curve:
         return Check("training reaches the stop rule (evaluation reward >= -0.1)",
@@ -266,8 +263,7 @@ def _claim_table2(metrics: dict, cfg: EvalConfig) -> dict[str, Any]:
 
 
 def _acceptance_checks(d4: dict, eq: dict[str, float]) -> list[Check]:
-    """This project's acceptance: backstepping's and PPO's J_TTT and J_fuel near the equilibrium's,
-    and the open loop worse than both on every index.
+    """This project's acceptance: J_TTT, J_fuel near the equilibrium's; the open loop worse on every index.
 
     Args:
         d4: metrics.json's "delay4" scenario (controller name -> entry).
@@ -326,8 +322,7 @@ def _paper_table2_checks(d4: dict, reading: str, suffix: str) -> list[Check]:
 
 
 def _improvement_gap_check(d4: dict) -> Check:
-    """Information only (never passes or fails): the TTT minus the fuel improvement, in percentage
-    points, per controller and reading (the paper's: 0.17)."""
+    """Information only (never passes or fails): TTT minus fuel improvement, percentage points (paper: 0.17)."""
     gaps = []
     for c in ("backstepping", "ppo"):
         it = improvement(d4["open_loop"]["J_TTT"], d4[c]["J_TTT"])
@@ -340,8 +335,7 @@ def _improvement_gap_check(d4: dict) -> Check:
 
 
 def _comfort_checks(d4: dict) -> list[Check]:
-    """PPO slightly less comfortable than backstepping (J_comfort larger); also without the switch-on
-    step where the entries have that index."""
+    """PPO slightly less comfortable than backstepping: J_comfort, and without the switch-on step if measured."""
     jp, jb = d4["ppo"]["J_comfort"], d4["backstepping"]["J_comfort"]
     checks = [Check("PPO slightly less comfortable than backstepping (J_comfort larger)",
                     f"PPO {jp:.3g} vs backstepping {jb:.3g}", _less(jb, jp))]

@@ -154,8 +154,9 @@ def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: s
 def _scenarios(ctrls: dict[str, Controller], ppo_delay0: Controller | None, cfg: EvalConfig, out_dir: Path,
                learning_curve_csv: Path | None, writer: bool, checking: bool,
                log: Callable[[str], None]) -> tuple[dict[str, dict[str, Outcome]], _Background | None]:
-    """Step 1: every scenario with every controller, and (on the writer) their figures started in the
-    background, except those that need the claims or the robustness map.
+    """Step 1: every scenario with every controller; on the writer, their figures started in the background.
+
+    The figures that need the claims or the robustness map (``FIG7``, ``ROBUSTNESS``) are left for later.
 
     Args:
         ctrls: controller name -> controller, deployed on ``cfg``'s plant. ppo_delay0: the policy for
@@ -177,8 +178,7 @@ def _scenarios(ctrls: dict[str, Controller], ppo_delay0: Controller | None, cfg:
 
 
 def _read_learning_curve(path: Path | None) -> dict[str, Any] | None:
-    """The columns of learning_curve.csv (``plotting.read_learning_curve``); None where there is no
-    file or it cannot be read."""
+    """The columns of learning_curve.csv (``plotting.read_learning_curve``); None if absent or unreadable."""
     if path is None or not path.exists():
         return None
     from jaxtraffic.paper.plotting import read_learning_curve
@@ -190,8 +190,7 @@ def _read_learning_curve(path: Path | None) -> dict[str, Any] | None:
 
 def _meta(meta: dict[str, Any], cfg: EvalConfig, grids: dict[str, ControllerGrid], fig7: str,
           init_l2: tuple[float, float]) -> dict[str, Any]:
-    """metrics.json's "meta": the caller's ``meta`` with the evaluation's grid, plant, scenarios and
-    environment added (a copy).
+    """metrics.json's "meta": a copy of the caller's ``meta`` with the grid, plant, scenarios and environment.
 
     Args:
         grids: the controllers' grids. fig7: the alpha noise reading drawn as figure 7.

@@ -54,8 +54,7 @@ def make_figures(results: dict[str, dict[str, Outcome]], robust: dict[str, dict[
 
 @dataclass
 class _Canvas:
-    """Where the figures go: ``draw`` writes the ones whose file name ``want`` accepts into ``out_dir``
-    and keeps their names in ``written``, in the order drawn."""
+    """Where the figures go: ``draw`` writes those ``want`` accepts, their names kept in ``written`` in order."""
 
     out_dir: Path
     want: Callable[[str], bool]
@@ -170,8 +169,9 @@ def _l2_figures(canvas: _Canvas, results: dict[str, dict[str, Outcome]], cfg: Ev
 
 def _robustness_figures(canvas: _Canvas, robust: dict[str, dict[str, np.ndarray]], cfg: EvalConfig,
                         labels: dict[str, str], oracle: dict[str, dict] | None) -> None:
-    """The robustness maps over plant delay x plant alpha: the final density L2 deviation, and the
-    remaining waves (spatial std of rho) with the oracle's rows as further panels.
+    """The robustness maps over plant delay x plant alpha: final density L2 deviation, remaining waves.
+
+    The waves map (spatial std of rho) has the oracle's rows as further panels.
 
     Args:
         robust: controller -> quantity -> (n_delays, n_alphas) array (``scenarios.run_robustness``).

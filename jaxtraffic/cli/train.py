@@ -83,10 +83,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def settings_from_args(argv: list[str] | None = None) -> TrainConfig:
-    return _settings(build_parser().parse_args(argv))
+    """The training configuration the flags ``argv`` (default: the command line's) describe."""
+    return _config(build_parser().parse_args(argv))
 
 
-def _settings(args: argparse.Namespace) -> TrainConfig:
+def _config(args: argparse.Namespace) -> TrainConfig:
+    """The training configuration of parsed flags: the cluster flags dropped, --out-dir's default resolved."""
     args = argparse.Namespace(**{k: v for k, v in vars(args).items() if k not in distributed.FLAGS})
     if args.min_wave_speed == -math.inf:  # the paper's rule alone (stored as null in the JSON outputs)
         args.min_wave_speed = None
@@ -103,20 +105,20 @@ def explicit_flags(argv: list[str] | None = None) -> dict:
     return vars(p.parse_args(argv))
 
 
-def resume_settings(settings: TrainConfig, given: dict) -> TrainConfig:
+def resume_settings(config: TrainConfig, given: dict) -> TrainConfig:
     """On --resume: the run's saved configuration, with the run-control flags given on the command line
     (``config.RUN_CONTROL``; for the gradient trainer also --grad-steps) applied, and recorded in the
     run's config.json; a flag that would change the trained problem is an error."""
-    saved = load_config(settings.run.out_dir)
+    saved = load_config(config.run.out_dir)
     control = (*RUN_CONTROL, "grad_steps") if saved.run.algo == "gradient" else RUN_CONTROL
-    flat, old = settings.flat(), saved.flat()
+    flat, old = config.flat(), saved.flat()
     changed = [f"--{k.replace('_', '-')} {flat[k]!r} (the run's value: {old[k]!r})" for k in given
                if k not in control and k in old and flat[k] != old[k]]
     if changed:
         raise ValueError("--resume continues the run with its saved configuration; these flags would change it: "
                          + ", ".join(changed) + "; drop them, or start a new run (--overwrite clears this one)")
     return saved.replace(**{**{k: flat[k] for k in given if k in control}, "resume": True,
-                            "out_dir": settings.run.out_dir})
+                            "out_dir": config.run.out_dir})
 
 
 def main(argv: list[str] | None = None) -> Path:
@@ -125,7 +127,7 @@ def main(argv: list[str] | None = None) -> Path:
     run directory, 130 / 143 after SIGINT / SIGTERM (see ``learn.ppo.trainer``)."""
     try:
         args = build_parser().parse_args(argv)
-        config = _settings(args)
+        config = _config(args)
         cluster = [getattr(args, k) for k in distributed.FLAGS]
         distributed.initialize(*cluster)
         compile_cache.enable()  # before the first compilation (jaxtraffic.compile_cache)

@@ -22,7 +22,15 @@ from jaxtraffic.paper.figures import FIG7, ROBUSTNESS, make_figures
 from jaxtraffic.paper.learned import comparison_section
 from jaxtraffic.paper.numerics import deploy, relative_to, run_numerics
 from jaxtraffic.paper.report import numerics_summary, readings_summary, robustness_summary, write_report
-from jaxtraffic.paper.scenarios import CTRL_DELAY, SCENARIOS, EvalConfig, initial_norms, run_robustness, run_scenarios
+from jaxtraffic.paper.scenarios import (
+    CTRL_DELAY,
+    SCENARIOS,
+    EvalConfig,
+    Outcome,
+    initial_norms,
+    run_robustness,
+    run_scenarios,
+)
 from jaxtraffic.paper.summaries import UNITS, equilibrium_indices, summarise
 from jaxtraffic.paper.table2 import table2_rows, write_table2
 from jaxtraffic.provenance import provenance
@@ -103,14 +111,8 @@ def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: s
     if ppo_delay0 is not None:
         ppo_delay0 = deploy({"ppo": ppo_delay0}, grids, cfg)["ppo"]
     ctrls = deploy(ctrls, grids, cfg)
-    overrides = {("delay0", "ppo"): ppo_delay0} if ppo_delay0 is not None else {}
-    log(f"[1/4] scenarios: {cfg.describe()}, {cfg.horizon_s:g} s "
-        f"({cfg.n_steps} steps), {len(cfg.seeds)} noise seeds"
-        + ("; the numerical check of Table 2 runs alongside" if checking else ""))
-    results = run_scenarios(ctrls, cfg, log, overrides)
     lc = Path(learning_curve_csv) if learning_curve_csv else None
-    early = _Background(make_figures, results, {}, cfg, out_dir, lc,
-                        select=lambda name: name not in FIG7 + ROBUSTNESS) if writer else None
+    results, early = _scenarios(ctrls, ppo_delay0, cfg, out_dir, lc, writer, checking is not None, log)
     init_l2 = initial_norms(cfg)
     metrics: dict[str, Any] = {"units": UNITS}
     for s, per in results.items():
@@ -124,17 +126,10 @@ def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: s
         numerics = relative_to(checking.join(log), metrics["delay4"])
         metrics["numerics"] = numerics
 
-    lc_data = None
-    if lc is not None and lc.exists():
-        from jaxtraffic.paper.plotting import read_learning_curve
-        try:
-            lc_data = read_learning_curve(lc)
-        except ValueError:
-            lc_data = None
+    lc_data = _read_learning_curve(lc)
     d0_label = "a separate D = 0 policy" if ppo_delay0 is not None else "the D = 4 s policy"
     claims = evaluate_claims(metrics, cfg, lc_data, d0_label)
     fig7 = paper_like_reading(claims)
-
     figures: list = []
     if writer:
         log("[3/4] figures")
@@ -143,6 +138,64 @@ def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: s
                                 select=lambda name: name in FIG7 + ROBUSTNESS, oracle=oracle)
         log("[4/4] tables, metrics.json, REPORT.md")
         write_table2(table2_rows(metrics, cfg, numerics), out_dir, cfg.n_steps * cfg.dt, metrics, numerics)
+    meta = _meta(meta, cfg, grids, fig7, init_l2)
+    meta["runtime_s"] = time.perf_counter() - t_start
+    meta["claims"] = {str(c["id"]): c["verdict"] for c in claims}
+    meta["claim5_readings"] = {n: r["verdict"] for c in claims if c["id"] == 5 for n, r in c["readings"].items()}
+    metrics["meta"] = meta
+    metrics = to_jsonable(metrics)
+    if writer:
+        _write(out_dir, claims, metrics, meta, figures, robust, _robustness_json(robust, cfg), cfg, numerics,
+               lc_data, learned_runs, oracle)
+    log(f"done in {meta['runtime_s']:.1f} s -> {out_dir}")
+    return metrics
+
+
+def _scenarios(ctrls: dict[str, Controller], ppo_delay0: Controller | None, cfg: EvalConfig, out_dir: Path,
+               learning_curve_csv: Path | None, writer: bool, checking: bool,
+               log: Callable[[str], None]) -> tuple[dict[str, dict[str, Outcome]], _Background | None]:
+    """Step 1: every scenario with every controller; on the writer, their figures started in the background.
+
+    The figures that need the claims or the robustness map (``FIG7``, ``ROBUSTNESS``) are left for later.
+
+    Args:
+        ctrls: controller name -> controller, deployed on ``cfg``'s plant. ppo_delay0: the policy for
+            scenario delay0 in place of "ppo", or None. writer: whether this process draws.
+        checking: whether the numerical check runs alongside (for the log line).
+
+    Returns:
+        The outcomes (scenario -> controller -> ``Outcome``) and the figures' ``_Background`` (None
+        where this process does not draw).
+    """
+    overrides = {("delay0", "ppo"): ppo_delay0} if ppo_delay0 is not None else {}
+    log(f"[1/4] scenarios: {cfg.describe()}, {cfg.horizon_s:g} s "
+        f"({cfg.n_steps} steps), {len(cfg.seeds)} noise seeds"
+        + ("; the numerical check of Table 2 runs alongside" if checking else ""))
+    results = run_scenarios(ctrls, cfg, log, overrides)
+    early = _Background(make_figures, results, {}, cfg, out_dir, learning_curve_csv,
+                        select=lambda name: name not in FIG7 + ROBUSTNESS) if writer else None
+    return results, early
+
+
+def _read_learning_curve(path: Path | None) -> dict[str, Any] | None:
+    """The columns of learning_curve.csv (``plotting.read_learning_curve``); None if absent or unreadable."""
+    if path is None or not path.exists():
+        return None
+    from jaxtraffic.paper.plotting import read_learning_curve
+    try:
+        return read_learning_curve(path)
+    except ValueError:
+        return None
+
+
+def _meta(meta: dict[str, Any], cfg: EvalConfig, grids: dict[str, ControllerGrid], fig7: str,
+          init_l2: tuple[float, float]) -> dict[str, Any]:
+    """metrics.json's "meta": a copy of the caller's ``meta`` with the grid, plant, scenarios and environment.
+
+    Args:
+        grids: the controllers' grids. fig7: the alpha noise reading drawn as figure 7.
+        init_l2: the initial condition's L2 deviations (``scenarios.initial_norms``), veh/m and m/s.
+    """
     nom = cfg.nominal()
     meta = dict(meta)
     meta.update({
@@ -166,22 +219,21 @@ def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: s
                         "horizon_s": cfg.robust_horizon_s},
         "jax_version": jax.__version__, "backend": jax.default_backend(), "provenance": provenance(),
     })
-    robust_json = {"delays_s": list(cfg.robust_delays), "alphas": list(cfg.robust_alphas),
-                   "horizon_s": cfg.robust_horizon_s,
-                   "units": {"final_rho_L2": "veh/m", "final_v_L2": "m/s", "final_reward": "dimensionless",
-                             "diverged": "bool", "final_rho_spatial_std": "veh/m"},
-                   "note": "arrays indexed [delay][alpha]; backstepping assumes the true plant delay",
-                   "controllers": {c: {k: v.tolist() for k, v in r.items()} for c, r in robust.items()}}
-    meta["runtime_s"] = time.perf_counter() - t_start
-    meta["claims"] = {str(c["id"]): c["verdict"] for c in claims}
-    meta["claim5_readings"] = {n: r["verdict"] for c in claims if c["id"] == 5 for n, r in c["readings"].items()}
-    metrics["meta"] = meta
-    metrics = to_jsonable(metrics)
-    if writer:
-        _write(out_dir, claims, metrics, meta, figures, robust, robust_json, cfg, numerics, lc_data, learned_runs,
-               oracle)
-    log(f"done in {meta['runtime_s']:.1f} s -> {out_dir}")
-    return metrics
+    return meta
+
+
+def _robustness_json(robust: dict[str, dict[str, Any]], cfg: EvalConfig) -> dict[str, Any]:
+    """robustness.json's content: the map's axes, units and each controller's arrays as nested lists.
+
+    Args:
+        robust: controller -> quantity -> (n_delays, n_alphas) array (``scenarios.run_robustness``).
+    """
+    return {"delays_s": list(cfg.robust_delays), "alphas": list(cfg.robust_alphas),
+            "horizon_s": cfg.robust_horizon_s,
+            "units": {"final_rho_L2": "veh/m", "final_v_L2": "m/s", "final_reward": "dimensionless",
+                      "diverged": "bool", "final_rho_spatial_std": "veh/m"},
+            "note": "arrays indexed [delay][alpha]; backstepping assumes the true plant delay",
+            "controllers": {c: {k: v.tolist() for k, v in r.items()} for c, r in robust.items()}}
 
 
 def _write(out_dir: Path, claims: list, metrics: dict, meta: dict, figures: list, robust: dict, robust_json: dict,

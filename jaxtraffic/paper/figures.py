@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -38,49 +38,87 @@ def make_figures(results: dict[str, dict[str, Outcome]], robust: dict[str, dict[
     the figures whose file name it accepts (default: all), e.g. the scenario figures while the
     robustness map is still running (``FIG7`` and ``ROBUSTNESS`` need later results). ``oracle``: oracle rows
     (``paper.oracle``) drawn as further panels of the waves map."""
-    from jaxtraffic.paper import plotting as P
+    from jaxtraffic.paper.plotting import LABELS
 
-    want = select or (lambda name: True)
+    canvas = _Canvas(out_dir, select or (lambda name: True), log)
+    labels = {**LABELS, **{c: c for c in others(results["delay4"])}}  # a controller brought in: its own name
+    _learning_curve_figure(canvas, learning_curve_csv)
+    t = results["delay4"]["open_loop"].t
+    _reward_figure(canvas, results, t, labels)
+    _spacetime_figures(canvas, results, cfg, t, labels, fig7_scenario)
+    _l2_figures(canvas, results, cfg, t, labels, fig7_scenario)
+    if robust and any(canvas.want(name) for name in ROBUSTNESS):
+        _robustness_figures(canvas, robust, cfg, labels, oracle)
+    return canvas.written
+
+
+@dataclass
+class _Canvas:
+    """Where the figures go: ``draw`` writes those ``want`` accepts, their names kept in ``written`` in order."""
+
+    out_dir: Path
+    want: Callable[[str], bool]
+    log: Callable[[str], None]
+    written: list[str] = field(default_factory=list)
+
+    def draw(self, name: str, plot: Callable[..., Any], *args: Any, **kwargs: Any) -> None:
+        """``plot(out_dir / name, *args, **kwargs)`` if ``want(name)``, logged."""
+        if self.want(name):
+            plot(self.out_dir / name, *args, **kwargs)
+            self.written.append(name)
+            self.log(f"  wrote {name}")
+
+
+def _learning_curve_figure(canvas: _Canvas, learning_curve_csv: Path | None) -> None:
+    """Figure 3a from the run's learning_curve.csv; skipped (and logged) without one or if it is unreadable."""
+    from jaxtraffic.paper.plotting import plot_learning_curve
+
+    if canvas.want(LEARNING_CURVE) and learning_curve_csv is not None and Path(learning_curve_csv).exists():
+        try:
+            canvas.draw(LEARNING_CURVE, lambda path: plot_learning_curve(
+                learning_curve_csv, path, title="PPO learning curve, D = 4 s (paper fig. 3a)"))
+        except ValueError as e:
+            canvas.log(f"  learning curve not plotted: {e}")
+    elif canvas.want(LEARNING_CURVE):
+        canvas.log("  no learning_curve.csv: fig3a skipped")
+
+
+def _reward_figure(canvas: _Canvas, results: dict[str, dict[str, Outcome]], t: np.ndarray,
+                   labels: dict[str, str]) -> None:
+    """Figure 3b: the first seed's reward over time; the baselines and PPO at D = 4 s, Lyapunov and PPO at D = 0.
+
+    Args:
+        t: (T,) recording times, s. labels: controller name -> its label in the legends.
+    """
+    from jaxtraffic.paper.plotting import plot_reward
+
+    series, markers = {}, {}
+    for scenario, delay, controllers in (("delay4", "D = 4 s", ("open_loop", "lyapunov", "backstepping", "ppo")),
+                                         ("delay0", "D = 0", ("lyapunov", "ppo"))):
+        for c in controllers:
+            o = results[scenario][c]
+            key = f"{labels[c]} ({delay})"
+            series[key] = o.reward[0]
+            if o.metrics["diverged"][0]:
+                markers[key] = float(o.metrics["diverged_at_s"][0])
+    canvas.draw("fig3b_reward.png", plot_reward, t, series, markers=markers,
+                title="Reward over time from the paper's initial condition (paper fig. 3b)")
+
+
+def _spacetime_figures(canvas: _Canvas, results: dict[str, dict[str, Outcome]], cfg: EvalConfig, t: np.ndarray,
+                       labels: dict[str, str], fig7_scenario: str) -> None:
+    """Figures 4, 5 and 7 and the mismatched delays' space-time plots: rho, v and h of the first seed.
+
+    Args:
+        t: (T,) recording times, s. labels: controller name -> its label.
+        fig7_scenario: the alpha noise reading drawn as figure 7.
+    """
+    from jaxtraffic.paper.plotting import plot_spacetime
 
     nom = cfg.nominal()
     rho_bar, v_bar = (float(x) for x in equilibrium(nom))
     eq = (rho_bar, v_bar, float(nom.h_bar))
     x = np.asarray(nom.x())
-    lab = {**P.LABELS, **{c: c for c in others(results["delay4"])}}  # a controller brought in: its own name
-    written: list[str] = []
-
-    def draw(name: str, plot: Callable[..., Any], *args, **kwargs) -> None:
-        if want(name):
-            plot(out_dir / name, *args, **kwargs)
-            written.append(name)
-            log(f"  wrote {name}")
-
-    if want(LEARNING_CURVE) and learning_curve_csv is not None and Path(learning_curve_csv).exists():
-        try:
-            draw(LEARNING_CURVE, lambda path: P.plot_learning_curve(
-                learning_curve_csv, path, title="PPO learning curve, D = 4 s (paper fig. 3a)"))
-        except ValueError as e:
-            log(f"  learning curve not plotted: {e}")
-    elif want(LEARNING_CURVE):
-        log("  no learning_curve.csv: fig3a skipped")
-
-    t = results["delay4"]["open_loop"].t
-    series, markers = {}, {}
-    for c in ("open_loop", "lyapunov", "backstepping", "ppo"):
-        o = results["delay4"][c]
-        key = f"{lab[c]} (D = 4 s)"
-        series[key] = o.reward[0]
-        if o.metrics["diverged"][0]:
-            markers[key] = float(o.metrics["diverged_at_s"][0])
-    for c in ("lyapunov", "ppo"):
-        o = results["delay0"][c]
-        key = f"{lab[c]} (D = 0)"
-        series[key] = o.reward[0]
-        if o.metrics["diverged"][0]:
-            markers[key] = float(o.metrics["diverged_at_s"][0])
-    draw("fig3b_reward.png", P.plot_reward, t, series, markers=markers,
-         title="Reward over time from the paper's initial condition (paper fig. 3b)")
-
     titles = {
         "delay0": ("fig4_spacetime_delay0.png", "Plant delay D = 0 (paper fig. 4)"),
         "delay4": ("fig5_spacetime_delay4.png", "Plant delay D = 4 s (paper fig. 5)"),
@@ -90,47 +128,70 @@ def make_figures(results: dict[str, dict[str, Outcome]], robust: dict[str, dict[
         "delay_mismatch_3": ("spacetime_delay_mismatch_3.png", "Plant delay 3 s, controllers assume 4 s"),
         "delay_mismatch_5": ("spacetime_delay_mismatch_5.png", "Plant delay 5 s, controllers assume 4 s"),
     }
-    for s, (fname, title) in titles.items():
-        if not want(fname):
+    for scenario, (fname, title) in titles.items():
+        if not canvas.want(fname):
             continue
         rows, div = {}, {}
-        for c, o in results[s].items():
-            rows[lab[c]] = (o.rho[0], o.v[0], o.h[0])
+        for c, o in results[scenario].items():
+            rows[labels[c]] = (o.rho[0], o.v[0], o.h[0])
             if o.metrics["diverged"][0]:
-                div[lab[c]] = float(o.metrics["diverged_at_s"][0])
-        draw(fname, P.plot_spacetime, t, x, rows, eq, title, diverged_at=div)
+                div[labels[c]] = float(o.metrics["diverged_at_s"][0])
+        canvas.draw(fname, plot_spacetime, t, x, rows, eq, title, diverged_at=div)
 
-    def l2(s, ctrls):  # the extra learned controllers are added where they were evaluated
-        ctrls = (*ctrls, *(c for c in learned(results[s]) if c not in ctrls))
-        return {lab[c]: (results[s][c].rho_L2, results[s][c].v_L2) for c in ctrls}
 
-    draw("fig4_l2_delay0.png", P.plot_l2_norms, t, l2("delay0", ("open_loop", "lyapunov", "ppo")),
-         "L2 norms of the deviations, plant delay D = 0")
-    draw("fig6_l2_delay4.png", P.plot_l2_norms, t, l2("delay4", ("open_loop", "lyapunov", "backstepping", "ppo")),
-         "L2 norms of the deviations, plant delay D = 4 s (paper fig. 6)")
-    draw(FIG7[1], P.plot_l2_norms, t, l2(fig7_scenario, ("backstepping", "ppo")),
-         f"L2 norms with alpha noise (D = 4 s, reading {fig7_scenario}): mean and min-max band "
-         f"over {len(cfg.seeds)} seeds")
-    draw("fig8_l2_delay_mismatch.png", P.plot_l2_panels, t,
-         {"plant D = 3 s": l2("delay_mismatch_3", ("backstepping", "ppo")),
-          "plant D = 5 s": l2("delay_mismatch_5", ("backstepping", "ppo"))},
-         "Mismatched delay, controllers assume 4 s (paper fig. 8)")
-    if robust and any(want(name) for name in ROBUSTNESS):
-        names = {"open_loop": "open loop", "lyapunov": "Lyapunov",
-                 "backstepping": "backstepping (assumes the true plant delay)",
-                 "ppo": "PPO (trained D = 4 s)", **{c: lab.get(c, c) for c in learned(robust) if c != "ppo"}}
-        delays, alphas = np.asarray(cfg.robust_delays), np.asarray(cfg.robust_alphas)
-        horizon = replace(cfg, horizon_s=cfg.robust_horizon_s).n_steps * cfg.dt
-        maps = {names[c]: (r["final_rho_L2"], r["diverged"]) for c, r in robust.items()}
-        draw(ROBUSTNESS[0], P.plot_robustness_map, delays, alphas, maps,
-             f"Final density L2 deviation from the nominal target after {horizon:g} s, over plant delay x "
-             "plant ACC rate\n(includes the steady offset a proportional law keeps when alpha != 0.15)",
-             nominal=(CTRL_DELAY, 0.15), initial_l2=initial_norms(cfg)[0])
-        maps = {names[c]: (r["final_rho_spatial_std"], r["diverged"]) for c, r in robust.items()}
-        maps.update({ORACLE_LABELS[k]: (r["final_rho_spatial_std"], r["diverged"]) for k, r in (oracle or {}).items()})
-        draw(ROBUSTNESS[1], P.plot_robustness_map, delays, alphas, maps,
-             f"Remaining density waves after {horizon:g} s: spatial standard deviation of rho "
-             "(blind to a uniform offset)", nominal=(CTRL_DELAY, 0.15), initial_l2=initial_norms(cfg)[0],
-             quantity="final std_x(rho) (veh/km)", stable_below=STABLE_STD)
-    return written
+def _l2_figures(canvas: _Canvas, results: dict[str, dict[str, Outcome]], cfg: EvalConfig, t: np.ndarray,
+                labels: dict[str, str], fig7_scenario: str) -> None:
+    """Figures 4, 6, 7 and 8's L2 norms of the deviations (mean and min-max band over the seeds).
 
+    Args:
+        t: (T,) recording times, s. labels: controller name -> its label.
+        fig7_scenario: the alpha noise reading drawn as figure 7.
+    """
+    from jaxtraffic.paper.plotting import plot_l2_norms, plot_l2_panels
+
+    def l2(scenario, ctrls):  # the extra learned controllers are added where they were evaluated
+        ctrls = (*ctrls, *(c for c in learned(results[scenario]) if c not in ctrls))
+        return {labels[c]: (results[scenario][c].rho_L2, results[scenario][c].v_L2) for c in ctrls}
+
+    canvas.draw("fig4_l2_delay0.png", plot_l2_norms, t, l2("delay0", ("open_loop", "lyapunov", "ppo")),
+                "L2 norms of the deviations, plant delay D = 0")
+    canvas.draw("fig6_l2_delay4.png", plot_l2_norms, t,
+                l2("delay4", ("open_loop", "lyapunov", "backstepping", "ppo")),
+                "L2 norms of the deviations, plant delay D = 4 s (paper fig. 6)")
+    canvas.draw(FIG7[1], plot_l2_norms, t, l2(fig7_scenario, ("backstepping", "ppo")),
+                f"L2 norms with alpha noise (D = 4 s, reading {fig7_scenario}): mean and min-max band "
+                f"over {len(cfg.seeds)} seeds")
+    canvas.draw("fig8_l2_delay_mismatch.png", plot_l2_panels, t,
+                {"plant D = 3 s": l2("delay_mismatch_3", ("backstepping", "ppo")),
+                 "plant D = 5 s": l2("delay_mismatch_5", ("backstepping", "ppo"))},
+                "Mismatched delay, controllers assume 4 s (paper fig. 8)")
+
+
+def _robustness_figures(canvas: _Canvas, robust: dict[str, dict[str, np.ndarray]], cfg: EvalConfig,
+                        labels: dict[str, str], oracle: dict[str, dict] | None) -> None:
+    """The robustness maps over plant delay x plant alpha: final density L2 deviation, remaining waves.
+
+    The waves map (spatial std of rho) has the oracle's rows as further panels.
+
+    Args:
+        robust: controller -> quantity -> (n_delays, n_alphas) array (``scenarios.run_robustness``).
+        labels: controller name -> its label. oracle: oracle rows (``paper.oracle``), or None.
+    """
+    from jaxtraffic.paper.plotting import plot_robustness_map
+
+    names = {"open_loop": "open loop", "lyapunov": "Lyapunov",
+             "backstepping": "backstepping (assumes the true plant delay)",
+             "ppo": "PPO (trained D = 4 s)", **{c: labels.get(c, c) for c in learned(robust) if c != "ppo"}}
+    delays, alphas = np.asarray(cfg.robust_delays), np.asarray(cfg.robust_alphas)
+    horizon = replace(cfg, horizon_s=cfg.robust_horizon_s).n_steps * cfg.dt
+    maps = {names[c]: (r["final_rho_L2"], r["diverged"]) for c, r in robust.items()}
+    canvas.draw(ROBUSTNESS[0], plot_robustness_map, delays, alphas, maps,
+                f"Final density L2 deviation from the nominal target after {horizon:g} s, over plant delay x "
+                "plant ACC rate\n(includes the steady offset a proportional law keeps when alpha != 0.15)",
+                nominal=(CTRL_DELAY, 0.15), initial_l2=initial_norms(cfg)[0])
+    maps = {names[c]: (r["final_rho_spatial_std"], r["diverged"]) for c, r in robust.items()}
+    maps.update({ORACLE_LABELS[k]: (r["final_rho_spatial_std"], r["diverged"]) for k, r in (oracle or {}).items()})
+    canvas.draw(ROBUSTNESS[1], plot_robustness_map, delays, alphas, maps,
+                f"Remaining density waves after {horizon:g} s: spatial standard deviation of rho "
+                "(blind to a uniform offset)", nominal=(CTRL_DELAY, 0.15), initial_l2=initial_norms(cfg)[0],
+                quantity="final std_x(rho) (veh/km)", stable_below=STABLE_STD)

@@ -43,8 +43,8 @@ import numpy as np
 
 from jaxtraffic.control import Controller, takes_delay, tell_delay
 from jaxtraffic.model.params import TrafficParams, equilibrium, steps_for
-from jaxtraffic.sim import metrics as M
 from jaxtraffic.sim.initial import paper_initial_condition
+from jaxtraffic.sim.metrics import l2_deviation
 from jaxtraffic.sim.plant import NoiseReading
 from jaxtraffic.sim.rollout import plant_alphas, simulate_batch, stack_params
 from jaxtraffic.sim.sharding import host_mesh
@@ -245,7 +245,7 @@ def initial_norms(cfg: EvalConfig) -> tuple[float, float]:
     nom = cfg.nominal()
     rho_bar, v_bar = equilibrium(nom)
     rho0, v0 = paper_initial_condition(nom)
-    return float(M.l2_deviation(rho0, rho_bar)), float(M.l2_deviation(v0, v_bar))
+    return float(l2_deviation(rho0, rho_bar)), float(l2_deviation(v0, v_bar))
 
 
 def run_scenarios(controllers: dict[str, Controller], cfg: EvalConfig,

@@ -10,7 +10,7 @@ import numpy as np
 from jaxtraffic.files import to_jsonable
 from jaxtraffic.model.params import equilibrium
 from jaxtraffic.paper.scenarios import SETTLE_FRACTION, EvalConfig, Outcome
-from jaxtraffic.sim import metrics as M
+from jaxtraffic.sim.metrics import EXTRA_INDICES, VEH_PER_KM, fuel_rate, fuel_rate_kmh
 
 REQUIRED_KEYS = ("J_TTT", "J_fuel", "J_comfort", "final_rho_L2", "final_v_L2", "final_reward",
                  "time_to_reward_-0.1_s", "diverged", "control_effort")
@@ -95,7 +95,7 @@ def summarise(out: Outcome, init_l2: tuple[float, float]) -> dict[str, Any]:
         return None if any(v is None for v in vals) else float(np.mean(vals))
 
     entry: dict[str, Any] = {}
-    for k in ("J_TTT", "J_fuel", "J_comfort", "final_rho_L2", "final_v_L2", "final_reward", *M.EXTRA_INDICES):
+    for k in ("J_TTT", "J_fuel", "J_comfort", "final_rho_L2", "final_v_L2", "final_reward", *EXTRA_INDICES):
         if k in m:
             entry[k] = float(np.mean(m[k]))
     entry["time_to_reward_-0.1_s"] = mean_time(list(np.asarray(m["time_to_reward_target_s"], float)))
@@ -127,11 +127,11 @@ def equilibrium_indices(cfg: EvalConfig) -> dict[str, float]:
     nom = cfg.nominal()
     rho_bar, v_bar = (float(x) for x in equilibrium(nom))
     T = cfg.n_steps * cfg.dt
-    rho_km = M.VEH_PER_KM * rho_bar
+    rho_km = VEH_PER_KM * rho_bar
     return {"J_TTT": rho_km * nom.L * T,
-            "J_fuel": float(M.fuel_rate(v_bar, 0.0)) * rho_km * nom.L * T,
+            "J_fuel": float(fuel_rate(v_bar, 0.0)) * rho_km * nom.L * T,
             "J_comfort": 0.0, "J_TTT_kmh": rho_km * nom.L * T,
-            "J_fuel_kmh": float(M.fuel_rate_kmh(v_bar, 0.0)) * rho_km * nom.L * T, "J_comfort_kmh": 0.0}
+            "J_fuel_kmh": float(fuel_rate_kmh(v_bar, 0.0)) * rho_km * nom.L * T, "J_comfort_kmh": 0.0}
 
 
 # ----------------------------------------------------------------------------- Table 2

@@ -3,13 +3,10 @@ the clipped surrogate, and the loss of a minibatch (``Batch``). Pure functions o
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-
-if TYPE_CHECKING:
-    from jaxtraffic.learn.ppo.algorithm import PPOConfig
 
 Array = jax.Array
 
@@ -73,8 +70,9 @@ def clipped_surrogate(logp: Array, old_logp: Array, adv: Array, clip_eps) -> Arr
     return -jnp.mean(jnp.minimum(ratio * adv, jnp.clip(ratio, 1.0 - clip_eps, 1.0 + clip_eps) * adv))
 
 
-def ppo_loss(params, apply_fn, batch: Batch, cfg: PPOConfig):
-    """(loss, statistics) of a minibatch: clipped surrogate, value loss and entropy bonus."""
+def ppo_loss(params, apply_fn, batch: Batch, cfg: Any):
+    """(loss, statistics) of a minibatch: clipped surrogate, value loss and entropy bonus; ``cfg``: an
+    ``algorithm.PPOConfig`` (its clip range and the value and entropy coefficients)."""
     mean, sigma, value = apply_fn(params, batch.obs)
     logp = gaussian_log_prob(batch.action, mean, sigma)
     adv = batch.adv

@@ -1,10 +1,14 @@
 """jaxtraffic: JAX simulation and control of congested mixed ACC/manual freeway traffic.
 
-Layers (imports flow one way, model <- control <- sim <- learn <- paper <- cli):
+Layers (imports flow one way, base <- model <- control <- sim <- learn <- ecosystem, paper <- cli;
+``tests/test_architecture.py`` enforces it):
+    files, drawing, provenance, distributed, ...   atomic files and JSON, figures, run records, processes
     model/    parameters, fundamental diagram, ARZ solver, delay buffer, linearisation
     control/  controller interface, baselines, three-gain law, learned gain policy
     sim/      plant state and the one closed-loop step, rollouts, initial conditions, metrics
-    learn/    environment, PPO, validation suite, trainer, checkpoints and load_policy
+    learn/    environment, config tree, run machinery and the one training loop (runs/), PPO (ppo/),
+              gradient-based and CEM training (gradient/), load_policy
+    ecosystem/ Gymnasium, gymnax and Stable-Baselines3 adapters
     paper/    the paper's scenarios, summaries, claims, report and figures
     cli/      the train and evaluate command lines
 

@@ -110,7 +110,7 @@ def model_growth_rates(gains: Array, lm: LinearModel, delay_periods: int, k: Arr
                        symbol: str = "pde", dx: Array | float = 5.0, differentiable: bool = False) -> Array:
     """``growth_rates`` on a ``LinearModel`` (its dt the control period) and a static delay in periods:
     traceable; ``differentiable`` (static): also differentiable in the gains (``dominant_eigenvalue``, a
-    training penalty, ``learn.gradient``), else the cheaper spectral radius alone."""
+    training penalty, ``learn.gradient.objective``), else the cheaper spectral radius alone."""
 
     def one(kk):
         Z = closed_loop_matrix(kk, gains, lm, jnp.asarray(delay_periods), delay_periods, lm.dt, sigma, symbol, dx)

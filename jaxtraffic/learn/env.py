@@ -220,7 +220,7 @@ step = step_env
 
 class TrafficEnv:
     """The traffic gain environment as an object with the gymnax-style interface that
-    ``ppo.make_train`` expects: ``reset``, ``step``, ``obs_size(params)``, ``action_size``."""
+    ``learn.ppo.algorithm.make_train`` expects: ``reset``, ``step``, ``obs_size(params)``, ``action_size``."""
 
     action_size = gp.N_GAINS
     reset = staticmethod(reset_env)

@@ -56,7 +56,7 @@ def comparison_section(metrics: dict, runs: dict[str, dict], robust: dict[str, d
     lines = ["## Beyond the paper: PPO and gradient-based training", "",
              "Every learned controller acts through the paper's three-gain law. PPO learns from sampled "
              "episodes; the gradient-based controllers are trained by differentiating the rollout objective "
-             "through the simulator (`jaxtraffic.learn.gradient`). Training figures come from each run's "
+             "through the simulator (`jaxtraffic.learn.gradient.objective`). Training figures come from each run's "
              "summary.json and learning curve (wall time includes compilation, on the machine that trained it; "
              "*s to beat backstepping*: first evaluation during training whose final rho L2 and J_comfort are both "
              "below backstepping's); quality figures "

@@ -100,7 +100,7 @@ class EnvConfig:
 
 @dataclass(frozen=True)
 class AlgoConfig:
-    """PPO (``learn.ppo.PPOConfig``; ``network`` chooses its ``hidden`` layers)."""
+    """PPO (``learn.ppo.algorithm.PPOConfig``; ``network`` chooses its ``hidden`` layers)."""
 
     num_envs: int = _f(_PPO["num_envs"] // POPULATION, "parallel environments per seed (population member)")
     num_steps: int = _f(_PPO["num_steps"], "rollout steps per update (100 = 10 s)")

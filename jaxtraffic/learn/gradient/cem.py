@@ -2,7 +2,7 @@
 
 The map counts a plant as *stabilised* when it did not diverge and its final std_x(rho) is below
 ``sim.metrics.STABLE_STD`` (0.5 veh/km), and as *diverged* when it left the physical region. Both are counts:
-their gradient is zero almost everywhere, and the smooth wave objectives of ``learn.gradient`` trade them
+their gradient is zero almost everywhere, and the smooth wave objectives of ``learn.gradient.objective`` trade them
 badly (measured, BENCHMARKS.md "A robust learned controller"). CEM optimises the counts themselves, on the
 training scenarios of a ``GradientConfig`` (plants offset from the map's cells):
 
@@ -13,8 +13,8 @@ training scenarios of a ``GradientConfig`` (plants offset from the map's cells):
 mean's own fitness is known), rolls every one out on every scenario (one batched, forward-only
 ``simulate_batch``), and refits the Gaussian to the best fifth (the elites; a floor
 ``SIGMA_MIN`` keeps it searching). The policy (``CemState.theta``) is the best parameter set evaluated so far.
-Deterministic for a given key. ``make_train`` has the signature of ``gradient.make_train``, so the same
-host loop (``gradient_trainer``) runs, checkpoints and resumes it.
+Deterministic for a given key. ``make_train`` has the signature of ``objective.make_train``, so the same
+host loop (``learn.runs.loop``, through ``gradient.trainer``) runs, checkpoints and resumes it.
 """
 
 from __future__ import annotations
@@ -96,7 +96,7 @@ def _train_chunk(state: CemState, base: TrafficParams, cfg: GradientConfig, n_st
 
 
 def make_train(cfg: GradientConfig, base: TrafficParams, devices: list | None = None):
-    """``(init, train_chunk)`` as ``gradient.make_train``: ``init(key) -> CemState`` (the mean at ``init_theta``,
+    """``(init, train_chunk)`` as ``objective.make_train``: ``init(key) -> CemState`` (the mean at ``init_theta``,
     sigma ``cfg.cem_sigma``); ``train_chunk(state) -> (state, metrics)`` runs ``steps_per_chunk`` generations
     in one compiled ``lax.scan``; metrics per generation: objective (-fitness of the policy), grad_norm (the
     norm of sigma: how widely it still searches), the best member's stabilised and diverged counts and the

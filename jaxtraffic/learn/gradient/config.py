@@ -1,7 +1,7 @@
 """The gradient trainer's settings (``GradientConfig``) and each policy's defaults (``POLICY_DEFAULTS``).
 
-``learn.gradient`` (the objective, Adam) and ``learn.gradient.cem`` (the cross-entropy method) read it; ``learn.config``
-builds it from the command line's flags.
+``learn.gradient.objective`` (the objective, Adam) and ``learn.gradient.cem`` (the cross-entropy method) read it;
+``learn.config`` builds it from the command line's flags.
 """
 
 from __future__ import annotations

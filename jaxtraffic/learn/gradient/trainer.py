@@ -1,19 +1,18 @@
-"""Training loop around ``gradient.make_train`` (or ``cem.make_train``, ``method = "cem"``: its generations in
-place of the Adam steps): chunks, evaluation, checkpoints, outputs.
+"""The gradient and CEM trainers' part of a training run (``runs.loop.run_training`` does the rest).
 
-The run directory has the same files as a PPO run (config.json with the same config tree,
-checkpoint.msgpack, learning_curve.csv/.png, summary.json) and loads with ``learn.load_policy``. After every chunk
-of Adam steps the deterministic controller is evaluated on the paper's initial condition with
-the nominal plant (``eval_horizon_s``) next to the delay-compensated baseline
-``backstepping(delay)``; the summary records when it first met the paper's stop rule and when
-it first beat backstepping on both final density L2 and J_comfort. Ctrl-C keeps the last completed
-chunk; ``resume`` continues from it exactly (training is deterministic).
+A chunk is ``steps_per_chunk`` Adam steps of ``objective.make_train`` (or CEM generations of ``cem.make_train``,
+``grad_method = "cem"``). The run directory has the same files as a PPO run (config.json with the same config
+tree, checkpoint.msgpack, learning_curve.csv/.png, summary.json) and loads with ``learn.load_policy``. After every
+chunk the deterministic controller is evaluated on the paper's initial condition with the nominal plant
+(``eval_horizon_s``) next to the delay-compensated baseline ``backstepping(delay)``; the summary records when it
+first met the paper's stop rule and when it first beat backstepping on both final density L2 and J_comfort. The
+checkpoint is written after every chunk; ``resume`` continues from it exactly (training is deterministic).
 
-Multi-process runs (``jaxtraffic.distributed``): the scenarios of every Adam step are split over every
-device of every process (``gradient.make_train``), the stop and wall-budget decisions are process
-0's and a signal to any process stops all of them after the same chunk (``session.agree_stop``), and
-only process 0 prints and writes. A checkpoint holds no per-device state, so it resumes on any
-number of processes and devices (to float rounding: the scenario split changes the sums' order).
+Multi-process runs (``jaxtraffic.distributed``): the scenarios of every Adam step are split over every device
+of every process (``objective.make_train``), the stop and wall-budget decisions are process 0's and a signal to
+any process stops all of them after the same chunk (``runs.session.agree_stop``), and only process 0 prints and
+writes. A checkpoint holds no per-device state, so it resumes on any number of processes and devices (to float
+rounding: the scenario split changes the sums' order).
 """
 
 from __future__ import annotations

@@ -155,8 +155,8 @@ class Validation(enum.Enum):
 
     @classmethod
     def of(cls, score: float) -> Validation:
-        """The status of one member's ``score`` (``scores``)."""
-        return cls.NOT_VALIDATED if score >= UNVALIDATED else cls.REJECTED if score >= BAD else cls.SCORED
+        """The status of one member's ``score`` (``scores``: UNVALIDATED less a reward, BAD, or the suite's)."""
+        return cls.NOT_VALIDATED if score >= (BAD + UNVALIDATED) / 2 else cls.REJECTED if score >= BAD else cls.SCORED
 
     @property
     def message(self) -> str:

@@ -33,8 +33,9 @@ import resource, sys, time, jax, jax.numpy as jnp
 from jaxtraffic import TrafficParams
 from jaxtraffic.learn.gradient import objective
 remat, n_d, n_a = sys.argv[1] == "1", int(sys.argv[2]), int(sys.argv[3])
-cfg = objective.GradientConfig(delays=tuple(float(d) for d in range(n_d)),
-                       alphas=tuple(0.05 + 0.5 * i / max(1, n_a - 1) for i in range(n_a)), horizon_s=300.0)
+cfg = objective.GradientConfig(train_delays=tuple(float(d) for d in range(n_d)),
+                               train_alphas=tuple(0.05 + 0.5 * i / max(1, n_a - 1) for i in range(n_a)),
+                               train_horizon_s=300.0)
 base = TrafficParams(delay=4.0)
 scen, w = objective.training_scenarios(cfg, base), objective.weights_of(cfg)
 f = jax.jit(jax.grad(lambda t: objective.objective(t, scen, w, cfg, base, remat=remat)[0]))

@@ -16,7 +16,7 @@ LAYERS = {**{m: 0 for m in BASE}, "model": 1, "control": 2, "sim": 3, "learn": 4
           "cli": 6, "__main__": 6}
 # inside learn/: the environment and each algorithm's settings, the config tree, what every run shares, each
 # algorithm's pieces, the policy loader, the trainers
-LEARN = {"env": 0, "ppo": 0, "ppo.algorithm": 0, "ppo.losses": 0, "gradient": 0, "gradient.config": 0,
+LEARN = {"rules": 0, "env": 0, "ppo": 0, "ppo.algorithm": 0, "ppo.losses": 0, "gradient": 0, "gradient.config": 0,
          "config.checks": 0,
          "config.tree": 1, "config": 1, "runs": 2, "runs.checkpoint": 2, "runs.session": 2, "runs.curve": 2,
          "runs.tensorboard": 2, "runs.loop": 2, "ppo.members": 3, "ppo.selection": 3, "ppo.policy": 3,

@@ -20,7 +20,7 @@ from jaxtraffic.learn.gradient.policy import gradient_setup
 from jaxtraffic.learn.gradient.trainer import train_gradient
 
 BASE = TrafficParams(delay=2.0, **SMALL)  # 41 nodes, dt = 0.5 s
-CFG = objective.GradientConfig(delays=(1.0, 2.0), horizon_s=60.0, record_every=10, steps_per_chunk=2)
+CFG = objective.GradientConfig(train_delays=(1.0, 2.0), train_horizon_s=60.0, record_every=10, steps_per_chunk=2)
 
 
 def _objective(theta, cfg=CFG, base=BASE, remat=True):
@@ -47,7 +47,8 @@ def test_checkpointed_gradient_equals_plain_one(x64):
 
 def test_no_nan_gradient_when_one_scenario_diverges():
     # these gains drive the large initial wave out of the physical region, not the small one
-    cfg = objective.GradientConfig(delays=(0.0,), amplitudes=(0.001, 0.08), horizon_s=100.0, record_every=10)
+    cfg = objective.GradientConfig(train_delays=(0.0,), train_amplitudes=(0.001, 0.08), train_horizon_s=100.0,
+                                   record_every=10)
     base = TrafficParams(delay=0.0, **SMALL)
     theta = jnp.asarray([0.0, -3.0, 3.0])
     scen = objective.training_scenarios(cfg, base)
@@ -59,7 +60,7 @@ def test_no_nan_gradient_when_one_scenario_diverges():
 
 
 def test_a_few_steps_lower_the_objective():
-    cfg = objective.GradientConfig(delays=(1.0, 2.0), horizon_s=60.0, steps_per_chunk=4)
+    cfg = objective.GradientConfig(train_delays=(1.0, 2.0), train_horizon_s=60.0, steps_per_chunk=4)
     init, chunk = objective.make_train(cfg, BASE)
     state, m = chunk(init(jax.random.PRNGKey(0)))
     obj = np.asarray(m["objective"])
@@ -107,4 +108,4 @@ def test_train_cli_gradient_defaults_come_from_the_library():
     # the gain bound is the gradient trainer's own (PPO's --gain-max, per gain, does not apply)
     per_gain = settings_from_args(["--algo", "gradient", "--gain-max", "1,2,2"])
     assert gradient_setup(per_gain)[0] == objective.GradientConfig()
-    assert gradient_setup(settings_from_args(["--algo", "gradient", "--grad-gain-max", "2"]))[0].gain_max == 2.0
+    assert gradient_setup(settings_from_args(["--algo", "gradient", "--grad-gain-max", "2"]))[0].grad_gain_max == 2.0

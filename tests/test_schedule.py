@@ -81,8 +81,9 @@ def test_each_map_cell_is_told_its_plant_delay():
 
 
 def test_schedule_gradient_matches_central_differences_and_stays_on_its_knots(x64):
-    cfg = objective.GradientConfig(policy="schedule", knots=KNOTS, delays=(1.0, 3.0), alphas=(0.15, 0.3),
-                                   horizon_s=40.0, record_every=10, reward_weight=0.0, wave_weight=1.0,
+    cfg = objective.GradientConfig(policy="schedule", schedule_knots=KNOTS, train_delays=(1.0, 3.0),
+                                   train_alphas=(0.15, 0.3), train_horizon_s=40.0, record_every=10, reward_weight=0.0,
+                                   waves_weight=1.0,
                                    comfort_weight=0.0, filter_sigma=0.0)
     scen = objective.training_scenarios(cfg, PLANT)
 
@@ -108,10 +109,11 @@ def test_default_training_plants_are_held_out_from_both_maps():
     maps = {"paper": (robust_axis(17, 0.0, 8.0, dt), robust_axis(12, 0.05, 0.6)),
             "reference": (robust_axis(9, 0.0, 8.0, dt), robust_axis(6, 0.05, 0.6))}
     for delays, alphas in maps.values():
-        assert min(abs(d - m) for d in cfg.delays for m in delays) > 0.19
-        assert min(abs(a - m) for a in cfg.alphas for m in alphas) >= 0.02
+        assert min(abs(d - m) for d in cfg.train_delays for m in delays) > 0.19
+        assert min(abs(a - m) for a in cfg.train_alphas for m in alphas) >= 0.02
     # ... while they span the maps' ranges
-    assert min(cfg.delays) < 0.5 and max(cfg.delays) > 7.5 and min(cfg.alphas) < 0.16 and max(cfg.alphas) > 0.55
+    assert min(cfg.train_delays) < 0.5 and max(cfg.train_delays) > 7.5
+    assert min(cfg.train_alphas) < 0.16 and max(cfg.train_alphas) > 0.55
 
 
 def test_a_schedule_run_trains_saves_and_loads(tmp_path):
@@ -138,9 +140,9 @@ def test_a_schedule_run_trains_saves_and_loads(tmp_path):
     assert not np.any(np.asarray(res.metrics["diverged"]))
 
 
-CEM_CFG = objective.GradientConfig(policy="schedule", method="cem", knots=KNOTS, delays=(1.0, 5.0), alphas=(0.15, 0.3),
-                           horizon_s=30.0, record_every=10, steps_per_chunk=2, cem_population=6, filter_sigma=0.0,
-                           init_gains=(0.0, -1.0, -1.5))
+CEM_CFG = objective.GradientConfig(policy="schedule", grad_method="cem", schedule_knots=KNOTS, train_delays=(1.0, 5.0),
+                                   train_alphas=(0.15, 0.3), train_horizon_s=30.0, record_every=10, steps_per_chunk=2,
+                                   cem_population=6, filter_sigma=0.0, init_gains=(0.0, -1.0, -1.5))
 
 
 def test_cem_fitness_is_the_maps_counts():
@@ -176,7 +178,7 @@ def test_cem_keeps_its_best_and_is_deterministic():
     assert np.all(np.diff(obj) <= 0) and int(s1.update) == 2  # the best so far never gets worse
     np.testing.assert_array_less(np.full((3, 3), cem.SIGMA_MIN - 1e-7), np.asarray(s1.sigma))
     with pytest.raises(ValueError, match="cem"):
-        objective.GradientConfig(policy="network", method="cem")
+        objective.GradientConfig(policy="network", grad_method="cem")
 
 
 def test_oracle_rows_pick_what_they_promise():

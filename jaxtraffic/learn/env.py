@@ -36,6 +36,7 @@ from flax import struct
 
 from jaxtraffic.control import gain_policy as gp
 from jaxtraffic.control.gain_law import FILTER_SIGMA, sigma_nodes
+from jaxtraffic.learn.rules import check_fields, fail
 from jaxtraffic.model.linear import LinearModel, gain_law_is_regular, gain_law_wave_speed, linearize
 from jaxtraffic.model.params import TrafficParams, equilibrium
 from jaxtraffic.sim.initial import paper_initial_condition
@@ -105,14 +106,9 @@ def make_env_params(traffic: TrafficParams | None = None, filter_sigma: float = 
         raise ValueError(f"delay_max={ep.delay_max} s exceeds the buffer ({traffic.max_delay_steps} steps)")
     if not (0.0 <= ep.alpha_min and ep.alpha_max <= 1.0):
         raise ValueError("alpha range must lie in [0, 1]")
-    if not 0.0 < ep.gain_filter <= 1.0:
-        raise ValueError(f"gain_filter must lie in (0, 1], got {ep.gain_filter}")
-    if ep.h_rate_weight < 0.0 or ep.wave_weight < 0.0:
-        raise ValueError("h_rate_weight and wave_weight must be >= 0")
-    if not np.all(np.asarray(ep.gain_max) > 0):
-        raise ValueError(f"gain_max must be > 0, got {ep.gain_max}")
-    if not 0 <= ep.obs_segments <= traffic.n_points:
-        raise ValueError(f"obs_segments must lie in [0, n_points={traffic.n_points}], got {ep.obs_segments}")
+    check_fields(ep)  # each field's range (learn.rules: gain_max, gain_filter, the reward weights, ...)
+    if ep.obs_segments > traffic.n_points:
+        raise fail("obs_segments", ep.obs_segments, f"must lie in [0, n_points = {traffic.n_points}]")
     if ep.horizon < 1:
         raise ValueError(f"horizon must be >= 1 step, got {ep.horizon}")
     return ep

@@ -4,8 +4,9 @@
 fails before any directory is created or anything compiles, with a message naming the field, its
 flag, the value and the allowed range, e.g. ``lr = -1.0 (--lr): must be > 0``. It checks every
 leaf's type (from its annotation; numpy integers and floats are accepted and normalised to Python
-ones, strings and bools where a number is expected are not) and its range (``RULES``), then the
-constraints between fields. ``check_devices`` adds what depends on the process (the device count).
+ones, strings and bools where a number is expected are not) and its range (``learn.rules.RULES``, the one
+table of ranges, which the structs the fields configure check too), then the constraints between fields.
+``check_devices`` adds what depends on the process (the device count).
 The plant's physics (equilibrium, CFL, delay vs buffer) is checked by ``TrafficParams``.
 """
 
@@ -17,65 +18,14 @@ import numbers
 import os
 from typing import Any
 
-# field -> (lo, lo_inclusive, hi, hi_inclusive); None: unbounded on that side. Every float must be
-# finite unless listed in ALLOW_INF.
-RULES: dict[str, tuple[float | None, bool, float | None, bool]] = {
-    # plant
-    "delay": (0.0, True, None, False), "alpha": (0.0, True, 1.0, True), "alpha_noise": (0.0, True, None, False),
-    "n_points": (3, True, None, False), "dt": (0.0, False, None, False),
-    "max_delay_steps": (0, True, 10**6, True),
-    "substeps": (1, True, None, False), "filter_sigma": (0.0, True, None, False),
-    "controller_points": (3, True, None, False),
-    # env
-    "horizon_s": (0.0, False, None, False), "delay_spread": (0.0, True, None, False),
-    "phase_max": (0.0, True, None, False), "gain_max": (0.0, False, None, False),
-    "gain_filter": (0.0, False, 1.0, True), "h_rate_weight": (0.0, True, None, False),
-    "wave_weight": (0.0, True, None, False), "diverge_penalty": (0.0, True, None, False),
-    "obs_segments": (0, True, None, False),
-    # algo
-    "num_envs": (1, True, None, False), "num_steps": (1, True, None, False), "update_epochs": (1, True, None, False),
-    "num_minibatches": (1, True, None, False), "updates_per_chunk": (1, True, None, False),
-    "lr": (0.0, False, None, False), "lr_decay_steps": (0.0, True, None, False), "lr_final": (0.0, True, 1.0, True),
-    "gamma": (0.0, False, 1.0, True), "gae_lambda": (0.0, True, 1.0, True), "clip_eps": (0.0, False, None, False),
-    "ent_coef": (0.0, True, None, False), "vf_coef": (0.0, True, None, False),
-    "max_grad_norm": (0.0, False, None, False), "reward_scale": (0.0, False, None, False),
-    "init_sigma": (0.0, False, None, False),
-    # run
-    "seed": (0, True, 2**32 - 1, True), "seeds": (1, True, None, False), "total_steps": (1, True, None, False),
-    "max_wall_s": (0.0, False, None, False), "stop_patience": (1, True, None, False),
-    "restart_steps": (0, True, None, False), "checkpoint_every": (1, True, None, False),
-    "eval_horizon_s": (0.0, False, None, False), "val_horizon_s": (0.0, True, None, False),
-    "val_target": (0.0, False, None, False),
-    # grad (gradient-based training)
-    "grad_steps": (1, True, None, False), "grad_lr": (0.0, False, None, False),
-    "train_horizon_s": (0.0, False, None, False), "record_every": (1, True, None, False),
-    "steps_per_chunk": (1, True, None, False), "reward_weight": (0.0, True, None, False),
-    "waves_weight": (0.0, True, None, False), "comfort_weight": (0.0, True, None, False),
-    "effort_weight": (0.0, True, None, False), "scenario_clip": (0.0, True, None, False),
-    "certificate_weight": (0.0, True, None, False), "cem_population": (2, True, None, False),
-    "cem_sigma": (0.0, False, None, False),
-    "grad_gain_max": (0.0, False, None, False),
-}
+from jaxtraffic.learn.rules import RULES, check_range, fail
+
+# Every float must be finite unless listed in ALLOW_INF.
 FLOAT32_MAX = 3.4028234663852886e38
 MAX_STEPS = 10**8  # time steps of one rollout (a longer one would not fit the step counters, nor finish)
 ALLOW_INF = {"max_wall_s", "val_target"}  # inf: no wall-clock limit / no validation condition
 PAIR_RULES = {"delay_range": (0.0, None), "alpha_range": (0.0, 1.0), "amp_range": (0.0, None),
               "wavenumber_range": (0, None)}  # (lo bound, hi bound) of LO,HI pairs, with LO <= HI
-
-
-def _flag(name: str) -> str:
-    return "--" + name.replace("_", "-")
-
-
-def _fail(name: str, value: Any, why: str) -> ValueError:
-    return ValueError(f"{name} = {value!r} ({_flag(name)}): {why}")
-
-
-def _range_text(rule: tuple) -> str:
-    lo, lo_in, hi, hi_in = rule
-    if hi is None:
-        return f"must be {'>=' if lo_in else '>'} {lo}"
-    return f"must lie in {'[' if lo_in else '('}{lo}, {hi}{']' if hi_in else ')'}"
 
 
 def _is_int(x: Any) -> bool:
@@ -90,24 +40,24 @@ def _scalar(name: str, kind: str, value: Any) -> Any:
     """``value`` checked against the scalar type ``kind`` ("int", "float", "bool", "str") and normalised."""
     if kind == "int":
         if not _is_int(value):
-            raise _fail(name, value, "must be an integer")
+            raise fail(name, value, "must be an integer")
         return int(value)
     if kind == "float":
         if not _is_real(value):
-            raise _fail(name, value, "must be a number")
+            raise fail(name, value, "must be a number")
         value = float(value)
         if math.isnan(value) or (math.isinf(value) and name not in ALLOW_INF):
-            raise _fail(name, value, "must be finite")
+            raise fail(name, value, "must be finite")
         if math.isfinite(value) and abs(value) > FLOAT32_MAX:  # the programs compute in float32: it would be inf
-            raise _fail(name, value, f"must be finite in float32 (|x| <= {FLOAT32_MAX:.3g})")
+            raise fail(name, value, f"must be finite in float32 (|x| <= {FLOAT32_MAX:.3g})")
         return value
     if kind == "bool":
         if not isinstance(value, bool) and type(value).__name__ != "bool_":
-            raise _fail(name, value, "must be true or false")
+            raise fail(name, value, "must be true or false")
         return bool(value)
     if kind == "str":
         if not isinstance(value, str):
-            raise _fail(name, value, "must be a string")
+            raise fail(name, value, "must be a string")
     return value
 
 
@@ -123,29 +73,18 @@ def _typed(name: str, annotation: str, value: Any) -> Any:
     if kind.startswith("tuple["):
         inner = kind[len("tuple["):-1].split(",")
         if isinstance(value, (str, bytes)) or not hasattr(value, "__len__"):
-            raise _fail(name, value, f"must be a sequence of {inner[0]}s")
+            raise fail(name, value, f"must be a sequence of {inner[0]}s")
         if inner[-1] == "...":  # any length >= 1
             if len(value) < 1:
-                raise _fail(name, value, f"must hold at least one {inner[0]}")
+                raise fail(name, value, f"must hold at least one {inner[0]}")
             return tuple(_scalar(name, inner[0], v) for v in value)
         if len(value) != len(inner):
-            raise _fail(name, value, f"must be a pair LO,HI of {inner[0]}s" if len(inner) == 2
+            raise fail(name, value, f"must be a pair LO,HI of {inner[0]}s" if len(inner) == 2
                         else f"must be one value or {len(inner)} {inner[0]}s")
         return tuple(_scalar(name, k, v) for k, v in zip(inner, value, strict=True))
     if kind in ("int", "float", "bool", "str"):
         return _scalar(name, kind, value)
     return value  # an annotation this module does not know: left to its owner
-
-
-def _check_range(name: str, value: Any) -> None:
-    if name not in RULES or value is None:
-        return
-    rule = RULES[name]
-    lo, lo_in, hi, hi_in = rule
-    ok = (value >= lo if lo_in else value > lo) if lo is not None else True
-    ok = ok and ((value <= hi if hi_in else value < hi) if hi is not None else True)
-    if not ok:
-        raise _fail(name, value, _range_text(rule))
 
 
 def _check_pair(name: str, value: tuple | None) -> None:
@@ -154,10 +93,10 @@ def _check_pair(name: str, value: tuple | None) -> None:
     lo_bound, hi_bound = PAIR_RULES[name]
     lo, hi = value
     if lo > hi:
-        raise _fail(name, value, "needs LO <= HI")
+        raise fail(name, value, "needs LO <= HI")
     if lo < lo_bound or (hi_bound is not None and hi > hi_bound):
         span = f"[{lo_bound}, {hi_bound}]" if hi_bound is not None else f">= {lo_bound}"
-        raise _fail(name, value, f"both ends must be {span}" if hi_bound is None else f"must lie in {span}")
+        raise fail(name, value, f"both ends must be {span}" if hi_bound is None else f"must lie in {span}")
 
 
 def check_section(section: Any) -> None:
@@ -170,14 +109,11 @@ def check_section(section: Any) -> None:
             object.__setattr__(section, f.name, typed)
         choices = f.metadata.get("choices")
         if choices and typed is not None and typed not in choices:
-            raise _fail(f.name, typed, f"must be one of {tuple(choices)}")
-        if isinstance(typed, tuple) and f.name in RULES:  # each element in range (gain_max)
-            for x in typed:
-                _check_range(f.name, x)
-        elif isinstance(typed, tuple):
+            raise fail(f.name, typed, f"must be one of {tuple(choices)}")
+        if isinstance(typed, tuple) and f.name not in RULES:  # LO,HI pairs
             _check_pair(f.name, typed)
-        else:
-            _check_range(f.name, typed)
+        else:  # a number, or each element of a tuple (gain_max, train_delays, train_alphas)
+            check_range(f.name, typed)
 
 
 def check_config(cfg: Any) -> None:
@@ -186,32 +122,32 @@ def check_config(cfg: Any) -> None:
         check_section(getattr(cfg, f.name))
     pl, en, al, run = cfg.plant, cfg.env, cfg.algo, cfg.run
     if not run.out_dir:
-        raise _fail("out_dir", run.out_dir, "must not be empty")
+        raise fail("out_dir", run.out_dir, "must not be empty")
     batch = al.num_envs * al.num_steps
     if run.algo == "ppo" and batch % al.num_minibatches:  # (PPO's rules do not block a gradient run)
-        raise _fail("num_minibatches", al.num_minibatches,
+        raise fail("num_minibatches", al.num_minibatches,
                     f"must divide the batch num_envs * num_steps = {al.num_envs} * {al.num_steps} = {batch}")
     if run.algo == "ppo" and al.num_minibatches > batch:
-        raise _fail("num_minibatches", al.num_minibatches, f"must be <= the batch num_envs * num_steps = {batch}")
+        raise fail("num_minibatches", al.num_minibatches, f"must be <= the batch num_envs * num_steps = {batch}")
     cp = en.controller_points
     if cp is not None and (cp > pl.n_points or (pl.n_points - 1) % (cp - 1)):
-        raise _fail("controller_points", cp, f"the plant's grid (n-points {pl.n_points}) must refine it by an integer "
+        raise fail("controller_points", cp, f"the plant's grid (n-points {pl.n_points}) must refine it by an integer "
                     f"factor: (n_points - 1) a multiple of (controller_points - 1)")
     if cp is not None and cp != pl.n_points and run.algo != "gradient":
-        raise _fail("controller_points", cp, "PPO's controller acts on the training plant's grid; only --algo "
+        raise fail("controller_points", cp, "PPO's controller acts on the training plant's grid; only --algo "
                     "gradient trains a controller on a grid of its own")
     if run.val_plant == "reference" and run.val_horizon_s > 0 and run.algo == "ppo":
         _check_reference_validation(pl)
     for name in ("horizon_s", "eval_horizon_s"):
         value = getattr(en if name == "horizon_s" else run, name)
         if value < pl.dt:
-            raise _fail(name, value, f"must be >= one time step dt = {pl.dt} s")
+            raise fail(name, value, f"must be >= one time step dt = {pl.dt} s")
     for name, section in (("horizon_s", en), ("eval_horizon_s", run), ("val_horizon_s", run),
                           ("train_horizon_s", cfg.grad)):
         if (getattr(section, name) or 0.0) / pl.dt > MAX_STEPS:
-            raise _fail(name, getattr(section, name), f"must be at most {MAX_STEPS:.0e} time steps of dt = {pl.dt} s")
+            raise fail(name, getattr(section, name), f"must be at most {MAX_STEPS:.0e} time steps of dt = {pl.dt} s")
     if cfg.grad.init_gains is not None and len(cfg.grad.init_gains) != 3:
-        raise _fail("init_gains", cfg.grad.init_gains, "must be three gains eta1,eta2,eta3")
+        raise fail("init_gains", cfg.grad.init_gains, "must be three gains eta1,eta2,eta3")
 
 
 def _check_reference_validation(pl: Any) -> None:
@@ -221,13 +157,13 @@ def _check_reference_validation(pl: Any) -> None:
 
     ref = TrafficParams.reference()
     if (ref.n_points - 1) % (pl.n_points - 1):
-        raise _fail("n_points", pl.n_points, f"the validation suite runs on the reference plant ({ref.n_points} "
+        raise fail("n_points", pl.n_points, f"the validation suite runs on the reference plant ({ref.n_points} "
                     f"points), whose grid must refine the training grid by an integer factor: n_points - 1 must "
                     f"divide {ref.n_points - 1} (or give --val-plant training)")
     try:
         ref.replace(dt=pl.dt, max_delay_steps=pl.max_delay_steps)
     except ValueError as err:
-        raise _fail("val_plant", "reference", f"the reference plant at dt = {pl.dt} s: {err} (or give --val-plant "
+        raise fail("val_plant", "reference", f"the reference plant at dt = {pl.dt} s: {err} (or give --val-plant "
                     "training)") from None
 
 
@@ -235,10 +171,10 @@ def check_devices(cfg: Any, n_devices: int) -> None:
     """The constraints that depend on the number of devices the environments are split over."""
     al = cfg.algo
     if al.num_envs % n_devices:
-        raise _fail("num_envs", al.num_envs, f"must be divisible by the number of devices ({n_devices})")
+        raise fail("num_envs", al.num_envs, f"must be divisible by the number of devices ({n_devices})")
     local = al.num_envs // n_devices * al.num_steps
     if local % al.num_minibatches:
-        raise _fail("num_minibatches", al.num_minibatches,
+        raise fail("num_minibatches", al.num_minibatches,
                     f"must divide the batch of each device, num_envs / devices * num_steps = {local}")
 
 
@@ -261,7 +197,7 @@ def check_memory(cfg: Any, have: float | None = None) -> None:
     need = memory_estimate(cfg)
     if need > 0.8 * have:
         al = cfg.algo
-        raise _fail("num_envs", al.num_envs, f"with num_steps = {al.num_steps} and {cfg.run.seeds} seed(s) "
+        raise fail("num_envs", al.num_envs, f"with num_steps = {al.num_steps} and {cfg.run.seeds} seed(s) "
                     f"(--num-steps, --seeds) the rollouts alone need about {need / 2**30:.3g} GiB, more than this "
                     f"machine's {have / 2**30:.3g} GiB; use fewer environments or steps")
 
@@ -276,5 +212,5 @@ def check_initial_amplitudes(cfg: Any, traffic: Any) -> None:
     for amp in en.amp_range:
         rho0, v0 = paper_initial_condition(traffic, amp, float(en.wavenumber_range[0]))
         if not bool(is_physical(rho0, v0, traffic)):
-            raise _fail("amp_range", tuple(en.amp_range), f"an initial state of amplitude {amp:g} veh/m leaves the "
+            raise fail("amp_range", tuple(en.amp_range), f"an initial state of amplitude {amp:g} veh/m leaves the "
                         "physical region (0 < rho < 1/l, v >= 0); use smaller amplitudes")

@@ -27,10 +27,17 @@ from jaxtraffic.model.params import SCHEMES, TrafficParams
 from jaxtraffic.sim.metrics import REWARD_TARGET
 
 CONFIG_VERSION = 2
-_TP = TrafficParams()
-_EP = EnvParams()
-_PPO = {f.name: f.default for f in dataclasses.fields(PPOConfig)}
-_GRAD = GradientConfig()
+
+
+def _defaults(cls: type) -> dict[str, Any]:
+    """The default of each field of the dataclass ``cls`` (read, not instantiated)."""
+    return {f.name: f.default for f in dataclasses.fields(cls)}
+
+
+_TP = _defaults(TrafficParams)
+_EP = _defaults(EnvParams)
+_PPO = _defaults(PPOConfig)
+_GRAD = _defaults(GradientConfig)
 ALGOS = ("ppo", "gradient")
 # The default PPO recipe is a population (BENCHMARKS.md "A population by default"): POPULATION members
 # trained at once, each on PPOConfig's num_envs / POPULATION environments, so that a chunk steps as many
@@ -47,15 +54,15 @@ def _f(default: Any, help: str, **meta: Any) -> Any:
 class PlantConfig:
     """The nominal training plant and grid."""
 
-    delay: float = _f(float(_EP.traffic.delay), "plant input delay D, s (multiple of dt)")
-    alpha: float = _f(_TP.alpha, "ACC penetration rate")
-    alpha_noise: float = _f(_TP.alpha_noise, "per-step std of plant alpha noise")
-    n_points: int = _f(_TP.n_points, "grid points of the training plant (dx = L/(n-1))")
-    scheme: str = _f(_TP.scheme, "the training plant's scheme (upwind: the paper's; muscl: second order)",
+    delay: float = _f(float(_EP["traffic"].delay), "plant input delay D, s (multiple of dt)")
+    alpha: float = _f(_TP["alpha"], "ACC penetration rate")
+    alpha_noise: float = _f(_TP["alpha_noise"], "per-step std of plant alpha noise")
+    n_points: int = _f(_TP["n_points"], "grid points of the training plant (dx = L/(n-1))")
+    scheme: str = _f(_TP["scheme"], "the training plant's scheme (upwind: the paper's; muscl: second order)",
                      choices=SCHEMES)
-    substeps: int = _f(_TP.substeps, "solver steps per time step dt (a finer plant, same control period)")
-    dt: float = _f(_TP.dt, "time step, s (the control period)")
-    max_delay_steps: int = _f(_TP.max_delay_steps, "delay buffer capacity, steps")
+    substeps: int = _f(_TP["substeps"], "solver steps per time step dt (a finer plant, same control period)")
+    dt: float = _f(_TP["dt"], "time step, s (the control period)")
+    max_delay_steps: int = _f(_TP["max_delay_steps"], "delay buffer capacity, steps")
 
     def traffic(self) -> TrafficParams:
         return TrafficParams(delay=self.delay, alpha=self.alpha, alpha_noise=self.alpha_noise,
@@ -67,28 +74,28 @@ class PlantConfig:
 class EnvConfig:
     """Episodes, domain randomisation and reward shaping (``learn.env.EnvParams``)."""
 
-    horizon_s: float = _f(_EP.horizon * float(_EP.traffic.dt), "episode length, s (truncation)")
+    horizon_s: float = _f(_EP["horizon"] * float(_EP["traffic"].dt), "episode length, s (truncation)")
     delay_spread: float = _f(1.0, "train on plant delays ~ U(D - spread, D + spread) s (clipped at 0); 0 disables")
     delay_range: tuple[float, float] | None = _f(None, "plant delay range LO,HI s (overrides --delay-spread)")
     alpha_range: tuple[float, float] | None = _f(None, "plant alpha range LO,HI")
-    amp_range: tuple[float, float] = _f((_EP.amp_min, _EP.amp_max), "initial amplitude LO,HI veh/m")
-    wavenumber_range: tuple[int, int] = _f((_EP.wavenumber_min, _EP.wavenumber_max),
+    amp_range: tuple[float, float] = _f((_EP["amp_min"], _EP["amp_max"]), "initial amplitude LO,HI veh/m")
+    wavenumber_range: tuple[int, int] = _f((_EP["wavenumber_min"], _EP["wavenumber_max"]),
                                            "initial wavenumber LO,HI (integers)")
-    phase_max: float = _f(_EP.phase_max, "initial phase ~ U(0, phase_max) rad")
+    phase_max: float = _f(_EP["phase_max"], "initial phase ~ U(0, phase_max) rad")
     gain_max: float | tuple[float, float, float] = _f(
-        _EP.gain_max, "|eta_i| bound of PPO's gains (normalised): one value, or ETA1,ETA2,ETA3 (gradient "
+        _EP["gain_max"], "|eta_i| bound of PPO's gains (normalised): one value, or ETA1,ETA2,ETA3 (gradient "
         "training: --grad-gain-max)")
-    gain_filter: float = _f(_EP.gain_filter, "applied gains move this fraction of the way to the policy's gains "
+    gain_filter: float = _f(_EP["gain_filter"], "applied gains move this fraction of the way to the policy's gains "
                             "each step (first-order filter, time constant ~ dt/k); 1: applied directly (the paper)")
-    h_rate_weight: float = _f(_EP.h_rate_weight, "training reward -= w * sum_i ((h_i - h_prev_i)/h_bar)^2, the "
+    h_rate_weight: float = _f(_EP["h_rate_weight"], "training reward -= w * sum_i ((h_i - h_prev_i)/h_bar)^2, the "
                               "squared step change of the commanded time gap (dimensionless); 0: the paper's reward")
-    wave_weight: float = _f(_EP.wave_weight, "training reward -= w * learn.env.backward_wave_cost(applied gains): "
+    wave_weight: float = _f(_EP["wave_weight"], "training reward -= w * learn.env.backward_wave_cost(applied gains): "
                             "0 when their closed-loop wave speed (linear.gain_law_wave_speed) is >= --wave-speed-min, "
                             "rising to 1 at 5 m/s below it; 0: the paper's reward")
-    wave_speed_min: float = _f(_EP.wave_speed_min, "m/s, see --wave-weight")
-    diverge_penalty: float = _f(_EP.diverge_penalty, "reward of the step on which the plant leaves the physical "
+    wave_speed_min: float = _f(_EP["wave_speed_min"], "m/s, see --wave-weight")
+    diverge_penalty: float = _f(_EP["diverge_penalty"], "reward of the step on which the plant leaves the physical "
                                 "region (the episode then ends), dimensionless, subtracted")
-    obs_segments: int = _f(_EP.obs_segments, "observation: each normalised field (rho, v, h_prev) averaged over "
+    obs_segments: int = _f(_EP["obs_segments"], "observation: each normalised field (rho, v, h_prev) averaged over "
                            "this many equal road segments; 0: the full fields (3 x n-points values)")
     filter_sigma: float = _f(FILTER_SIGMA, "width (m) of the Gaussian filter the learned gain law applies to the "
                              "observed rho~, v~ (its own spatial scale, docs/model.md section 16); 0: the paper's "
@@ -128,7 +135,7 @@ class AlgoConfig:
 
 
 def _by_policy(name: str) -> str:
-    return ", ".join(f"{p}: {POLICY_DEFAULTS[p].get(name, getattr(_GRAD, name))}" for p in POLICIES)
+    return ", ".join(f"{p}: {POLICY_DEFAULTS[p].get(name, _GRAD[name])}" for p in POLICIES)
 
 
 @dataclass(frozen=True)
@@ -136,60 +143,54 @@ class GradConfig:
     """Gradient-based training (``--algo gradient``, ``learn.gradient.GradientConfig``): analytic gradients
     of a rollout objective over a grid of training scenarios. ``None``: the policy's default."""
 
-    policy: str = _f(_GRAD.policy, "gains: three constant gains; network: the actor network PPO trains "
+    policy: str = _f(_GRAD["policy"], "gains: three constant gains; network: the actor network PPO trains "
                      "(state-dependent gains); schedule: gains scheduled in the delay the controller is told "
                      "(--schedule-knots), trained over the robustness map's delays and alphas", choices=POLICIES)
-    grad_steps: int | None = _f(None, f"Adam steps ({_by_policy('steps')})")
-    grad_lr: float | None = _f(None, f"Adam step size ({_by_policy('lr')})")
+    grad_steps: int | None = _f(None, f"Adam steps ({_by_policy('grad_steps')})")
+    grad_lr: float | None = _f(None, f"Adam step size ({_by_policy('grad_lr')})")
     train_delays: tuple[float, ...] | None = _f(None, "plant delays of the training scenarios, s "
-                                                 f"({_by_policy('delays')})")
+                                                 f"({_by_policy('train_delays')})")
     train_alphas: tuple[float, ...] | None = _f(None, "plant alphas of the training scenarios "
-                                                 f"({_by_policy('alphas')})")
-    train_amplitudes: tuple[float, ...] = _f(_GRAD.amplitudes, "initial perturbation amplitudes, veh/m")
-    train_wavenumbers: tuple[int, ...] = _f(_GRAD.wavenumbers, "initial perturbation wavenumbers")
-    train_phases: tuple[float, ...] = _f(_GRAD.phases, "initial perturbation phases, rad")
-    train_horizon_s: float | None = _f(None, f"rollout length of the objective, s ({_by_policy('horizon_s')})")
-    record_every: int = _f(_GRAD.record_every, "steps between objective samples (also the checkpointed chunk)")
-    steps_per_chunk: int = _f(_GRAD.steps_per_chunk, "Adam steps per compiled chunk (progress/checkpoint interval)")
+                                                 f"({_by_policy('train_alphas')})")
+    train_amplitudes: tuple[float, ...] = _f(_GRAD["train_amplitudes"], "initial perturbation amplitudes, veh/m")
+    train_wavenumbers: tuple[int, ...] = _f(_GRAD["train_wavenumbers"], "initial perturbation wavenumbers")
+    train_phases: tuple[float, ...] = _f(_GRAD["train_phases"], "initial perturbation phases, rad")
+    train_horizon_s: float | None = _f(None, f"rollout length of the objective, s ({_by_policy('train_horizon_s')})")
+    record_every: int = _f(_GRAD["record_every"], "steps between objective samples (also the checkpointed chunk)")
+    steps_per_chunk: int = _f(_GRAD["steps_per_chunk"], "Adam steps per compiled chunk (progress/checkpoint interval)")
     reward_weight: float | None = _f(None, "objective weight of -mean reward (dimensionless; "
                                      f"{_by_policy('reward_weight')})")
     waves_weight: float | None = _f(None, "objective weight of the mean of log(1 + var_x rho/100 + var_x v) "
                                     "weighted by t/T (rho in veh/km, v in m/s): wave amplitude, blind to a uniform "
-                                    f"offset ({_by_policy('wave_weight')})")
+                                    f"offset ({_by_policy('waves_weight')})")
     comfort_weight: float | None = _f(None, f"objective weight of J_comfort ({_by_policy('comfort_weight')})")
-    effort_weight: float = _f(_GRAD.effort_weight, "objective weight of mean (h - h_bar)^2, 1/s^2")
+    effort_weight: float = _f(_GRAD["effort_weight"], "objective weight of mean (h - h_bar)^2, 1/s^2")
     scenario_clip: float | None = _f(None, "> 0: clip each scenario's gradient to this norm before averaging; 0: "
                                      f"off ({_by_policy('scenario_clip')})")
-    certificate_weight: float = _f(_GRAD.certificate_weight, "objective weight of the certificate penalty: by how "
+    certificate_weight: float = _f(_GRAD["certificate_weight"], "objective weight of the certificate penalty: by how "
                                    "much the law's largest growth rate (1/s, control.stability) exceeds 1e-3/s")
     init_gains: tuple[float, ...] | None = _f(None, "initial gains eta1,eta2,eta3 (schedule: at every knot; "
                                               f"{_by_policy('init_gains')})")
-    schedule_knots: tuple[float, ...] = _f(_GRAD.knots, "schedule policy: the knot delays of its gain table, s")
+    schedule_knots: tuple[float, ...] = _f(_GRAD["schedule_knots"],
+                                           "schedule policy: the knot delays of its gain table, s")
     grad_method: str | None = _f(None, "adam: Adam on the objective's gradient; cem: the cross-entropy method on the "
                                  "robustness map's counts (stabilised, diverged) over the training scenarios, "
-                                 f"derivative-free, --grad-steps generations ({_by_policy('method')})",
+                                 f"derivative-free, --grad-steps generations ({_by_policy('grad_method')})",
                                  choices=METHODS)
-    cem_population: int = _f(_GRAD.cem_population, "cem: parameter sets rolled out per generation")
-    cem_sigma: float = _f(_GRAD.cem_sigma, "cem: initial standard deviation of the search over the gains")
-    grad_gain_max: float | None = _f(None, f"network policy: |eta_i| bound (default {_GRAD.gain_max}; PPO's is "
-                                     "--gain-max)")
+    cem_population: int = _f(_GRAD["cem_population"], "cem: parameter sets rolled out per generation")
+    cem_sigma: float = _f(_GRAD["cem_sigma"], "cem: initial standard deviation of the search over the gains")
+    grad_gain_max: float | None = _f(None, f"network policy: |eta_i| bound (default {_GRAD['grad_gain_max']}; "
+                                     "PPO's is --gain-max)")
 
     def gradient_config(self, env: EnvConfig, hidden: tuple[int, ...]) -> GradientConfig:
-        """The algorithm's ``GradientConfig`` (gain filter from ``env``, network from ``algo``; the gain bound is
-        ``grad_gain_max``, not PPO's ``env.gain_max``: the gradient results were measured with 3)."""
-        given = {"steps": self.grad_steps, "lr": self.grad_lr, "delays": self.train_delays,
-                 "gain_max": self.grad_gain_max, "alphas": self.train_alphas, "horizon_s": self.train_horizon_s,
-                 "reward_weight": self.reward_weight, "wave_weight": self.waves_weight,
-                 "comfort_weight": self.comfort_weight, "scenario_clip": self.scenario_clip,
-                 "init_gains": None if self.init_gains is None else tuple(self.init_gains), "method": self.grad_method}
+        """The algorithm's ``GradientConfig``: every field given (not ``None``) under its own name, which is
+        ``GradientConfig``'s too, over the policy's defaults (``POLICY_DEFAULTS``); the gain filter, the law's
+        filter and the controller's grid from ``env``, the network from ``algo`` (``hidden``). The gain bound is
+        ``grad_gain_max``, not PPO's ``env.gain_max``: the gradient results were measured with 3."""
+        given = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         return GradientConfig.for_policy(
-            self.policy, **{k: v for k, v in given.items() if v is not None},
-            amplitudes=self.train_amplitudes, wavenumbers=self.train_wavenumbers, phases=self.train_phases,
-            record_every=self.record_every, steps_per_chunk=self.steps_per_chunk,
-            hidden=hidden, gain_filter=env.gain_filter, effort_weight=self.effort_weight,
-            filter_sigma=env.filter_sigma, certificate_weight=self.certificate_weight,
-            knots=tuple(self.schedule_knots), cem_population=self.cem_population, cem_sigma=self.cem_sigma,
-            controller_points=env.controller_points or 0)
+            **{k: tuple(v) if isinstance(v, list) else v for k, v in given.items() if v is not None}, hidden=hidden,
+            gain_filter=env.gain_filter, filter_sigma=env.filter_sigma, controller_points=env.controller_points or 0)
 
 
 @dataclass(frozen=True)

@@ -11,6 +11,7 @@ from typing import Any
 
 from jaxtraffic.control.gain_law import FILTER_SIGMA
 from jaxtraffic.control.networks import SMALL_HIDDEN
+from jaxtraffic.learn.rules import check_fields
 
 POLICIES = ("gains", "network", "schedule")
 METHODS = ("adam", "cem")  # Adam on the gradient of the objective; the cross-entropy method on the map's counts
@@ -19,76 +20,63 @@ METHODS = ("adam", "cem")  # Adam on the gradient of the objective; the cross-en
 @dataclass(frozen=True)
 class GradientConfig:
     """Gradient-training settings. Shape-setting fields (scenario grid, horizon, policy, network)
-    are static; the objective weights and Adam's settings are traced (``Weights``, ``lr``...).
+    are static; the objective weights and Adam's settings are traced (``Weights``, ``grad_lr``...).
 
-    The training scenarios are the Cartesian product of ``delays`` (s, multiples of dt) x
-    ``alphas`` x ``amplitudes`` (veh/m) x ``wavenumbers`` x ``phases`` (rad) of the initial
-    cosine perturbation (``sim.initial.paper_initial_condition``).
+    Each field has the name of the config tree's field and flag it comes from (``learn.config.GradConfig``:
+    ``grad_lr`` is ``--grad-lr``; ``gain_filter``, ``filter_sigma`` and ``controller_points`` come from the
+    environment's section, ``hidden`` from ``--network``; ``max_grad_norm`` has no flag here) and is checked
+    against that name's range in ``learn.rules.RULES``.
+
+    The training scenarios are the Cartesian product of ``train_delays`` (s, multiples of dt) x
+    ``train_alphas`` x ``train_amplitudes`` (veh/m) x ``train_wavenumbers`` x ``train_phases`` (rad) of the
+    initial cosine perturbation (``sim.initial.paper_initial_condition``).
     """
 
     policy: str = "gains"
-    delays: tuple[float, ...] = (3.0, 4.0, 5.0)
-    alphas: tuple[float, ...] = (0.15,)
-    amplitudes: tuple[float, ...] = (0.010,)
-    wavenumbers: tuple[int, ...] = (4,)
-    phases: tuple[float, ...] = (0.0,)
-    horizon_s: float = 300.0
+    train_delays: tuple[float, ...] = (3.0, 4.0, 5.0)
+    train_alphas: tuple[float, ...] = (0.15,)
+    train_amplitudes: tuple[float, ...] = (0.010,)
+    train_wavenumbers: tuple[int, ...] = (4,)
+    train_phases: tuple[float, ...] = (0.0,)
+    train_horizon_s: float = 300.0
     record_every: int = 10
     steps_per_chunk: int = 5
     hidden: tuple[int, ...] = SMALL_HIDDEN
-    gain_max: float = 3.0
+    grad_gain_max: float = 3.0
     gain_filter: float = 0.2
-    lr: float = 0.05
+    grad_lr: float = 0.05
     max_grad_norm: float = 1.0
     reward_weight: float = 1.0
-    wave_weight: float = 0.0
+    waves_weight: float = 0.0
     comfort_weight: float = 1e-5
     effort_weight: float = 0.0
     init_gains: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    steps: int = 40  # Adam steps in all
+    grad_steps: int = 40  # Adam steps in all
     scenario_clip: float = 0.0  # > 0: clip each scenario's gradient to this norm (``objective_and_grad``)
     filter_sigma: float = FILTER_SIGMA  # m, the gain law's Gaussian filter (``control.gain_law``); 0: pointwise
     controller_points: int = 0  # the controller's own grid (``control.adapter``); 0: the plant's
     certificate_weight: float = 0.0  # objective += w * ``certificate_penalty`` (1/s)
-    knots: tuple[float, ...] = (0.0, 2.0, 4.0, 6.0, 8.0)  # s, the schedule policy's knot delays
-    method: str = "adam"  # "cem": ``learn.gradient.cem`` (derivative-free; steps are its generations)
+    schedule_knots: tuple[float, ...] = (0.0, 2.0, 4.0, 6.0, 8.0)  # s, the schedule policy's knot delays
+    grad_method: str = "adam"  # "cem": ``learn.gradient.cem`` (derivative-free; grad_steps are its generations)
     cem_population: int = 24  # CEM: parameter sets per generation
     cem_sigma: float = 0.3  # CEM: initial standard deviation of the search distribution (dimensionless gains)
 
     def __post_init__(self) -> None:
         if self.policy not in POLICIES:
             raise ValueError(f"policy must be one of {POLICIES}, got {self.policy!r}")
-        for name in ("delays", "alphas", "amplitudes", "wavenumbers", "phases"):
+        for name in ("train_delays", "train_alphas", "train_amplitudes", "train_wavenumbers", "train_phases"):
             if len(getattr(self, name)) < 1:
                 raise ValueError(f"{name} needs at least one value")
-        if min(self.delays) < 0:
-            raise ValueError(f"delays must be >= 0 s, got {self.delays}")
-        if not all(0.0 < a <= 1.0 for a in self.alphas):
-            raise ValueError(f"alphas must lie in (0, 1], got {self.alphas}")
-        if self.record_every < 1 or self.steps_per_chunk < 1 or self.steps < 1:
-            raise ValueError("record_every, steps_per_chunk and steps must be >= 1")
-        for name in ("lr", "max_grad_norm", "gain_max"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        if not 0.0 < self.gain_filter <= 1.0:
-            raise ValueError(f"gain_filter must lie in (0, 1], got {self.gain_filter}")
-        for name in ("reward_weight", "wave_weight", "comfort_weight", "effort_weight", "scenario_clip",
-                     "certificate_weight"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
-        if not self.filter_sigma >= 0 or self.controller_points < 0 or self.controller_points in (1, 2):
-            raise ValueError(f"filter_sigma must be >= 0 m and controller_points 0 or >= 3, got "
-                             f"{self.filter_sigma}, {self.controller_points}")
-        if self.method not in METHODS or (self.method == "cem" and self.policy == "network"):
-            raise ValueError(f"method must be one of {METHODS} (cem: gains or schedule policy), got {self.method!r} "
-                             f"for policy {self.policy!r}")
-        if self.cem_population < 2 or not self.cem_sigma > 0:
-            raise ValueError(f"cem_population must be >= 2 and cem_sigma > 0, got {self.cem_population}, "
-                             f"{self.cem_sigma}")
-        if len(self.knots) < 1 or any(b <= a for a, b in zip(self.knots, self.knots[1:], strict=False)):
-            raise ValueError(f"knots must be increasing delays, got {self.knots}")
-        if self.policy == "network" and max(abs(g) for g in self.init_gains) >= self.gain_max:
-            raise ValueError(f"init_gains {self.init_gains} must lie inside (-gain_max, gain_max)")
+        # every field's range (0: the plant's grid is the controller's, outside the rule of a grid of its own)
+        check_fields(self, skip=("controller_points",) if self.controller_points == 0 else ())
+        if self.grad_method not in METHODS or (self.grad_method == "cem" and self.policy == "network"):
+            raise ValueError(f"grad_method must be one of {METHODS} (cem: gains or schedule policy), got "
+                             f"{self.grad_method!r} for policy {self.policy!r}")
+        if len(self.schedule_knots) < 1 or any(b <= a for a, b in zip(self.schedule_knots, self.schedule_knots[1:],
+                                                                         strict=False)):
+            raise ValueError(f"schedule_knots must be increasing delays, got {self.schedule_knots}")
+        if self.policy == "network" and max(abs(g) for g in self.init_gains) >= self.grad_gain_max:
+            raise ValueError(f"init_gains {self.init_gains} must lie inside (-grad_gain_max, grad_gain_max)")
 
     @classmethod
     def for_policy(cls, policy: str = "gains", **overrides: Any) -> GradientConfig:
@@ -99,8 +87,8 @@ class GradientConfig:
 
     @property
     def n_scenarios(self) -> int:
-        return (len(self.delays) * len(self.alphas) * len(self.amplitudes) * len(self.wavenumbers)
-                * len(self.phases))
+        return (len(self.train_delays) * len(self.train_alphas) * len(self.train_amplitudes)
+                * len(self.train_wavenumbers) * len(self.train_phases))
 
 
 # The network policy: a smaller step (its first layer sees 3 n + 3 inputs), half the steps, and
@@ -110,8 +98,9 @@ class GradientConfig:
 # plants), 600 s as the map, started from a law that stabilises the nominal plant; the wave objective is its Adam option
 POLICY_DEFAULTS: dict[str, dict[str, Any]] = {
     "gains": {},
-    "network": {"lr": 3e-3, "steps": 20, "delays": (0.0, 3.0, 6.0)},
-    "schedule": {"method": "cem", "steps": 10, "delays": (0.3, 1.7, 3.3, 4.7, 6.3, 7.7),
-                 "alphas": (0.125, 0.225, 0.325, 0.425, 0.525, 0.575), "horizon_s": 600.0, "reward_weight": 0.0,
-                 "wave_weight": 1.0, "comfort_weight": 0.0, "scenario_clip": 1.0, "init_gains": (0.0, -1.0, -1.5)},
+    "network": {"grad_lr": 3e-3, "grad_steps": 20, "train_delays": (0.0, 3.0, 6.0)},
+    "schedule": {"grad_method": "cem", "grad_steps": 10, "train_delays": (0.3, 1.7, 3.3, 4.7, 6.3, 7.7),
+                 "train_alphas": (0.125, 0.225, 0.325, 0.425, 0.525, 0.575), "train_horizon_s": 600.0,
+                 "reward_weight": 0.0, "waves_weight": 1.0, "comfort_weight": 0.0, "scenario_clip": 1.0,
+                 "init_gains": (0.0, -1.0, -1.5)},
 }

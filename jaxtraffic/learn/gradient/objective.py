@@ -7,10 +7,10 @@ Two policies are trained this way:
 
 * ``"gains"``: the paper's three-gain law with three constant gains (eta1, eta2, eta3);
 * ``"network"``: the same actor network PPO trains (``control.networks.ActorCritic``; its critic is not
-  used), whose deterministic gains gain_max * tanh(mean) pass through the same first-order gain
+  used), whose deterministic gains grad_gain_max * tanh(mean) pass through the same first-order gain
   filter as PPO's and act through the same three-gain law (``control.gain_policy.policy_controller``);
 * ``"schedule"``: a family of gain triples scheduled in the input delay (``control.gain_law.scheduled_gains``:
-  a (K, 3) table at the ``knots``, interpolated at the delay the controller is told). In training every
+  a (K, 3) table at the ``schedule_knots``, interpolated at the delay the controller is told). In training every
   scenario's controller is told its plant's delay; it is not told the plant's alpha. Its defaults train it
   over the robustness map's ranges of delay and alpha on scenarios offset from both maps' cells.
 
@@ -25,7 +25,8 @@ state, so it does not penalise the steady offset a plant with another alpha sett
 is weighted by t_k / T, so that late waves, which the robustness map judges, count most),
 J_comfort in the units of ``metrics`` (rho in veh/km, a in m/s^2) and effort the RMS of h - h_bar
 in s (both sampled every ``record_every`` steps; the square is used directly, since the gradient of
-an RMS is not finite at zero). Default weights: w_r = 1, w_w = 0, w_c = 1e-5, w_e = 0.
+an RMS is not finite at zero). The weights w_r, w_w, w_c, w_e are ``reward_weight``, ``waves_weight``,
+``comfort_weight``, ``effort_weight`` (``Weights``; defaults 1, 0, 1e-5, 0).
 
 Memory: the rollout checkpoints every recording chunk (``simulate(remat=True)``), so the
 backward pass stores the carry once per chunk and recomputes one chunk at a time.
@@ -36,6 +37,7 @@ scenario diverges (tested). Adam with global-norm gradient clipping.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import itertools
 from typing import Any
@@ -72,10 +74,10 @@ ROAD_LENGTH = float(TrafficParams().L)
 class Weights:
     """Traced objective weights (see the module docstring)."""
 
-    reward: Array
-    waves: Array
-    comfort: Array
-    effort: Array
+    reward_weight: Array
+    waves_weight: Array
+    comfort_weight: Array
+    effort_weight: Array
 
 
 @struct.dataclass
@@ -98,7 +100,8 @@ class GradState:
 
 def training_scenarios(cfg: GradientConfig, base: TrafficParams) -> Scenarios:
     """The scenario grid of ``cfg`` on the grid of ``base`` (alpha noise off)."""
-    grid = list(itertools.product(cfg.delays, cfg.alphas, cfg.amplitudes, cfg.wavenumbers, cfg.phases))
+    grid = list(itertools.product(cfg.train_delays, cfg.train_alphas, cfg.train_amplitudes, cfg.train_wavenumbers,
+                                  cfg.train_phases))
     dtype = jnp.result_type(float)  # float32, or float64 under jax.enable_x64
     delays, alphas, amps, wns, phases = (jnp.asarray(c, dtype) for c in zip(*grid, strict=True))
     b = len(grid)
@@ -121,17 +124,17 @@ def obs_statistics(n_points: int) -> tuple[Array, Array]:
 
 def init_theta(cfg: GradientConfig, base: TrafficParams, key: Array) -> Any:
     """Initial parameters: the gains ``init_gains``, or a network whose output is (nearly) those
-    gains everywhere (final actor bias atanh(init_gains / gain_max), small final weights)."""
+    gains everywhere (final actor bias atanh(init_gains / grad_gain_max), small final weights)."""
     g0 = jnp.asarray(cfg.init_gains, jnp.result_type(float))
     if cfg.policy == "gains":
         return g0
     if cfg.policy == "schedule":
-        return jnp.tile(g0, (len(cfg.knots), 1))
+        return jnp.tile(g0, (len(cfg.schedule_knots), 1))
     n = cfg.controller_points or base.n_points
     params = _network(cfg).init(key, jnp.zeros((feature_size(n),)))
     actor = params["params"]["actor"]
     last = sorted(k for k in actor if k.startswith("Dense_"))[-1]
-    bias = jnp.arctanh(g0 / cfg.gain_max)
+    bias = jnp.arctanh(g0 / cfg.grad_gain_max)
     return {"params": {**params["params"], "actor": {**actor, last: {**actor[last], "bias": bias}}}}
 
 
@@ -144,9 +147,9 @@ def own_controller(theta: Any, cfg: GradientConfig, n_points: int, dx: float, de
         chex.assert_shape(theta, (3,))
         return constant_gains(theta[0], theta[1], theta[2], cfg.filter_sigma, dx)
     if cfg.policy == "schedule":
-        return scheduled_gains(theta, cfg.knots, delay, cfg.filter_sigma, dx)
+        return scheduled_gains(theta, cfg.schedule_knots, delay, cfg.filter_sigma, dx)
     mean, var = obs_statistics(n_points)
-    return policy_controller(theta, mean, var, cfg.gain_max, hidden=tuple(cfg.hidden), gain_filter=cfg.gain_filter,
+    return policy_controller(theta, mean, var, cfg.grad_gain_max, hidden=tuple(cfg.hidden), gain_filter=cfg.gain_filter,
                              sigma_nodes=nodes)
 
 
@@ -156,7 +159,7 @@ def fixed_gains(theta: Any, cfg: GradientConfig, delay: float | Array) -> Array 
     if cfg.policy == "gains":
         return jnp.asarray(theta)
     if cfg.policy == "schedule":
-        return schedule_gains(DelaySchedule(knots=jnp.asarray(cfg.knots, theta.dtype), table=theta,
+        return schedule_gains(DelaySchedule(knots=jnp.asarray(cfg.schedule_knots, theta.dtype), table=theta,
                                             delay=jnp.asarray(delay, theta.dtype)))
     return None
 
@@ -173,31 +176,31 @@ def make_controller(theta: Any, cfg: GradientConfig, base: TrafficParams, delay:
 
 
 def weights_of(cfg: GradientConfig) -> Weights:
-    return Weights(*(jnp.asarray(getattr(cfg, f"{n}_weight"), jnp.float32)
-                     for n in ("reward", "wave", "comfort", "effort")))
+    return Weights(**{f.name: jnp.asarray(getattr(cfg, f.name), jnp.float32) for f in dataclasses.fields(Weights)})
 
 
 def check_scenarios(cfg: GradientConfig, base: TrafficParams) -> None:
     """``ValueError`` naming the flag if a training scenario is one the plant cannot represent: a delay beyond
     the buffer, an initial state outside the physical region, a sampling interval longer than the horizon."""
     cap = base.max_delay_steps
-    beyond = [d for d in cfg.delays if round(d / float(base.dt)) > cap]
+    beyond = [d for d in cfg.train_delays if round(d / float(base.dt)) > cap]
     if beyond:
         raise ValueError(f"train_delays = {beyond} (--train-delays): beyond the delay buffer's "
                          f"{cap * float(base.dt):g} s (--max-delay-steps {cap} x dt {float(base.dt):g} s); raise "
                          "--max-delay-steps")
-    if cfg.record_every * float(base.dt) > cfg.horizon_s:
+    if cfg.record_every * float(base.dt) > cfg.train_horizon_s:
         raise ValueError(f"record_every = {cfg.record_every} (--record-every): must be <= the training horizon "
-                         f"(--train-horizon-s {cfg.horizon_s:g} s = {round(cfg.horizon_s / float(base.dt))} steps)")
+                         f"(--train-horizon-s {cfg.train_horizon_s:g} s = "
+                         f"{round(cfg.train_horizon_s / float(base.dt))} steps)")
     sc = training_scenarios(cfg, base)
     if not bool(jnp.all(jax.vmap(is_physical)(sc.rho0, sc.v0, sc.params))):
-        raise ValueError(f"train_amplitudes = {list(cfg.amplitudes)} (--train-amplitudes, veh/m): an initial state "
-                         "leaves the physical region (0 < rho < 1/l, v >= 0); use smaller amplitudes")
+        raise ValueError(f"train_amplitudes = {list(cfg.train_amplitudes)} (--train-amplitudes, veh/m): an initial "
+                         "state leaves the physical region (0 < rho < 1/l, v >= 0); use smaller amplitudes")
 
 
 def horizon_steps(cfg: GradientConfig, dt: float) -> int:
-    """Rollout length of the objective: ``horizon_s`` / dt rounded to a multiple of ``record_every``."""
-    return max(cfg.record_every, round(cfg.horizon_s / float(dt) / cfg.record_every) * cfg.record_every)
+    """Rollout length of the objective: ``train_horizon_s`` / dt rounded to a multiple of ``record_every``."""
+    return max(cfg.record_every, round(cfg.train_horizon_s / float(dt) / cfg.record_every) * cfg.record_every)
 
 
 def scenario_objective(theta: Any, params: TrafficParams, rho0: Array, v0: Array, w: Weights,
@@ -209,8 +212,8 @@ def scenario_objective(theta: Any, params: TrafficParams, rho0: Array, v0: Array
     tr, m = res.trajectory, res.metrics
     waves = jnp.log1p(jnp.var(tr.rho * 1000.0, axis=-1) / 100.0 + jnp.var(tr.v, axis=-1))
     late = jnp.arange(1, waves.shape[0] + 1, dtype=waves.dtype)  # t_k / T up to a factor
-    j = (-w.reward * jnp.mean(tr.reward) + w.waves * jnp.sum(late * waves) / jnp.sum(late) + w.comfort * m["J_comfort"]
-         + w.effort * jnp.mean((tr.h - base.h_bar) ** 2))
+    j = (-w.reward_weight * jnp.mean(tr.reward) + w.waves_weight * jnp.sum(late * waves) / jnp.sum(late)
+         + w.comfort_weight * m["J_comfort"] + w.effort_weight * jnp.mean((tr.h - base.h_bar) ** 2))
     return j, m
 
 
@@ -267,7 +270,7 @@ penalty_and_grad = jax.jit(jax.value_and_grad(certificate_penalty), static_argna
 
 
 def make_optimizer(cfg: GradientConfig) -> optax.GradientTransformation:
-    return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(cfg.lr))
+    return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(cfg.grad_lr))
 
 
 def _one_step(state: GradState, scen: Scenarios, w: Weights, cfg: GradientConfig, base: TrafficParams,
@@ -313,7 +316,7 @@ def make_train(cfg: GradientConfig, base: TrafficParams, devices: list | None = 
     programs); ``base`` (the nominal plant and grid) is traced.
     """
     n_steps = horizon_steps(cfg, base.dt)
-    periods = tuple(sorted({int(round(d / float(base.dt))) for d in cfg.delays}))  # the certificate's delays
+    periods = tuple(sorted({int(round(d / float(base.dt))) for d in cfg.train_delays}))  # the certificate's delays
     mesh = batch_mesh(list(jax.devices()) if devices is None else list(devices))
     across = spans_processes(mesh)
 

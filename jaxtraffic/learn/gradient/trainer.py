@@ -92,9 +92,9 @@ class GradientTraining:
 
     def __init__(self, config: TrainConfig, grad_config: GradientConfig, plant: TrafficParams) -> None:
         self.config, self.grad_config, self.plant = config, grad_config, plant
-        self.total = grad_config.steps
+        self.total = grad_config.grad_steps
         self.curve_title = f"gradient-based training ({grad_config.policy})"
-        self.init, self.train_chunk = (cem.make_train if grad_config.method == "cem" else objective.make_train)(
+        self.init, self.train_chunk = (cem.make_train if grad_config.grad_method == "cem" else objective.make_train)(
             grad_config, plant)
         self.eval_steps = max(1, round(config.run.eval_horizon_s / config.plant.dt))
         self.ev: dict = {}
@@ -109,7 +109,7 @@ class GradientTraining:
         self.ref = evaluation(adapt(backstepping(config.plant.delay), baseline_grid(plant), plant), plant,
                               self.eval_steps, gains=jnp.zeros(3))
         n_steps = objective.horizon_steps(grad_config, config.plant.dt)
-        cem_run = grad_config.method == "cem"
+        cem_run = grad_config.grad_method == "cem"
         self.steps_per_update = grad_config.n_scenarios * n_steps * (grad_config.cem_population if cem_run else 1)
         step = f"CEM generation of {grad_config.cem_population} candidates" if cem_run else "Adam step"
         return (f"training by {'CEM' if cem_run else 'gradient'} ({grad_config.policy}): {grad_config.n_scenarios} "
@@ -139,7 +139,7 @@ class GradientTraining:
         prog.mark("paper_rule", (not ev["diverged"]) and ev["final_reward"] >= REWARD_TARGET)
         better = beats(ev, self.ref)
         prog.mark("beat_backstepping", better)
-        spread = "|grad|" if grad_config.method == "adam" else "spread"
+        spread = "|grad|" if grad_config.grad_method == "adam" else "spread"
         line = (f"[update {prog.updates:>4d}] objective {row['objective']:.4f} | {spread} {row['grad_norm']:.3g} | "
                 f"eval reward {row['eval_reward']:.4f} | rho L2 {row['eval_rho_L2_veh_km']:.3f} veh/km | "
                 f"J_comfort {row['eval_J_comfort']:.4g} | gains ({g[0]:+.2f}, {g[1]:+.2f}, {g[2]:+.2f}) | "
@@ -166,13 +166,14 @@ class GradientTraining:
         if grad_config.policy == "gains":
             summary["gains"] = np.asarray(self.state.theta).tolist()
         if grad_config.policy == "schedule":
-            summary["schedule"] = {"knots_s": list(grad_config.knots), "gains": np.asarray(self.state.theta).tolist()}
+            summary["schedule"] = {"knots_s": list(grad_config.schedule_knots),
+                                   "gains": np.asarray(self.state.theta).tolist()}
         own = own_grid_controller(jax.device_get(self.state.theta), grad_config, self.plant, self.plant.delay)
         summary["certificate"] = policy_certificate(own, config)
         if writer:
             write_json(run_dir / ckpt.SUMMARY, summary)
         beat = prog.seconds_to("beat_backstepping")
-        steps = "Adam steps" if grad_config.method == "adam" else "CEM generations"
+        steps = "Adam steps" if grad_config.grad_method == "adam" else "CEM generations"
         return (f"done: {prog.updates} {steps} in {prog.wall_s:.1f} s; final rho L2 {ev['final_rho_L2'] * 1e3:.3f} "
                 f"veh/km, J_comfort {ev['J_comfort']:.4g}; "
                 + (f"first beat backstepping after {beat:.1f} s" if beat is not None else "never beat backstepping")
@@ -187,9 +188,9 @@ def train_gradient(config: TrainConfig, callbacks: Sequence[Callable[[dict], Non
     config, run_dir, saved = prepare(config, keep=("grad_steps",))
     grad_config, plant = gradient_setup(config)  # validates: fail before creating the run directory
     objective.check_scenarios(grad_config, plant)
-    if grad_config.steps % grad_config.steps_per_chunk:  # a chunk is one compiled program of steps_per_chunk steps
-        raise ValueError(f"grad_steps = {grad_config.steps} (--grad-steps): must be a multiple of --steps-per-chunk "
-                         f"({grad_config.steps_per_chunk}), the Adam steps of one compiled chunk")
+    if grad_config.grad_steps % grad_config.steps_per_chunk:  # a chunk is one compiled program of steps_per_chunk steps
+        raise ValueError(f"grad_steps = {grad_config.grad_steps} (--grad-steps): must be a multiple of "
+                         f"--steps-per-chunk ({grad_config.steps_per_chunk}), the Adam steps of one compiled chunk")
     return run_training(config, run_dir, saved, lambda: GradientTraining(config, grad_config, plant),
                         lambda: config_json(config, jax_version=jax.__version__), callbacks,
                         "jaxtraffic.train_gradient")

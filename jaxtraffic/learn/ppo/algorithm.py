@@ -35,6 +35,7 @@ from jax.sharding import PartitionSpec as P
 from jaxtraffic.control.gain_policy import normalize_obs
 from jaxtraffic.control.networks import SMALL_HIDDEN, ActorCritic
 from jaxtraffic.learn.ppo.losses import Batch, compute_gae, gaussian_log_prob, ppo_loss
+from jaxtraffic.learn.rules import check_fields
 from jaxtraffic.sim.sharding import local_copy
 
 Array = jax.Array
@@ -117,9 +118,9 @@ class Runner:
 
 # --------------------------------------------------------------------------- pure PPO maths
 def validate_config(cfg: PPOConfig) -> None:
-    """Reject hyperparameters that make no sense (ValueError)."""
-    if cfg.lr_decay_steps < 0 or not 0.0 <= cfg.lr_final <= 1.0:
-        raise ValueError(f"need lr_decay_steps >= 0 and lr_final in [0, 1], got {cfg.lr_decay_steps}, {cfg.lr_final}")
+    """Reject hyperparameters that make no sense (ValueError): each field against its range in ``learn.rules``
+    (the config tree's field and flag of the same name)."""
+    check_fields(cfg)
 
 
 def lr_schedule(cfg: PPOConfig) -> optax.Schedule:

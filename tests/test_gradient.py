@@ -17,6 +17,7 @@ from jaxtraffic.learn import gradient as G
 from jaxtraffic.learn import load_policy
 from jaxtraffic.learn.config import TrainConfig
 from jaxtraffic.learn.gradient_trainer import gradient_setup, train_gradient
+from jaxtraffic.sim import Record
 
 BASE = TrafficParams(delay=2.0, **SMALL)  # 41 nodes, dt = 0.5 s
 CFG = G.GradientConfig(delays=(1.0, 2.0), horizon_s=60.0, record_every=10, steps_per_chunk=2)
@@ -86,7 +87,7 @@ def test_network_run_lowers_objective_round_trips_and_resumes_exactly(tmp_path):
     assert obj[-1] < obj[0], obj
 
     def actions(c):
-        return np.asarray(simulate(plant, c, n_steps=40, record_every=1).trajectory.h)
+        return np.asarray(simulate(plant, c, n_steps=40, record=Record(every=1)).trajectory.h)
 
     np.testing.assert_array_equal(actions(ctrl), actions(G.make_controller(state.theta, cfg, plant)))
     # 2 steps, then --resume to 4: the same policy as 4 steps in one go

@@ -27,7 +27,7 @@ J_comfort in the units of ``metrics`` (rho in veh/km, a in m/s^2) and effort the
 in s (both sampled every ``record_every`` steps; the square is used directly, since the gradient of
 an RMS is not finite at zero). Default weights: w_r = 1, w_w = 0, w_c = 1e-5, w_e = 0.
 
-Memory: the rollout checkpoints every recording chunk (``simulate(remat=True)``), so the
+Memory: the rollout checkpoints every recording chunk (``simulate(memory=Memory(remat=True))``), so the
 backward pass stores the carry once per chunk and recomputes one chunk at a time.
 Divergence containment (``sim.plant``) freezes an environment at its last physical state; the
 frozen branch and the unphysical branch are both finite, so the gradient stays finite when a

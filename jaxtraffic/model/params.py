@@ -116,7 +116,7 @@ def params_valid(p: TrafficParams) -> jax.Array:
     """Whether the (possibly traced) parameters are usable, as a boolean array: the range checks of
     ``validate`` that can be done inside a program (every float finite, lengths and times > 0, alpha in
     [0, 1], alpha_noise >= 0, h_min < h_bar <= h_max... , 0 <= delay <= max_delay_steps dt). ``sim.plant``
-    freezes a plant whose parameters fail it at step 0 (``DIVERGED_PARAMS``) instead of running a
+    freezes a plant whose parameters fail it at step 0 (``sim.outcome.Divergence.PARAMS``) instead of running a
     different system."""
     f = {k: jnp.asarray(getattr(p, k), jnp.float32) for k in FLOAT_FIELDS}
     ok = jnp.all(jnp.stack([jnp.all(jnp.isfinite(v)) for v in f.values()]))

@@ -15,11 +15,34 @@ arrays only (no parameters object).
 from __future__ import annotations
 
 import dataclasses
+from typing import Protocol
 
 import jax
 import jax.numpy as jnp
 
 Array = jax.Array
+
+
+class Inlet(Protocol):
+    """What ``model.solver.rhs`` and ``solver_step`` ask of an inlet condition (see ``InflowDensity``)."""
+
+    name: str
+
+    def mass_flux(self, q: Array) -> Array: ...
+
+    def backward_speed_difference(self, vx_fwd: Array) -> Array: ...
+
+    def impose(self, rho: Array, v: Array, q_in: Array | float) -> Array: ...
+
+
+class Outlet(Protocol):
+    """What ``model.solver.rhs`` asks of an outlet condition (see ``SpeedODE``)."""
+
+    name: str
+
+    def mass_flux(self, q: Array) -> Array: ...
+
+    def advection(self, dtype: jnp.dtype) -> Array: ...
 
 
 @dataclasses.dataclass(frozen=True)

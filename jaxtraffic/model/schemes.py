@@ -18,8 +18,8 @@ class Scheme:
 
     reconstruction: Reconstruction
     integrator: ShuOsherTableau
-    inlet: boundary.InflowDensity = boundary.INFLOW_DENSITY
-    outlet: boundary.SpeedODE = boundary.SPEED_ODE
+    inlet: boundary.Inlet = boundary.INFLOW_DENSITY
+    outlet: boundary.Outlet = boundary.SPEED_ODE
 
 
 SCHEMES: dict[str, Scheme] = {

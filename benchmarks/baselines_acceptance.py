@@ -39,6 +39,7 @@ from jaxtraffic import (  # noqa: E402
     simulate_batch,
     steps_for,
 )
+from jaxtraffic.sim import Record  # noqa: E402
 
 RECORD_EVERY = 10  # 1 s
 
@@ -80,7 +81,7 @@ def run_case(name, plant, controller, nominal, seconds=None, *, n_steps, noise_s
         n_steps = steps_for(plant, seconds)
         n_steps -= n_steps % RECORD_EVERY
     rho0, v0 = paper_initial_condition(plant if nominal is None else nominal)  # nominal IC (section 12)
-    kw = dict(n_steps=n_steps, rho0=rho0, v0=v0, nominal=nominal, record_every=RECORD_EVERY)
+    kw = dict(n_steps=n_steps, rho0=rho0, v0=v0, nominal=nominal, record=Record(every=RECORD_EVERY))
     res = simulate(plant, controller, key=jax.random.PRNGKey(0), **kw)
     jax.block_until_ready(res)
     t0 = time.perf_counter()

@@ -65,7 +65,7 @@ def gradient(plant: jt.TrafficParams, batch: int, steps: int):
     def objective(g):
         res = jt.simulate_batch(params, adapt(jt.constant_gains(g[0], g[1], g[2], filter_sigma=25.0),
                                               baseline_grid(plant), plant),
-                                n_steps=steps, record_every=10, remat=True)
+                                n_steps=steps, record=jt.Record(every=10), memory=jt.Memory(remat=True))
         return jnp.mean(res.trajectory.reward)
 
     f = jax.jit(jax.grad(objective))

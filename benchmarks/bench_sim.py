@@ -81,7 +81,7 @@ import numpy_ref  # noqa: E402  (benchmarks/numpy_ref.py)
 from machine import cpu_ghz, cpu_model, simd_lanes_f32  # noqa: E402  (benchmarks/machine.py)
 
 import jaxtraffic  # noqa: E402
-from jaxtraffic import TrafficParams, paper_initial_condition, simulate, simulate_batch  # noqa: E402
+from jaxtraffic import Memory, TrafficParams, paper_initial_condition, simulate, simulate_batch  # noqa: E402
 
 CONTROLLERS = {"open_loop": jaxtraffic.open_loop, "lyapunov": jaxtraffic.lyapunov}
 
@@ -135,7 +135,7 @@ def bench_throughput(controller_name: str, batch: int, steps: int, repeats: int)
 
     def run(rho0, v0, keys):
         return simulate_batch(p, ctrl, n_steps=steps, rho0=rho0, v0=v0, keys=keys,
-                              chunk_size=ARGS.chunk_size).metrics
+                              memory=Memory(chunk_size=ARGS.chunk_size)).metrics
 
     t0 = time.perf_counter()
     compiled = jax.jit(run).lower(rho0, v0, keys).compile()
@@ -203,7 +203,7 @@ def memory_child(batch: int, steps: int) -> dict:
     rho0, v0, keys = _batch_inputs(batch, p)
     t0 = time.perf_counter()
     m = simulate_batch(p, jaxtraffic.lyapunov(), n_steps=steps, rho0=rho0, v0=v0, keys=keys,
-                       chunk_size=ARGS.chunk_size).metrics
+                       memory=Memory(chunk_size=ARGS.chunk_size)).metrics
     jax.block_until_ready(m)
     wall = time.perf_counter() - t0
     peak = _peak_rss_mib()

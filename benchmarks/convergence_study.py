@@ -54,7 +54,7 @@ def run_one(ctrl, grid, plant: jt.TrafficParams) -> dict[str, float]:
     """The study's metrics of one controller on one plant (two rollouts: 300 s for the indices, 600 s)."""
     c = adapt(ctrl, grid or baseline_grid(plant), plant)
     short = jt.simulate(plant, c, n_steps=3000)
-    long = jt.simulate(plant, c, n_steps=6000, record_every=100)
+    long = jt.simulate(plant, c, n_steps=6000, record=jt.Record(every=100))
     m, ml = short.metrics, long.metrics
     return {"rho_L2_300": 1e3 * float(m["final_rho_L2"]), "rho_L2_600": 1e3 * float(ml["final_rho_L2"]),
             "v_L2_300": float(m["final_v_L2"]), "J_TTT": float(m["J_TTT"]), "J_fuel": float(m["J_fuel"]),

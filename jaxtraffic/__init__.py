@@ -23,7 +23,9 @@ one device; ``split_host_devices()``, called before any JAX computation, makes i
 Public API (see README.md for a module map):
     TrafficParams, equilibrium                      -- parameters and equilibrium
     simulate, simulate_batch, stack_params          -- jit-compiled, vmappable rollouts
-    plant_alphas                                    -- the plant alphas a rollout draws (to pass as alphas=)
+    Record, Memory, AlphaInput                      -- rollout options (recording, checkpointing, plant alphas)
+    Divergence, check_outcome                       -- outcome codes and the check that raises on divergence
+    plant_alphas                                    -- the plant alphas a rollout draws (AlphaInput(alphas=...))
     paper_initial_condition, equilibrium_state      -- initial conditions
     open_loop, lyapunov, backstepping, constant_gains, Controller, Observation -- controllers
 """
@@ -43,8 +45,13 @@ from jaxtraffic.control import (
 )
 from jaxtraffic.model.params import TrafficParams, cfl_number, equilibrium, steps_for
 from jaxtraffic.sim import (
+    AlphaInput,
+    Divergence,
+    Memory,
+    Record,
     SimResult,
     Trajectory,
+    check_outcome,
     equilibrium_state,
     paper_initial_condition,
     plant_alphas,
@@ -56,8 +63,9 @@ from jaxtraffic.sim import (
 register_gymnasium()  # gymnasium.make("jaxtraffic/Gain-v0") when gymnasium is installed (_registration)
 
 __all__ = [
-    "__version__", "Controller", "Observation", "SimResult", "TrafficParams", "Trajectory", "backstepping",
-    "cfl_number", "constant_gains", "equilibrium", "equilibrium_state", "gain_law", "lyapunov",
+    "__version__", "AlphaInput", "Controller", "Divergence", "Memory", "Observation", "Record", "SimResult",
+    "TrafficParams", "Trajectory", "backstepping",
+    "cfl_number", "check_outcome", "constant_gains", "equilibrium", "equilibrium_state", "gain_law", "lyapunov",
     "open_loop", "paper_initial_condition", "plant_alphas", "saturate", "simulate", "simulate_batch",
     "split_host_devices", "stack_params", "steps_for",
 ]

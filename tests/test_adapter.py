@@ -20,8 +20,8 @@ def test_on_its_own_grid_the_adapted_controller_is_the_controller(ctrl):
     """Same grid and period: its own buffer of sent fields and its own h_prev equal the plant's, so the
     rollout is the same to float32 rounding (XLA may fuse the law differently: 1 ulp here and there;
     backstepping reads the buffer, the gain law h_prev)."""
-    a = jt.simulate(P, ctrl, n_steps=300, record_every=10)
-    b = jt.simulate(P, adapt(ctrl, GRID, P), n_steps=300, record_every=10)
+    a = jt.simulate(P, ctrl, n_steps=300, record=jt.Record(every=10))
+    b = jt.simulate(P, adapt(ctrl, GRID, P), n_steps=300, record=jt.Record(every=10))
     np.testing.assert_allclose(a.trajectory.rho, b.trajectory.rho, rtol=1e-5)
     np.testing.assert_allclose(a.trajectory.h, b.trajectory.h, rtol=1e-5)
     assert float(a.metrics["J_comfort"]) == pytest.approx(float(b.metrics["J_comfort"]), rel=1e-4)
@@ -29,7 +29,7 @@ def test_on_its_own_grid_the_adapted_controller_is_the_controller(ctrl):
 
 def test_the_time_gap_is_held_over_the_control_period():
     fine_t = P.replace(dt=0.25, max_delay_steps=20)
-    res = jt.simulate(fine_t, adapt(jt.lyapunov(1.0), GRID, fine_t), n_steps=40, record_every=1)
+    res = jt.simulate(fine_t, adapt(jt.lyapunov(1.0), GRID, fine_t), n_steps=40, record=jt.Record(every=1))
     h = np.asarray(res.trajectory.h)
     np.testing.assert_array_equal(h[0::2], h[1::2])  # acts at steps 0, 2, 4, ...
     assert np.any(h[2] != h[0])
@@ -37,7 +37,7 @@ def test_the_time_gap_is_held_over_the_control_period():
 
 def test_on_a_refined_plant_the_time_gap_is_the_interpolated_controller_field():
     fine = P.replace(n_points=41)
-    res = jt.simulate(fine, adapt(jt.lyapunov(1.0), GRID, fine), n_steps=20, record_every=1)
+    res = jt.simulate(fine, adapt(jt.lyapunov(1.0), GRID, fine), n_steps=20, record=jt.Record(every=1))
     h = np.asarray(res.trajectory.h)
     np.testing.assert_allclose(h[:, 1:-1:2], 0.5 * (h[:, 0:-2:2] + h[:, 2::2]), rtol=1e-6)
 

@@ -21,7 +21,7 @@ from jaxtraffic import (
 )
 from jaxtraffic.control import lyapunov_equivalent_gains
 from jaxtraffic.model import fundamental as fd
-from jaxtraffic.sim import initial_state, paper_initial_condition
+from jaxtraffic.sim import Record, initial_state, paper_initial_condition
 
 KEY = jax.random.PRNGKey(0)
 # One grid / horizon / recording stride for the float32 rollouts, so that each controller type
@@ -38,7 +38,7 @@ def _run(p, c, rho0=None, v0=None):
     (None and an array are different jit signatures)."""
     if rho0 is None:
         rho0, v0 = paper_initial_condition(p)
-    return simulate(p, c, n_steps=STEPS, rho0=rho0, v0=v0, record_every=1)
+    return simulate(p, c, n_steps=STEPS, rho0=rho0, v0=v0, record=Record(every=1))
 
 
 def _obs(p, rho, v, h_prev=None):
@@ -68,7 +68,7 @@ def test_lyapunov_decay_rate_on_linear_plant():
         flush = p.L / 3.598  # L / |lambda2|, s
         ks = (1.0, 2.0)
         for k in ks:
-            tr = simulate(p, lyapunov(k), n_steps=X64_STEPS, rho0=rho0, v0=v0, record_every=1).trajectory
+            tr = simulate(p, lyapunov(k), n_steps=X64_STEPS, rho0=rho0, v0=v0, record=Record(every=1)).trajectory
             assert float(jnp.max(jnp.abs(tr.h - p.h_bar))) < 0.5  # unsaturated: the linear law holds
             t = np.asarray(tr.t)
             sel = (t >= flush + 20) & (t <= flush + 80)
@@ -93,10 +93,10 @@ def test_predictor_reproduces_delay_free_loop_shifted_by_delay():
         d = steps_for(p, D)
         n = X64_STEPS
         rho0, v0 = paper_initial_condition(p, amplitude=0.003, dtype=jnp.float64)
-        delayed = simulate(p, backstepping(D), n_steps=n, rho0=rho0, v0=v0, record_every=1).trajectory
+        delayed = simulate(p, backstepping(D), n_steps=n, rho0=rho0, v0=v0, record=Record(every=1)).trajectory
         p0 = p.replace(delay=0.0)
         ref = simulate(p0, lyapunov(), n_steps=n, rho0=delayed.rho[d], v0=delayed.v[d],
-                       record_every=1).trajectory
+                       record=Record(every=1)).trajectory
         ref = jax.tree.map(lambda x: x[: n - d], ref)
         rho_bar, v_bar = equilibrium(p)
         scale_r = float(jnp.max(jnp.abs(delayed.rho[d] - rho_bar)))
@@ -108,7 +108,7 @@ def test_predictor_reproduces_delay_free_loop_shifted_by_delay():
         # the state did move: the deviation fell by more than 10x over the run
         assert float(ref.v_L2[-1]) < 0.1 * float(ref.v_L2[0])
         # negative control: assuming one step less breaks the match
-        wrong = simulate(p, backstepping(D - p.dt), n_steps=n, rho0=rho0, v0=v0, record_every=1).trajectory
+        wrong = simulate(p, backstepping(D - p.dt), n_steps=n, rho0=rho0, v0=v0, record=Record(every=1)).trajectory
         assert float(jnp.max(jnp.abs(wrong.v[d:] - ref.v))) / scale_v > 1e-4
 
 
@@ -206,7 +206,7 @@ def test_vmap_over_settings_matches_separate_runs(kind):
     }[kind]
     cs = [make(i) for i in range(3)]
     rho0, v0 = paper_initial_condition(p)
-    batch = simulate_batch(p, _stack(*cs), n_steps=STEPS, rho0=rho0, v0=v0, record_every=1,
+    batch = simulate_batch(p, _stack(*cs), n_steps=STEPS, rho0=rho0, v0=v0, record=Record(every=1),
                            batch_controller=True)
     for i, c in enumerate(cs):
         one = _run(p, c, rho0, v0)
@@ -255,8 +255,8 @@ def test_recursive_predictor_matches_exact_one():
 
     small = dict(n_points=41, dt=0.5, L=1000.0)
     p0 = TrafficParams(delay=0.0, **small)
-    a = simulate(p0, backstepping(0.0, recursive=True), n_steps=120, record_every=1)
-    b = simulate(p0, lyapunov(), n_steps=120, record_every=1)
+    a = simulate(p0, backstepping(0.0, recursive=True), n_steps=120, record=Record(every=1))
+    b = simulate(p0, lyapunov(), n_steps=120, record=Record(every=1))
     np.testing.assert_allclose(np.asarray(a.trajectory.h), np.asarray(b.trajectory.h), rtol=1e-6, atol=0)
 
     p = TrafficParams(model="linear", delay=5.0, max_delay_steps=12, **small)

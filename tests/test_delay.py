@@ -10,6 +10,7 @@ from conftest import SMALL, bump_state
 
 from jaxtraffic import Controller, TrafficParams, equilibrium_state, simulate, simulate_batch, stack_params
 from jaxtraffic.model import delay as db
+from jaxtraffic.sim import Record
 from jaxtraffic.sim.plant import initial_state, plant_step
 
 
@@ -118,7 +119,7 @@ def test_rollout_pulse_delays_in_one_batch():
     ctrl = window_controller(pulse_at, pulse_at, jnp.asarray(amps))
     rho, v = equilibrium_state(TrafficParams(**SMALL))
     res = simulate_batch(p, ctrl, n_steps=n_steps, rho0=jnp.stack([rho] * 8), v0=jnp.stack([v] * 8),
-                         record_every=1, batch_controller=True)
+                         record=Record(every=1), batch_controller=True)
     vt = np.asarray(res.trajectory.v)  # (8, n_steps, n) state at t_0 .. t_{n_steps-1}
     ht = np.asarray(res.trajectory.h)  # sent fields
     for i, d in enumerate(delays):
@@ -135,8 +136,8 @@ def test_plant_receives_h_bar_before_t_equals_D():
     d = 6
     p = TrafficParams(**SMALL, delay=d * SMALL["dt"])
     rho, v = bump_state(p)
-    res_ol = simulate(p, window_controller(0, 10**6, 0.0), n_steps=20, rho0=rho, v0=v, record_every=1)
-    res_hi = simulate(p, window_controller(0, 10**6, 1.5), n_steps=20, rho0=rho, v0=v, record_every=1)
+    res_ol = simulate(p, window_controller(0, 10**6, 0.0), n_steps=20, rho0=rho, v0=v, record=Record(every=1))
+    res_hi = simulate(p, window_controller(0, 10**6, 1.5), n_steps=20, rho0=rho, v0=v, record=Record(every=1))
     t_ol, t_hi = res_ol.trajectory, res_hi.trajectory
     assert np.all(np.asarray(t_hi.h) == 3.0) and np.all(np.asarray(t_ol.h) == 1.5)
     np.testing.assert_array_equal(t_hi.v[: d + 1], t_ol.v[: d + 1])

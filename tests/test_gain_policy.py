@@ -11,7 +11,7 @@ from jaxtraffic.control.gain_policy import equilibrium_gains, policy_controller
 from jaxtraffic.control.networks import ActorCritic
 from jaxtraffic.learn import env as learn_env
 from jaxtraffic.model.params import TrafficParams
-from jaxtraffic.sim import equilibrium_state, simulate
+from jaxtraffic.sim import Record, equilibrium_state, simulate
 
 TP = TrafficParams(n_points=21, delay=0.5)
 HIDDEN = (16,)
@@ -61,7 +61,7 @@ def test_policy_controller_replays_the_environment(gain_filter, segments, gain_m
     ctrl = policy_controller(params, mean, var, gain_max, hidden=HIDDEN, init_sigma=0.3, gain_filter=gain_filter,
                              obs_segments=segments, sigma_nodes=ep.filter_nodes)
     assert ep.filter_nodes > 0  # the learned law's spatial filter (the default)
-    res = simulate(TP, ctrl, n_steps=STEPS, record_every=1)
+    res = simulate(TP, ctrl, n_steps=STEPS, record=Record(every=1))
     np.testing.assert_allclose(res.trajectory.rho[1:], np.array(rho_env[:-1]), rtol=1e-5, atol=1e-8)
     np.testing.assert_allclose(res.final.rho, rho_env[-1], rtol=1e-5, atol=1e-8)
     np.testing.assert_allclose(res.controller_state, gains_env[-1], rtol=1e-4, atol=1e-6)
@@ -75,7 +75,7 @@ def test_gain_filter_smooths_the_time_gap():
 
     def step_changes(k: float) -> float:
         ctrl = policy_controller(params, mean, var, 2.0, hidden=HIDDEN, init_sigma=0.3, gain_filter=k)
-        h = np.asarray(simulate(TP, ctrl, n_steps=STEPS, record_every=1).trajectory.h)
+        h = np.asarray(simulate(TP, ctrl, n_steps=STEPS, record=Record(every=1)).trajectory.h)
         return float(np.abs(np.diff(h, axis=0)).mean())
 
     assert step_changes(0.1) < 0.5 * step_changes(1.0)

@@ -18,6 +18,7 @@ from jaxtraffic.learn.config import TrainConfig
 from jaxtraffic.learn.gradient import objective
 from jaxtraffic.learn.gradient.policy import gradient_setup
 from jaxtraffic.learn.gradient.trainer import train_gradient
+from jaxtraffic.sim import Record
 
 BASE = TrafficParams(delay=2.0, **SMALL)  # 41 nodes, dt = 0.5 s
 CFG = objective.GradientConfig(train_delays=(1.0, 2.0), train_horizon_s=60.0, record_every=10, steps_per_chunk=2)
@@ -89,7 +90,7 @@ def test_network_run_lowers_objective_round_trips_and_resumes_exactly(tmp_path):
     assert obj[-1] < obj[0], obj
 
     def actions(c):
-        return np.asarray(simulate(plant, c, n_steps=40, record_every=1).trajectory.h)
+        return np.asarray(simulate(plant, c, n_steps=40, record=Record(every=1)).trajectory.h)
 
     np.testing.assert_array_equal(actions(ctrl), actions(objective.make_controller(state.theta, cfg, plant)))
     # 2 steps, then --resume to 4: the same policy as 4 steps in one go

@@ -37,7 +37,7 @@ from jaxtraffic.learn.config.checks import check_devices
 from jaxtraffic.learn.policy import load_policy
 from jaxtraffic.learn.runs import checkpoint as ckpt
 from jaxtraffic.learn.runs.session import StopSignals
-from jaxtraffic.sim.plant import DIVERGED_CONTROL, DIVERGED_INITIAL, DIVERGED_NONE, DIVERGED_PARAMS
+from jaxtraffic.sim.outcome import Divergence
 
 REPO = Path(__file__).resolve().parents[1]
 # one member (the default is a population of 2): these runs are counted per member below;
@@ -128,20 +128,20 @@ def _nan_act(settings, cstate, obs, nominal, key):
 def test_nan_controller_output_marks_the_environment_diverged():
     ctrl = Controller(settings=jnp.asarray(1.0), act_fn=_nan_act)  # NaN from t = 1 s
     m = jt.simulate(P21, ctrl, n_steps=30).metrics
-    assert bool(m["diverged"]) and int(m["diverged_reason"]) == DIVERGED_CONTROL
+    assert bool(m["diverged"]) and int(m["diverged_reason"]) == Divergence.CONTROL
     assert float(m["diverged_at_s"]) == pytest.approx(1.0)
     assert np.isfinite(float(m["control_effort"]))  # only the accepted steps count
     # a traced NaN gain (not rejected at construction) gives the same flag
     m = jax.jit(lambda k: jt.simulate(P21, jt.lyapunov(k), n_steps=5).metrics)(jnp.nan)
-    assert bool(m["diverged"]) and int(m["diverged_reason"]) == DIVERGED_CONTROL
+    assert bool(m["diverged"]) and int(m["diverged_reason"]) == Divergence.CONTROL
     healthy = jt.simulate(P21, jt.lyapunov(1.0), n_steps=5).metrics
-    assert int(healthy["diverged_reason"]) == DIVERGED_NONE
+    assert int(healthy["diverged_reason"]) == Divergence.NONE
 
 
 def test_traced_non_finite_initial_condition_is_flagged():
     rho, v = jt.paper_initial_condition(P21)
     m = jax.jit(lambda r: jt.simulate(P21, jt.lyapunov(1.0), n_steps=5, rho0=r, v0=v).metrics)(rho.at[3].set(jnp.nan))
-    assert bool(m["diverged"]) and int(m["diverged_reason"]) == DIVERGED_INITIAL
+    assert bool(m["diverged"]) and int(m["diverged_reason"]) == Divergence.INITIAL
     assert float(m["diverged_at_s"]) == 0.0
     with pytest.raises(ValueError, match="physical region"):  # a concrete one is an error
         jt.simulate(P21, n_steps=5, rho0=rho.at[3].set(jnp.nan), v0=v)
@@ -155,22 +155,22 @@ def test_traced_parameters_out_of_range_are_flagged_not_run(field, value):
     p = TrafficParams(n_points=21, max_delay_steps=100)
     m = jax.jit(lambda x: jt.simulate(p.replace(**{field: x}), jt.lyapunov(1.0), n_steps=5).metrics)(
         jnp.float32(value))
-    assert bool(m["diverged"]) and int(m["diverged_reason"]) == DIVERGED_PARAMS and float(m["diverged_at_s"]) == 0
+    assert bool(m["diverged"]) and int(m["diverged_reason"]) == Divergence.PARAMS and float(m["diverged_at_s"]) == 0
     ok = jax.jit(lambda x: jt.simulate(p.replace(delay=x), jt.lyapunov(1.0), n_steps=5).metrics)(jnp.float32(10.0))
-    assert int(ok["diverged_reason"]) == DIVERGED_NONE  # the buffer's full 10 s is allowed
+    assert int(ok["diverged_reason"]) == Divergence.NONE  # the buffer's full 10 s is allowed
 
 
 def test_given_alphas_outside_zero_one_are_an_error():
     with pytest.raises(ValueError, match=r"alphas must lie in \[0, 1\] \(ACC shares\), got values in \[-1, -1\]"):
-        jt.simulate(P21, n_steps=5, alphas=-np.ones(5))
+        jt.simulate(P21, n_steps=5, alpha_input=jt.AlphaInput(alphas=-np.ones(5)))
 
 
 @pytest.mark.parametrize("delay", [jnp.nan, -4.0])
 def test_traced_invalid_backstepping_delay_is_flagged_not_lyapunov(delay):
     m = jax.jit(lambda d: jt.simulate(P21, jt.backstepping(d), n_steps=5).metrics)(jnp.float32(delay))
-    assert bool(m["diverged"]) and int(m["diverged_reason"]) == DIVERGED_CONTROL
+    assert bool(m["diverged"]) and int(m["diverged_reason"]) == Divergence.CONTROL
     good = jax.jit(lambda d: jt.simulate(P21, jt.backstepping(d), n_steps=5).metrics)(jnp.float32(0.0))
-    assert int(good["diverged_reason"]) == DIVERGED_NONE
+    assert int(good["diverged_reason"]) == Divergence.NONE
 
 
 def test_nan_action_terminates_the_training_environment():
@@ -228,7 +228,10 @@ def test_traffic_params_accept_numpy_integers():
     ({"n_steps": 10, "record_every": 3}, "not a multiple of record_every"),
 ])
 def test_simulate_step_arguments(kwargs, match):
+    kwargs = dict(kwargs)
     with pytest.raises(ValueError, match=match):
+        if "record_every" in kwargs:  # Record checks its own field on construction
+            kwargs["record"] = jt.Record(every=kwargs.pop("record_every"))
         jt.simulate(P21, **kwargs)
 
 

@@ -12,6 +12,7 @@ from jaxtraffic.control import lyapunov_equivalent_gains
 from jaxtraffic.model import fundamental as fd
 from jaxtraffic.model.linear import gain_law_is_regular, gain_law_wave_speed, linear_step, linearize, riemann_w
 from jaxtraffic.model.solver import arz_step
+from jaxtraffic.sim import Record
 
 
 def test_coefficients_match_model_table():
@@ -125,7 +126,7 @@ def test_wave_speed_decides_whether_a_density_offset_leaves_the_road():
     rho0 = jnp.full((p.n_points,), rho_bar + 0.002)
     for gains in WAVE_GAINS:
         s = float(gain_law_wave_speed(jnp.asarray(gains), lm))
-        res = simulate(p, constant_gains(*gains), rho0=rho0, v0=p.q_in / rho0, n_steps=2000, record_every=100)
+        res = simulate(p, constant_gains(*gains), rho0=rho0, v0=p.q_in / rho0, n_steps=2000, record=Record(every=100))
         l2 = np.asarray(res.trajectory.rho_L2)  # every 10 s, 10 .. 200 s
         if s > 0:
             flushed = int(np.ceil((p.L / s + 2 * float(lm.tau)) / 10.0)) - 1  # index of t >= L/s + 2 tau

@@ -62,9 +62,10 @@ def test_switch_on_is_the_jerk_of_step_d():
     for switch in (0, 1):
         acc = M.init_metrics(n)
         for k in range(3):
-            acc = M.update_metrics(acc, step=jnp.asarray(k), rho=rho, v=vs[k], v_next=vs[k + 1], h_sent=rho,
-                                   rho_bar=0.1, v_bar=3.0, h_bar=0.1, dx=dx, dt=dt, cfl=0.0,
-                                   active=jnp.asarray(True), switch_step=switch)
+            record = M.StepRecord(step=jnp.asarray(k), rho=rho, v=vs[k], v_next=vs[k + 1], h_sent=rho, cfl=0.0,
+                                  active=jnp.asarray(True))
+            acc = M.update_metrics(acc, record, M.MetricsTarget(rho_bar=0.1, v_bar=3.0, h_bar=0.1, dx=dx, dt=dt,
+                                                                switch_step=switch))
         tot = M.totals(acc, dx)
         # a = 0, 1, 0 m/s^2 -> a_t = 0, 2, -2 m/s^3; weight dt * 1000 rho = 50 per node, L = 40 m
         expected = 0.0 if switch == 0 else 4.0 * 50.0 * 40.0
@@ -103,7 +104,8 @@ def test_per_node_noise_differs_between_nodes_and_runs():
     a = np.asarray(noise_alpha_sequence(p, jax.random.PRNGKey(1), 10, reading))
     assert a.shape == (10, p.n_points)
     assert np.all(a[:4] == a[0]) and np.unique(a[0]).size > p.n_points // 2
-    res = jaxtraffic.simulate(p, jaxtraffic.backstepping(1.0, 1.0), n_steps=40, noise=reading, record_every=10)
+    res = jaxtraffic.simulate(p, jaxtraffic.backstepping(1.0, 1.0), n_steps=40,
+                              alpha_input=jaxtraffic.AlphaInput(noise=reading), record=jaxtraffic.Record(every=10))
     assert not bool(res.metrics["diverged"]) and np.isfinite(float(res.metrics["J_comfort"]))
     with pytest.raises(ValueError):
         NoiseReading(per_node=True, model_sees=True)
@@ -130,7 +132,7 @@ def test_model_sees_noise_controller_gets_the_plant_alpha():
     # through simulate: the last step's model alpha is the plant's last alpha
     key = jax.random.PRNGKey(4)
     reading = NoiseReading(hold_steps=3, model_sees=True)
-    res = jaxtraffic.simulate(p, _spy(), n_steps=16, key=key, noise=reading)
+    res = jaxtraffic.simulate(p, _spy(), n_steps=16, key=key, alpha_input=jaxtraffic.AlphaInput(noise=reading))
     alphas = noise_alpha_sequence(p, jax.random.split(key)[0], 16, reading)
     assert float(res.controller_state) == float(alphas[-1]) != 0.15
 
@@ -143,20 +145,22 @@ def test_given_alphas_reproduce_the_drawn_readings():
     ctrl, n, key = jaxtraffic.backstepping(1.0, 1.0), 40, jax.random.PRNGKey(3)
     held, node = NoiseReading(hold_steps=7), NoiseReading(hold_steps=5, per_node=True)
     for reading in (None, held, node):
-        drawn = jaxtraffic.simulate(p, ctrl, n_steps=n, key=key, noise=reading)
-        given = jaxtraffic.simulate(p, ctrl, n_steps=n, key=key, alphas=jaxtraffic.plant_alphas(p, key, n, reading))
+        drawn = jaxtraffic.simulate(p, ctrl, n_steps=n, key=key, alpha_input=jaxtraffic.AlphaInput(noise=reading))
+        given_alphas = jaxtraffic.AlphaInput(alphas=jaxtraffic.plant_alphas(p, key, n, reading))
+        given = jaxtraffic.simulate(p, ctrl, n_steps=n, key=key, alpha_input=given_alphas)
         assert float(drawn.metrics["J_comfort"]) > 0.0
         for k in ("J_TTT", "J_comfort", "final_rho_L2"):
             np.testing.assert_allclose(float(given.metrics[k]), float(drawn.metrics[k]), rtol=1e-6)
     keys = jax.random.split(key, 2)
     alphas = jnp.stack([jaxtraffic.plant_alphas(p, keys[0], n), jaxtraffic.plant_alphas(p, keys[1], n, held)])
-    batch = jaxtraffic.simulate_batch(p, ctrl, n_steps=n, keys=keys, alphas=alphas)
+    batch = jaxtraffic.simulate_batch(p, ctrl, n_steps=n, keys=keys, alpha_input=jaxtraffic.AlphaInput(alphas=alphas))
     for i, reading in enumerate((None, held)):
-        one = jaxtraffic.simulate(p, ctrl, n_steps=n, key=keys[i], noise=reading)
+        one = jaxtraffic.simulate(p, ctrl, n_steps=n, key=keys[i], alpha_input=jaxtraffic.AlphaInput(noise=reading))
         np.testing.assert_allclose(float(batch.metrics["J_comfort"][i]), float(one.metrics["J_comfort"]), rtol=1e-5)
     with pytest.raises(ValueError, match="replaces the drawn"):
-        jaxtraffic.simulate(p, ctrl, n_steps=n, noise=held, alphas=alphas[1])
+        jaxtraffic.simulate(p, ctrl, n_steps=n, alpha_input=jaxtraffic.AlphaInput(noise=held, alphas=alphas[1]))
     with pytest.raises(ValueError, match="shape"):
-        jaxtraffic.simulate(p, ctrl, n_steps=n, alphas=alphas[1][:-1])
+        jaxtraffic.simulate(p, ctrl, n_steps=n, alpha_input=jaxtraffic.AlphaInput(alphas=alphas[1][:-1]))
     with pytest.raises(ValueError, match="shape"):
-        jaxtraffic.simulate_batch(p, ctrl, n_steps=n, keys=keys, alphas=alphas[:, :-1])
+        jaxtraffic.simulate_batch(p, ctrl, n_steps=n, keys=keys,
+                                  alpha_input=jaxtraffic.AlphaInput(alphas=alphas[:, :-1]))

@@ -23,6 +23,7 @@ from jaxtraffic import (
     stack_params,
 )
 from jaxtraffic.model.solver import is_physical
+from jaxtraffic.sim import Memory, Record
 from jaxtraffic.sim import metrics as M
 from jaxtraffic.sim.plant import closed_loop_step, initial_state, plant_alpha_sequence, select_state
 
@@ -48,9 +49,9 @@ def _all_finite(tree) -> bool:
 def test_same_key_same_result_with_alpha_noise():
     p = TrafficParams(**SMALL, alpha_noise=0.05)
     k1, k2 = jax.random.PRNGKey(1), jax.random.PRNGKey(2)
-    a = simulate(p, n_steps=200, key=k1, record_every=10)
-    b = simulate(p, n_steps=200, key=k1, record_every=10)
-    c = simulate(p, n_steps=200, key=k2, record_every=10)
+    a = simulate(p, n_steps=200, key=k1, record=Record(every=10))
+    b = simulate(p, n_steps=200, key=k1, record=Record(every=10))
+    c = simulate(p, n_steps=200, key=k2, record=Record(every=10))
     assert leaves_equal(a, b)
     assert not np.array_equal(np.asarray(a.final.v), np.asarray(c.final.v))
     assert float(a.metrics["J_TTT"]) != float(c.metrics["J_TTT"])
@@ -59,21 +60,21 @@ def test_same_key_same_result_with_alpha_noise():
 
 def test_without_noise_the_key_does_not_matter():
     p = TrafficParams(**SMALL)
-    a = simulate(p, n_steps=200, key=jax.random.PRNGKey(1), record_every=10)
-    b = simulate(p, n_steps=200, key=jax.random.PRNGKey(2), record_every=10)
+    a = simulate(p, n_steps=200, key=jax.random.PRNGKey(1), record=Record(every=10))
+    b = simulate(p, n_steps=200, key=jax.random.PRNGKey(2), record=Record(every=10))
     assert leaves_equal(a.metrics, b.metrics) and leaves_equal(a.final, b.final)
 
 
 def test_batched_keys_are_reproducible_and_independent():
     p = TrafficParams(**SMALL, alpha_noise=0.05)
     keys = jax.random.split(jax.random.PRNGKey(7), 3)
-    a = simulate_batch(p, n_steps=200, keys=keys, record_every=10)
-    b = simulate_batch(p, n_steps=200, keys=keys, record_every=10)
+    a = simulate_batch(p, n_steps=200, keys=keys, record=Record(every=10))
+    b = simulate_batch(p, n_steps=200, keys=keys, record=Record(every=10))
     assert leaves_equal(a, b)
     v = np.asarray(a.final.v)
     assert not np.array_equal(v[0], v[1]) and not np.array_equal(v[1], v[2])
     # a batch member equals the single rollout with the same key (to rounding)
-    single = simulate(p, n_steps=200, key=keys[1], record_every=10)
+    single = simulate(p, n_steps=200, key=keys[1], record=Record(every=10))
     np.testing.assert_allclose(v[1], single.final.v, rtol=1e-5)
     np.testing.assert_allclose(a.metrics["J_comfort"][1], single.metrics["J_comfort"], rtol=1e-4)
 
@@ -94,8 +95,8 @@ def test_divergence_is_contained(bad_amplitude):
     sick = [0.010, bad_amplitude, 0.008]
     ra, va = _ic_batch(p, healthy)
     rb, vb = _ic_batch(p, sick)
-    A = simulate_batch(p, n_steps=n_steps, rho0=ra, v0=va, record_every=10)
-    B = simulate_batch(p, n_steps=n_steps, rho0=rb, v0=vb, record_every=10)
+    A = simulate_batch(p, n_steps=n_steps, rho0=ra, v0=va, record=Record(every=10))
+    B = simulate_batch(p, n_steps=n_steps, rho0=rb, v0=vb, record=Record(every=10))
     # the other environments: exactly the same results
     for i in (0, 2):
         assert leaves_equal(take(A, i), take(B, i)), f"env {i} changed"
@@ -155,7 +156,7 @@ def test_traced_non_physical_initial_state_is_flagged_not_spread():
 
     @jax.jit
     def go(r0, v0):
-        return simulate_batch(p, n_steps=200, rho0=r0, v0=v0, record_every=10)
+        return simulate_batch(p, n_steps=200, rho0=r0, v0=v0, record=Record(every=10))
 
     res = go(r0, v0)
     np.testing.assert_array_equal(np.asarray(res.metrics["diverged"]), [False, True, True])
@@ -170,7 +171,7 @@ def test_traced_non_physical_initial_state_is_flagged_not_spread():
 def paper_open_loop():
     p = TrafficParams()
     rho0, v0 = paper_initial_condition(p)
-    return simulate(p, n_steps=3000, rho0=rho0, v0=v0, record_every=10)
+    return simulate(p, n_steps=3000, rho0=rho0, v0=v0, record=Record(every=10))
 
 
 def test_open_loop_from_paper_ic_grows(paper_open_loop):
@@ -195,7 +196,7 @@ def test_metrics_at_equilibrium_paper_grid():
     """docs/model.md section 10: J_TTT = 3.2208e7 and J_fuel = 8.077e5 over 300 s at equilibrium."""
     p = TrafficParams()
     rho0, v0 = equilibrium_state(p)
-    res = simulate(p, n_steps=3000, rho0=rho0, v0=v0, record_every=10)
+    res = simulate(p, n_steps=3000, rho0=rho0, v0=v0, record=Record(every=10))
     m = res.metrics
     rho_bar, v_bar = (float(x) for x in equilibrium(p))
     assert float(m["J_TTT"]) == pytest.approx(3.2208e7, rel=5e-5)
@@ -217,11 +218,11 @@ def test_metrics_scale_with_horizon_and_match_trajectory():
     space-trapezoid / time-rectangle sum of the recorded density (record_every=1)."""
     p = TrafficParams(**SMALL)
     rho0, v0 = equilibrium_state(p)
-    res = simulate(p, n_steps=60, rho0=rho0, v0=v0, record_every=1)
+    res = simulate(p, n_steps=60, rho0=rho0, v0=v0, record=Record(every=1))
     assert float(res.metrics["J_TTT"]) == pytest.approx(3.2208e6, rel=5e-5)
     rho_bar, v_bar = equilibrium(p)
     rho, v = paper_initial_condition(p, amplitude=0.008)
-    res = simulate(p, n_steps=60, rho0=rho, v0=v, record_every=1)
+    res = simulate(p, n_steps=60, rho0=rho, v0=v, record=Record(every=1))
     tr = res.trajectory
     rec = np.asarray(tr.rho, np.float64) * 1000.0
     dx, dt = float(p.dx), float(p.dt)
@@ -270,7 +271,7 @@ def test_simulate_batch_input_checks():
     with pytest.raises(ValueError, match="nothing is batched"):
         simulate_batch(p, n_steps=10)
     with pytest.raises(ValueError, match="multiple of record_every"):
-        simulate(p, n_steps=10, record_every=3)
+        simulate(p, n_steps=10, record=Record(every=3))
     rho, v = equilibrium_state(p)
     with pytest.raises(ValueError, match="both rho0 and v0"):
         simulate(p, n_steps=10, rho0=rho)
@@ -283,9 +284,9 @@ def test_chunked_batches_match_one_vmap_and_contain_divergence():
     amps = [0.010, 0.005, 0.008, 0.006, 0.009]
     r0, v0 = _ic_batch(p, amps)
     ctrl = lyapunov(jnp.asarray([1.0, 0.5, 1.5, 1.0, 0.8]))
-    kw = {"n_steps": 200, "record_every": 10, "batch_controller": True}
-    one = simulate_batch(p, ctrl, rho0=r0, v0=v0, chunk_size=None, **kw)
-    chunked = simulate_batch(p, ctrl, rho0=r0, v0=v0, chunk_size=2, **kw)
+    kw = {"n_steps": 200, "record": Record(every=10), "batch_controller": True}
+    one = simulate_batch(p, ctrl, rho0=r0, v0=v0, memory=Memory(chunk_size=None), **kw)
+    chunked = simulate_batch(p, ctrl, rho0=r0, v0=v0, memory=Memory(chunk_size=2), **kw)
     assert np.asarray(chunked.final.rho).shape == (5, p.n_points)
     assert np.asarray(chunked.trajectory.rho).shape == (5, 20, p.n_points)
     # (two programs: float32 rounding may differ, e.g. 3e-8 on a reward of -1.6e-3 over 200 steps)
@@ -293,7 +294,7 @@ def test_chunked_batches_match_one_vmap_and_contain_divergence():
         np.testing.assert_allclose(np.asarray(a, np.float64), np.asarray(b, np.float64), rtol=1e-5, atol=1e-7)
     # env 3 diverges (open-loop-like gain, huge amplitude); the others: bit-identical
     r_bad, v_bad = _ic_batch(p, [0.010, 0.005, 0.008, 0.09, 0.009])
-    sick = simulate_batch(p, ctrl, rho0=r_bad, v0=v_bad, chunk_size=2, **kw)
+    sick = simulate_batch(p, ctrl, rho0=r_bad, v0=v_bad, memory=Memory(chunk_size=2), **kw)
     np.testing.assert_array_equal(np.asarray(sick.metrics["diverged"]), [False, False, False, True, False])
     for i in (0, 1, 2, 4):
         assert leaves_equal(take(chunked, i), take(sick, i)), f"env {i} changed"
@@ -306,7 +307,7 @@ def test_time_to_reward_target_matches_the_recorded_rewards():
     the per-step rewards of the trajectory (record_every=1) for a stabilising controller."""
     p = TrafficParams(**SMALL)
     rho0, v0 = paper_initial_condition(p)
-    res = simulate(p, lyapunov(), n_steps=200, rho0=rho0, v0=v0, record_every=1)
+    res = simulate(p, lyapunov(), n_steps=200, rho0=rho0, v0=v0, record=Record(every=1))
     r = np.append(np.asarray(res.trajectory.reward), float(res.metrics["final_reward"]))
     bad = np.flatnonzero(r < M.REWARD_TARGET)
     assert r[0] < M.REWARD_TARGET and r[-1] >= M.REWARD_TARGET  # it really crosses the target

@@ -16,6 +16,7 @@ from jaxtraffic.control import backstepping, constant_gains, schedule_gains, sch
 from jaxtraffic.learn.gradient import objective
 from jaxtraffic.learn.gradient.policy import gradient_setup
 from jaxtraffic.paper.scenarios import EvalConfig, robust_axis, run_robustness
+from jaxtraffic.sim import Record
 
 KNOTS = (0.0, 4.0, 8.0)
 TABLE = jnp.asarray([[0.0, -1.0, -2.0], [0.2, -0.5, -1.0], [0.4, 0.0, -0.5]])
@@ -34,7 +35,7 @@ def test_a_flat_schedule_is_the_constant_gain_law():
     const = constant_gains(*map(float, TABLE[1]), filter_sigma=10.0, dx=float(PLANT.dx))
 
     def h(c):
-        return np.asarray(simulate(PLANT, c, n_steps=60, record_every=1).trajectory.h)
+        return np.asarray(simulate(PLANT, c, n_steps=60, record=Record(every=1)).trajectory.h)
 
     np.testing.assert_array_equal(h(flat), h(const))
 

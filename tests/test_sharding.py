@@ -81,7 +81,8 @@ envs = stack_params(n_points=41, dt=0.5, max_delay_steps=8, delay=[0.0, 0.5, 1.0
 keys = jax.random.split(jax.random.PRNGKey(1), 5)
 out = {"devices": jax.device_count()}
 for name, c in (("lyap", lyapunov()), ("bs", backstepping(delay=2.0))):
-    m = simulate_batch(envs, c, n_steps=60, keys=keys, nominal=p, chunk_size=2).metrics
+    m = simulate_batch(envs, c, n_steps=60, keys=keys, nominal=p,
+                       memory=jaxtraffic.Memory(chunk_size=2)).metrics
     out[name] = {k: np.asarray(v, np.float64).tolist() for k, v in m.items() if k != "diverged"}
 print("RESULT " + json.dumps(out))
 """

@@ -82,7 +82,7 @@ def test_certificate_predicts_the_simulated_growth():
     rho0, v0 = paper_initial_condition(p, amplitude=1e-4)
     for gains, unstable in (((0.0, -2.0, -4.0), True), ((0.0, -1.0, -1.5), False)):
         cert = certify(gains, p, 4.0, symbol="upwind")
-        res = jt.simulate(p, jt.constant_gains(*gains), n_steps=3000, record_every=100, rho0=rho0, v0=v0)
+        res = jt.simulate(p, jt.constant_gains(*gains), n_steps=3000, record=jt.Record(every=100), rho0=rho0, v0=v0)
         l2 = np.asarray(res.trajectory.rho_L2)
         rate = np.log(float(res.metrics["final_rho_L2"]) / l2[10]) / 200.0  # 100 s -> 300 s
         if unstable:

@@ -155,7 +155,7 @@ def assumed_delay_steps(delay: Array, sent: delay_buffer.DelayBuffer, nominal: T
 def _checked_gain(settings) -> Array:
     """The gain k, or NaN if a traced setting the constructor could not check is invalid (a non-finite gain, a
     NaN or negative assumed delay): the law then returns NaN, which ``sim.plant`` reports as
-    ``DIVERGED_CONTROL``. (A select on the scalar gain, so the law's arithmetic is untouched.)"""
+    ``Divergence.CONTROL`` (``sim.outcome``). (A select on the scalar gain, so the law's arithmetic is untouched.)"""
     ok = jnp.isfinite(settings.delay) & (settings.delay >= 0)
     return jnp.where(ok, settings.k, jnp.nan)
 

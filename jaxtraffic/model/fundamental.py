@@ -6,71 +6,108 @@ parameters. Units: density ``rho`` in veh/m, speed in m/s, time gaps in s.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import jax.numpy as jnp
-
-if TYPE_CHECKING:
-    from jaxtraffic.model.params import TrafficParams
 
 Array = jnp.ndarray
 
 
-def tau_mix(p: TrafficParams, alpha: Array | float | None = None) -> Array:
+class MixtureConstants(Protocol):
+    """What these functions read from their parameter argument (``model.params.TrafficParams`` has it;
+    this module imports nothing from ``params``, so the imports flow one way: params -> fundamental).
+
+    Attributes: alpha (ACC penetration rate, dimensionless), tau_acc and tau_m (relaxation times, s),
+    h_m (manual time gap, s), l (effective vehicle length, m). Scalars or arrays that broadcast.
+    """
+
+    alpha: Array | float
+    tau_acc: Array | float
+    tau_m: Array | float
+    h_m: Array | float
+    l: Array | float
+
+
+def tau_mix(p: MixtureConstants, alpha: Array | float | None = None) -> Array:
     """Mixed relaxation time tau_mix = 1 / (alpha/tau_acc + (1-alpha)/tau_m), in s."""
     a = p.alpha if alpha is None else alpha
     return 1.0 / (a / p.tau_acc + (1.0 - a) / p.tau_m)
 
 
-def mix_coefficients(p: TrafficParams, alpha: Array | float | None = None) -> tuple[Array, Array]:
+def mix_coefficients(p: MixtureConstants, alpha: Array | float | None = None) -> tuple[Array, Array]:
     """Coefficients (c, b) of h_mix(h) = c h / (alpha + b h): c = alpha + (1 - alpha) tau_acc/tau_m
     (dimensionless), b = (1 - alpha) tau_acc / (tau_m h_m) (1/s). h_mix saturates at c / b (s)."""
     a = p.alpha if alpha is None else alpha
-    ratio = p.tau_acc / p.tau_m
-    c = a + (1.0 - a) * ratio
-    b = (1.0 - a) * ratio / p.h_m
+    return mix_coefficients_of(a, p.tau_acc, p.tau_m, p.h_m)
+
+
+def mix_coefficients_of(alpha: Array | float, tau_acc: Array | float, tau_m: Array | float,
+                        h_m: Array | float) -> tuple[Array, Array]:
+    """``mix_coefficients`` from the constants themselves (numpy or JAX arrays, or floats, broadcast).
+
+    Args:
+        alpha: ACC penetration rate in [0, 1]. tau_acc, tau_m: relaxation times, s. h_m: manual time gap, s.
+    Returns:
+        (c, b): c dimensionless, b in 1/s, in the precision of the inputs.
+    """
+    ratio = tau_acc / tau_m
+    c = alpha + (1.0 - alpha) * ratio
+    b = (1.0 - alpha) * ratio / h_m
     return c, b
 
 
-def h_mix(h: Array, p: TrafficParams, alpha: Array | float | None = None) -> Array:
+def h_mix(h: Array, p: MixtureConstants, alpha: Array | float | None = None) -> Array:
     """Mixed time gap h_mix(h) = c h / (alpha + b h) in s, for an ACC time gap ``h`` in s."""
     a = p.alpha if alpha is None else alpha
-    c, b = mix_coefficients(p, a)
-    return c * h / (a + b * h)
+    return h_mix_of(h, a, p.tau_acc, p.tau_m, p.h_m)
 
 
-def h_mix_prime(h: Array, p: TrafficParams, alpha: Array | float | None = None) -> Array:
+def h_mix_of(h: Array, alpha: Array | float, tau_acc: Array | float, tau_m: Array | float,
+             h_m: Array | float) -> Array:
+    """``h_mix`` from the constants themselves (numpy or JAX arrays, or floats, broadcast).
+
+    Args:
+        h: ACC time gap, s. alpha: penetration rate in [0, 1]. tau_acc, tau_m: relaxation times, s.
+        h_m: manual time gap, s.
+    Returns:
+        The mixed time gap c h / (alpha + b h), s, shape of the broadcast inputs.
+    """
+    c, b = mix_coefficients_of(alpha, tau_acc, tau_m, h_m)
+    return c * h / (alpha + b * h)
+
+
+def h_mix_prime(h: Array, p: MixtureConstants, alpha: Array | float | None = None) -> Array:
     """Derivative dh_mix/dh = c alpha / (alpha + b h)^2 (dimensionless)."""
     a = p.alpha if alpha is None else alpha
     c, b = mix_coefficients(p, a)
     return c * a / (a + b * h) ** 2
 
 
-def h_mix_inv(hm: Array, p: TrafficParams, alpha: Array | float | None = None) -> Array:
+def h_mix_inv(hm: Array, p: MixtureConstants, alpha: Array | float | None = None) -> Array:
     """Inverse of ``h_mix``: the ACC time gap (s) giving mixed gap ``hm`` (s); needs hm < c/b."""
     a = p.alpha if alpha is None else alpha
     c, b = mix_coefficients(p, a)
     return a * hm / (c - b * hm)
 
 
-def V(rho: Array, h: Array, p: TrafficParams, alpha: Array | float | None = None) -> Array:
+def V(rho: Array, h: Array, p: MixtureConstants, alpha: Array | float | None = None) -> Array:
     """Equilibrium speed V(rho, h) = (1/rho - l) / h_mix(h), in m/s."""
     return (1.0 / rho - p.l) / h_mix(h, p, alpha)
 
 
-def dV_drho(rho: Array, h: Array, p: TrafficParams, alpha: Array | float | None = None) -> Array:
+def dV_drho(rho: Array, h: Array, p: MixtureConstants, alpha: Array | float | None = None) -> Array:
     """dV/drho = -1 / (rho^2 h_mix(h)), in m^2/(s veh)."""
     return -1.0 / (rho**2 * h_mix(h, p, alpha))
 
 
-def dV_dh(rho: Array, h: Array, p: TrafficParams, alpha: Array | float | None = None) -> Array:
+def dV_dh(rho: Array, h: Array, p: MixtureConstants, alpha: Array | float | None = None) -> Array:
     """dV/dh = -(1/rho - l) h_mix'(h) / h_mix(h)^2, in m/s^2."""
     hm = h_mix(h, p, alpha)
     return -(1.0 / rho - p.l) * h_mix_prime(h, p, alpha) / hm**2
 
 
 def characteristic_speeds(
-    rho: Array, v: Array, h: Array, p: TrafficParams, alpha: Array | float | None = None
+    rho: Array, v: Array, h: Array, p: MixtureConstants, alpha: Array | float | None = None
 ) -> tuple[Array, Array]:
     """Characteristic speeds (lambda1, lambda2) = (v, v - 1/(rho h_mix)), in m/s."""
     return v, v - 1.0 / (rho * h_mix(h, p, alpha))

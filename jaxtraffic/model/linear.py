@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from jaxtraffic.model import fundamental as fd
+from jaxtraffic.model import fundamental
 from jaxtraffic.model.params import TrafficParams, equilibrium
 
 Array = jax.Array
@@ -48,12 +48,12 @@ class LinearModel:
 def linearize(p: TrafficParams) -> LinearModel:
     """Coefficients of the linearised model at the equilibrium of ``p`` (nominal alpha)."""
     rho_bar, v_bar = equilibrium(p)
-    V_rho = fd.dV_drho(rho_bar, p.h_bar, p)
-    lam1, lam2 = fd.characteristic_speeds(rho_bar, v_bar, p.h_bar, p)
+    V_rho = fundamental.dV_drho(rho_bar, p.h_bar, p)
+    lam1, lam2 = fundamental.characteristic_speeds(rho_bar, v_bar, p.h_bar, p)
     as_arr = jnp.asarray
     return LinearModel(
         rho_bar=rho_bar, v_bar=v_bar, h_bar=as_arr(p.h_bar), V_rho=V_rho,
-        V_h=fd.dV_dh(rho_bar, p.h_bar, p), tau=as_arr(fd.tau_mix(p)), lam1=as_arr(lam1),
+        V_h=fundamental.dV_dh(rho_bar, p.h_bar, p), tau=as_arr(fundamental.tau_mix(p)), lam1=as_arr(lam1),
         lam2=as_arr(lam2), dx=as_arr(p.dx), dt=as_arr(p.dt),
     )
 

@@ -20,9 +20,10 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from jaxtraffic.model import fundamental as fd
+from jaxtraffic.model import fundamental
+from jaxtraffic.model.schemes import SCHEME_NAMES
 
-SCHEMES = ("upwind", "muscl")
+SCHEMES = SCHEME_NAMES  # model.schemes.SCHEMES maps each name to its composed pieces
 FLOAT_FIELDS = ("L", "l", "q_in", "alpha", "tau_acc", "tau_m", "h_bar", "h_m", "delay", "dt", "h_min", "h_max",
                 "alpha_noise")
 MODELS = ("arz", "linear")
@@ -115,7 +116,7 @@ def params_valid(p: TrafficParams) -> jax.Array:
     """Whether the (possibly traced) parameters are usable, as a boolean array: the range checks of
     ``validate`` that can be done inside a program (every float finite, lengths and times > 0, alpha in
     [0, 1], alpha_noise >= 0, h_min < h_bar <= h_max... , 0 <= delay <= max_delay_steps dt). ``sim.plant``
-    freezes a plant whose parameters fail it at step 0 (``DIVERGED_PARAMS``) instead of running a
+    freezes a plant whose parameters fail it at step 0 (``sim.outcome.Divergence.PARAMS``) instead of running a
     different system."""
     f = {k: jnp.asarray(getattr(p, k), jnp.float32) for k in FLOAT_FIELDS}
     ok = jnp.all(jnp.stack([jnp.all(jnp.isfinite(v)) for v in f.values()]))
@@ -181,7 +182,7 @@ def validate(p: TrafficParams, cfl_max: float = 1.0) -> None:
         raise ValueError(f"need h_max > h_min, got {vals['h_min']}, {vals['h_max']}")
     if not np.all((vals["h_bar"] >= vals["h_min"]) & (vals["h_bar"] <= vals["h_max"])):
         raise ValueError(f"h_bar {vals['h_bar']} outside actuator bounds [{vals['h_min']}, {vals['h_max']}]")
-    hm_bar = fd.h_mix(vals["h_bar"], _np_view(vals), vals["alpha"])
+    hm_bar = _h_mix_np(vals["h_bar"], vals)
     if not np.all(1.0 / vals["q_in"] > hm_bar):
         raise ValueError(
             f"inflow q_in={vals['q_in']} veh/s has no equilibrium: need 1/q_in > h_mix(h_bar)"
@@ -237,13 +238,13 @@ def check_steps(n_steps: object, record_every: object = 0) -> None:
         raise ValueError(f"n_steps={n_steps} is not a multiple of record_every={record_every}")
 
 
-class _np_view:  # minimal attribute view so fundamental.* works on numpy dicts
-    def __init__(self, vals: dict[str, np.ndarray]):
-        self.__dict__.update(vals)
+def _h_mix_np(h: np.ndarray, vals: dict[str, np.ndarray]) -> np.ndarray:
+    """``fundamental.h_mix`` at time gap ``h`` (s) on a dict of float64 arrays (the fields of ``FLOAT_FIELDS``)."""
+    return fundamental.h_mix_of(h, vals["alpha"], vals["tau_acc"], vals["tau_m"], vals["h_m"])
 
 
 def _equilibrium_np(vals: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    hm = fd.h_mix(vals["h_bar"], _np_view(vals), vals["alpha"])
+    hm = _h_mix_np(vals["h_bar"], vals)
     v_bar = vals["l"] / (1.0 / vals["q_in"] - hm)
     return 1.0 / (vals["l"] + hm * v_bar), v_bar
 
@@ -253,7 +254,7 @@ def equilibrium(p: TrafficParams) -> tuple[jax.Array, jax.Array]:
 
     v_bar = l / (1/q_in - h_mix(h_bar)),  rho_bar = 1 / (l + h_mix(h_bar) v_bar).
     """
-    hm = fd.h_mix(p.h_bar, p)
+    hm = fundamental.h_mix(p.h_bar, p)
     v_bar = p.l / (1.0 / p.q_in - hm)
     rho_bar = 1.0 / (p.l + hm * v_bar)
     return jnp.asarray(rho_bar), jnp.asarray(v_bar)
@@ -263,7 +264,7 @@ def cfl_number(p: TrafficParams) -> float:
     """CFL number max|lambda| dt_s/dx at the equilibrium (h = h_bar; dt_s = ``solver_dt``), for
     concrete parameters."""
     rho_bar, v_bar = equilibrium(p)
-    lam1, lam2 = fd.characteristic_speeds(rho_bar, v_bar, p.h_bar, p)
+    lam1, lam2 = fundamental.characteristic_speeds(rho_bar, v_bar, p.h_bar, p)
     return float(jnp.max(jnp.maximum(jnp.abs(lam1), jnp.abs(lam2)) * p.solver_dt / p.dx))
 
 
@@ -280,7 +281,7 @@ def cfl_bound(p: TrafficParams) -> float:
 def _cfl_bound_np(vals: dict[str, np.ndarray], n_points: int, substeps: int) -> float:
     """``cfl_bound`` on a dict of float64 arrays (possibly batched: the largest over the batch)."""
     rho_bar, v_bar = _equilibrium_np(vals)
-    hm = fd.h_mix(vals["h_min"], _np_view(vals), vals["alpha"])
+    hm = _h_mix_np(vals["h_min"], vals)
     # a noisy plant alpha reaches 1, where h_mix(h_min) = h_min is smallest (h_min < h_m)
     hm = np.where(vals["alpha_noise"] > 0, np.minimum(hm, vals["h_min"]), hm)
     lam2 = v_bar - 1.0 / (rho_bar * hm)

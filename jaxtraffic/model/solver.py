@@ -11,11 +11,14 @@ rounding. The speed obeys the non-conservative equation v_t + lambda2 v_x = (V -
 upwinded by the sign of lambda2 = v - 1/(rho h_mix); at x = L it follows the outlet ODE
 v_t = (V - v)/tau_mix, where the speed characteristic enters.
 
-Schemes (static ``params.scheme``):
+Schemes (static ``params.scheme``, looked up in ``model.schemes.SCHEMES``) are composed of
+separate pieces: a spatial discretisation (``model.reconstruction``), an explicit time integrator
+(``model.time_stepping``) and named boundary conditions (``model.boundary``):
   * ``"upwind"``: first-order upwind fluxes and differences, forward Euler (the paper's method).
   * ``"muscl"``: minmod-limited piecewise-linear reconstruction of fluxes and of v, with
     SSP-RK2 (Heun) time stepping; second order where the solution is smooth.
-Both keep the uniform equilibrium (rho_bar, v_bar, h_bar) as a fixed point.
+Both keep the uniform equilibrium (rho_bar, v_bar, h_bar) as a fixed point. This module holds the
+physics (characteristic speed, relaxation source) and assembles the pieces.
 """
 
 from __future__ import annotations
@@ -24,23 +27,15 @@ import chex
 import jax
 import jax.numpy as jnp
 
-from jaxtraffic.model import fundamental as fd
+from jaxtraffic.model import fundamental
 from jaxtraffic.model.params import TrafficParams
+from jaxtraffic.model.reconstruction import minmod
+from jaxtraffic.model.schemes import Scheme, get_scheme
+from jaxtraffic.model.time_stepping import rk_step
 
 Array = jax.Array
 
-
-def minmod(a: Array, b: Array) -> Array:
-    """Minmod limiter: the smaller-magnitude argument if both have the same sign, else 0."""
-    return jnp.where(a * b > 0, jnp.sign(a) * jnp.minimum(jnp.abs(a), jnp.abs(b)), 0.0)
-
-
-def _limited_slopes(u: Array) -> Array:
-    """Minmod slopes (per cell, in units of u) at nodes 1..N-1; zero at both end nodes."""
-    d = jnp.diff(u)
-    inner = minmod(d[:-1], d[1:])
-    z = jnp.zeros((1,), u.dtype)
-    return jnp.concatenate([z, inner, z])
+__all__ = ["arz_step", "is_physical", "local_cfl", "max_cfl", "minmod", "rhs", "solver_step"]
 
 
 def _speeds_and_source(rho: Array, v: Array, h: Array, alpha: Array, p: TrafficParams):
@@ -49,7 +44,7 @@ def _speeds_and_source(rho: Array, v: Array, h: Array, alpha: Array, p: TrafficP
     Same quantities as ``fundamental.characteristic_speeds`` / ``fundamental.V`` (equal up to
     rounding): 1/h_mix(h) = (alpha + b h) / (c h) and 1/tau_mix = alpha/tau_acc + (1-alpha)/tau_m.
     """
-    c, b = fd.mix_coefficients(p, alpha)
+    c, b = fundamental.mix_coefficients(p, alpha)
     inv_tau = alpha / p.tau_acc + (1.0 - alpha) / p.tau_m
     inv_rho = 1.0 / rho
     inv_hm = (alpha + b * h) / (c * h)
@@ -58,61 +53,57 @@ def _speeds_and_source(rho: Array, v: Array, h: Array, alpha: Array, p: TrafficP
     return lam2, source
 
 
-def _rhs(rho: Array, v: Array, h: Array, alpha: Array, p: TrafficParams, second_order: bool):
-    """Semi-discrete right-hand side.
+def rhs(rho: Array, v: Array, h: Array, alpha: Array | float, p: TrafficParams, scheme: Scheme
+        ) -> tuple[tuple[Array, Array], tuple[Array, Array]]:
+    """Semi-discrete right-hand side of ``scheme``'s spatial discretisation and boundary conditions.
 
-    Returns (drho_dt, dv_dt, F_in, F_out) with drho_dt zero at the inlet node (set by the
-    boundary condition) and F_in / F_out the mass fluxes (veh/s) through x = 0 and x = L.
+    Args:
+        rho, v, h: density (veh/m), speed (m/s), applied time gap (s), shapes (n_points,).
+        alpha: plant penetration rate (scalar or per node).
+        p: parameters (dx and the physical constants).
+        scheme: the composed scheme (``model.schemes.get_scheme``).
+    Returns:
+        ((drho_dt, dv_dt), (F_in, F_out)): the time derivatives, shapes (n_points,) in veh/(m s) and
+        m/s^2 (drho_dt is zero at the inlet node, whose density the inlet condition sets), and the
+        scalar mass fluxes (veh/s) through x = 0 and x = L.
     """
     inv_dx = 1.0 / p.dx
     q = rho * v
-    if second_order:
-        sq = _limited_slopes(q)
-        face = q[1:-1] + 0.5 * sq[1:-1]  # F_{i+1/2}, i = 1..N-1, upwind (v > 0) reconstruction
-    else:
-        face = q[1:-1]
-    f_in, f_out = q[0], q[-1]
-    flux = jnp.concatenate([f_in[None], face, f_out[None]])  # F_{1/2} .. F_{N+1/2}
+    f_in, f_out = scheme.inlet.mass_flux(q), scheme.outlet.mass_flux(q)
+    flux = jnp.concatenate([f_in[None], scheme.reconstruction.face_fluxes(q), f_out[None]])  # F_{1/2}..F_{N+1/2}
     drho = jnp.concatenate([jnp.zeros((1,), rho.dtype), (flux[:-1] - flux[1:]) * inv_dx])
 
     lam2, source = _speeds_and_source(rho, v, h, alpha, p)
-    if second_order:
-        s = _limited_slopes(v)
-        right = v - 0.5 * s  # value at face i-1/2 seen from node i
-        left = v + 0.5 * s  # value at face i+1/2 seen from node i
-        vx_fwd = (right[1:] - right[:-1]) * inv_dx  # information from the right, nodes 0..N-1
-        vx_bwd = (left[1:] - left[:-1]) * inv_dx  # information from the left, nodes 1..N
-    else:
-        vx_fwd = (v[1:] - v[:-1]) * inv_dx
-        vx_bwd = vx_fwd
-    # node 0 has no left neighbour: forward difference there; node N follows the outlet ODE
-    vx_b = jnp.concatenate([vx_fwd[:1], vx_bwd[:-1]])  # backward differences at nodes 0..N-1
-    vx = jnp.where(lam2[:-1] < 0, vx_fwd, vx_b)
-    adv = jnp.concatenate([lam2[:-1] * vx, jnp.zeros((1,), v.dtype)])
+    vx_fwd, vx_bwd = scheme.reconstruction.speed_differences(v, inv_dx)
+    vx_b = jnp.concatenate([scheme.inlet.backward_speed_difference(vx_fwd), vx_bwd[:-1]])  # nodes 0..N-1
+    vx = jnp.where(lam2[:-1] < 0, vx_fwd, vx_b)  # upwinded by the sign of lambda2
+    adv = jnp.concatenate([lam2[:-1] * vx, scheme.outlet.advection(v.dtype)])
     dv = source - adv
-    return drho, dv, f_in, f_out
+    return (drho, dv), (f_in, f_out)
 
 
-def _apply_inlet(rho: Array, v: Array, p: TrafficParams) -> Array:
-    """Inlet boundary condition rho_0 = q_in / v_0."""
-    return rho.at[0].set(p.q_in / v[0])
+def solver_step(rho: Array, v: Array, h: Array, alpha: Array | float, p: TrafficParams, dt: Array | float,
+                scheme: Scheme | None = None) -> tuple[Array, Array, Array, Array]:
+    """One explicit step of length ``dt`` (s) of ``scheme`` (default: ``get_scheme(p.scheme)``).
 
+    Args: as ``rhs``, plus the step ``dt``.
+    Returns:
+        (rho, v, F_in, F_out): the new fields (shapes (n_points,)) and the boundary mass fluxes of the
+        step (veh/s, weighted over the stages by the integrator).
+    Raises:
+        ValueError: for an unknown ``p.scheme``.
+    """
+    scheme = get_scheme(p.scheme) if scheme is None else scheme
+    inlet = scheme.inlet
 
-def _solver_step(rho: Array, v: Array, h: Array, alpha: Array, p: TrafficParams, dt: Array | float
-                 ) -> tuple[Array, Array, Array, Array]:
-    """One explicit step of length ``dt`` of ``p.scheme``; returns (rho, v, F_in, F_out)."""
-    if p.scheme == "upwind":
-        drho, dv, f_in, f_out = _rhs(rho, v, h, alpha, p, second_order=False)
-        rho1, v1 = rho + dt * drho, v + dt * dv
-        return _apply_inlet(rho1, v1, p), v1, f_in, f_out
-    # SSP-RK2: u1 = u + dt L(u); u_new = (u + u1 + dt L(u1)) / 2
-    drho, dv, f_in0, f_out0 = _rhs(rho, v, h, alpha, p, second_order=True)
-    rho1, v1 = rho + dt * drho, v + dt * dv
-    rho1 = _apply_inlet(rho1, v1, p)
-    drho1, dv1, f_in1, f_out1 = _rhs(rho1, v1, h, alpha, p, second_order=True)
-    rho2 = 0.5 * (rho + rho1 + dt * drho1)
-    v2 = 0.5 * (v + v1 + dt * dv1)
-    return _apply_inlet(rho2, v2, p), v2, 0.5 * (f_in0 + f_in1), 0.5 * (f_out0 + f_out1)
+    def stage_rhs(u):
+        return rhs(u[0], u[1], h, alpha, p, scheme)
+
+    def impose(u):
+        return inlet.impose(u[0], u[1], p.q_in), u[1]
+
+    (rho_new, v_new), (f_in, f_out) = rk_step(scheme.integrator, stage_rhs, impose, (rho, v), dt)
+    return rho_new, v_new, f_in, f_out
 
 
 def arz_step(
@@ -129,17 +120,20 @@ def arz_step(
         (rho_new, v_new, F_in, F_out): the new state and the time-averaged mass fluxes (veh/s)
         through the inlet and the outlet during the step, so that
         dx * sum(rho_new[1:]) - dx * sum(rho[1:]) = (F_in - F_out) dt.
+    Raises:
+        ValueError: for an unknown ``p.scheme`` (``model.schemes.get_scheme``).
     """
     chex.assert_rank([rho, v, h], 1)
     chex.assert_equal_shape([rho, v, h])
     a = p.alpha if alpha is None else alpha
+    scheme = get_scheme(p.scheme)
     if p.substeps == 1:
-        return _solver_step(rho, v, h, a, p, p.dt)
+        return solver_step(rho, v, h, a, p, p.dt, scheme)
     dt = p.solver_dt
 
     def body(_, carry):
         r, u, f_in, f_out = carry
-        r, u, fi, fo = _solver_step(r, u, h, a, p, dt)
+        r, u, fi, fo = solver_step(r, u, h, a, p, dt, scheme)
         return r, u, f_in + fi, f_out + fo
 
     zero = jnp.zeros((), rho.dtype)
@@ -152,7 +146,7 @@ def is_physical(rho: Array, v: Array, p: TrafficParams) -> Array:
 
     One fused reduction: a NaN fails every comparison, an infinite rho fails rho < 1/l.
     """
-    return jnp.all(fd.in_physical_region(rho, v, p.l))
+    return jnp.all(fundamental.in_physical_region(rho, v, p.l))
 
 
 def local_cfl(rho: Array, v: Array, h: Array, p: TrafficParams, alpha: Array | float | None = None) -> Array:

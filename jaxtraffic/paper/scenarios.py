@@ -45,6 +45,7 @@ from jaxtraffic.control import Controller, takes_delay, tell_delay
 from jaxtraffic.model.params import TrafficParams, equilibrium, steps_for
 from jaxtraffic.sim.initial import paper_initial_condition
 from jaxtraffic.sim.metrics import l2_deviation
+from jaxtraffic.sim.options import AlphaInput, Memory, Record
 from jaxtraffic.sim.plant import NoiseReading
 from jaxtraffic.sim.rollout import plant_alphas, simulate_batch, stack_params
 from jaxtraffic.sim.sharding import host_mesh
@@ -225,8 +226,9 @@ def run_batch(controller: Controller, envs: list[TrafficParams], keys: list[int]
         params, controller, n_steps=cfg.n_steps, nominal=nom,
         rho0=jnp.broadcast_to(rho0, (b, nom.n_points)), v0=jnp.broadcast_to(v0, (b, nom.n_points)),
         keys=jnp.stack([jax.random.PRNGKey(k) for k in keys]),
-        record_every=cfg.record_every if record else 0, batch_controller=batch_controller, noise=noise,
-        alphas=alphas, **({} if chunk_size is None else {"chunk_size": chunk_size}),
+        batch_controller=batch_controller, record=Record(every=cfg.record_every if record else 0),
+        memory=Memory() if chunk_size is None else Memory(chunk_size=chunk_size),
+        alpha_input=AlphaInput(alphas=alphas, noise=noise),
     )
     return jax.tree_util.tree_map(np.asarray, res)
 

@@ -19,6 +19,8 @@ switch-on spike is defined the same way for every controller and delay.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 from flax import struct
@@ -133,24 +135,59 @@ def init_metrics(n_points: int, dtype=jnp.float32) -> MetricsAccumulator:
     )
 
 
-def update_metrics(
-    acc: MetricsAccumulator, *, step: Array, rho: Array, v: Array, v_next: Array, h_sent: Array,
-    rho_bar: Array, v_bar: Array, h_bar: Array | float, dx: Array | float, dt: Array | float,
-    cfl: Array | float, active: Array, reward_next: Array | None = None,
-    switch_step: Array | int = 0,
-) -> MetricsAccumulator:
-    """Add the contribution of step ``step`` (state at t_n, speed at t_{n+1}) if ``active``.
+class StepRecord(NamedTuple):
+    """What one step contributes to the metrics (step n: the state at t_n, the speed at t_{n+1}).
+
+    step: the step index n (int32 scalar).
+    rho, v: the state at t_n, veh/m and m/s, shape (n_points,).
+    v_next: the speed at t_{n+1}, m/s, shape (n_points,).
+    h_sent: the time gap sent at step n, s, shape (n_points,).
+    cfl: the CFL number max(|lambda1|, |lambda2|) dt/dx of the step, per node (n_points,) or a scalar.
+    active: whether the step counts (bool scalar; False once the plant diverged).
+    reward_next: the reward of the state at t_{n+1} (dimensionless scalar), or None to compute the
+        reward of the state at t_n here.
+    """
+
+    step: Array
+    rho: Array
+    v: Array
+    v_next: Array
+    h_sent: Array
+    cfl: Array | float
+    active: Array
+    reward_next: Array | None = None
+
+
+class MetricsTarget(NamedTuple):
+    """The constants of a rollout's metrics: the target equilibrium rho_bar (veh/m), v_bar (m/s) and
+    h_bar (s), the grid spacing dx (m), the time step dt (s) and the switch-on step ``switch_step``
+    (the plant's delay in steps: the step whose a_t^2 is the switch-on spike)."""
+
+    rho_bar: Array | float
+    v_bar: Array | float
+    h_bar: Array | float
+    dx: Array | float
+    dt: Array | float
+    switch_step: Array | int = 0
+
+
+def update_metrics(acc: MetricsAccumulator, record: StepRecord, target: MetricsTarget) -> MetricsAccumulator:
+    """Add the contribution of step ``record.step`` (state at t_n, speed at t_{n+1}) if ``record.active``.
+
+    Args:
+        acc: the running sums (per node).
+        record: the step's quantities (``StepRecord``).
+        target: the rollout's constants (``MetricsTarget``).
+    Returns:
+        The updated sums. Inactive steps add exactly zero (``where``, not a multiplication, so a
+        non-finite value never enters).
 
     ``last_bad_step`` follows the reward of the state at t_n (index ``step``), or, when
-    ``reward_next`` is given, the reward of the state at t_{n+1} (index ``step + 1``; the caller
-    then counts the initial state itself).
-
-    ``cfl`` is the CFL number max(|lambda1|, |lambda2|) dt/dx of the step, per node (or a
-    scalar). Inactive steps add exactly zero (``where``, not a multiplication, so a non-finite
-    value never enters).
-
-    ``switch_step``: the step whose a_t^2 is the switch-on spike (the plant's delay in steps).
+    ``record.reward_next`` is given, the reward of the state at t_{n+1} (index ``step + 1``; the
+    caller then counts the initial state itself).
     """
+    step, rho, v, v_next, h_sent, cfl, active, reward_next = record
+    rho_bar, v_bar, h_bar, dx, dt, switch_step = target
     inv_dt = 1.0 / dt
     a = material_acceleration(v, v_next, dx, dt)
     a_prev = jnp.where(step == 0, a, acc.a_prev)

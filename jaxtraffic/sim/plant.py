@@ -14,14 +14,14 @@ learning environment (``learn.env``) and every trainer are scans of it. Order of
      output is not finite (NaN/inf anywhere in h^n): the saturated field is still defined
      (``saturate`` maps NaN to h_bar) but the step is refused, with its own reason code.
 
-``PlantState.diverged_reason`` says why a plant was frozen: ``DIVERGED_NONE`` (0, healthy),
-``DIVERGED_STATE`` (1, the state left the physical region), ``DIVERGED_CONTROL`` (2, the
-controller returned a non-finite time gap), ``DIVERGED_INITIAL`` (3, the initial state was not
+``PlantState.diverged_reason`` says why a plant was frozen, as the int32 code of a
+``sim.outcome.Divergence``: NONE (0, healthy), STATE (1, the state left the physical region),
+CONTROL (2, the controller returned a non-finite time gap), INITIAL (3, the initial state was not
 finite or not physical; only reachable with traced inputs, concrete ones are rejected),
-``DIVERGED_PARAMS`` (4, traced parameters outside their valid range, ``model.params.params_valid``: a delay
+PARAMS (4, traced parameters outside their valid range, ``model.params.params_valid``: a delay
 beyond the buffer, a negative one, alpha outside [0, 1], ...; concrete ones are rejected by ``validate``).
 A controller whose traced settings are invalid (backstepping with a NaN or negative assumed delay) returns
-a non-finite time gap, hence ``DIVERGED_CONTROL``.
+a non-finite time gap, hence CONTROL. ``sim.outcome.check_outcome`` raises on a diverged result.
 """
 
 from __future__ import annotations
@@ -39,15 +39,10 @@ from jaxtraffic.model import delay as delay_buffer
 from jaxtraffic.model.linear import linear_step, linearize
 from jaxtraffic.model.params import TrafficParams, params_valid
 from jaxtraffic.model.solver import arz_step, is_physical, local_cfl
-from jaxtraffic.sim import metrics as M
+from jaxtraffic.sim import metrics
+from jaxtraffic.sim.outcome import Divergence
 
 Array = jax.Array
-
-DIVERGED_NONE, DIVERGED_STATE, DIVERGED_CONTROL, DIVERGED_INITIAL, DIVERGED_PARAMS = 0, 1, 2, 3, 4
-DIVERGED_REASONS = {DIVERGED_NONE: "not diverged", DIVERGED_STATE: "state left the physical region",
-                    DIVERGED_CONTROL: "controller output not finite",
-                    DIVERGED_INITIAL: "initial state not finite or not physical",
-                    DIVERGED_PARAMS: "parameters outside their valid range"}
 
 
 @struct.dataclass
@@ -62,7 +57,7 @@ class PlantState:
     step: Array
     diverged: Array
     diverged_step: Array  # step at which the state left the physical region (-1: never)
-    diverged_reason: Array  # why (``DIVERGED_*`` codes above; 0: healthy)
+    diverged_reason: Array  # why (``Divergence`` code, int32; 0: healthy)
 
     def observation(self, p: TrafficParams) -> Observation:
         return Observation(rho=self.rho, v=self.v, h_prev=self.h_prev, t=self.step * p.dt, sent=self.sent)
@@ -86,8 +81,8 @@ def initial_state(p: TrafficParams, rho0: Array, v0: Array,
         rho=rho0, v=v0, sent=buf, h_prev=h0,
         step=jnp.zeros((), jnp.int32), diverged=bad,
         diverged_step=jnp.where(bad, 0, -1).astype(jnp.int32),
-        diverged_reason=jnp.where(bad_params, DIVERGED_PARAMS,
-                                  jnp.where(bad, DIVERGED_INITIAL, DIVERGED_NONE)).astype(jnp.int32),
+        diverged_reason=jnp.where(bad_params, int(Divergence.PARAMS),
+                                  jnp.where(bad, int(Divergence.INITIAL), int(Divergence.NONE))).astype(jnp.int32),
     )
 
 
@@ -166,7 +161,7 @@ def _plant_step(state: PlantState, h_sent: Array, p: TrafficParams, alpha: Array
 
     With a target, the physicality check and the reward share one spatial reduction
     (``metrics.physical_reward``; NaN when the step left the physical region). ``bad_input``:
-    the controller's output was not finite; the step is refused (reason ``DIVERGED_CONTROL``).
+    the controller's output was not finite; the step is refused (reason ``Divergence.CONTROL``).
     """
     sent = delay_buffer.push(state.sent, h_sent)
     h_applied = delay_buffer.read(sent, p.delay_steps)
@@ -184,11 +179,12 @@ def _plant_step(state: PlantState, h_sent: Array, p: TrafficParams, alpha: Array
     if target is None:
         r_new, ok = None, is_physical(rho, v, p)
     else:
-        r_new = M.physical_reward(rho, v, target[0], target[1], p.l, p.dx)
+        r_new = metrics.physical_reward(rho, v, target[0], target[1], p.l, p.dx)
         ok = ~jnp.isnan(r_new)
     bad = (~ok | bad_input) & ~state.diverged
     frozen = state.diverged | bad
-    reason = jnp.where(bad, jnp.where(bad_input, DIVERGED_CONTROL, DIVERGED_STATE), state.diverged_reason)
+    reason = jnp.where(bad, jnp.where(bad_input, int(Divergence.CONTROL), int(Divergence.STATE)),
+                       state.diverged_reason)
     new = PlantState(
         rho=jnp.where(frozen, state.rho, rho), v=jnp.where(frozen, state.v, v), sent=sent,
         h_prev=h_sent, step=state.step + 1, diverged=frozen,

@@ -23,8 +23,11 @@ from jaxtraffic.control.base import Controller
 from jaxtraffic.control.baselines import open_loop
 from jaxtraffic.model.fundamental import in_physical_region
 from jaxtraffic.model.params import TrafficParams, check_nominal, check_steps, equilibrium
-from jaxtraffic.sim import metrics as M
+from jaxtraffic.sim import metrics
+from jaxtraffic.sim.batching import chunked_vmap, stack_params
 from jaxtraffic.sim.initial import equilibrium_state, paper_initial_condition
+from jaxtraffic.sim.options import AlphaInput, Memory, Record
+from jaxtraffic.sim.outcome import DivergedError, Divergence, check_outcome
 from jaxtraffic.sim.plant import (
     NoiseReading,
     PlantState,
@@ -45,14 +48,14 @@ from jaxtraffic.sim.sharding import (
 
 Array = jax.Array
 
-__all__ = ["NoiseReading", "PlantState", "SimResult", "Trajectory", "chunked_vmap", "equilibrium_state",
-           "finalize_metrics", "initial_state", "paper_initial_condition", "plant_alphas", "plant_step", "simulate",
-           "simulate_batch", "stack_params"]
+__all__ = ["AlphaInput", "DivergedError", "Divergence", "Memory", "NoiseReading", "PlantState", "Record", "SimResult",
+           "Trajectory", "check_outcome", "chunked_vmap", "equilibrium_state", "finalize_metrics", "initial_state",
+           "paper_initial_condition", "plant_alphas", "plant_step", "simulate", "simulate_batch", "stack_params"]
 
 
 @struct.dataclass
 class Trajectory:
-    """Every ``record_every``-th step from t = 0: t (s), rho (veh/m), v (m/s), h (sent, s),
+    """Every ``Record.every``-th step from t = 0: t (s), rho (veh/m), v (m/s), h (sent, s),
     reward, rho_L2 (veh/m) and v_L2 (m/s)."""
 
     t: Array
@@ -67,7 +70,7 @@ class Trajectory:
 @struct.dataclass
 class SimResult:
     """Outcome of a rollout: scalar ``metrics`` (see ``finalize_metrics``), the final state,
-    the final controller state and the trajectory (None unless ``record_every`` > 0)."""
+    the final controller state and the trajectory (None unless ``record=Record(every > 0)``)."""
 
     metrics: dict
     final: PlantState
@@ -75,15 +78,15 @@ class SimResult:
     trajectory: Trajectory | None
 
 
-def finalize_metrics(acc: M.MetricsAccumulator, final: PlantState, target: TrafficParams,
+def finalize_metrics(acc: metrics.MetricsAccumulator, final: PlantState, target: TrafficParams,
                      n_steps: int, dx: Array | float | None = None) -> dict:
     """Scalar results of a rollout (``dx``: the plant's grid spacing, default ``target.dx``).
 
     J_TTT, J_fuel, J_comfort (rho in veh/km; see ``metrics``), final_rho_L2 (veh/m),
     final_v_L2 (m/s), final_reward, time_to_reward_target_s (time after which the reward stays
     >= -0.1; inf if it never does), diverged, diverged_at_s (inf if never), diverged_reason
-    (``sim.plant.DIVERGED_*``: 0 healthy, 1 state left the physical region, 2 controller output
-    not finite, 3 initial state not finite/physical), control_effort
+    (int32 code of ``sim.outcome.Divergence``: 0 healthy, 1 state left the physical region, 2 controller
+    output not finite, 3 initial state not finite/physical, 4 parameters invalid), control_effort
     (RMS over space and time of h_sent - h_bar, s), max_cfl (largest CFL number of the steps
     taken, with the applied input and the plant's alpha); then ``metrics.EXTRA_INDICES`` (the
     comfort parts, the switch-on step and the paper's km/h reading).
@@ -92,15 +95,15 @@ def finalize_metrics(acc: M.MetricsAccumulator, final: PlantState, target: Traff
     rho_bar, v_bar = equilibrium(target)
     dt = target.dt
     healthy_to_end = ~final.diverged
-    r_final = M.reward(final.rho, final.v, rho_bar, v_bar, dx)
-    reached = healthy_to_end & (acc.last_bad_step < n_steps - 1) & (r_final >= M.REWARD_TARGET)
-    tot = M.totals(acc, dx)
+    r_final = metrics.reward(final.rho, final.v, rho_bar, v_bar, dx)
+    reached = healthy_to_end & (acc.last_bad_step < n_steps - 1) & (r_final >= metrics.REWARD_TARGET)
+    tot = metrics.totals(acc, dx)
     return {
         "J_TTT": tot["J_TTT"],
         "J_fuel": tot["J_fuel"],
         "J_comfort": tot["J_comfort"],
-        "final_rho_L2": M.l2_deviation(final.rho, rho_bar),
-        "final_v_L2": M.l2_deviation(final.v, v_bar),
+        "final_rho_L2": metrics.l2_deviation(final.rho, rho_bar),
+        "final_v_L2": metrics.l2_deviation(final.v, v_bar),
         "final_reward": r_final,
         "time_to_reward_target_s": jnp.where(reached, (acc.last_bad_step + 1) * dt, jnp.inf),
         "diverged": final.diverged,
@@ -108,7 +111,7 @@ def finalize_metrics(acc: M.MetricsAccumulator, final: PlantState, target: Traff
         "diverged_reason": final.diverged_reason,
         "control_effort": tot["control_effort"],
         "max_cfl": tot["max_cfl"],
-        **{k: tot[k] for k in M.EXTRA_INDICES},
+        **{k: tot[k] for k in metrics.EXTRA_INDICES},
     }
 
 
@@ -136,15 +139,16 @@ def _simulate(params: TrafficParams, controller: Controller | None, rho0: Array 
     rho_bar, v_bar = equilibrium(nominal)
     state = initial_state(p, rho0, v0)
     cstate = controller.init(state.observation(p), nominal)
-    acc = M.init_metrics(p.n_points, rho0.dtype)
+    acc = metrics.init_metrics(p.n_points, rho0.dtype)
     # rewards are tracked for the state after each step (sharing the physicality reduction);
     # the initial state's is counted here
-    r0 = M.reward(rho0, v0, rho_bar, v_bar, p.dx)
-    acc = acc.replace(last_bad_step=jnp.where(r0 < M.REWARD_TARGET, 0, -1).astype(jnp.int32))
+    r0 = metrics.reward(rho0, v0, rho_bar, v_bar, p.dx)
+    acc = acc.replace(last_bad_step=jnp.where(r0 < metrics.REWARD_TARGET, 0, -1).astype(jnp.int32))
     # the plant's alpha of every step, drawn at once (cheaper than a draw inside the loop), unless given
     alphas = plant_alphas(p, key, n_steps, noise, rho0.dtype) if alphas is None else alphas.astype(rho0.dtype)
     sees = noise is not None and noise.model_sees
-    switch_step = p.delay_steps
+    target = metrics.MetricsTarget(rho_bar=rho_bar, v_bar=v_bar, h_bar=nominal.h_bar, dx=p.dx, dt=p.dt,
+                                   switch_step=p.delay_steps)
 
     def one_step(carry, alpha_n):
         state, cstate, acc = carry
@@ -152,10 +156,9 @@ def _simulate(params: TrafficParams, controller: Controller | None, rho0: Array 
         new, cstate, h, info = closed_loop_step(state, cstate, controller, p, nominal, alpha_n,
                                                 jax.random.fold_in(k_ctrl, n), (rho_bar, v_bar), sees)
         active = ~new.diverged
-        acc = M.update_metrics(acc, step=n, rho=state.rho, v=state.v, v_next=new.v, h_sent=h,
-                               rho_bar=rho_bar, v_bar=v_bar, h_bar=nominal.h_bar, dx=p.dx, dt=p.dt,
-                               cfl=info.cfl, active=active, reward_next=info.reward,
-                               switch_step=switch_step)
+        record = metrics.StepRecord(step=n, rho=state.rho, v=state.v, v_next=new.v, h_sent=h, cfl=info.cfl,
+                                    active=active, reward_next=info.reward)
+        acc = metrics.update_metrics(acc, record, target)
         return (new, cstate, acc), h
 
     carry = (state, cstate, acc)
@@ -167,8 +170,8 @@ def _simulate(params: TrafficParams, controller: Controller | None, rho0: Array 
         def chunk(carry, alpha_chunk):
             s = carry[0]
             carry, hs = jax.lax.scan(one_step, carry, alpha_chunk)
-            rec = (s.step * p.dt, s.rho, s.v, hs[0], M.reward(s.rho, s.v, rho_bar, v_bar, p.dx),
-                   M.l2_deviation(s.rho, rho_bar), M.l2_deviation(s.v, v_bar))
+            rec = (s.step * p.dt, s.rho, s.v, hs[0], metrics.reward(s.rho, s.v, rho_bar, v_bar, p.dx),
+                   metrics.l2_deviation(s.rho, rho_bar), metrics.l2_deviation(s.v, v_bar))
             return carry, rec
 
         # remat: reverse-mode differentiation keeps only the carry at chunk boundaries and recomputes
@@ -229,8 +232,8 @@ def _check_initial_condition(params: TrafficParams, rho0: Array | None, v0: Arra
 def simulate(
     params: TrafficParams, controller: Controller | None = None, *, n_steps: int,
     rho0: Array | None = None, v0: Array | None = None, key: Array | None = None,
-    nominal: TrafficParams | None = None, record_every: int = 0, remat: bool = False,
-    noise: NoiseReading | None = None, alphas: Array | None = None,
+    nominal: TrafficParams | None = None, record: Record | None = None, memory: Memory | None = None,
+    alpha_input: AlphaInput | None = None,
 ) -> SimResult:
     """Closed-loop rollout of one freeway for ``n_steps`` steps of ``params.dt``.
 
@@ -238,33 +241,52 @@ def simulate(
         params: the plant (its alpha, alpha_noise and delay are the true ones).
         controller: a ``Controller`` (default: open loop).
         n_steps: number of steps (static).
-        rho0, v0: initial fields, shape (n_points,) (default: the paper's initial condition).
+        rho0, v0: initial fields, veh/m and m/s, shape (n_points,) (default: the paper's initial condition).
         key: PRNG key for alpha noise and stochastic controllers (default PRNGKey(0)).
         nominal: the parameters the controller and the metrics use as model and target
             (default: ``params``). docs/model.md section 12: keep the nominal target when the
-            plant's alpha differs. It must be on the plant's grid (same n_points, dt, L), else ValueError.
-        record_every: record the fields every k-th step (0: no trajectory, metrics only).
-        remat: checkpoint every recording chunk for reverse-mode differentiation (see
-            ``simulate_batch``).
-        noise: how the alpha noise is drawn and whether the controller sees it (``NoiseReading``;
-            default: one road-wide draw per step, plant only).
-        alphas: the plant's alpha at every step instead of a draw, shape (n_steps,) or
-            (n_steps, n_points) (per node); ``plant_alphas`` gives the draw of a key and reading.
-            ``noise`` then only says whether the controller sees it (``model_sees``).
+            plant's alpha differs. It must be on the plant's grid (same n_points, dt, L).
+        record: ``Record(every=k)``: record the fields every k-th step into ``trajectory``
+            (default: none, metrics only).
+        memory: ``Memory(remat=True)`` checkpoints every recording chunk for reverse-mode
+            differentiation (its ``chunk_size`` only matters to ``simulate_batch``).
+        alpha_input: ``AlphaInput(alphas=..., noise=...)``: the plant's alpha of every step, shape
+            (n_steps,) or (n_steps, n_points), instead of a draw, and/or the ``NoiseReading`` of the draw
+            (default: one road-wide draw per step, plant only).
+    Returns:
+        A ``SimResult``: scalar metrics (``finalize_metrics``), final plant and controller states, and
+        the trajectory (None without ``record``). A diverged rollout is flagged, not raised
+        (``metrics["diverged_reason"]``; ``sim.outcome.check_outcome`` raises on it).
+    Raises:
+        ValueError: for invalid arguments (steps, nominal grid, initial state, alphas, remat without record).
     """
-    _check_rollout_args(params, n_steps, rho0, v0, nominal, record_every, remat)
-    _check_alphas(params, alphas, int(n_steps), noise, batched=False)
-    return _simulate_jit(params, controller, rho0, v0, key, nominal, int(n_steps), int(record_every), remat, noise,
-                         alphas)
+    record, memory, alpha_input = _options(record, memory, alpha_input)
+    _check_rollout_args(params, n_steps, rho0, v0, nominal, record, memory)
+    _check_alphas(params, alpha_input.alphas, int(n_steps), alpha_input.noise, batched=False)
+    return _simulate_jit(params, controller, rho0, v0, key, nominal, int(n_steps), record.every, memory.remat,
+                         alpha_input.noise, alpha_input.alphas)
 
 
-def _check_rollout_args(params, n_steps, rho0, v0, nominal, record_every: int, remat: bool) -> None:
+def _options(record: Record | None, memory: Memory | None, alpha_input: AlphaInput | None
+             ) -> tuple[Record, Memory, AlphaInput]:
+    """The option objects with their defaults filled in; TypeError for another type (e.g. a bare int)."""
+    out = []
+    for name, value, cls in (("record", record, Record), ("memory", memory, Memory),
+                             ("alpha_input", alpha_input, AlphaInput)):
+        value = cls() if value is None else value
+        if not isinstance(value, cls):
+            raise TypeError(f"{name} must be a {cls.__name__} (sim.options), got {type(value).__name__}")
+        out.append(value)
+    return tuple(out)
+
+
+def _check_rollout_args(params, n_steps, rho0, v0, nominal, record: Record, memory: Memory) -> None:
     """The argument checks ``simulate`` and ``simulate_batch`` share (ValueError with the reason)."""
-    if remat and not record_every:
-        raise ValueError("remat needs record_every > 0 (the checkpointed chunk length)")
+    if memory.remat and not record.every:
+        raise ValueError("remat needs record_every > 0 (the checkpointed chunk length): pass record=Record(every=k)")
     if (rho0 is None) != (v0 is None):
         raise ValueError("give both rho0 and v0, or neither")
-    check_steps(n_steps, record_every)
+    check_steps(n_steps, record.every)
     check_nominal(params, nominal)
     _check_initial_condition(params, rho0, v0)
 
@@ -272,9 +294,8 @@ def _check_rollout_args(params, n_steps, rho0, v0, nominal, record_every: int, r
 def simulate_batch(
     params: TrafficParams, controller: Controller | None = None, *, n_steps: int,
     rho0: Array | None = None, v0: Array | None = None, keys: Array | None = None,
-    nominal: TrafficParams | None = None, record_every: int = 0, batch_controller: bool = False,
-    chunk_size: int | None = 64, remat: bool = False, noise: NoiseReading | None = None,
-    alphas: Array | None = None,
+    nominal: TrafficParams | None = None, batch_controller: bool = False, record: Record | None = None,
+    memory: Memory | None = None, alpha_input: AlphaInput | None = None,
 ) -> SimResult:
     """``simulate`` vmapped over a batch; every returned leaf gets a leading batch axis.
 
@@ -283,25 +304,31 @@ def simulate_batch(
     The controller is batched only when ``batch_controller`` is set (its settings then carry
     a leading batch axis). ``nominal`` is shared (not batched). At least one input must be batched.
 
-    ``noise`` (static): the ``NoiseReading`` shared by every environment (see ``simulate``).
-    ``alphas``: every environment's plant alphas instead of a draw, shape (B, n_steps) or
-    (B, n_steps, n_points) (see ``simulate``); environments whose alpha sequences come from
-    different road-wide readings (held for different times) can so share one program.
-
-    ``chunk_size`` (static): a batch larger than this runs as a sequential loop over chunks of
-    ``chunk_size`` environments, each chunk vmapped over the whole rollout, so that the working
-    set of a chunk stays in cache (on a CPU this is 1.5-3x faster for large batches than one
-    vmap over everything). ``None`` or 0: a single vmap. Results do not depend on it beyond
-    rounding, and every environment stays independent of the others.
-
-    ``remat`` (static, needs ``record_every`` > 0): checkpoint each recording chunk for reverse-mode
-    differentiation (``jax.checkpoint``), so that the memory of a gradient grows with
-    n_steps / record_every + record_every steps instead of n_steps. Values are unchanged.
+    Args:
+        record: as ``simulate`` (shared by every environment).
+        memory: ``Memory(remat, chunk_size)``. ``chunk_size`` (static, default 64): a batch larger than
+            this runs as a sequential loop over chunks of ``chunk_size`` environments, each chunk vmapped
+            over the whole rollout, so that the working set of a chunk stays in cache (on a CPU this is
+            1.5-3x faster for large batches than one vmap over everything). ``None`` or 0: a single vmap.
+            Results do not depend on it beyond rounding, and every environment stays independent of the
+            others. ``remat`` (static, needs ``record``): checkpoint each recording chunk for reverse-mode
+            differentiation (``jax.checkpoint``), so that the memory of a gradient grows with
+            n_steps / every + every steps instead of n_steps. Values are unchanged.
+        alpha_input: its ``noise`` reading is shared by every environment; its ``alphas``, if given, are
+            every environment's plant alphas, shape (B, n_steps) or (B, n_steps, n_points) (environments
+            whose alpha sequences come from different road-wide readings can so share one program).
+        The other arguments: as ``simulate`` (``keys`` instead of ``key``).
+    Returns:
+        A ``SimResult`` whose every leaf has a leading batch axis B.
+    Raises:
+        ValueError: if nothing is batched, or for the invalid arguments ``simulate`` rejects.
 
     Devices (``sim.sharding``): the batch is split over this process's devices; called with
     concrete inputs in a multi-process run, over every device of every process, each process
     getting the whole result as local arrays (every process must make the same call).
     """
+    record, memory, alpha_input = _options(record, memory, alpha_input)
+    alphas, noise = alpha_input.alphas, alpha_input.noise
     p_axis = 0 if jnp.ndim(jax.tree_util.tree_leaves(params)[0]) == 1 else None
     r_axis = 0 if rho0 is not None and jnp.ndim(rho0) == 2 else None
     k_axis = 0 if keys is not None and jnp.ndim(keys) == 2 else None
@@ -309,14 +336,14 @@ def simulate_batch(
     a_axis = None if alphas is None else 0
     if (p_axis, r_axis, k_axis, c_axis, a_axis) == (None,) * 5:
         raise ValueError("simulate_batch: nothing is batched; use simulate")
-    _check_rollout_args(params, n_steps, rho0, v0, nominal, record_every, remat)
+    _check_rollout_args(params, n_steps, rho0, v0, nominal, record, memory)
     _check_alphas(params, alphas, int(n_steps), noise, batched=True)
     inputs = (params, controller, rho0, v0, keys, nominal, alphas)
     mesh = host_mesh(inputs)  # every process's devices in a multi-process run (sim.sharding)
     across = spans_processes(mesh)
-    res = _simulate_batch_jit(*(replicate(inputs, mesh) if across else inputs), int(n_steps), int(record_every),
-                              (p_axis, c_axis, r_axis, r_axis, k_axis, a_axis), chunk_size or 0, remat, noise,
-                              mesh)
+    res = _simulate_batch_jit(*(replicate(inputs, mesh) if across else inputs), int(n_steps), record.every,
+                              (p_axis, c_axis, r_axis, r_axis, k_axis, a_axis), memory.chunk_size or 0, memory.remat,
+                              noise, mesh)
     return local_copy(res) if across else res
 
 
@@ -333,71 +360,3 @@ def _simulate_batch_jit(params, controller, rho0, v0, keys, nominal, alphas, n_s
 
     mesh = batch_mesh() if mesh is None else mesh
     return gathered(sharded_batch(local, (params, controller, rho0, v0, keys, alphas), axes, mesh), mesh)
-
-
-def chunked_vmap(fn, args: tuple, axes: tuple, chunk_size: int) -> Any:
-    """``jax.vmap(fn, in_axes=axes)(*args)`` computed as a sequential ``lax.map`` over chunks of at
-    most ``chunk_size`` batch entries (``axes`` entries are 0 or None; outputs get a leading batch
-    axis).
-
-    The batch is cut into n = ceil(size / chunk_size) chunks of ceil(size / n) consecutive
-    entries (so at most n - 1 padded entries, copies of the last one, whose results are dropped).
-    Consecutive entries: a batch ordered by cost (e.g. the assumed delay of a predictor, whose
-    loop under ``vmap`` runs as long as the chunk's largest delay) keeps similar entries together.
-    ``chunk_size`` <= 0 or >= the batch: a plain vmap.
-    """
-    idx = [i for i, ax in enumerate(axes) if ax is not None]
-    batched = [args[i] for i in idx]
-    size = jax.tree_util.tree_leaves(batched)[0].shape[0]
-    if chunk_size <= 0 or size <= chunk_size:
-        return jax.vmap(fn, in_axes=axes)(*args)
-    n_chunks = -(-size // chunk_size)
-    chunk = -(-size // n_chunks)
-    pad = n_chunks * chunk - size
-
-    def split(x):
-        if pad:
-            x = jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)])
-        return x.reshape((n_chunks, chunk) + x.shape[1:])
-
-    def run_chunk(part):
-        full = list(args)
-        for i, a in zip(idx, part, strict=True):
-            full[i] = a
-        return jax.vmap(fn, in_axes=axes)(*full)
-
-    out = jax.lax.map(run_chunk, jax.tree.map(split, batched))
-    return jax.tree.map(lambda y: y.reshape((n_chunks * chunk,) + y.shape[2:])[:size], out)
-
-
-_STATIC_FIELDS = ("n_points", "max_delay_steps", "scheme", "model")
-
-
-def stack_params(*envs: TrafficParams, **fields: Any) -> TrafficParams:
-    """A batched ``TrafficParams``, from concrete per-environment ones (``stack_params(*envs)``) or
-    from keywords: each keyword is a sequence of per-environment values (or a scalar, shared by
-    every environment); the others keep their defaults. Static fields are passed as scalars (and
-    must agree between ``envs``). At least one keyword must be a sequence.
-
-    Every environment is validated, then the float fields are stacked as float64 numpy arrays
-    (leading batch axis), so that validation of the batch runs in double precision (in float32,
-    7.0 / 0.1 misses the "multiple of dt" tolerance and delays >= 7 s would be wrongly rejected);
-    inside ``jit`` they become float32 like any other input.
-    """
-    if envs and fields:
-        raise ValueError("stack_params: give environments or keywords, not both")
-    if not envs:
-        static = {k: fields.pop(k) for k in _STATIC_FIELDS if k in fields}
-        arrays = {k: np.asarray(v, np.float64) for k, v in fields.items()}
-        sizes = {a.shape[0] for a in arrays.values() if a.ndim == 1}
-        if any(a.ndim > 1 for a in arrays.values()):
-            raise ValueError("stack_params: each field must be a scalar or a 1-d sequence")
-        if len(sizes) != 1:
-            raise ValueError(f"all batched fields need the same length (and at least one is needed), got {sizes}")
-        (b,) = sizes
-        arrays = {k: np.broadcast_to(a, (b,)) for k, a in arrays.items()}
-        base = TrafficParams(**static)
-        envs = tuple(base.replace(**{k: np.asarray(a[i]).item() for k, a in arrays.items()}) for i in range(b))
-    if len({tuple(getattr(e, f) for f in _STATIC_FIELDS) for e in envs}) != 1:
-        raise ValueError(f"stack_params: the static fields {_STATIC_FIELDS} differ between environments")
-    return jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x, np.float64) for x in xs]), *envs)

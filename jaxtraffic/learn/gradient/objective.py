@@ -28,7 +28,7 @@ in s (both sampled every ``record_every`` steps; the square is used directly, si
 an RMS is not finite at zero). The weights w_r, w_w, w_c, w_e are ``reward_weight``, ``waves_weight``,
 ``comfort_weight``, ``effort_weight`` (``Weights``; defaults 1, 0, 1e-5, 0).
 
-Memory: the rollout checkpoints every recording chunk (``simulate(remat=True)``), so the
+Memory: the rollout checkpoints every recording chunk (``simulate(memory=Memory(remat=True))``), so the
 backward pass stores the carry once per chunk and recomputes one chunk at a time.
 Divergence containment (``sim.plant``) freezes an environment at its last physical state; the
 frozen branch and the unphysical branch are both finite, so the gradient stays finite when a
@@ -60,6 +60,7 @@ from jaxtraffic.model.linear import linearize
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.model.solver import is_physical
 from jaxtraffic.sim.initial import paper_initial_condition
+from jaxtraffic.sim.options import Memory, Record
 from jaxtraffic.sim.rollout import simulate
 from jaxtraffic.sim.sharding import batch_mesh, gathered, local_copy, replicate, sharded_batch, spans_processes
 
@@ -208,7 +209,7 @@ def scenario_objective(theta: Any, params: TrafficParams, rho0: Array, v0: Array
                        ) -> tuple[Array, dict]:
     """(J_s, metrics) of one scenario (plant ``params``, initial fields (n,)); see the module docstring."""
     res = simulate(params, make_controller(theta, cfg, base, params.delay), n_steps=n_steps, rho0=rho0, v0=v0,
-                   nominal=base, record_every=cfg.record_every, remat=remat)
+                   nominal=base, record=Record(every=cfg.record_every), memory=Memory(remat=remat))
     tr, m = res.trajectory, res.metrics
     waves = jnp.log1p(jnp.var(tr.rho * 1000.0, axis=-1) / 100.0 + jnp.var(tr.v, axis=-1))
     late = jnp.arange(1, waves.shape[0] + 1, dtype=waves.dtype)  # t_k / T up to a factor

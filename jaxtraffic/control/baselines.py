@@ -22,6 +22,7 @@ from jaxtraffic.model import delay as delay_buffer
 from jaxtraffic.model import fundamental as fd
 from jaxtraffic.model.linear import LinearModel, linear_step, linearize, riemann_w
 from jaxtraffic.model.params import TrafficParams, equilibrium
+from jaxtraffic.tracing import is_traced
 
 Array = jax.Array
 
@@ -30,7 +31,7 @@ def _check_setting(name: str, value: float | Array, minimum: float | None = None
     """Raise ``ValueError`` if a concrete controller setting is not a finite number (>= ``minimum``).
     Traced values (inside ``jit``/``vmap``) are not checked, and no ``jnp`` operation runs here: a
     controller can be built inside ``jax.jit`` (where even constants become tracers)."""
-    if isinstance(value, jax.core.Tracer):
+    if is_traced(value):
         return
     if isinstance(value, (str, bytes)):
         raise ValueError(f"{name} must be a number, got {value!r}")

@@ -21,6 +21,7 @@ from jaxtraffic.control.base import Controller, Observation
 from jaxtraffic.model.linear import linearize
 from jaxtraffic.model.params import TrafficParams, equilibrium
 from jaxtraffic.model.spatial import smooth
+from jaxtraffic.tracing import is_traced
 
 Array = jax.Array
 
@@ -124,7 +125,7 @@ def scheduled_gains(table: Array, knots: Array, delay: float | Array = 4.0, filt
     """The three-gain law with gains scheduled in the told delay (``DelaySchedule``): ``table`` (K, 3) at the
     ``knots`` (K,) s; ``filter_sigma`` (m, static) and ``dx`` (m) as in ``constant_gains``. ``tell_delay``
     (``control.base``) sets the delay, or a batch of delays."""
-    if not isinstance(knots, jax.core.Tracer) and np.any(np.diff(np.asarray(knots, float)) <= 0):
+    if not is_traced(knots) and np.any(np.diff(np.asarray(knots, float)) <= 0):
         raise ValueError(f"the schedule's knots must increase, got {np.asarray(knots).tolist()}")
     knots = jnp.asarray(knots, float)
     table = jnp.asarray(table, float)

@@ -22,6 +22,7 @@ from flax import struct
 
 from jaxtraffic.model import fundamental
 from jaxtraffic.model.schemes import SCHEME_NAMES
+from jaxtraffic.tracing import concrete
 
 SCHEMES = SCHEME_NAMES  # model.schemes.SCHEMES maps each name to its composed pieces
 FLOAT_FIELDS = ("L", "l", "q_in", "alpha", "tau_acc", "tau_m", "h_bar", "h_m", "delay", "dt", "h_min", "h_max",
@@ -128,20 +129,6 @@ def params_valid(p: TrafficParams) -> jax.Array:
     return ok & jnp.all(f["delay"] >= 0) & jnp.all(d <= p.max_delay_steps)
 
 
-def _concrete(value: object) -> np.ndarray | None:
-    """``value`` as a float numpy array, or None if it is a JAX array (a tracer, or a device array
-    that JAX itself rebuilds the struct around, e.g. when dispatching ``pmap``: reading it back
-    would synchronise with the device there, and can deadlock) or not numeric (a placeholder leaf;
-    strings are rejected by ``validate`` before this). Python numbers and
-    numpy arrays, what users pass, are validated; ``stack_params`` validates before converting."""
-    if isinstance(value, jax.Array):
-        return None
-    try:
-        return np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        return None
-
-
 def validate(p: TrafficParams, cfl_max: float = 1.0) -> None:
     """Raise ``ValueError`` with a clear message if concrete parameters are invalid.
 
@@ -165,7 +152,7 @@ def validate(p: TrafficParams, cfl_max: float = 1.0) -> None:
         value = getattr(p, name)
         if isinstance(value, (str, bytes)):
             raise ValueError(f"{name} must be a number, got {value!r}")
-    vals = {k: _concrete(getattr(p, k)) for k in FLOAT_FIELDS}
+    vals = {k: concrete(getattr(p, k), jax_arrays=False) for k in FLOAT_FIELDS}
     if any(v is None for v in vals.values()):
         return  # traced or placeholder leaves: nothing concrete to check
     for name, v in vals.items():
@@ -215,7 +202,8 @@ def check_nominal(plant: TrafficParams, nominal: TrafficParams | None) -> None:
         raise ValueError(f"nominal.n_points={nominal.n_points} differs from the plant's n_points={plant.n_points}: "
                          "the nominal must be on the plant's grid")
     for name in ("dt", "L"):
-        a, b = _concrete(getattr(plant, name)), _concrete(getattr(nominal, name))
+        a = concrete(getattr(plant, name), jax_arrays=False)
+        b = concrete(getattr(nominal, name), jax_arrays=False)
         if a is None or b is None:
             continue
         if not np.allclose(a, b, rtol=1e-6, atol=0.0):

@@ -11,8 +11,9 @@ from __future__ import annotations
 import enum
 from typing import Any
 
-import jax
 import numpy as np
+
+from jaxtraffic.tracing import is_traced
 
 __all__ = ["Divergence", "DivergedError", "check_outcome"]
 
@@ -83,7 +84,7 @@ def check_outcome(result: Any, throw: bool = True) -> list[Divergence]:
         TypeError: for a traced result, or an object without divergence codes.
     """
     codes = _reasons_of(result)
-    if isinstance(codes, jax.core.Tracer):
+    if is_traced(codes):
         raise TypeError("check_outcome reads the codes on the host: it cannot run under jit/vmap")
     arr = np.asarray(codes)
     outcomes = [Divergence(int(c)) for c in arr.reshape(-1)]

@@ -45,6 +45,7 @@ from jaxtraffic.sim.sharding import (
     sharded_batch,
     spans_processes,
 )
+from jaxtraffic.tracing import is_traced
 
 Array = jax.Array
 
@@ -204,7 +205,7 @@ def _check_alphas(params: TrafficParams, alphas: Array | None, n_steps: int, noi
     if (shape[1:] if batched else shape) not in ok:
         lead = "(B, ...) with " if batched else ""
         raise ValueError(f"alphas needs shape {lead}{ok[0]} or {ok[1]}, got {shape}")
-    if not isinstance(alphas, jax.core.Tracer):  # (traced sequences are not checked)
+    if not is_traced(alphas):  # (traced sequences are not checked)
         a = np.asarray(alphas, np.float64)
         if not np.all((a >= 0) & (a <= 1)):
             raise ValueError(f"alphas must lie in [0, 1] (ACC shares), got values in [{np.nanmin(a):g}, "
@@ -215,7 +216,7 @@ def _check_initial_condition(params: TrafficParams, rho0: Array | None, v0: Arra
     """Raise ``ValueError`` if a concrete initial state (single, or batched (B, n)) is not finite
     or outside 0 < rho < 1/l, v >= 0. Traced inputs are not checked (the rollout then flags
     such an environment as diverged at step 0)."""
-    if rho0 is None or any(isinstance(x, jax.core.Tracer) for x in (rho0, v0, params.l)):
+    if rho0 is None or is_traced(rho0, v0, params.l):
         return
     r, v = np.asarray(rho0, np.float64), np.asarray(v0, np.float64)
     if r.shape[-1] != params.n_points or v.shape[-1] != params.n_points:

@@ -27,6 +27,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from jaxtraffic.tracing import is_traced
+
 AXIS = "batch"
 
 __all__ = ["AXIS", "batch_mesh", "batch_sharding", "gathered", "host_mesh", "local_copy", "replicate",
@@ -47,8 +49,7 @@ def host_mesh(tree: Any = None) -> Mesh:
     """The mesh of a host-level batched call on ``tree`` (its inputs): every device of every process
     (``jax.devices()``) unless ``tree`` holds a tracer (a call inside a user's transformation, which
     stays on this process's devices)."""
-    traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree))
-    return batch_mesh(None if traced else list(jax.devices()))
+    return batch_mesh(None if is_traced(tree) else list(jax.devices()))
 
 
 def replicate(tree: Any, mesh: Mesh) -> Any:

@@ -11,7 +11,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1] / "jaxtraffic"
 
 # the layers, lowest first: a module imports only modules of its own layer or lower ones
-BASE = {"_version", "files", "drawing", "tracing", "_devices", "compile_cache", "provenance", "distributed", "_registration"}
+BASE = {"_version", "files", "drawing", "tracing", "_devices", "compile_cache", "provenance", "distributed",
+        "_registration"}
 LAYERS = {**{m: 0 for m in BASE}, "model": 1, "control": 2, "sim": 3, "learn": 4, "ecosystem": 5, "paper": 5,
           "cli": 6, "__main__": 6}
 # inside learn/: the environment and each algorithm's settings, the config tree, what every run shares, each

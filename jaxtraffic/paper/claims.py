@@ -136,14 +136,14 @@ def _stab_text(e: dict) -> str:
     return s
 
 
-def evaluate_claims(metrics: dict, cfg: EvalConfig, learning_curve: dict[str, np.ndarray] | None,
+def evaluate_claims(metrics: dict, eval_config: EvalConfig, learning_curve: dict[str, np.ndarray] | None,
                     ppo_d0_label: str) -> list[dict[str, Any]]:
     """Each claim of docs/model.md section 11 with its checks and the computed verdict.
 
     Args:
         metrics: metrics.json content: scenario name -> controller name -> ``summaries.summarise`` entry
             (needs "delay0", "delay4", "delay_mismatch_3", "delay_mismatch_5"; the noise readings it has).
-        cfg: the evaluation the metrics come from (for the equilibrium indices of Table 2).
+        eval_config: the evaluation the metrics come from (for the equilibrium indices of Table 2).
         learning_curve: ``plotting.read_learning_curve`` columns of the PPO run, or None (claim 1's
             stop-rule check is then not measurable).
         ppo_d0_label: which policy ran scenario delay0, for claim 1's text.
@@ -153,7 +153,7 @@ def evaluate_claims(metrics: dict, cfg: EvalConfig, learning_curve: dict[str, np
         "verdict", and "tables" (claim 4) or "readings" and "reproduced_in" (claim 5).
     """
     claims = [_claim_learning_curve(metrics, learning_curve, ppo_d0_label), _claim_delay0(metrics),
-              _claim_delay4(metrics), _claim_table2(metrics, cfg), _claim_alpha_noise(metrics),
+              _claim_delay4(metrics), _claim_table2(metrics, eval_config), _claim_alpha_noise(metrics),
               _claim_mismatched_delay(metrics)]
     for c in claims:
         c["verdict"] = verdict(c["checks"])
@@ -249,10 +249,10 @@ def _claim_delay4(metrics: dict) -> dict[str, Any]:
                 figures=["fig5_spacetime_delay4.png", "fig6_l2_delay4.png"], checks=checks)
 
 
-def _claim_table2(metrics: dict, cfg: EvalConfig) -> dict[str, Any]:
+def _claim_table2(metrics: dict, eval_config: EvalConfig) -> dict[str, Any]:
     """Claim 4: Table 2's indices (D = 4 s): acceptance, the paper's values and improvements, comfort."""
     d4 = metrics["delay4"]
-    checks = _acceptance_checks(d4, equilibrium_indices(cfg))
+    checks = _acceptance_checks(d4, equilibrium_indices(eval_config))
     for reading, suffix in (("SI", ""), ("km/h", "_kmh")):
         checks += _paper_table2_checks(d4, reading, suffix)
     checks.append(_improvement_gap_check(d4))

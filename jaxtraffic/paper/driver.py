@@ -76,7 +76,7 @@ class _Background:
         return self.result
 
 
-def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: str | Path,
+def evaluate_all(controllers: dict[str, Controller], eval_config: EvalConfig, out_dir: str | Path,
                  meta: dict[str, Any], ppo_delay0: Controller | None = None,
                  learning_curve_csv: str | Path | None = None, log: Callable[[str], None] = print,
                  learned_runs: dict[str, dict] | None = None, grids: dict[str, ControllerGrid] | None = None,
@@ -89,7 +89,7 @@ def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: s
     learned controllers, for REPORT.md's comparison section (``paper.learned``).
     ``grids``: the grid each learned controller acts on (``learn.runs.checkpoint.policy_grid``; "ppo" also
     for ``ppo_delay0``); every controller is adapted from its grid to the evaluation plant (baselines:
-    ``adapter.baseline_grid``; ``numerics.deploy``). With ``cfg.numerics_check`` Table 2's scenario is
+    ``adapter.baseline_grid``; ``numerics.deploy``). With ``eval_config.numerics_check`` Table 2's scenario is
     rerun on a refined plant and with the other scheme. ``oracle``: the oracle rows of this map
     (``paper.oracle.load_oracle``), drawn beside the controllers' waves and tabulated in REPORT.md.
 
@@ -107,19 +107,21 @@ def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: s
     ctrls.update(controllers)
     grids = grids or {}
     # independent of the rest: its programs compile and run alongside the scenarios' and the map's
-    checking = _Background(run_numerics, ctrls, grids, cfg, name="numerics") if cfg.numerics_check else None
+    checking = _Background(run_numerics, ctrls, grids, eval_config,
+                           name="numerics") if eval_config.numerics_check else None
     if ppo_delay0 is not None:
-        ppo_delay0 = deploy({"ppo": ppo_delay0}, grids, cfg)["ppo"]
-    ctrls = deploy(ctrls, grids, cfg)
+        ppo_delay0 = deploy({"ppo": ppo_delay0}, grids, eval_config)["ppo"]
+    ctrls = deploy(ctrls, grids, eval_config)
     lc = Path(learning_curve_csv) if learning_curve_csv else None
-    results, early = _scenarios(ctrls, ppo_delay0, cfg, out_dir, lc, writer, checking is not None, log)
-    init_l2 = initial_norms(cfg)
+    results, early = _scenarios(ctrls, ppo_delay0, eval_config, out_dir, lc, writer, checking is not None, log)
+    init_l2 = initial_norms(eval_config)
     metrics: dict[str, Any] = {"units": UNITS}
     for s, per in results.items():
         metrics[s] = {c: summarise(o, init_l2) for c, o in per.items()}
-    log(f"[2/4] robustness map: {len(cfg.robust_delays)} delays x {len(cfg.robust_alphas)} alphas, "
-        f"{cfg.robust_horizon_s:g} s" + ("" if cfg.robust_delays and cfg.robust_alphas else " (skipped)"))
-    robust = run_robustness(ctrls, cfg, log)
+    log(f"[2/4] robustness map: {len(eval_config.robust_delays)} delays x {len(eval_config.robust_alphas)} alphas, "
+        f"{eval_config.robust_horizon_s:g} s"
+        + ("" if eval_config.robust_delays and eval_config.robust_alphas else " (skipped)"))
+    robust = run_robustness(ctrls, eval_config, log)
     numerics = None
     if checking is not None:
         log("  numerical check of Table 2 (delay4): refined grid and the other scheme")
@@ -128,30 +130,32 @@ def evaluate_all(controllers: dict[str, Controller], cfg: EvalConfig, out_dir: s
 
     lc_data = _read_learning_curve(lc)
     d0_label = "a separate D = 0 policy" if ppo_delay0 is not None else "the D = 4 s policy"
-    claims = evaluate_claims(metrics, cfg, lc_data, d0_label)
+    claims = evaluate_claims(metrics, eval_config, lc_data, d0_label)
     fig7 = paper_like_reading(claims)
     figures: list = []
     if writer:
         log("[3/4] figures")
         figures = early.join(log)  # the scenario figures, drawn while the robustness map ran
-        figures += make_figures(results, robust, cfg, out_dir, lc, log, fig7_scenario=fig7,
+        figures += make_figures(results, robust, eval_config, out_dir, lc, log, fig7_scenario=fig7,
                                 select=lambda name: name in FIG7 + ROBUSTNESS, oracle=oracle)
         log("[4/4] tables, metrics.json, REPORT.md")
-        write_table2(table2_rows(metrics, cfg, numerics), out_dir, cfg.n_steps * cfg.dt, metrics, numerics)
-    meta = _meta(meta, cfg, grids, fig7, init_l2)
+        write_table2(table2_rows(metrics, eval_config, numerics), out_dir, eval_config.n_steps * eval_config.dt,
+                     metrics, numerics)
+    meta = _meta(meta, eval_config, grids, fig7, init_l2)
     meta["runtime_s"] = time.perf_counter() - t_start
     meta["claims"] = {str(c["id"]): c["verdict"] for c in claims}
     meta["claim5_readings"] = {n: r["verdict"] for c in claims if c["id"] == 5 for n, r in c["readings"].items()}
     metrics["meta"] = meta
     metrics = to_jsonable(metrics)
     if writer:
-        _write(out_dir, claims, metrics, meta, figures, robust, _robustness_json(robust, cfg), cfg, numerics,
+        _write(out_dir, claims, metrics, meta, figures, robust, _robustness_json(robust, eval_config), eval_config,
+               numerics,
                lc_data, learned_runs, oracle)
     log(f"done in {meta['runtime_s']:.1f} s -> {out_dir}")
     return metrics
 
 
-def _scenarios(ctrls: dict[str, Controller], ppo_delay0: Controller | None, cfg: EvalConfig, out_dir: Path,
+def _scenarios(ctrls: dict[str, Controller], ppo_delay0: Controller | None, eval_config: EvalConfig, out_dir: Path,
                learning_curve_csv: Path | None, writer: bool, checking: bool,
                log: Callable[[str], None]) -> tuple[dict[str, dict[str, Outcome]], _Background | None]:
     """Step 1: every scenario with every controller; on the writer, their figures started in the background.
@@ -159,7 +163,7 @@ def _scenarios(ctrls: dict[str, Controller], ppo_delay0: Controller | None, cfg:
     The figures that need the claims or the robustness map (``FIG7``, ``ROBUSTNESS``) are left for later.
 
     Args:
-        ctrls: controller name -> controller, deployed on ``cfg``'s plant. ppo_delay0: the policy for
+        ctrls: controller name -> controller, deployed on ``eval_config``'s plant. ppo_delay0: the policy for
             scenario delay0 in place of "ppo", or None. writer: whether this process draws.
         checking: whether the numerical check runs alongside (for the log line).
 
@@ -168,11 +172,11 @@ def _scenarios(ctrls: dict[str, Controller], ppo_delay0: Controller | None, cfg:
         where this process does not draw).
     """
     overrides = {("delay0", "ppo"): ppo_delay0} if ppo_delay0 is not None else {}
-    log(f"[1/4] scenarios: {cfg.describe()}, {cfg.horizon_s:g} s "
-        f"({cfg.n_steps} steps), {len(cfg.seeds)} noise seeds"
+    log(f"[1/4] scenarios: {eval_config.describe()}, {eval_config.horizon_s:g} s "
+        f"({eval_config.n_steps} steps), {len(eval_config.seeds)} noise seeds"
         + ("; the numerical check of Table 2 runs alongside" if checking else ""))
-    results = run_scenarios(ctrls, cfg, log, overrides)
-    early = _Background(make_figures, results, {}, cfg, out_dir, learning_curve_csv,
+    results = run_scenarios(ctrls, eval_config, log, overrides)
+    early = _Background(make_figures, results, {}, eval_config, out_dir, learning_curve_csv,
                         select=lambda name: name not in FIG7 + ROBUSTNESS) if writer else None
     return results, early
 
@@ -188,7 +192,7 @@ def _read_learning_curve(path: Path | None) -> dict[str, Any] | None:
         return None
 
 
-def _meta(meta: dict[str, Any], cfg: EvalConfig, grids: dict[str, ControllerGrid], fig7: str,
+def _meta(meta: dict[str, Any], eval_config: EvalConfig, grids: dict[str, ControllerGrid], fig7: str,
           init_l2: tuple[float, float]) -> dict[str, Any]:
     """metrics.json's "meta": a copy of the caller's ``meta`` with the grid, plant, scenarios and environment.
 
@@ -196,13 +200,14 @@ def _meta(meta: dict[str, Any], cfg: EvalConfig, grids: dict[str, ControllerGrid
         grids: the controllers' grids. fig7: the alpha noise reading drawn as figure 7.
         init_l2: the initial condition's L2 deviations (``scenarios.initial_norms``), veh/m and m/s.
     """
-    nom = cfg.nominal()
+    nom = eval_config.nominal()
     meta = dict(meta)
     meta.update({
-        "seeds": list(cfg.seeds),
-        "grid": {"n_points": cfg.n_points, "dx_m": float(nom.dx), "dt_s": cfg.dt, "horizon_s": cfg.horizon_s,
-                 "n_steps": cfg.n_steps, "record_every": cfg.record_every, "scheme": cfg.scheme,
-                 "substeps": cfg.substeps,
+        "seeds": list(eval_config.seeds),
+        "grid": {"n_points": eval_config.n_points, "dx_m": float(nom.dx), "dt_s": eval_config.dt,
+                 "horizon_s": eval_config.horizon_s,
+                 "n_steps": eval_config.n_steps, "record_every": eval_config.record_every, "scheme": eval_config.scheme,
+                 "substeps": eval_config.substeps,
                  "controller_grids": {k: dataclasses.asdict(g) for k, g in grids.items()}},
         "fig7_reading": fig7,
         "nominal": {"alpha": 0.15, "h_bar_s": float(nom.h_bar),
@@ -214,22 +219,22 @@ def _meta(meta: dict[str, Any], cfg: EvalConfig, grids: dict[str, ControllerGrid
                                "noise_hold_s": s.noise_hold_s, "noise_per_node": s.noise_per_node,
                                "noise_model_sees": s.noise_model_sees,
                                "controller_assumed_delay_s": CTRL_DELAY} for s in SCENARIOS},
-        "equilibrium_indices": equilibrium_indices(cfg),
-        "robust_grid": {"delays_s": list(cfg.robust_delays), "alphas": list(cfg.robust_alphas),
-                        "horizon_s": cfg.robust_horizon_s},
+        "equilibrium_indices": equilibrium_indices(eval_config),
+        "robust_grid": {"delays_s": list(eval_config.robust_delays), "alphas": list(eval_config.robust_alphas),
+                        "horizon_s": eval_config.robust_horizon_s},
         "jax_version": jax.__version__, "backend": jax.default_backend(), "provenance": provenance(),
     })
     return meta
 
 
-def _robustness_json(robust: dict[str, dict[str, Any]], cfg: EvalConfig) -> dict[str, Any]:
+def _robustness_json(robust: dict[str, dict[str, Any]], eval_config: EvalConfig) -> dict[str, Any]:
     """robustness.json's content: the map's axes, units and each controller's arrays as nested lists.
 
     Args:
         robust: controller -> quantity -> (n_delays, n_alphas) array (``scenarios.run_robustness``).
     """
-    return {"delays_s": list(cfg.robust_delays), "alphas": list(cfg.robust_alphas),
-            "horizon_s": cfg.robust_horizon_s,
+    return {"delays_s": list(eval_config.robust_delays), "alphas": list(eval_config.robust_alphas),
+            "horizon_s": eval_config.robust_horizon_s,
             "units": {"final_rho_L2": "veh/m", "final_v_L2": "m/s", "final_reward": "dimensionless",
                       "diverged": "bool", "final_rho_spatial_std": "veh/m"},
             "note": "arrays indexed [delay][alpha]; backstepping assumes the true plant delay",
@@ -237,7 +242,7 @@ def _robustness_json(robust: dict[str, dict[str, Any]], cfg: EvalConfig) -> dict
 
 
 def _write(out_dir: Path, claims: list, metrics: dict, meta: dict, figures: list, robust: dict, robust_json: dict,
-           cfg: EvalConfig, numerics: dict | None, lc_data: Any, learned_runs: dict | None,
+           eval_config: EvalConfig, numerics: dict | None, lc_data: Any, learned_runs: dict | None,
            oracle: dict[str, dict] | None) -> None:
     """robustness.json, metrics.json, REPORT.md and claims.json."""
     (out_dir / "robustness.json").write_text(json.dumps(to_jsonable(robust_json), indent=1, allow_nan=False))
@@ -245,9 +250,9 @@ def _write(out_dir: Path, claims: list, metrics: dict, meta: dict, figures: list
     notes = []
     if lc_data is None:
         notes.append("- No learning curve was available, so figure 3a is missing.")
-    sections = readings_summary(claims, metrics, cfg) + numerics_summary(numerics, metrics, cfg)
-    sections += robustness_summary(robust, cfg, oracle) + comparison_section(
-        metrics, learned_runs or {}, robust, tuple(cfg.robust_alphas), tuple(cfg.robust_delays))
+    sections = readings_summary(claims, metrics, eval_config) + numerics_summary(numerics, metrics, eval_config)
+    sections += robustness_summary(robust, eval_config, oracle) + comparison_section(
+        metrics, learned_runs or {}, robust, tuple(eval_config.robust_alphas), tuple(eval_config.robust_delays))
     write_report(out_dir / "REPORT.md", claims, metrics, meta, figures, notes, sections=sections)
     (out_dir / "claims.json").write_text(json.dumps(to_jsonable(
         [{**{k: v for k, v in c.items() if k != "checks"},

@@ -30,7 +30,7 @@ LEARNING_CURVE = "fig3a_learning_curve.png"
 
 
 def make_figures(results: dict[str, dict[str, Outcome]], robust: dict[str, dict[str, np.ndarray]],
-                 cfg: EvalConfig, out_dir: Path, learning_curve_csv: Path | None,
+                 eval_config: EvalConfig, out_dir: Path, learning_curve_csv: Path | None,
                  log: Callable[[str], None] = print, fig7_scenario: str = "alpha_noise",
                  select: Callable[[str], bool] | None = None, oracle: dict[str, dict] | None = None) -> list[str]:
     """Write every figure into ``out_dir``; returns the file names written. ``fig7_scenario``: the
@@ -45,10 +45,10 @@ def make_figures(results: dict[str, dict[str, Outcome]], robust: dict[str, dict[
     _learning_curve_figure(canvas, learning_curve_csv)
     t = results["delay4"]["open_loop"].t
     _reward_figure(canvas, results, t, labels)
-    _spacetime_figures(canvas, results, cfg, t, labels, fig7_scenario)
-    _l2_figures(canvas, results, cfg, t, labels, fig7_scenario)
+    _spacetime_figures(canvas, results, eval_config, t, labels, fig7_scenario)
+    _l2_figures(canvas, results, eval_config, t, labels, fig7_scenario)
     if robust and any(canvas.want(name) for name in ROBUSTNESS):
-        _robustness_figures(canvas, robust, cfg, labels, oracle)
+        _robustness_figures(canvas, robust, eval_config, labels, oracle)
     return canvas.written
 
 
@@ -105,7 +105,7 @@ def _reward_figure(canvas: _Canvas, results: dict[str, dict[str, Outcome]], t: n
                 title="Reward over time from the paper's initial condition (paper fig. 3b)")
 
 
-def _spacetime_figures(canvas: _Canvas, results: dict[str, dict[str, Outcome]], cfg: EvalConfig, t: np.ndarray,
+def _spacetime_figures(canvas: _Canvas, results: dict[str, dict[str, Outcome]], eval_config: EvalConfig, t: np.ndarray,
                        labels: dict[str, str], fig7_scenario: str) -> None:
     """Figures 4, 5 and 7 and the mismatched delays' space-time plots: rho, v and h of the first seed.
 
@@ -115,7 +115,7 @@ def _spacetime_figures(canvas: _Canvas, results: dict[str, dict[str, Outcome]], 
     """
     from jaxtraffic.paper.plotting import plot_spacetime
 
-    nom = cfg.nominal()
+    nom = eval_config.nominal()
     rho_bar, v_bar = (float(x) for x in equilibrium(nom))
     eq = (rho_bar, v_bar, float(nom.h_bar))
     x = np.asarray(nom.x())
@@ -124,7 +124,7 @@ def _spacetime_figures(canvas: _Canvas, results: dict[str, dict[str, Outcome]], 
         "delay4": ("fig5_spacetime_delay4.png", "Plant delay D = 4 s (paper fig. 5)"),
         fig7_scenario: (FIG7[0],
                         f"D = 4 s, plant alpha = 0.15 + N(0, {NOISE_STD}^2), reading {fig7_scenario}: "
-                        f"{SCENARIO_BY_NAME[fig7_scenario].description}; seed {cfg.seeds[0]} (paper fig. 7)"),
+                        f"{SCENARIO_BY_NAME[fig7_scenario].description}; seed {eval_config.seeds[0]} (paper fig. 7)"),
         "delay_mismatch_3": ("spacetime_delay_mismatch_3.png", "Plant delay 3 s, controllers assume 4 s"),
         "delay_mismatch_5": ("spacetime_delay_mismatch_5.png", "Plant delay 5 s, controllers assume 4 s"),
     }
@@ -139,7 +139,7 @@ def _spacetime_figures(canvas: _Canvas, results: dict[str, dict[str, Outcome]], 
         canvas.draw(fname, plot_spacetime, t, x, rows, eq, title, diverged_at=div)
 
 
-def _l2_figures(canvas: _Canvas, results: dict[str, dict[str, Outcome]], cfg: EvalConfig, t: np.ndarray,
+def _l2_figures(canvas: _Canvas, results: dict[str, dict[str, Outcome]], eval_config: EvalConfig, t: np.ndarray,
                 labels: dict[str, str], fig7_scenario: str) -> None:
     """Figures 4, 6, 7 and 8's L2 norms of the deviations (mean and min-max band over the seeds).
 
@@ -160,14 +160,14 @@ def _l2_figures(canvas: _Canvas, results: dict[str, dict[str, Outcome]], cfg: Ev
                 "L2 norms of the deviations, plant delay D = 4 s (paper fig. 6)")
     canvas.draw(FIG7[1], plot_l2_norms, t, l2(fig7_scenario, ("backstepping", "ppo")),
                 f"L2 norms with alpha noise (D = 4 s, reading {fig7_scenario}): mean and min-max band "
-                f"over {len(cfg.seeds)} seeds")
+                f"over {len(eval_config.seeds)} seeds")
     canvas.draw("fig8_l2_delay_mismatch.png", plot_l2_panels, t,
                 {"plant D = 3 s": l2("delay_mismatch_3", ("backstepping", "ppo")),
                  "plant D = 5 s": l2("delay_mismatch_5", ("backstepping", "ppo"))},
                 "Mismatched delay, controllers assume 4 s (paper fig. 8)")
 
 
-def _robustness_figures(canvas: _Canvas, robust: dict[str, dict[str, np.ndarray]], cfg: EvalConfig,
+def _robustness_figures(canvas: _Canvas, robust: dict[str, dict[str, np.ndarray]], eval_config: EvalConfig,
                         labels: dict[str, str], oracle: dict[str, dict] | None) -> None:
     """The robustness maps over plant delay x plant alpha: final density L2 deviation, remaining waves.
 
@@ -182,16 +182,16 @@ def _robustness_figures(canvas: _Canvas, robust: dict[str, dict[str, np.ndarray]
     names = {"open_loop": "open loop", "lyapunov": "Lyapunov",
              "backstepping": "backstepping (assumes the true plant delay)",
              "ppo": "PPO (trained D = 4 s)", **{c: labels.get(c, c) for c in learned(robust) if c != "ppo"}}
-    delays, alphas = np.asarray(cfg.robust_delays), np.asarray(cfg.robust_alphas)
-    horizon = replace(cfg, horizon_s=cfg.robust_horizon_s).n_steps * cfg.dt
+    delays, alphas = np.asarray(eval_config.robust_delays), np.asarray(eval_config.robust_alphas)
+    horizon = replace(eval_config, horizon_s=eval_config.robust_horizon_s).n_steps * eval_config.dt
     maps = {names[c]: (r["final_rho_L2"], r["diverged"]) for c, r in robust.items()}
     canvas.draw(ROBUSTNESS[0], plot_robustness_map, delays, alphas, maps,
                 f"Final density L2 deviation from the nominal target after {horizon:g} s, over plant delay x "
                 "plant ACC rate\n(includes the steady offset a proportional law keeps when alpha != 0.15)",
-                nominal=(CTRL_DELAY, 0.15), initial_l2=initial_norms(cfg)[0])
+                nominal=(CTRL_DELAY, 0.15), initial_l2=initial_norms(eval_config)[0])
     maps = {names[c]: (r["final_rho_spatial_std"], r["diverged"]) for c, r in robust.items()}
     maps.update({ORACLE_LABELS[k]: (r["final_rho_spatial_std"], r["diverged"]) for k, r in (oracle or {}).items()})
     canvas.draw(ROBUSTNESS[1], plot_robustness_map, delays, alphas, maps,
                 f"Remaining density waves after {horizon:g} s: spatial standard deviation of rho "
-                "(blind to a uniform offset)", nominal=(CTRL_DELAY, 0.15), initial_l2=initial_norms(cfg)[0],
+                "(blind to a uniform offset)", nominal=(CTRL_DELAY, 0.15), initial_l2=initial_norms(eval_config)[0],
                 quantity="final std_x(rho) (veh/km)", stable_below=STABLE_STD)

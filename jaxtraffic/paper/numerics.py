@@ -25,26 +25,27 @@ NUMERICS_INDICES = ("J_TTT", "J_fuel", "J_comfort", "J_comfort_a2", "J_comfort_a
                     "final_rho_L2", "final_v_L2")
 
 
-def deploy(controllers: dict[str, Controller], grids: dict[str, ControllerGrid], cfg: EvalConfig
+def deploy(controllers: dict[str, Controller], grids: dict[str, ControllerGrid], eval_config: EvalConfig
            ) -> dict[str, Controller]:
-    """Each controller adapted to the plant of ``cfg`` from its own grid (``grids``; absent: a baseline,
+    """Each controller adapted to the plant of ``eval_config`` from its own grid (``grids``; absent: a baseline,
     on ``baseline_grid``)."""
-    nom = cfg.nominal()
+    nom = eval_config.nominal()
     return {k: adapt(c, grids.get(k) or baseline_grid(nom), nom) for k, c in controllers.items()}
 
 
-def variants(cfg: EvalConfig) -> dict[str, EvalConfig]:
-    """The two numerical variants of ``cfg``'s plant: refined twice (points and solver steps), and its
+def variants(eval_config: EvalConfig) -> dict[str, EvalConfig]:
+    """The two numerical variants of ``eval_config``'s plant: refined twice (points and solver steps), and its
     other scheme."""
-    other = "muscl" if cfg.scheme == "upwind" else "upwind"
-    return {"refined": replace(cfg, n_points=2 * cfg.n_points - 1, substeps=2 * cfg.substeps),
-            "scheme": replace(cfg, scheme=other)}
+    other = "muscl" if eval_config.scheme == "upwind" else "upwind"
+    return {"refined": replace(eval_config, n_points=2 * eval_config.n_points - 1, substeps=2 * eval_config.substeps),
+            "scheme": replace(eval_config, scheme=other)}
 
 
-def describe(cfg: EvalConfig) -> dict[str, Any]:
-    nom = cfg.nominal()
-    return {"scheme": cfg.scheme, "n_points": cfg.n_points, "dx_m": float(nom.dx), "dt_s": cfg.dt,
-            "substeps": cfg.substeps}
+def describe(eval_config: EvalConfig) -> dict[str, Any]:
+    nom = eval_config.nominal()
+    return {"scheme": eval_config.scheme, "n_points": eval_config.n_points, "dx_m": float(nom.dx),
+            "dt_s": eval_config.dt,
+            "substeps": eval_config.substeps}
 
 
 def _rel(a: float, b: float) -> float | None:
@@ -54,19 +55,19 @@ def _rel(a: float, b: float) -> float | None:
     return float((a - b) / abs(b))
 
 
-def run_numerics(controllers: dict[str, Controller], grids: dict[str, ControllerGrid], cfg: EvalConfig,
+def run_numerics(controllers: dict[str, Controller], grids: dict[str, ControllerGrid], eval_config: EvalConfig,
                  log: Callable[[str], None] = print) -> dict[str, Any]:
-    """Scenario delay4 for ``NUMERICS_CONTROLLERS`` (and any ``others``) under each of ``variants(cfg)``.
+    """Scenario delay4 for ``NUMERICS_CONTROLLERS`` (and any ``others``) under each of ``variants(eval_config)``.
 
     ``controllers``: on their own grids (``grids``; baselines absent, see ``deploy``). Independent of the
-    evaluation on ``cfg`` itself, so it can run alongside it; ``relative_to`` then adds the differences to it.
+    evaluation on ``eval_config`` itself, so it can run alongside it; ``relative_to`` then adds the differences to it.
     Returns {"base": description, "variants": {name: description}, "delay4": {variant: {controller:
     {index: value}}}}.
     """
-    out: dict[str, Any] = {"base": describe(cfg), "variants": {}, "delay4": {},
+    out: dict[str, Any] = {"base": describe(eval_config), "variants": {}, "delay4": {},
                            "note": "rel_diff = (J_variant - J) / |J|; every controller acts on its own grid "
                                    "(control.adapter), only the plant changes"}
-    for vname, vcfg in variants(cfg).items():
+    for vname, vcfg in variants(eval_config).items():
         out["variants"][vname] = describe(vcfg)
         out["delay4"][vname] = {}
         nom = vcfg.nominal(delay=CTRL_DELAY)
@@ -89,12 +90,12 @@ def relative_to(numerics: dict[str, Any], base: dict[str, dict[str, float]]) -> 
     return {**numerics, "delay4": delay4, "rel_diff": rel}
 
 
-def survives(numerics: dict[str, Any], metrics: dict, cfg: EvalConfig) -> list[tuple[str, dict[str, bool]]]:
+def survives(numerics: dict[str, Any], metrics: dict, eval_config: EvalConfig) -> list[tuple[str, dict[str, bool]]]:
     """Which of the Table 2 conclusions hold on the base grid and under each variant:
     (conclusion, {"base": bool, variant: bool, ...})."""
     from jaxtraffic.paper.summaries import equilibrium_indices
 
-    eq = equilibrium_indices(cfg)
+    eq = equilibrium_indices(eval_config)
     tables = {"base": {c: metrics["delay4"][c] for c in (*NUMERICS_CONTROLLERS, *others(metrics["delay4"]))
                        if c in metrics["delay4"]}}
     tables.update(numerics.get("delay4", {}))

@@ -45,19 +45,20 @@ DEFAULT_GRID = {"eta1": (-0.4, 0.0, 0.4), "eta2": (-2.0, -1.5, -1.0, -0.5, 0.0),
                 "eta3": (-3.0, -2.5, -2.0, -1.5, -1.0, -0.5)}
 
 
-def gain_grid_map(cfg: EvalConfig, triples: Sequence[tuple[float, float, float]], filter_sigma: float = FILTER_SIGMA,
+def gain_grid_map(eval_config: EvalConfig, triples: Sequence[tuple[float, float, float]],
+                  filter_sigma: float = FILTER_SIGMA,
                   per_call: int = 4, log: Callable[[str], None] = print) -> tuple[np.ndarray, np.ndarray]:
     """(diverged (T, ND, NA) bool, final std_x(rho) (T, ND, NA) veh/m) of every constant triple on the map of
-    ``cfg`` (its robust delays, alphas and horizon; the law on the paper's grid with filter width
-    ``filter_sigma`` m, adapted to ``cfg``'s plant). ``per_call`` triples share one batched rollout."""
-    cfg = replace(cfg, horizon_s=cfg.robust_horizon_s)
-    nom = cfg.nominal()
-    dd, aa = np.meshgrid(np.asarray(cfg.robust_delays), np.asarray(cfg.robust_alphas), indexing="ij")
+    ``eval_config`` (its robust delays, alphas and horizon; the law on the paper's grid with filter width
+    ``filter_sigma`` m, adapted to ``eval_config``'s plant). ``per_call`` triples share one batched rollout."""
+    eval_config = replace(eval_config, horizon_s=eval_config.robust_horizon_s)
+    nom = eval_config.nominal()
+    dd, aa = np.meshgrid(np.asarray(eval_config.robust_delays), np.asarray(eval_config.robust_alphas), indexing="ij")
     cells = [nom.replace(delay=float(d), alpha=float(a)) for d, a in zip(dd.ravel(), aa.ravel(), strict=True)]
     rho0, v0 = paper_initial_condition(nom)
     grid = baseline_grid(nom)  # the paper's grid (or a tiny plant's own)
     law = adapt(constant_gains(filter_sigma=filter_sigma, dx=float(nom.L) / (grid.n_points - 1)), grid, nom)
-    n_steps = cfg.n_steps
+    n_steps = eval_config.n_steps
 
     @jax.jit
     def run(params, gains):
@@ -114,11 +115,13 @@ def grid_triples(eta1: Sequence[float], eta2: Sequence[float], eta3: Sequence[fl
     return [tuple(float(x) for x in t) for t in itertools.product(eta1, eta2, eta3)]
 
 
-def oracle_json(cfg: EvalConfig, triples: Sequence[tuple[float, ...]], rows: dict[str, dict], filter_sigma: float,
+def oracle_json(eval_config: EvalConfig, triples: Sequence[tuple[float, ...]], rows: dict[str, dict],
+                filter_sigma: float,
                 extra: dict[str, Any] | None = None) -> dict[str, Any]:
     """A JSON-ready record of the oracle rows with the map they were computed on."""
-    return {"delays_s": list(map(float, cfg.robust_delays)), "alphas": list(map(float, cfg.robust_alphas)),
-            "horizon_s": cfg.robust_horizon_s, "plant": cfg.describe(), "filter_sigma_m": filter_sigma,
+    return {"delays_s": list(map(float, eval_config.robust_delays)), "alphas": list(map(float,
+                                                                                        eval_config.robust_alphas)),
+            "horizon_s": eval_config.robust_horizon_s, "plant": eval_config.describe(), "filter_sigma_m": filter_sigma,
             "n_gain_triples": len(triples), "stable_std_veh_m": STABLE_STD, **(extra or {}),
             "rows": {k: {"diverged": np.asarray(r["diverged"]).tolist(),
                          "final_rho_spatial_std": np.asarray(r["final_rho_spatial_std"]).tolist(),
@@ -126,19 +129,19 @@ def oracle_json(cfg: EvalConfig, triples: Sequence[tuple[float, ...]], rows: dic
                          "diverged_cells": stabilised_and_diverged(r)[1]} for k, r in rows.items()}}
 
 
-def load_oracle(path: Path, cfg: EvalConfig) -> dict[str, dict] | None:
-    """The rows of an ``oracle_json`` file if it was computed on ``cfg``'s map (same delays, alphas and
+def load_oracle(path: Path, eval_config: EvalConfig) -> dict[str, dict] | None:
+    """The rows of an ``oracle_json`` file if it was computed on ``eval_config``'s map (same delays, alphas and
     horizon), as arrays; None if the file is missing or belongs to another map."""
     import json
 
     if not path.is_file():
         return None
     data = json.loads(path.read_text())
-    same = (np.allclose(data.get("delays_s", []), cfg.robust_delays) if len(data.get("delays_s", [])) ==
-            len(cfg.robust_delays) else False)
-    same = same and len(data.get("alphas", [])) == len(cfg.robust_alphas) and np.allclose(data["alphas"],
-                                                                                        cfg.robust_alphas)
-    if not same or float(data.get("horizon_s", -1)) != float(cfg.robust_horizon_s):
+    same = (np.allclose(data.get("delays_s", []), eval_config.robust_delays) if len(data.get("delays_s", [])) ==
+            len(eval_config.robust_delays) else False)
+    same = same and len(data.get("alphas", [])) == len(eval_config.robust_alphas) and np.allclose(data["alphas"],
+                                                                                        eval_config.robust_alphas)
+    if not same or float(data.get("horizon_s", -1)) != float(eval_config.robust_horizon_s):
         return None
     return {k: {"diverged": np.asarray(r["diverged"], bool),
                 "final_rho_spatial_std": np.asarray(r["final_rho_spatial_std"], float), "gains": r["gains"]}

@@ -25,7 +25,7 @@ from jaxtraffic.paper.summaries import INDICES, PAPER_TABLE2, _fmt
 from jaxtraffic.provenance import describe
 
 
-def readings_summary(claims: list[dict[str, Any]], metrics: dict, cfg: EvalConfig) -> list[str]:
+def readings_summary(claims: list[dict[str, Any]], metrics: dict, eval_config: EvalConfig) -> list[str]:
     """Markdown: per claim, which reading (of the index units, of the alpha noise) reproduces it."""
     by_id = {c["id"]: c for c in claims}
     d4 = metrics["delay4"]
@@ -69,7 +69,7 @@ def readings_summary(claims: list[dict[str, Any]], metrics: dict, cfg: EvalConfi
     return lines
 
 
-def numerics_summary(numerics: dict | None, metrics: dict, cfg: EvalConfig) -> list[str]:
+def numerics_summary(numerics: dict | None, metrics: dict, eval_config: EvalConfig) -> list[str]:
     """Markdown: the relative change of Table 2's numbers under refinement / the other scheme, and
     which conclusions survive."""
     if not numerics:
@@ -99,28 +99,29 @@ def numerics_summary(numerics: dict | None, metrics: dict, cfg: EvalConfig) -> l
     lines += ["", "Conclusions of Table 2 under each variant:", "",
               "| conclusion | base | " + " | ".join(vs) + " | same in every variant |",
               "|---|---|" + "---|" * len(vs) + "---|"]
-    for text, res in survives(numerics, metrics, cfg):
+    for text, res in survives(numerics, metrics, eval_config):
         cells = [("yes" if res[k] else "no") if k in res else "n/a" for k in ("base", *vs)]
         ok = len(set(res.values())) == 1 if res else False
         lines.append(f"| {text} | " + " | ".join(cells) + f" | {'yes' if ok else '**no**'} |")
     return lines + [""]
 
 
-def robustness_summary(robust: dict[str, dict[str, np.ndarray]], cfg: EvalConfig,
+def robustness_summary(robust: dict[str, dict[str, np.ndarray]], eval_config: EvalConfig,
                        oracle: dict[str, dict] | None = None) -> list[str]:
     """Markdown lines summarising the robustness map (not a claim of the paper); ``oracle``: its oracle rows
     (``paper.oracle``), listed after the controllers."""
     if not robust:
         return []
-    cfg = replace(cfg, horizon_s=cfg.robust_horizon_s)
-    r0 = initial_norms(cfg)[0]
-    d_idx = [i for i, d in enumerate(cfg.robust_delays) if abs(d - CTRL_DELAY) < 1e-9]
-    a_idx = [j for j, a in enumerate(cfg.robust_alphas) if abs(a - 0.15) < 1e-9]
+    eval_config = replace(eval_config, horizon_s=eval_config.robust_horizon_s)
+    r0 = initial_norms(eval_config)[0]
+    d_idx = [i for i, d in enumerate(eval_config.robust_delays) if abs(d - CTRL_DELAY) < 1e-9]
+    a_idx = [j for j, a in enumerate(eval_config.robust_alphas) if abs(a - 0.15) < 1e-9]
     lines = ["## Robustness map (not in the paper)", "",
-             f"Plant delay {min(cfg.robust_delays):g}..{max(cfg.robust_delays):g} s x plant alpha "
-             f"{min(cfg.robust_alphas):g}..{max(cfg.robust_alphas):g} ({len(cfg.robust_delays)} x "
-             f"{len(cfg.robust_alphas)} cells, no noise), paper initial condition, "
-             f"{cfg.n_steps * cfg.dt:g} s. "
+             f"Plant delay {min(eval_config.robust_delays):g}..{max(eval_config.robust_delays):g} s x plant alpha "
+             f"{min(eval_config.robust_alphas):g}..{max(eval_config.robust_alphas):g} "
+             f"({len(eval_config.robust_delays)} x "
+             f"{len(eval_config.robust_alphas)} cells, no noise), paper initial condition, "
+             f"{eval_config.n_steps * eval_config.dt:g} s. "
              "Backstepping and the delay schedule (grad_robust) are told the true plant delay; the other controllers "
              "ignore the delay. *Stabilised*: not diverged and final std_x(rho) < 0.5 veh/km. The L2 deviation "
              "is measured from the nominal target (alpha = 0.15), so it includes the steady offset a "

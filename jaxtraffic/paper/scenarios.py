@@ -206,7 +206,7 @@ class Outcome:
     controller_label: str = ""
 
 
-def run_batch(controller: Controller, envs: list[TrafficParams], keys: list[int], cfg: EvalConfig,
+def run_batch(controller: Controller, envs: list[TrafficParams], keys: list[int], eval_config: EvalConfig,
               record: bool = True, batch_controller: bool = False, noise: NoiseReading | None = None,
               chunk_size: int | None = None, readings: list[NoiseReading | None] | None = None):
     """One vmapped rollout of ``controller`` over ``envs`` from the paper's initial condition
@@ -214,19 +214,19 @@ def run_batch(controller: Controller, envs: list[TrafficParams], keys: list[int]
     None leaves). ``readings``: per environment, a road-wide reading whose alpha draw it gets
     (``plant_alphas``; ``noise`` then only carries ``model_sees``), so that environments of
     different holding times share one program. Returns the SimResult with numpy leaves."""
-    nom = cfg.nominal()
+    nom = eval_config.nominal()
     rho0, v0 = paper_initial_condition(nom)
     b = len(envs)
     params = stack_params(*envs)
     alphas = None
     if readings is not None:
-        alphas = jnp.stack([plant_alphas(e, jax.random.PRNGKey(k), cfg.n_steps, r)
+        alphas = jnp.stack([plant_alphas(e, jax.random.PRNGKey(k), eval_config.n_steps, r)
                             for e, k, r in zip(envs, keys, readings, strict=True)])
     res = simulate_batch(
-        params, controller, n_steps=cfg.n_steps, nominal=nom,
+        params, controller, n_steps=eval_config.n_steps, nominal=nom,
         rho0=jnp.broadcast_to(rho0, (b, nom.n_points)), v0=jnp.broadcast_to(v0, (b, nom.n_points)),
         keys=jnp.stack([jax.random.PRNGKey(k) for k in keys]),
-        batch_controller=batch_controller, record=Record(every=cfg.record_every if record else 0),
+        batch_controller=batch_controller, record=Record(every=eval_config.record_every if record else 0),
         memory=Memory() if chunk_size is None else Memory(chunk_size=chunk_size),
         alpha_input=AlphaInput(alphas=alphas, noise=noise),
     )
@@ -242,15 +242,15 @@ def _program_reading(reading: NoiseReading | None) -> NoiseReading | None:
     return None if shared == NoiseReading() else shared
 
 
-def initial_norms(cfg: EvalConfig) -> tuple[float, float]:
+def initial_norms(eval_config: EvalConfig) -> tuple[float, float]:
     """||rho~(0)||_L2 (veh/m) and ||v~(0)||_L2 (m/s) of the paper's initial condition."""
-    nom = cfg.nominal()
+    nom = eval_config.nominal()
     rho_bar, v_bar = equilibrium(nom)
     rho0, v0 = paper_initial_condition(nom)
     return float(l2_deviation(rho0, rho_bar)), float(l2_deviation(v0, v_bar))
 
 
-def run_scenarios(controllers: dict[str, Controller], cfg: EvalConfig,
+def run_scenarios(controllers: dict[str, Controller], eval_config: EvalConfig,
                   log: Callable[[str], None] = print,
                   scenario_controllers: dict[tuple[str, str], Controller] | None = None,
                   ) -> dict[str, dict[str, Outcome]]:
@@ -273,29 +273,30 @@ def run_scenarios(controllers: dict[str, Controller], cfg: EvalConfig,
         for name in (*sc.controllers, *(others(controllers) if "ppo" in sc.controllers else ())):
             if name in EXTRA_LEARNED and name not in controllers:
                 continue
-            gid = (name, sc.name if (sc.name, name) in overrides else "", _program_reading(sc.reading(cfg.dt, name)))
-            seeds = cfg.seeds if sc.seeded else (0,)
+            gid = (name, sc.name if (sc.name, name) in overrides else "", _program_reading(sc.reading(eval_config.dt,
+                                                                                                      name)))
+            seeds = eval_config.seeds if sc.seeded else (0,)
             groups.setdefault(gid, []).extend((sc.name, s) for s in seeds)
-    nom = cfg.nominal()
+    nom = eval_config.nominal()
     results: dict[str, dict[str, Outcome]] = {sc.name: {} for sc in SCENARIOS}
     for (name, override_scenario, reading), members in groups.items():
         ctrl = overrides[(override_scenario, name)] if override_scenario else controllers[name]
         envs = [nom.replace(delay=SCENARIO_BY_NAME[s].plant_delay,
                             alpha_noise=SCENARIO_BY_NAME[s].alpha_noise) for s, _ in members]
-        readings = [SCENARIO_BY_NAME[s].reading(cfg.dt, name) for s, _ in members]
+        readings = [SCENARIO_BY_NAME[s].reading(eval_config.dt, name) for s, _ in members]
         shared = any(r != reading for r in readings)  # some member's draw differs from the program's
         t0 = time.perf_counter()
-        res = run_batch(ctrl, envs, [seed for _, seed in members], cfg, noise=reading,
+        res = run_batch(ctrl, envs, [seed for _, seed in members], eval_config, noise=reading,
                         readings=readings if shared else None)
         scen = sorted({s for s, _ in members}, key=[x.name for x in SCENARIOS].index)
-        log(f"  {name:<13s} {len(envs):3d} envs x {cfg.n_steps} steps ({', '.join(scen)})"
+        log(f"  {name:<13s} {len(envs):3d} envs x {eval_config.n_steps} steps ({', '.join(scen)})"
             f"  {time.perf_counter() - t0:6.1f} s")
         tr, fin, met = res.trajectory, res.final, res.metrics
 
         def cat(rec, last):  # append the final state (t = T) to the recorded series
             return np.concatenate([rec, np.asarray(last)[:, None]], axis=1)
 
-        t_all = np.append(np.asarray(tr.t[0]), cfg.n_steps * cfg.dt)
+        t_all = np.append(np.asarray(tr.t[0]), eval_config.n_steps * eval_config.dt)
         rho, vel, h = cat(tr.rho, fin.rho), cat(tr.v, fin.v), cat(tr.h, fin.h_prev)
         reward = cat(tr.reward, met["final_reward"])
         rho_l2, v_l2 = cat(tr.rho_L2, met["final_rho_L2"]), cat(tr.v_L2, met["final_v_L2"])
@@ -310,10 +311,10 @@ def run_scenarios(controllers: dict[str, Controller], cfg: EvalConfig,
             for s in results}
 
 
-def run_robustness(controllers: dict[str, Controller], cfg: EvalConfig,
+def run_robustness(controllers: dict[str, Controller], eval_config: EvalConfig,
                    log: Callable[[str], None] = print) -> dict[str, dict[str, np.ndarray]]:
     """Final density L2 over plant delay x plant alpha (no noise), one batched rollout per
-    controller (each acting on ``cfg``'s plant, e.g. through ``numerics.deploy``). A controller told
+    controller (each acting on ``eval_config``'s plant, e.g. through ``numerics.deploy``). A controller told
     the delay it compensates (``control.takes_delay``: backstepping, a delay schedule) is told the
     true plant delay (a batched controller setting); the others ignore the delay. Returns name ->
     {"final_rho_L2", "diverged", "final_v_L2", "final_reward",
@@ -322,11 +323,11 @@ def run_robustness(controllers: dict[str, Controller], cfg: EvalConfig,
     remaining wave amplitude, blind to a uniform offset from the nominal target;
     final_rho_offset (veh/m) is the final density's mean over x minus the plant's own
     equilibrium density (its alpha, the nominal time gap h_bar: where the open loop would rest)."""
-    if not cfg.robust_delays or not cfg.robust_alphas:
+    if not eval_config.robust_delays or not eval_config.robust_alphas:
         return {}
-    cfg = replace(cfg, horizon_s=cfg.robust_horizon_s)
-    nom = cfg.nominal()
-    dd, aa = np.meshgrid(np.asarray(cfg.robust_delays), np.asarray(cfg.robust_alphas), indexing="ij")
+    eval_config = replace(eval_config, horizon_s=eval_config.robust_horizon_s)
+    nom = eval_config.nominal()
+    dd, aa = np.meshgrid(np.asarray(eval_config.robust_delays), np.asarray(eval_config.robust_alphas), indexing="ij")
     envs = [nom.replace(delay=float(d), alpha=float(a)) for d, a in zip(dd.ravel(), aa.ravel(), strict=True)]
     own_rho = np.array([float(equilibrium(e)[0]) for e in envs]).reshape(dd.shape)  # veh/m, at h_bar
     out = {}
@@ -341,13 +342,13 @@ def run_robustness(controllers: dict[str, Controller], cfg: EvalConfig,
         if takes_delay(ctrl):
             ctrl, batched = tell_delay(ctrl, jnp.asarray(dd.ravel(), jnp.float32)), True
         t0 = time.perf_counter()
-        res = run_batch(ctrl, envs, [0] * len(envs), cfg, record=False, batch_controller=batched,
+        res = run_batch(ctrl, envs, [0] * len(envs), eval_config, record=False, batch_controller=batched,
                         chunk_size=chunk)
         out[name] = {k: np.asarray(res.metrics[k]).reshape(dd.shape)
                      for k in ("final_rho_L2", "final_v_L2", "final_reward", "diverged")}
         out[name]["final_rho_spatial_std"] = np.std(np.asarray(res.final.rho), axis=-1).reshape(dd.shape)
         out[name]["final_rho_offset"] = np.mean(np.asarray(res.final.rho), axis=-1).reshape(dd.shape) - own_rho
-        log(f"  robustness {name:<13s} {len(envs):3d} envs x {cfg.n_steps} steps"
+        log(f"  robustness {name:<13s} {len(envs):3d} envs x {eval_config.n_steps} steps"
             f"  {time.perf_counter() - t0:6.1f} s")
     return out
 

@@ -121,12 +121,12 @@ def summarise(out: Outcome, init_l2: tuple[float, float]) -> dict[str, Any]:
     return to_jsonable(entry)
 
 
-def equilibrium_indices(cfg: EvalConfig) -> dict[str, float]:
+def equilibrium_indices(eval_config: EvalConfig) -> dict[str, float]:
     """J_TTT and J_fuel of the uniform nominal equilibrium over the horizon (rho in veh/km), in
     both readings (suffix _kmh: the paper's)."""
-    nom = cfg.nominal()
+    nom = eval_config.nominal()
     rho_bar, v_bar = (float(x) for x in equilibrium(nom))
-    T = cfg.n_steps * cfg.dt
+    T = eval_config.n_steps * eval_config.dt
     rho_km = VEH_PER_KM * rho_bar
     return {"J_TTT": rho_km * nom.L * T,
             "J_fuel": float(fuel_rate(v_bar, 0.0)) * rho_km * nom.L * T,

@@ -52,11 +52,11 @@ def _variant_improvement(numerics: dict | None, variant: str, c: str, key: str) 
     return improvement(t["open_loop"][key], t[c][key])
 
 
-def table2_rows(metrics: dict, cfg: EvalConfig, numerics: dict | None = None) -> list[dict[str, Any]]:
+def table2_rows(metrics: dict, eval_config: EvalConfig, numerics: dict | None = None) -> list[dict[str, Any]]:
     """One row per (index, controller) at D = 4 s: the value and improvement in each reading, the
     paper's, the matching reading, and the relative change under each numerical variant."""
     d4 = metrics["delay4"]
-    eq = equilibrium_indices(cfg)
+    eq = equilibrium_indices(eval_config)
     rows = []
     for idx in INDICES:
         for c in TABLE_CONTROLLERS:

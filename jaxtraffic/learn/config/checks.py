@@ -1,6 +1,6 @@
 """Validation of the training config tree (``learn.config.TrainConfig``), in one place.
 
-``check_config(cfg)`` runs when a ``TrainConfig`` is built (its ``__post_init__``), so a bad value
+``check_config(config)`` runs when a ``TrainConfig`` is built (its ``__post_init__``), so a bad value
 fails before any directory is created or anything compiles, with a message naming the field, its
 flag, the value and the allowed range, e.g. ``lr = -1.0 (--lr): must be > 0``. It checks every
 leaf's type (from its annotation; numpy integers and floats are accepted and normalised to Python
@@ -116,11 +116,11 @@ def check_section(section: Any) -> None:
             check_range(f.name, typed)
 
 
-def check_config(cfg: Any) -> None:
+def check_config(config: Any) -> None:
     """Check a whole ``TrainConfig``: each section, then the constraints between fields."""
-    for f in dataclasses.fields(cfg):  # plant, env, algo, run and any other section
-        check_section(getattr(cfg, f.name))
-    pl, en, al, run = cfg.plant, cfg.env, cfg.algo, cfg.run
+    for f in dataclasses.fields(config):  # plant, env, algo, run and any other section
+        check_section(getattr(config, f.name))
+    pl, en, al, run = config.plant, config.env, config.algo, config.run
     if not run.out_dir:
         raise fail("out_dir", run.out_dir, "must not be empty")
     batch = al.num_envs * al.num_steps
@@ -143,11 +143,11 @@ def check_config(cfg: Any) -> None:
         if value < pl.dt:
             raise fail(name, value, f"must be >= one time step dt = {pl.dt} s")
     for name, section in (("horizon_s", en), ("eval_horizon_s", run), ("val_horizon_s", run),
-                          ("train_horizon_s", cfg.grad)):
+                          ("train_horizon_s", config.grad)):
         if (getattr(section, name) or 0.0) / pl.dt > MAX_STEPS:
             raise fail(name, getattr(section, name), f"must be at most {MAX_STEPS:.0e} time steps of dt = {pl.dt} s")
-    if cfg.grad.init_gains is not None and len(cfg.grad.init_gains) != 3:
-        raise fail("init_gains", cfg.grad.init_gains, "must be three gains eta1,eta2,eta3")
+    if config.grad.init_gains is not None and len(config.grad.init_gains) != 3:
+        raise fail("init_gains", config.grad.init_gains, "must be three gains eta1,eta2,eta3")
 
 
 def _check_reference_validation(pl: Any) -> None:
@@ -167,9 +167,9 @@ def _check_reference_validation(pl: Any) -> None:
                     "training)") from None
 
 
-def check_devices(cfg: Any, n_devices: int) -> None:
+def check_devices(config: Any, n_devices: int) -> None:
     """The constraints that depend on the number of devices the environments are split over."""
-    al = cfg.algo
+    al = config.algo
     if al.num_envs % n_devices:
         raise fail("num_envs", al.num_envs, f"must be divisible by the number of devices ({n_devices})")
     local = al.num_envs // n_devices * al.num_steps
@@ -178,37 +178,37 @@ def check_devices(cfg: Any, n_devices: int) -> None:
                     f"must divide the batch of each device, num_envs / devices * num_steps = {local}")
 
 
-def memory_estimate(cfg: Any) -> float:
+def memory_estimate(config: Any) -> float:
     """A lower bound of the bytes PPO's programs hold (float32): every environment's state (fields, delay
     buffer) and one update's rollout (observations, actions, rewards, values... per step)."""
-    n, envs = cfg.plant.n_points, cfg.algo.num_envs * cfg.run.seeds
-    state = (cfg.plant.max_delay_steps + 6) * n
+    n, envs = config.plant.n_points, config.algo.num_envs * config.run.seeds
+    state = (config.plant.max_delay_steps + 6) * n
     transition = 2 * (3 * n + 3) + 12
-    return 4.0 * envs * (state + cfg.algo.num_steps * transition)
+    return 4.0 * envs * (state + config.algo.num_steps * transition)
 
 
-def check_memory(cfg: Any, have: float | None = None) -> None:
+def check_memory(config: Any, have: float | None = None) -> None:
     """PPO's rollouts must fit this machine's memory (``have`` bytes; default: the physical memory)."""
     if have is None:
         try:
             have = float(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
         except (ValueError, OSError, AttributeError):
             return
-    need = memory_estimate(cfg)
+    need = memory_estimate(config)
     if need > 0.8 * have:
-        al = cfg.algo
-        raise fail("num_envs", al.num_envs, f"with num_steps = {al.num_steps} and {cfg.run.seeds} seed(s) "
+        al = config.algo
+        raise fail("num_envs", al.num_envs, f"with num_steps = {al.num_steps} and {config.run.seeds} seed(s) "
                     f"(--num-steps, --seeds) the rollouts alone need about {need / 2**30:.3g} GiB, more than this "
                     f"machine's {have / 2**30:.3g} GiB; use fewer environments or steps")
 
 
-def check_initial_amplitudes(cfg: Any, traffic: Any) -> None:
+def check_initial_amplitudes(config: Any, traffic: Any) -> None:
     """Every PPO episode must start inside the physical region: both ends of ``amp_range`` (veh/m) on
     ``traffic`` (concrete ``TrafficParams``)."""
     from jaxtraffic.model.solver import is_physical
     from jaxtraffic.sim.initial import paper_initial_condition
 
-    en = cfg.env
+    en = config.env
     for amp in en.amp_range:
         rho0, v0 = paper_initial_condition(traffic, amp, float(en.wavenumber_range[0]))
         if not bool(is_physical(rho0, v0, traffic)):

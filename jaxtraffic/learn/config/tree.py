@@ -3,7 +3,7 @@
 Each default is defined once: the plant's, the environment's and PPO's come from the library
 structs they configure (``TrafficParams``, ``EnvParams``, ``PPOConfig``), the run's are here.
 ``train.py``'s flags are generated from the fields (``cli.train``, one flag per leaf field, named
-after it, with the ``help`` of its metadata). A run's config.json is ``config_json(cfg)``, and
+after it, with the ``help`` of its metadata). A run's config.json is ``config_json(config)``, and
 ``load_config(run_dir)`` reads it back: resume, ``load_policy`` and the evaluation all use it.
 Run directories written before the tree (flat "settings") load too; keys of removed options are
 ignored.
@@ -337,10 +337,10 @@ def _tuples(x: Any) -> Any:
     return tuple(x) if isinstance(x, list) else x
 
 
-def config_json(cfg: TrainConfig, **extra: Any) -> dict[str, Any]:
+def config_json(config: TrainConfig, **extra: Any) -> dict[str, Any]:
     """The content of a run's config.json: the tree (``{section: {field: value}}``) and its version,
     plus ``extra`` facts about the run (devices, jax version, ...)."""
-    return {"version": CONFIG_VERSION, "config": dataclasses.asdict(cfg), **extra}
+    return {"version": CONFIG_VERSION, "config": dataclasses.asdict(config), **extra}
 
 
 def config_from_json(data: dict[str, Any], where: str = "config.json") -> TrainConfig:

@@ -54,15 +54,16 @@ class CemState:
     update: Array
 
 
-def fitness(thetas: Array, cfg: GradientConfig, base: TrafficParams, n_steps: int) -> tuple[Array, Array, Array]:
+def fitness(thetas: Array, grad_config: GradientConfig, base: TrafficParams,
+            n_steps: int) -> tuple[Array, Array, Array]:
     """(fitness, stabilised count, diverged count), each (P,), of P parameter sets ``thetas`` (P, ...) on the
-    training scenarios of ``cfg`` (module docstring)."""
-    scen = training_scenarios(cfg, base)
+    training scenarios of ``grad_config`` (module docstring)."""
+    scen = training_scenarios(grad_config, base)
     n_p, n_s = thetas.shape[0], scen.rho0.shape[0]
     params = jax.tree.map(lambda x: jnp.tile(x, n_p), scen.params)
     tiled = jnp.repeat(thetas, n_s, axis=0)
     # every (theta, scenario) pair is one environment; each controller is told its plant's delay
-    ctrl = jax.vmap(lambda th, d: make_controller(th, cfg, base, d))(tiled, params.delay)
+    ctrl = jax.vmap(lambda th, d: make_controller(th, grad_config, base, d))(tiled, params.delay)
     res = simulate_batch(params, ctrl, n_steps=n_steps, nominal=base, rho0=jnp.tile(scen.rho0, (n_p, 1)),
                          v0=jnp.tile(scen.v0, (n_p, 1)), batch_controller=True)
     div = res.metrics["diverged"].reshape(n_p, n_s)
@@ -73,13 +74,14 @@ def fitness(thetas: Array, cfg: GradientConfig, base: TrafficParams, n_steps: in
     return stab - DIVERGED_COST * n_div - TIE_WEIGHT * tie, stab, n_div
 
 
-def _generation(state: CemState, cfg: GradientConfig, base: TrafficParams, n_steps: int) -> tuple[CemState, dict]:
+def _generation(state: CemState, grad_config: GradientConfig, base: TrafficParams,
+                n_steps: int) -> tuple[CemState, dict]:
     key, sub = jax.random.split(state.key)
-    noise = jax.random.normal(sub, (cfg.cem_population, *state.mean.shape), state.mean.dtype)
+    noise = jax.random.normal(sub, (grad_config.cem_population, *state.mean.shape), state.mean.dtype)
     pop = (state.mean + state.sigma * noise).at[0].set(state.mean)
-    fit, stab, n_div = fitness(pop, cfg, base, n_steps)
+    fit, stab, n_div = fitness(pop, grad_config, base, n_steps)
     order = jnp.argsort(-fit)
-    elites = pop[order[:max(2, round(cfg.cem_population / ELITE_FRACTION))]]
+    elites = pop[order[:max(2, round(grad_config.cem_population / ELITE_FRACTION))]]
     top = order[0]
     better = fit[top] > state.fitness
     new = CemState(theta=jnp.where(better, pop[top], state.theta), fitness=jnp.where(better, fit[top], state.fitness),
@@ -90,30 +92,32 @@ def _generation(state: CemState, cfg: GradientConfig, base: TrafficParams, n_ste
                  "mean_diverged": n_div[0]}
 
 
-@functools.partial(jax.jit, static_argnames=("cfg", "n_steps"))
-def _train_chunk(state: CemState, base: TrafficParams, cfg: GradientConfig, n_steps: int) -> tuple[CemState, dict]:
-    return jax.lax.scan(lambda s, _: _generation(s, cfg, base, n_steps), state, None, length=cfg.steps_per_chunk)
+@functools.partial(jax.jit, static_argnames=("grad_config", "n_steps"))
+def _train_chunk(state: CemState, base: TrafficParams, grad_config: GradientConfig,
+                 n_steps: int) -> tuple[CemState, dict]:
+    return jax.lax.scan(lambda s, _: _generation(s, grad_config, base, n_steps), state, None,
+                        length=grad_config.steps_per_chunk)
 
 
-def make_train(cfg: GradientConfig, base: TrafficParams, devices: list | None = None):
+def make_train(grad_config: GradientConfig, base: TrafficParams, devices: list | None = None):
     """``(init, train_chunk)`` as ``objective.make_train``: ``init(key) -> CemState`` (the mean at ``init_theta``,
-    sigma ``cfg.cem_sigma``); ``train_chunk(state) -> (state, metrics)`` runs ``steps_per_chunk`` generations
+    sigma ``grad_config.cem_sigma``); ``train_chunk(state) -> (state, metrics)`` runs ``steps_per_chunk`` generations
     in one compiled ``lax.scan``; metrics per generation: objective (-fitness of the policy), grad_norm (the
     norm of sigma: how widely it still searches), the best member's stabilised and diverged counts and the
     mean's. The rollouts are split over this process's devices (``simulate_batch``); ``devices`` is accepted
     for the signature and must be None."""
     if devices is not None or jax.process_count() > 1:
         raise ValueError("the CEM trainer runs in one process, on its devices (devices=None)")
-    if cfg.policy not in ("gains", "schedule"):
-        raise ValueError(f"method 'cem' trains the gains or schedule policy, not {cfg.policy!r}")
-    n_steps = horizon_steps(cfg, base.dt)
+    if grad_config.policy not in ("gains", "schedule"):
+        raise ValueError(f"method 'cem' trains the gains or schedule policy, not {grad_config.policy!r}")
+    n_steps = horizon_steps(grad_config, base.dt)
 
     def init(key: Array) -> CemState:
-        theta = init_theta(cfg, base, key)
+        theta = init_theta(grad_config, base, key)
         return CemState(theta=theta, fitness=jnp.asarray(-jnp.inf, theta.dtype), mean=theta,
-                        sigma=jnp.full_like(theta, cfg.cem_sigma), key=key, update=jnp.zeros((), jnp.int32))
+                        sigma=jnp.full_like(theta, grad_config.cem_sigma), key=key, update=jnp.zeros((), jnp.int32))
 
     def train_chunk(state: CemState) -> tuple[CemState, dict[str, Any]]:
-        return _train_chunk(state, base, cfg, n_steps)
+        return _train_chunk(state, base, grad_config, n_steps)
 
     return init, train_chunk

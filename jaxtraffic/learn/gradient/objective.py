@@ -99,10 +99,11 @@ class GradState:
     update: Array
 
 
-def training_scenarios(cfg: GradientConfig, base: TrafficParams) -> Scenarios:
-    """The scenario grid of ``cfg`` on the grid of ``base`` (alpha noise off)."""
-    grid = list(itertools.product(cfg.train_delays, cfg.train_alphas, cfg.train_amplitudes, cfg.train_wavenumbers,
-                                  cfg.train_phases))
+def training_scenarios(grad_config: GradientConfig, base: TrafficParams) -> Scenarios:
+    """The scenario grid of ``grad_config`` on the grid of ``base`` (alpha noise off)."""
+    grid = list(itertools.product(grad_config.train_delays, grad_config.train_alphas, grad_config.train_amplitudes,
+                                  grad_config.train_wavenumbers,
+                                  grad_config.train_phases))
     dtype = jnp.result_type(float)  # float32, or float64 under jax.enable_x64
     delays, alphas, amps, wns, phases = (jnp.asarray(c, dtype) for c in zip(*grid, strict=True))
     b = len(grid)
@@ -112,8 +113,8 @@ def training_scenarios(cfg: GradientConfig, base: TrafficParams) -> Scenarios:
     return Scenarios(params=params, rho0=rho0, v0=v0)
 
 
-def _network(cfg: GradientConfig) -> ActorCritic:
-    return ActorCritic(hidden=tuple(cfg.hidden))
+def _network(grad_config: GradientConfig) -> ActorCritic:
+    return ActorCritic(hidden=tuple(grad_config.hidden))
 
 
 def obs_statistics(n_points: int) -> tuple[Array, Array]:
@@ -123,93 +124,96 @@ def obs_statistics(n_points: int) -> tuple[Array, Array]:
     return jnp.zeros_like(var), var
 
 
-def init_theta(cfg: GradientConfig, base: TrafficParams, key: Array) -> Any:
+def init_theta(grad_config: GradientConfig, base: TrafficParams, key: Array) -> Any:
     """Initial parameters: the gains ``init_gains``, or a network whose output is (nearly) those
     gains everywhere (final actor bias atanh(init_gains / grad_gain_max), small final weights)."""
-    g0 = jnp.asarray(cfg.init_gains, jnp.result_type(float))
-    if cfg.policy == "gains":
+    g0 = jnp.asarray(grad_config.init_gains, jnp.result_type(float))
+    if grad_config.policy == "gains":
         return g0
-    if cfg.policy == "schedule":
-        return jnp.tile(g0, (len(cfg.schedule_knots), 1))
-    n = cfg.controller_points or base.n_points
-    params = _network(cfg).init(key, jnp.zeros((feature_size(n),)))
+    if grad_config.policy == "schedule":
+        return jnp.tile(g0, (len(grad_config.schedule_knots), 1))
+    n = grad_config.controller_points or base.n_points
+    params = _network(grad_config).init(key, jnp.zeros((feature_size(n),)))
     actor = params["params"]["actor"]
     last = sorted(k for k in actor if k.startswith("Dense_"))[-1]
-    bias = jnp.arctanh(g0 / cfg.grad_gain_max)
+    bias = jnp.arctanh(g0 / grad_config.grad_gain_max)
     return {"params": {**params["params"], "actor": {**actor, last: {**actor[last], "bias": bias}}}}
 
 
-def own_controller(theta: Any, cfg: GradientConfig, n_points: int, dx: float, delay: float | Array = 4.0
+def own_controller(theta: Any, grad_config: GradientConfig, n_points: int, dx: float, delay: float | Array = 4.0
                    ) -> Controller:
     """The controller of parameters ``theta`` (deterministic) on its own grid of ``n_points`` nodes, spacing
     ``dx`` (m, for the filter width in nodes); ``delay`` (s): the delay a schedule is told."""
-    nodes = sigma_nodes(cfg.filter_sigma, dx)
-    if cfg.policy == "gains":
+    nodes = sigma_nodes(grad_config.filter_sigma, dx)
+    if grad_config.policy == "gains":
         chex.assert_shape(theta, (3,))
-        return constant_gains(theta[0], theta[1], theta[2], cfg.filter_sigma, dx)
-    if cfg.policy == "schedule":
-        return scheduled_gains(theta, cfg.schedule_knots, delay, cfg.filter_sigma, dx)
+        return constant_gains(theta[0], theta[1], theta[2], grad_config.filter_sigma, dx)
+    if grad_config.policy == "schedule":
+        return scheduled_gains(theta, grad_config.schedule_knots, delay, grad_config.filter_sigma, dx)
     mean, var = obs_statistics(n_points)
-    return policy_controller(theta, mean, var, cfg.grad_gain_max, hidden=tuple(cfg.hidden), gain_filter=cfg.gain_filter,
+    return policy_controller(theta, mean, var, grad_config.grad_gain_max, hidden=tuple(grad_config.hidden),
+                             gain_filter=grad_config.gain_filter,
                              sigma_nodes=nodes)
 
 
-def fixed_gains(theta: Any, cfg: GradientConfig, delay: float | Array) -> Array | None:
+def fixed_gains(theta: Any, grad_config: GradientConfig, delay: float | Array) -> Array | None:
     """The gains (3,) a gains or schedule policy applies when told ``delay`` (s); None for a network (its gains
     depend on the state)."""
-    if cfg.policy == "gains":
+    if grad_config.policy == "gains":
         return jnp.asarray(theta)
-    if cfg.policy == "schedule":
-        return schedule_gains(DelaySchedule(knots=jnp.asarray(cfg.schedule_knots, theta.dtype), table=theta,
+    if grad_config.policy == "schedule":
+        return schedule_gains(DelaySchedule(knots=jnp.asarray(grad_config.schedule_knots, theta.dtype), table=theta,
                                             delay=jnp.asarray(delay, theta.dtype)))
     return None
 
 
-def make_controller(theta: Any, cfg: GradientConfig, base: TrafficParams, delay: float | Array | None = None
+def make_controller(theta: Any, grad_config: GradientConfig, base: TrafficParams, delay: float | Array | None = None
                     ) -> Controller:
     """The controller of parameters ``theta`` on its own grid, acting on the plant grid of ``base``
     (``control.adapter.on_grid``: restricted observation, interpolated time gap; the period is dt);
     ``delay`` (s): the delay a schedule is told (default ``base.delay``)."""
-    n = cfg.controller_points or base.n_points
+    n = grad_config.controller_points or base.n_points
     r = (base.n_points - 1) // (n - 1)
-    ctrl = own_controller(theta, cfg, n, ROAD_LENGTH / (n - 1), base.delay if delay is None else delay)
+    ctrl = own_controller(theta, grad_config, n, ROAD_LENGTH / (n - 1), base.delay if delay is None else delay)
     return ctrl if r == 1 else on_grid(ctrl, ControllerGrid(n, 0.0, base.max_delay_steps), r, 1)
 
 
-def weights_of(cfg: GradientConfig) -> Weights:
-    return Weights(**{f.name: jnp.asarray(getattr(cfg, f.name), jnp.float32) for f in dataclasses.fields(Weights)})
+def weights_of(grad_config: GradientConfig) -> Weights:
+    return Weights(**{f.name: jnp.asarray(getattr(grad_config, f.name),
+                                          jnp.float32) for f in dataclasses.fields(Weights)})
 
 
-def check_scenarios(cfg: GradientConfig, base: TrafficParams) -> None:
+def check_scenarios(grad_config: GradientConfig, base: TrafficParams) -> None:
     """``ValueError`` naming the flag if a training scenario is one the plant cannot represent: a delay beyond
     the buffer, an initial state outside the physical region, a sampling interval longer than the horizon."""
     cap = base.max_delay_steps
-    beyond = [d for d in cfg.train_delays if round(d / float(base.dt)) > cap]
+    beyond = [d for d in grad_config.train_delays if round(d / float(base.dt)) > cap]
     if beyond:
         raise ValueError(f"train_delays = {beyond} (--train-delays): beyond the delay buffer's "
                          f"{cap * float(base.dt):g} s (--max-delay-steps {cap} x dt {float(base.dt):g} s); raise "
                          "--max-delay-steps")
-    if cfg.record_every * float(base.dt) > cfg.train_horizon_s:
-        raise ValueError(f"record_every = {cfg.record_every} (--record-every): must be <= the training horizon "
-                         f"(--train-horizon-s {cfg.train_horizon_s:g} s = "
-                         f"{round(cfg.train_horizon_s / float(base.dt))} steps)")
-    sc = training_scenarios(cfg, base)
+    if grad_config.record_every * float(base.dt) > grad_config.train_horizon_s:
+        raise ValueError(f"record_every = {grad_config.record_every} (--record-every): must be <= the training horizon "
+                         f"(--train-horizon-s {grad_config.train_horizon_s:g} s = "
+                         f"{round(grad_config.train_horizon_s / float(base.dt))} steps)")
+    sc = training_scenarios(grad_config, base)
     if not bool(jnp.all(jax.vmap(is_physical)(sc.rho0, sc.v0, sc.params))):
-        raise ValueError(f"train_amplitudes = {list(cfg.train_amplitudes)} (--train-amplitudes, veh/m): an initial "
-                         "state leaves the physical region (0 < rho < 1/l, v >= 0); use smaller amplitudes")
+        raise ValueError(f"train_amplitudes = {list(grad_config.train_amplitudes)} (--train-amplitudes, veh/m): "
+                         "an initial state leaves the physical region (0 < rho < 1/l, v >= 0); use smaller amplitudes")
 
 
-def horizon_steps(cfg: GradientConfig, dt: float) -> int:
+def horizon_steps(grad_config: GradientConfig, dt: float) -> int:
     """Rollout length of the objective: ``train_horizon_s`` / dt rounded to a multiple of ``record_every``."""
-    return max(cfg.record_every, round(cfg.train_horizon_s / float(dt) / cfg.record_every) * cfg.record_every)
+    return max(grad_config.record_every,
+               round(grad_config.train_horizon_s / float(dt) / grad_config.record_every) * grad_config.record_every)
 
 
 def scenario_objective(theta: Any, params: TrafficParams, rho0: Array, v0: Array, w: Weights,
-                       cfg: GradientConfig, base: TrafficParams, n_steps: int, remat: bool = True
+                       grad_config: GradientConfig, base: TrafficParams, n_steps: int, remat: bool = True
                        ) -> tuple[Array, dict]:
     """(J_s, metrics) of one scenario (plant ``params``, initial fields (n,)); see the module docstring."""
-    res = simulate(params, make_controller(theta, cfg, base, params.delay), n_steps=n_steps, rho0=rho0, v0=v0,
-                   nominal=base, record=Record(every=cfg.record_every), memory=Memory(remat=remat))
+    res = simulate(params, make_controller(theta, grad_config, base, params.delay), n_steps=n_steps, rho0=rho0, v0=v0,
+                   nominal=base, record=Record(every=grad_config.record_every), memory=Memory(remat=remat))
     tr, m = res.trajectory, res.metrics
     waves = jnp.log1p(jnp.var(tr.rho * 1000.0, axis=-1) / 100.0 + jnp.var(tr.v, axis=-1))
     late = jnp.arange(1, waves.shape[0] + 1, dtype=waves.dtype)  # t_k / T up to a factor
@@ -218,90 +222,92 @@ def scenario_objective(theta: Any, params: TrafficParams, rho0: Array, v0: Array
     return j, m
 
 
-def objective(theta: Any, scen: Scenarios, w: Weights, cfg: GradientConfig, base: TrafficParams,
+def objective(theta: Any, scen: Scenarios, w: Weights, grad_config: GradientConfig, base: TrafficParams,
               n_steps: int | None = None, remat: bool = True) -> tuple[Array, dict]:
     """(J, per-scenario metrics and ``scenario_objective``) of ``theta``: the mean over the scenarios.
-    ``n_steps`` (static; default ``horizon_steps(cfg, base.dt)``, which needs a concrete dt);
+    ``n_steps`` (static; default ``horizon_steps(grad_config, base.dt)``, which needs a concrete dt);
     ``remat``: checkpoint the rollout every ``record_every`` steps (same values and gradients)."""
-    n_steps = horizon_steps(cfg, base.dt) if n_steps is None else n_steps
+    n_steps = horizon_steps(grad_config, base.dt) if n_steps is None else n_steps
     per, m = jax.vmap(scenario_objective, (None, 0, 0, 0, None, None, None, None, None))(
-        theta, scen.params, scen.rho0, scen.v0, w, cfg, base, n_steps, remat)
+        theta, scen.params, scen.rho0, scen.v0, w, grad_config, base, n_steps, remat)
     return jnp.mean(per), {**m, "scenario_objective": per}
 
 
-def objective_and_grad(theta: Any, scen: Scenarios, w: Weights, cfg: GradientConfig, base: TrafficParams,
+def objective_and_grad(theta: Any, scen: Scenarios, w: Weights, grad_config: GradientConfig, base: TrafficParams,
                        n_steps: int, mesh: Mesh | None = None) -> tuple[Array, Any, dict]:
     """(J, dJ/dtheta, metrics): every scenario's value and gradient, the scenarios split over the
     devices of ``mesh`` (``sim.sharding.sharded_batch``; default this process's devices), then the
-    mean. With ``cfg.scenario_clip`` > 0 every scenario's gradient is clipped to that global norm
+    mean. With ``grad_config.scenario_clip`` > 0 every scenario's gradient is clipped to that global norm
     before the mean, so that one scenario whose gradient explodes (a closed loop near instability,
     long horizons) cannot dominate the step. Traceable."""
     vg = jax.value_and_grad(scenario_objective, has_aux=True)
 
     def block(th, p, r, v):  # one device's scenarios
-        return jax.vmap(vg, (None, 0, 0, 0, None, None, None, None))(th, p, r, v, w, cfg, base, n_steps)
+        return jax.vmap(vg, (None, 0, 0, 0, None, None, None, None))(th, p, r, v, w, grad_config, base, n_steps)
 
     (per, m), gs = sharded_batch(block, (theta, scen.params, scen.rho0, scen.v0), (None, 0, 0, 0), mesh)
     norms = jax.vmap(optax.tree.norm)(gs)
-    scale = (jnp.minimum(1.0, cfg.scenario_clip / jnp.maximum(norms, 1e-30)) if cfg.scenario_clip > 0
+    scale = (jnp.minimum(1.0, grad_config.scenario_clip / jnp.maximum(norms, 1e-30)) if grad_config.scenario_clip > 0
              else jnp.ones_like(norms))
     g = jax.tree.map(lambda x: jnp.mean(x * scale.reshape((-1,) + (1,) * (x.ndim - 1)), axis=0), gs)
     return jnp.mean(per), g, {**m, "scenario_objective": per, "scenario_grad_norm": norms}
 
 
-def certificate_penalty(theta: Any, cfg: GradientConfig, base: TrafficParams, periods: tuple[int, ...]) -> Array:
+def certificate_penalty(theta: Any, grad_config: GradientConfig, base: TrafficParams,
+                        periods: tuple[int, ...]) -> Array:
     """max(0, sigma_max - GROWTH_TOL) (1/s): by how much the largest growth rate of the law's certificate
     (``control.stability``, at the gains it settles to at the nominal equilibrium, its filter, every training
     delay of ``periods`` control periods) exceeds the tolerance. Differentiable in ``theta``. Run it on one
     device: XLA's CPU ``eig`` inside a program over several devices waits forever on a collective."""
-    n = cfg.controller_points or base.n_points
+    n = grad_config.controller_points or base.n_points
     nominal = base.replace(n_points=n, substeps=1)
-    gains = fixed_gains(theta, cfg, base.delay)
+    gains = fixed_gains(theta, grad_config, base.delay)
     if gains is None:
-        gains = equilibrium_gains(own_controller(theta, cfg, n, ROAD_LENGTH / (n - 1)), nominal)
+        gains = equilibrium_gains(own_controller(theta, grad_config, n, ROAD_LENGTH / (n - 1)), nominal)
     lm = linearize(nominal)
     k = jnp.asarray(wavenumbers(ROAD_LENGTH, n=96))
 
-    worst = jnp.max(jnp.stack([jnp.max(model_growth_rates(gains, lm, d, k, cfg.filter_sigma, differentiable=True))
+    worst = jnp.max(jnp.stack([jnp.max(model_growth_rates(gains, lm, d, k, grad_config.filter_sigma,
+                                                          differentiable=True))
                                for d in periods]))
     return jax.nn.relu(worst - GROWTH_TOL)
 
 
-penalty_and_grad = jax.jit(jax.value_and_grad(certificate_penalty), static_argnames=("cfg", "periods"))
+penalty_and_grad = jax.jit(jax.value_and_grad(certificate_penalty), static_argnames=("grad_config", "periods"))
 
 
-def make_optimizer(cfg: GradientConfig) -> optax.GradientTransformation:
-    return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(cfg.grad_lr))
+def make_optimizer(grad_config: GradientConfig) -> optax.GradientTransformation:
+    return optax.chain(optax.clip_by_global_norm(grad_config.max_grad_norm), optax.adam(grad_config.grad_lr))
 
 
-def _one_step(state: GradState, scen: Scenarios, w: Weights, cfg: GradientConfig, base: TrafficParams,
+def _one_step(state: GradState, scen: Scenarios, w: Weights, grad_config: GradientConfig, base: TrafficParams,
               n_steps: int, mesh: Mesh | None, penalty: tuple[Array, Any] | None) -> tuple[GradState, dict]:
-    loss, g, aux = objective_and_grad(state.theta, scen, w, cfg, base, n_steps, mesh)
+    loss, g, aux = objective_and_grad(state.theta, scen, w, grad_config, base, n_steps, mesh)
     if penalty is not None:  # (value, gradient) of the certificate penalty at the chunk's start
-        loss = loss + cfg.certificate_weight * penalty[0]
-        g = jax.tree.map(lambda a, b: a + cfg.certificate_weight * b, g, penalty[1])
+        loss = loss + grad_config.certificate_weight * penalty[0]
+        g = jax.tree.map(lambda a, b: a + grad_config.certificate_weight * b, g, penalty[1])
         aux = {**aux, "certificate_penalty": penalty[0]}
-    updates, opt_state = make_optimizer(cfg).update(g, state.opt_state, state.theta)
+    updates, opt_state = make_optimizer(grad_config).update(g, state.opt_state, state.theta)
     new = GradState(theta=optax.apply_updates(state.theta, updates), opt_state=opt_state, update=state.update + 1)
     return new, {"objective": loss, "grad_norm": optax.tree.norm(g), **aux}
 
 
-@functools.partial(jax.jit, static_argnames=("cfg", "n_steps", "mesh"))
-def _train_chunk(state: GradState, base: TrafficParams, cfg: GradientConfig, n_steps: int, mesh: Mesh,
+@functools.partial(jax.jit, static_argnames=("grad_config", "n_steps", "mesh"))
+def _train_chunk(state: GradState, base: TrafficParams, grad_config: GradientConfig, n_steps: int, mesh: Mesh,
                  penalty: tuple[Array, Any] | None) -> tuple[GradState, dict]:
-    scen, w = training_scenarios(cfg, base), weights_of(cfg)
-    out = jax.lax.scan(lambda s, _: _one_step(s, scen, w, cfg, base, n_steps, mesh, penalty), state, None,
-                       length=cfg.steps_per_chunk)
+    scen, w = training_scenarios(grad_config, base), weights_of(grad_config)
+    out = jax.lax.scan(lambda s, _: _one_step(s, scen, w, grad_config, base, n_steps, mesh, penalty), state, None,
+                       length=grad_config.steps_per_chunk)
     return gathered(out, mesh)  # the per-scenario metrics whole on every process
 
 
-@functools.partial(jax.jit, static_argnames=("cfg",))
-def _init(key: Array, base: TrafficParams, cfg: GradientConfig) -> GradState:
-    theta = init_theta(cfg, base, key)
-    return GradState(theta=theta, opt_state=make_optimizer(cfg).init(theta), update=jnp.zeros((), jnp.int32))
+@functools.partial(jax.jit, static_argnames=("grad_config",))
+def _init(key: Array, base: TrafficParams, grad_config: GradientConfig) -> GradState:
+    theta = init_theta(grad_config, base, key)
+    return GradState(theta=theta, opt_state=make_optimizer(grad_config).init(theta), update=jnp.zeros((), jnp.int32))
 
 
-def make_train(cfg: GradientConfig, base: TrafficParams, devices: list | None = None):
+def make_train(grad_config: GradientConfig, base: TrafficParams, devices: list | None = None):
     """``(init, train_chunk)``: ``init(key) -> GradState``; ``train_chunk(state) -> (state,
     metrics)`` runs ``steps_per_chunk`` Adam steps in one jit-compiled ``lax.scan`` (with a certificate penalty,
     its value and gradient are taken once per chunk, at its start, on one device); metrics are
@@ -313,23 +319,24 @@ def make_train(cfg: GradientConfig, base: TrafficParams, devices: list | None = 
     the same for one process and many (every process calls them in the same order). The
     result depends on the device count only through float rounding.
 
-    ``cfg`` is static (hashable: a second ``make_train`` with an equal config reuses the compiled
+    ``grad_config`` is static (hashable: a second ``make_train`` with an equal config reuses the compiled
     programs); ``base`` (the nominal plant and grid) is traced.
     """
-    n_steps = horizon_steps(cfg, base.dt)
-    periods = tuple(sorted({int(round(d / float(base.dt))) for d in cfg.train_delays}))  # the certificate's delays
+    n_steps = horizon_steps(grad_config, base.dt)
+    # the certificate's delays
+    periods = tuple(sorted({int(round(d / float(base.dt))) for d in grad_config.train_delays}))
     mesh = batch_mesh(list(jax.devices()) if devices is None else list(devices))
     across = spans_processes(mesh)
 
     def init(key: Array) -> GradState:
-        return _init(key, base, cfg)
+        return _init(key, base, grad_config)
 
     def train_chunk(state: GradState) -> tuple[GradState, dict]:
         # placed whole on every device, as the chunk returns it: one compiled program for every chunk
         penalty = None
-        if cfg.certificate_weight > 0:  # on one device, once per chunk (``certificate_penalty`` says why)
-            penalty = replicate(penalty_and_grad(jax.device_get(state.theta), cfg, base, periods), mesh)
-        out = _train_chunk(replicate(state, mesh), base, cfg, n_steps, mesh, penalty)
+        if grad_config.certificate_weight > 0:  # on one device, once per chunk (``certificate_penalty`` says why)
+            penalty = replicate(penalty_and_grad(jax.device_get(state.theta), grad_config, base, periods), mesh)
+        out = _train_chunk(replicate(state, mesh), base, grad_config, n_steps, mesh, penalty)
         return local_copy(out) if across else out
 
     return init, train_chunk

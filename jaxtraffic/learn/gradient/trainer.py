@@ -63,13 +63,13 @@ def evaluation(ctrl: Controller, plant: TrafficParams, n_steps: int, gains: Any 
     return out
 
 
-def policy_evaluation(theta: Any, cfg: GradientConfig, plant: TrafficParams, n_steps: int) -> dict:
+def policy_evaluation(theta: Any, grad_config: GradientConfig, plant: TrafficParams, n_steps: int) -> dict:
     """``evaluation`` of the controller of ``theta`` acting on ``plant``."""
-    n = cfg.controller_points or plant.n_points
-    own = (objective.own_controller(theta, cfg, n, objective.ROAD_LENGTH / (n - 1), plant.delay),
+    n = grad_config.controller_points or plant.n_points
+    own = (objective.own_controller(theta, grad_config, n, objective.ROAD_LENGTH / (n - 1), plant.delay),
            plant.replace(n_points=n, substeps=1))
-    return evaluation(objective.make_controller(theta, cfg, plant), plant, n_steps,
-                      objective.fixed_gains(theta, cfg, plant.delay), own)
+    return evaluation(objective.make_controller(theta, grad_config, plant), plant, n_steps,
+                      objective.fixed_gains(theta, grad_config, plant.delay), own)
 
 
 def beats(ev: dict, ref: dict) -> bool:

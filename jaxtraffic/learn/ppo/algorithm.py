@@ -117,35 +117,35 @@ class Runner:
 
 
 # --------------------------------------------------------------------------- pure PPO maths
-def validate_config(cfg: PPOConfig) -> None:
+def validate_config(ppo_config: PPOConfig) -> None:
     """Reject hyperparameters that make no sense (ValueError): each field against its range in ``learn.rules``
     (the config tree's field and flag of the same name)."""
-    check_fields(cfg)
+    check_fields(ppo_config)
 
 
-def lr_schedule(cfg: PPOConfig) -> optax.Schedule:
+def lr_schedule(ppo_config: PPOConfig) -> optax.Schedule:
     """The Adam step size as a function of the optimiser's step count (``optax.linear_schedule``):
     ``lr``, falling linearly to ``lr * lr_final`` over ``lr_decay_steps`` env steps (constant when that
     is 0). The count advances once per minibatch; the rate is held for a whole PPO update
     (``update_epochs * num_minibatches`` optimiser steps), so it is a function of the update number,
     and resuming from a checkpoint (which holds the count) continues it exactly."""
-    per_update = cfg.update_epochs * cfg.num_minibatches
-    by_update = optax.linear_schedule(init_value=cfg.lr, end_value=cfg.lr * cfg.lr_final,
-                                      transition_steps=cfg.lr_decay_steps / cfg.steps_per_update)
+    per_update = ppo_config.update_epochs * ppo_config.num_minibatches
+    by_update = optax.linear_schedule(init_value=ppo_config.lr, end_value=ppo_config.lr * ppo_config.lr_final,
+                                      transition_steps=ppo_config.lr_decay_steps / ppo_config.steps_per_update)
     return lambda count: by_update(count // per_update)
 
 
-def make_optimizer(cfg: PPOConfig) -> optax.GradientTransformation:
-    return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm),
-                       optax.inject_hyperparams(optax.adam)(learning_rate=lr_schedule(cfg), eps=1e-5))
+def make_optimizer(ppo_config: PPOConfig) -> optax.GradientTransformation:
+    return optax.chain(optax.clip_by_global_norm(ppo_config.max_grad_norm),
+                       optax.inject_hyperparams(optax.adam)(learning_rate=lr_schedule(ppo_config), eps=1e-5))
 
 
 # --------------------------------------------------------------------------- training
-def _init_seed(cfg: PPOConfig, env, env_params, num_envs: int, key: Array, dev: Array) -> Runner:
+def _init_seed(ppo_config: PPOConfig, env, env_params, num_envs: int, key: Array, dev: Array) -> Runner:
     """Runner of one seed on device ``dev``: the network and the key are the same on every
     device (replicated); the environments differ."""
     k_net, k_env, k_run = jax.random.split(key, 3)
-    net = cfg.network(env.action_size)
+    net = ppo_config.network(env.action_size)
     params = net.init(k_net, jnp.zeros((env.obs_size(env_params),)))
     env_keys = jax.random.split(jax.random.fold_in(k_env, dev), num_envs)
     obs, env_state = jax.vmap(env.reset, (0, None))(env_keys, env_params)
@@ -153,7 +153,7 @@ def _init_seed(cfg: PPOConfig, env, env_params, num_envs: int, key: Array, dev: 
         # stagger episode ends so a batch does not see every environment at the same age
         ages = jax.random.randint(jax.random.fold_in(k_env, -1 - dev), (num_envs,), 0, env_params.horizon)
         env_state = env_state.replace(t=ages.astype(env_state.t.dtype))
-    return Runner(params=params, opt_state=make_optimizer(cfg).init(params), env_state=env_state, obs=obs,
+    return Runner(params=params, opt_state=make_optimizer(ppo_config).init(params), env_state=env_state, obs=obs,
                   stats=RunningStats.create(env.obs_size(env_params)), key=k_run,
                   update=jnp.zeros((), jnp.int32))
 
@@ -202,8 +202,9 @@ class Transition(NamedTuple):
     gains: Array | None  # the gains the environment applied, when it reports them
 
 
-def _rollout(cfg: PPOConfig, env, env_params, runner: Runner, apply_fn, key: Array) -> tuple[Any, Array, Transition]:
-    """``cfg.num_steps`` steps of every environment under the current policy: (env state, last observation,
+def _rollout(ppo_config: PPOConfig, env, env_params, runner: Runner, apply_fn,
+             key: Array) -> tuple[Any, Array, Transition]:
+    """``ppo_config.num_steps`` steps of every environment under the current policy: (env state, last observation,
     the transitions (T, E, ...))."""
     stats = runner.stats
     num_envs = runner.obs.shape[0]
@@ -218,13 +219,13 @@ def _rollout(cfg: PPOConfig, env, env_params, runner: Runner, apply_fn, key: Arr
         obs2, env_state, r, done, info = jax.vmap(env.step, (0, 0, 0, None))(
             jax.random.split(k_env, num_envs), env_state, action, env_params)
         _, _, v_term = apply_fn(runner.params, stats.normalize(info["terminal_obs"]))
-        r_train = cfg.reward_scale * r + cfg.gamma * v_term * info["truncated"]
+        r_train = ppo_config.reward_scale * r + ppo_config.gamma * v_term * info["truncated"]
         return (env_state, obs2), Transition(obs=nobs, raw_obs=obs, action=action, logp=logp, value=value,
                                              reward=r_train, done=done, raw_reward=r,
                                              terminated=info["terminated"], gains=info.get("gains"))
 
     (env_state, obs), traj = jax.lax.scan(env_step, (runner.env_state, runner.obs),
-                                          jax.random.split(key, cfg.num_steps))
+                                          jax.random.split(key, ppo_config.num_steps))
     return env_state, obs, traj
 
 
@@ -237,46 +238,47 @@ def _new_statistics(stats: RunningStats, raw_obs: Array, axis_name: str | None) 
     return stats.update(b_mean, b_var, jnp.asarray(flat_obs.shape[0] * n_dev, stats.count.dtype))
 
 
-def _learn(cfg: PPOConfig, apply_fn, tx, params, opt_state, batch: Batch, key: Array, axis_name: str | None):
-    """``cfg.update_epochs`` epochs of minibatch steps on ``batch``: (params, optimiser state, loss statistics)."""
+def _learn(ppo_config: PPOConfig, apply_fn, tx, params, opt_state, batch: Batch, key: Array, axis_name: str | None):
+    """``ppo_config.update_epochs`` epochs of minibatch steps on ``batch``: (params, optimiser state, loss
+    statistics)."""
     n = batch.obs.shape[0]
-    mb = n // cfg.num_minibatches
+    mb = n // ppo_config.num_minibatches
     grad_fn = jax.value_and_grad(ppo_loss, has_aux=True)
 
     def epoch(carry, k):
         params, opt_state = carry
-        perm = jax.random.permutation(k, n)[: mb * cfg.num_minibatches]
-        shuffled = jax.tree.map(lambda x: x[perm].reshape((cfg.num_minibatches, mb) + x.shape[1:]), batch)
+        perm = jax.random.permutation(k, n)[: mb * ppo_config.num_minibatches]
+        shuffled = jax.tree.map(lambda x: x[perm].reshape((ppo_config.num_minibatches, mb) + x.shape[1:]), batch)
 
         def minibatch(carry, b):
             params, opt_state = carry
-            (loss, aux), grads = grad_fn(params, apply_fn, b, cfg)
+            (loss, aux), grads = grad_fn(params, apply_fn, b, ppo_config)
             grads = _pmean(grads, axis_name)
             updates, opt_state = tx.update(grads, opt_state, params)
             return (optax.apply_updates(params, updates), opt_state), aux
 
         return jax.lax.scan(minibatch, (params, opt_state), shuffled)
 
-    (params, opt_state), aux = jax.lax.scan(epoch, (params, opt_state), jax.random.split(key, cfg.update_epochs))
+    (params, opt_state), aux = jax.lax.scan(epoch, (params, opt_state), jax.random.split(key, ppo_config.update_epochs))
     return params, opt_state, aux
 
 
-def _update_seed(cfg: PPOConfig, env, env_params, runner: Runner, axis_name: str | None):
+def _update_seed(ppo_config: PPOConfig, env, env_params, runner: Runner, axis_name: str | None):
     """One PPO update for one seed on this device's environments: rollout, GAE, statistics, epochs."""
-    net = cfg.network(env.action_size)
+    net = ppo_config.network(env.action_size)
     apply_fn = net.apply
-    tx = make_optimizer(cfg)
+    tx = make_optimizer(ppo_config)
     key, k_roll, k_perm = jax.random.split(runner.key, 3)
     dev = _device_index(axis_name)
     k_roll = jax.random.fold_in(k_roll, dev)
     k_perm = jax.random.fold_in(k_perm, dev)
-    env_state, obs, traj = _rollout(cfg, env, env_params, runner, apply_fn, k_roll)
+    env_state, obs, traj = _rollout(ppo_config, env, env_params, runner, apply_fn, k_roll)
     _, _, last_value = apply_fn(runner.params, runner.stats.normalize(obs))
-    adv, target = compute_gae(traj.reward, traj.value, traj.done, last_value, cfg.gamma, cfg.gae_lambda)
+    adv, target = compute_gae(traj.reward, traj.value, traj.done, last_value, ppo_config.gamma, ppo_config.gae_lambda)
     new_stats = _new_statistics(runner.stats, traj.raw_obs, axis_name)
     batch = Batch(obs=traj.obs, action=traj.action, logp=traj.logp, value=traj.value, adv=adv, target=target)
     batch = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), batch)
-    params, opt_state, aux = _learn(cfg, apply_fn, tx, runner.params, runner.opt_state, batch, k_perm, axis_name)
+    params, opt_state, aux = _learn(ppo_config, apply_fn, tx, runner.params, runner.opt_state, batch, k_perm, axis_name)
     metrics = {k: v.mean() for k, v in aux.items()}
     metrics.update({"mean_reward": traj.raw_reward.mean(), "terminated_frac": traj.terminated.mean()})
     if traj.gains is not None:
@@ -287,9 +289,9 @@ def _update_seed(cfg: PPOConfig, env, env_params, runner: Runner, axis_name: str
     return new, metrics
 
 
-def _chunk_seed(cfg, env, env_params, runner, axis_name):
-    return jax.lax.scan(lambda r, _: _update_seed(cfg, env, env_params, r, axis_name), runner, None,
-                        length=cfg.updates_per_chunk)
+def _chunk_seed(ppo_config, env, env_params, runner, axis_name):
+    return jax.lax.scan(lambda r, _: _update_seed(ppo_config, env, env_params, r, axis_name), runner, None,
+                        length=ppo_config.updates_per_chunk)
 
 
 def _strong(tree):
@@ -299,8 +301,8 @@ def _strong(tree):
     return jax.tree.map(lambda x: jax.lax.convert_element_type(x, x.dtype), tree)
 
 
-def make_train(cfg: PPOConfig, env_params: Any, devices: list | None = None, *, env: Any):
-    """Build ``(init, train_chunk)`` for ``cfg`` and ``env_params`` over ``devices``.
+def make_train(ppo_config: PPOConfig, env_params: Any, devices: list | None = None, *, env: Any):
+    """Build ``(init, train_chunk)`` for ``ppo_config`` and ``env_params`` over ``devices``.
 
     ``env`` is any object with gymnax-style ``reset(key, params)``, ``step(key, state, action,
     params) -> (obs, state, reward, done, info)`` (info with ``terminal_obs``, ``truncated``,
@@ -312,22 +314,23 @@ def make_train(cfg: PPOConfig, env_params: Any, devices: list | None = None, *, 
     identical across devices (kept so by ``lax.pmean``), the environments are split between
     devices. ``num_envs`` (the total) must be divisible by the number of devices.
     ``devices=None``: the most of ``jax.devices()`` (every process's devices) that ``num_envs``
-    and the minibatches divide (all of them for the defaults). ``cfg`` and ``env_params`` are
+    and the minibatches divide (all of them for the defaults). ``ppo_config`` and ``env_params`` are
     traced arguments.
     """
-    mesh = train_mesh(cfg, devices)
+    mesh = train_mesh(ppo_config, devices)
     n_dev = mesh.size
-    local_envs = cfg.num_envs // n_dev
-    validate_config(cfg)
+    local_envs = ppo_config.num_envs // n_dev
+    validate_config(ppo_config)
     sharded, replicated_ = NamedSharding(mesh, P(AXIS)), NamedSharding(mesh, P())
 
-    def _init(cfg, env_params, keys):
-        runner = _init_seeds(lambda k: _init_seed(cfg, env, env_params, local_envs, k, _device_index(AXIS)), keys)
+    def _init(ppo_config, env_params, keys):
+        runner = _init_seeds(lambda k: _init_seed(ppo_config, env, env_params, local_envs, k, _device_index(AXIS)),
+                             keys)
         return jax.tree.map(lambda x: x[None], _strong(runner))  # this device's block of the device axis
 
-    def _chunk(cfg, env_params, runner):
+    def _chunk(ppo_config, env_params, runner):
         runner = jax.tree.map(lambda x: x[0], runner)
-        runner, metrics = jax.vmap(functools.partial(_chunk_seed, cfg, env, env_params, axis_name=AXIS))(runner)
+        runner, metrics = jax.vmap(functools.partial(_chunk_seed, ppo_config, env, env_params, axis_name=AXIS))(runner)
         return jax.tree.map(lambda x: x[None], _strong(runner)), metrics
 
     def sharded_fn(fn, in_specs, out_specs, in_shardings, out_shardings):  # jit of the per-device body
@@ -339,29 +342,29 @@ def make_train(cfg: PPOConfig, env_params: Any, devices: list | None = None, *, 
                          (sharded, replicated_))
 
     def init(key: Array) -> Runner:
-        return s_init(cfg, env_params, jax.random.split(key, cfg.num_seeds))
+        return s_init(ppo_config, env_params, jax.random.split(key, ppo_config.num_seeds))
 
     def train_chunk(runner: Runner) -> tuple[Runner, dict]:
         """``updates_per_chunk`` updates; metrics have shape (seeds, updates_per_chunk), on this
         process's first device."""
-        runner, metrics = s_chunk(cfg, env_params, runner)
+        runner, metrics = s_chunk(ppo_config, env_params, runner)
         return runner, local_copy(metrics)
 
     return init, train_chunk
 
 
-def train_mesh(cfg: PPOConfig, devices: list | None = None) -> Mesh:
+def train_mesh(ppo_config: PPOConfig, devices: list | None = None) -> Mesh:
     """The one-axis (``AXIS``) mesh PPO splits its environments over: ``devices``, or the most of
     ``jax.devices()`` that ``num_envs`` and the minibatches divide; ``ValueError`` if they do not."""
     if devices is None:  # every device the batch splits over (one per core by default, jaxtraffic._devices)
         devices = list(jax.devices())
-        k = max(k for k in range(1, len(devices) + 1) if cfg.num_envs % k == 0
-                and ((cfg.num_envs // k) * cfg.num_steps) % cfg.num_minibatches == 0 or k == 1)
+        k = max(k for k in range(1, len(devices) + 1) if ppo_config.num_envs % k == 0
+                and ((ppo_config.num_envs // k) * ppo_config.num_steps) % ppo_config.num_minibatches == 0 or k == 1)
         devices = devices[:k]
     devices = list(devices)
     n_dev = len(devices)
-    if cfg.num_envs % n_dev:
-        raise ValueError(f"num_envs={cfg.num_envs} is not divisible by the {n_dev} devices")
-    if ((cfg.num_envs // n_dev) * cfg.num_steps) % cfg.num_minibatches:
+    if ppo_config.num_envs % n_dev:
+        raise ValueError(f"num_envs={ppo_config.num_envs} is not divisible by the {n_dev} devices")
+    if ((ppo_config.num_envs // n_dev) * ppo_config.num_steps) % ppo_config.num_minibatches:
         raise ValueError("num_envs/devices * num_steps must be divisible by num_minibatches")
     return Mesh(np.array(devices), (AXIS,))

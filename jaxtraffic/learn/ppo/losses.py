@@ -70,16 +70,16 @@ def clipped_surrogate(logp: Array, old_logp: Array, adv: Array, clip_eps) -> Arr
     return -jnp.mean(jnp.minimum(ratio * adv, jnp.clip(ratio, 1.0 - clip_eps, 1.0 + clip_eps) * adv))
 
 
-def ppo_loss(params, apply_fn, batch: Batch, cfg: Any):
-    """(loss, statistics) of a minibatch: clipped surrogate, value loss and entropy bonus; ``cfg``: an
+def ppo_loss(params, apply_fn, batch: Batch, ppo_config: Any):
+    """(loss, statistics) of a minibatch: clipped surrogate, value loss and entropy bonus; ``ppo_config``: an
     ``algorithm.PPOConfig`` (its clip range and the value and entropy coefficients)."""
     mean, sigma, value = apply_fn(params, batch.obs)
     logp = gaussian_log_prob(batch.action, mean, sigma)
     adv = batch.adv
     adv = (adv - adv.mean()) / (adv.std() + 1e-8)
-    pg = clipped_surrogate(logp, batch.logp, adv, cfg.clip_eps)
+    pg = clipped_surrogate(logp, batch.logp, adv, ppo_config.clip_eps)
     vf = 0.5 * jnp.mean((value - batch.target) ** 2)
     ent = jnp.mean(gaussian_entropy(sigma))
-    loss = pg + cfg.vf_coef * vf - cfg.ent_coef * ent
+    loss = pg + ppo_config.vf_coef * vf - ppo_config.ent_coef * ent
     return loss, {"policy_loss": pg, "value_loss": vf, "entropy": ent,
                   "approx_kl": jnp.mean(batch.logp - logp), "sigma": jnp.mean(sigma)}

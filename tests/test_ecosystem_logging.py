@@ -1,4 +1,4 @@
-"""Training logging (issue 17): the callback hook, the appended learning_curve.csv, the progress
+"""Training logging: the callback hook, the appended learning_curve.csv, the progress
 line's rate excluding compilation, and the optional TensorBoard writer (when tensorboardX is
 installed). One tiny run (21 nodes, 4 environments x 8 steps, 3 chunks)."""
 

@@ -51,7 +51,7 @@ N_CHUNKS = 8
 P21 = TrafficParams(n_points=21, delay=4.0)
 
 
-# ----------------------------------------------------------------------------- 1: nominal vs plant
+# ----------------------------------------------------------------------------- the nominal model and the plant
 @pytest.mark.parametrize("nominal, match", [
     (TrafficParams(delay=4.0), "nominal.n_points=201 differs"),
     (TrafficParams(n_points=21, delay=4.0, dt=0.05), "nominal.dt=0.05 differs"),
@@ -70,7 +70,7 @@ def test_nominal_with_other_physics_is_accepted():
     assert np.isfinite(float(res.metrics["final_reward"]))
 
 
-# ----------------------------------------------------------------------------- 2: PPO hyperparameters
+# ----------------------------------------------------------------------------- PPO hyperparameters
 @pytest.mark.parametrize("argv, match", [
     (["--lr", "-1"], "lr = -1.0 (--lr): must be > 0"),
     (["--gamma", "5"], "gamma = 5.0 (--gamma): must lie in (0.0, 1.0]"),
@@ -114,7 +114,7 @@ def test_device_count_constraints():
         check_devices(TrainConfig.from_flat(num_envs=4, num_steps=1, num_minibatches=4), 2)
 
 
-# ----------------------------------------------------------------------------- 3: non-finite values
+# ----------------------------------------------------------------------------- non-finite values
 def test_saturate_maps_nan_to_a_defined_value():
     p = TrafficParams()
     h = saturate(jnp.array([jnp.nan, jnp.inf, -jnp.inf, 1.0]), p)
@@ -203,7 +203,7 @@ def test_report_reads_nan_strings(tmp_path):
     assert "| nan |" in (tmp_path / "R.md").read_text()
 
 
-# ----------------------------------------------------------------------------- 7: other validation gaps
+# ----------------------------------------------------------------------------- more input checks
 @pytest.mark.parametrize("kwargs, match", [
     ({"delay": float("inf")}, "delay must be finite"),
     ({"alpha_noise": float("inf")}, "alpha_noise must be finite"),
@@ -254,7 +254,7 @@ def test_controllers_can_be_built_inside_jit():
     assert float(run(1.0)) == 6.0
 
 
-# ----------------------------------------------------------------------------- 9: permissions
+# ----------------------------------------------------------------------------- file permissions
 def test_written_files_honour_the_umask(tmp_path):
     old = os.umask(0o027)
     try:
@@ -266,7 +266,7 @@ def test_written_files_honour_the_umask(tmp_path):
     assert stat.S_IMODE((tmp_path / "b.txt").stat().st_mode) == 0o666 & ~old
 
 
-# ----------------------------------------------------------------------------- 4: signals (unit)
+# ----------------------------------------------------------------------------- signals (unit)
 def test_stop_signals_set_a_flag_and_restore_the_handlers():
     before = signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)
     with StopSignals(print) as stop:
@@ -276,7 +276,7 @@ def test_stop_signals_set_a_flag_and_restore_the_handlers():
     assert (signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)) == before
 
 
-# ----------------------------------------------------------------------------- 6: output directories
+# ----------------------------------------------------------------------------- output directories
 def test_out_dir_that_is_a_file_or_under_a_file(tmp_path, capsys):
     f = tmp_path / "file"
     f.write_text("x")
@@ -487,7 +487,7 @@ def test_run_directory_files_are_0644(ref_run):
         assert stat.S_IMODE((ref_run / name).stat().st_mode) == 0o644, name  # the test process umask is 022
 
 
-# ----------------------------------------------------------------------------- 5 and 6: broken run directories
+# ----------------------------------------------------------------------------- broken run directories
 def _copy(ref_run: Path, tmp_path: Path) -> Path:
     d = tmp_path / "copy"
     shutil.copytree(ref_run, d)
@@ -543,7 +543,7 @@ BROKEN = {
     "grid": (_set("plant", "n_points", 41), "do not belong together"),  # 40 divides 800: passes the config checks
     "gain_filter": (_set("env", "gain_filter", 5), "config.json: gain_filter = 5.0"),
     "gain_max_nan": (_set("env", "gain_max", float("nan")), "config.json: gain_max = nan (--gain-max): must be finite"),
-    # config.json edited after training (bound to the checkpoint: issue 28), or made pathological
+    # config.json edited after training (bound to the checkpoint), or made pathological
     "edited": (_set("env", "gain_max", 0.123), "gain_max = 0.123, but"),
     "algo": (_set("run", "algo", "gradient"), "do not belong together"),
     "nested": (lambda run: (run / ckpt.CONFIG).write_text("[" * 100_000 + "]" * 100_000),
@@ -616,7 +616,7 @@ def test_crafted_checkpoint_without_checksum_wrapper_is_rejected(tmp_path):
         ckpt.load_checkpoint(tmp_path)
 
 
-# ----------------------------------------------------------------------------- issue 28: signals and pipes
+# ----------------------------------------------------------------------------- signals and pipes
 @pytest.mark.slow
 def test_evaluate_interrupted_exits_cleanly_and_leaves_its_output_as_it_was(ref_run, tmp_path):
     """SIGINT while evaluate.py computes (its figure and numerics threads running): 130, one line, no abort, no

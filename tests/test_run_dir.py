@@ -1,4 +1,4 @@
-"""A run directory belongs to one run (issue 28): a fresh run refuses another run's directory unless
+"""A run directory belongs to one run: a fresh run refuses another run's directory unless
 ``--overwrite`` (which clears it), a lock while training, ``--resume`` keeps the saved run control, and a
 training gone NaN stops with a clear error, keeping the last finite checkpoint. Tiny grids."""
 

@@ -13,7 +13,7 @@ from jaxtraffic.model.linear import linearize
 from jaxtraffic.sim.initial import paper_initial_condition
 
 P = jt.TrafficParams()
-POINTWISE = (-0.18, -0.30, -0.80)  # gains trained on a 401-point grid that chatter on finer ones (issue 25)
+POINTWISE = (-0.18, -0.30, -0.80)  # gains trained on a 401-point grid that chatter on finer ones
 
 
 def test_open_loop_is_neutral_at_every_wavenumber():

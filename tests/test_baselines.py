@@ -249,7 +249,7 @@ def test_recursive_predictor_matches_exact_one():
     backstepping one also checks its traced settings, which changes XLA's fusion, not the law), the exact
     prediction to float32 rounding on the linear plant (innovations are rounding), and the same
     closed loop within 5% on the nonlinear plant (the innovations are not propagated)."""
-    from jaxtraffic.control import baselines as BL
+    from jaxtraffic.control import baselines as baselines_module
     from jaxtraffic.model.linear import linearize
     from jaxtraffic.sim.plant import _plant_step, initial_state
 
@@ -262,15 +262,16 @@ def test_recursive_predictor_matches_exact_one():
     p = TrafficParams(model="linear", delay=5.0, max_delay_steps=12, **small)
     lm, d = linearize(p), jnp.asarray(10)
     st = initial_state(p, *paper_initial_condition(p))
-    cs = BL._recursive_init(None, st.observation(p), p)
-    step = jax.jit(lambda st, cs: (BL.predict_recursive(st.rho - lm.rho_bar, st.v - lm.v_bar, st.sent, d, lm, cs),
-                                   BL.predict(st.rho - lm.rho_bar, st.v - lm.v_bar, st.sent, d, lm)))
+    cs = baselines_module._recursive_init(None, st.observation(p), p)
+    step = jax.jit(lambda st, cs: (baselines_module.predict_recursive(st.rho - lm.rho_bar, st.v - lm.v_bar, st.sent,
+                                                                      d, lm, cs),
+                                   baselines_module.predict(st.rho - lm.rho_bar, st.v - lm.v_bar, st.sent, d, lm)))
     scale = 0.0
     for _ in range(120):  # past two re-anchorings
         (rr, vr, cs), (re, ve) = step(st, cs)
         scale = max(scale, float(jnp.max(jnp.abs(ve))))
         assert float(jnp.max(jnp.abs(vr - ve))) <= 1e-4 * scale and float(jnp.max(jnp.abs(rr - re))) <= 1e-4
-        h = jnp.clip(BL._lyapunov_h(re, ve, 1.0, lm), p.h_min, p.h_max)
+        h = jnp.clip(baselines_module._lyapunov_h(re, ve, 1.0, lm), p.h_min, p.h_max)
         st = _plant_step(st, h, p, p.alpha)[0]
 
     pn = TrafficParams(delay=4.0, max_delay_steps=10, **small)

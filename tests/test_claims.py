@@ -14,8 +14,7 @@ import math
 import numpy as np
 import pytest
 
-from jaxtraffic.paper import claims as C
-from jaxtraffic.paper import summaries as S
+from jaxtraffic.paper import claims, summaries
 from jaxtraffic.paper.scenarios import SETTLE_FRACTION, EvalConfig, Outcome
 from jaxtraffic.paper.table2 import table2_rows
 
@@ -59,7 +58,7 @@ def metrics():
 
 
 def claims_of(metrics, curve=CURVE):
-    return {c["id"]: c for c in C.evaluate_claims(metrics, CFG, curve, "the D = 4 s policy")}
+    return {c["id"]: c for c in claims.evaluate_claims(metrics, CFG, curve, "the D = 4 s policy")}
 
 
 def check(claim, text):
@@ -80,29 +79,29 @@ def check(claim, text):
     ([], "not measured"),
 ])
 def test_verdict(passed, expected):
-    assert C.verdict([C.Check("c", "m", p) for p in passed]) == expected
+    assert claims.verdict([claims.Check("c", "m", p) for p in passed]) == expected
 
 
 def test_stabilised_single_and_seeded():
-    assert C.stabilised(entry(t_reward=10.0))
-    assert not C.stabilised(entry(t_reward=None))
-    assert not C.stabilised(entry(t_reward=10.0, diverged=True))
-    assert C.stabilised(seeded([1.0, 2.0]))
-    assert not C.stabilised(seeded([1.0, None]))  # every seed must stabilise
-    assert not C.stabilised(seeded([1.0, 2.0], diverged=[False, True]))
-    assert C.stabilised_fraction(seeded([1.0, None, 3.0, None])) == 0.5
-    assert C.stabilised_fraction(seeded([1.0, 2.0], diverged=[True, False])) == 0.5
-    assert C.stabilised_fraction(entry(t_reward=None)) == 0.0
+    assert claims.stabilised(entry(t_reward=10.0))
+    assert not claims.stabilised(entry(t_reward=None))
+    assert not claims.stabilised(entry(t_reward=10.0, diverged=True))
+    assert claims.stabilised(seeded([1.0, 2.0]))
+    assert not claims.stabilised(seeded([1.0, None]))  # every seed must stabilise
+    assert not claims.stabilised(seeded([1.0, 2.0], diverged=[False, True]))
+    assert claims.stabilised_fraction(seeded([1.0, None, 3.0, None])) == 0.5
+    assert claims.stabilised_fraction(seeded([1.0, 2.0], diverged=[True, False])) == 0.5
+    assert claims.stabilised_fraction(entry(t_reward=None)) == 0.0
 
 
 def test_comparison_helpers_ties_and_never():
-    assert not C._less(1.0, 1.0) and not C._less(0.99, 1.0) and C._less(0.97, 1.0)  # 2 % margin
-    assert C._faster(10.0, None) and not C._faster(None, 10.0) and not C._faster(None, None)
-    assert not C._faster(10.0, 10.0)  # a tie is not a win
-    assert C._comparable(100.0, 150.0) and not C._comparable(100.0, 151.0)
-    assert not C._comparable(None, 100.0)
-    assert C._conv({"t_settle_rho_s": 3.0, "t_settle_v_s": 5.0}) == 5.0
-    assert C._conv({"t_settle_rho_s": 3.0, "t_settle_v_s": None}) is None
+    assert not claims._less(1.0, 1.0) and not claims._less(0.99, 1.0) and claims._less(0.97, 1.0)  # 2 % margin
+    assert claims._faster(10.0, None) and not claims._faster(None, 10.0) and not claims._faster(None, None)
+    assert not claims._faster(10.0, 10.0)  # a tie is not a win
+    assert claims._comparable(100.0, 150.0) and not claims._comparable(100.0, 151.0)
+    assert not claims._comparable(None, 100.0)
+    assert claims._conv({"t_settle_rho_s": 3.0, "t_settle_v_s": 5.0}) == 5.0
+    assert claims._conv({"t_settle_rho_s": 3.0, "t_settle_v_s": None}) is None
 
 
 # ----------------------------------------------------------------------------- evaluate_claims
@@ -187,7 +186,7 @@ def test_claim4_improvements_outside_the_tolerance(metrics):
 
 
 def test_claim4_equilibrium_tolerance(metrics):
-    eq = S.equilibrium_indices(CFG)
+    eq = summaries.equilibrium_indices(CFG)
     assert eq["J_TTT"] == pytest.approx(3.2208e7, rel=1e-4) and eq["J_fuel"] == pytest.approx(8.077e5, rel=1e-3)
     metrics["delay4"]["backstepping"]["J_TTT"] = eq["J_TTT"] * 1.031
     metrics["delay4"]["ppo"]["J_fuel"] = eq["J_fuel"] * 0.975
@@ -242,7 +241,7 @@ T = np.array([0.0, 10.0, 20.0, 30.0, 40.0])
     ([5.0, 0.5, 0.5, 0.5, np.nan], None),
 ])
 def test_settle_time(y, expected):
-    assert S._settle_time(T, np.asarray(y), 1.0) == expected
+    assert summaries._settle_time(T, np.asarray(y), 1.0) == expected
 
 
 def _outcome(rho_l2, v_l2, **metric_overrides):
@@ -266,12 +265,12 @@ def test_summarise_single_run():
     assert SETTLE_FRACTION == 0.1
     out = _outcome([10.0, 5.0, 0.9, 0.5, 0.2], [1.0, 0.05, 0.2, 0.05, 0.01],
                    time_to_reward_target_s=[np.inf])
-    e = S.summarise(out, INIT)
+    e = summaries.summarise(out, INIT)
     assert e["t_settle_rho_s"] == 20.0 and e["t_settle_v_s"] == 30.0
     assert e["time_to_reward_-0.1_s"] is None  # inf (never) becomes null
     assert e["diverged"] is False and e["diverged_at_s"] is None and e["n_seeds"] == 1
     assert "per_seed" not in e and "std" not in e
-    assert set(S.REQUIRED_KEYS) <= set(e)
+    assert set(summaries.REQUIRED_KEYS) <= set(e)
     assert e["final_rho_L2"] == 0.2 and e["J_comfort"] == 1e3
     json.dumps(e, allow_nan=False)
 
@@ -280,7 +279,7 @@ def test_summarise_seeds_means_and_a_diverged_seed():
     rho = [[10.0, 0.5, 0.5, 0.5, 0.5], [10.0, 5.0, 0.5, 0.5, 0.5], [10.0, 5.0, 5.0, 5.0, 5.0]]
     v = [[1.0, 0.05, 0.05, 0.05, 0.05]] * 3
     out = _outcome(rho, v, time_to_reward_target_s=[10.0, 20.0, 30.0])
-    e = S.summarise(out, INIT)
+    e = summaries.summarise(out, INIT)
     assert e["n_seeds"] == 3 and e["t_settle_rho_s"] is None  # one seed never settles: no mean time
     assert e["t_settle_v_s"] == 10.0 and e["time_to_reward_-0.1_s"] == 20.0
     assert e["per_seed"]["t_settle_rho_s"] == [10.0, 20.0, None]
@@ -289,11 +288,11 @@ def test_summarise_seeds_means_and_a_diverged_seed():
 
     div = _outcome(rho[:2], v[:2], diverged=[False, True], diverged_at_s=[np.inf, 42.0],
                    time_to_reward_target_s=[10.0, 20.0])
-    e = S.summarise(div, INIT)
+    e = summaries.summarise(div, INIT)
     assert e["diverged"] is True and e["diverged_at_s"] == 42.0 and e["diverged_fraction"] == 0.5
     assert e["per_seed"]["t_settle_rho_s"] == [10.0, None]  # a diverged seed never settles
     assert e["per_seed"]["diverged"] == [False, True] and e["t_settle_rho_s"] is None
-    assert not C.stabilised(e) and C.stabilised_fraction(e) == 0.5  # the claims read the summaries
+    assert not claims.stabilised(e) and claims.stabilised_fraction(e) == 0.5  # the claims read the summaries
     json.dumps(e, allow_nan=False)
 
 
@@ -303,12 +302,12 @@ def test_summarise_seeds_means_and_a_diverged_seed():
     (1.0, None, None),
 ])
 def test_improvement(ol, c, expected):
-    assert S.improvement(ol, c) == (None if expected is None else pytest.approx(expected))
+    assert summaries.improvement(ol, c) == (None if expected is None else pytest.approx(expected))
 
 
 def test_table2_rows(metrics):
     rows = {(r["index"], r["controller"]): r for r in table2_rows(metrics, CFG)}
-    assert {i for i, _ in rows} == set(S.INDICES)
+    assert {i for i, _ in rows} == set(summaries.INDICES)
     tt, com = rows[("J_TTT", "ppo")], rows[("J_comfort", "ppo")]
     assert tt["equilibrium_SI"] == pytest.approx(3.2208e7, rel=1e-4) and com["equilibrium_SI"] is None
     assert rows[("J_TTT", "open_loop")]["ours_SI"] == 3.4e7 and rows[("J_TTT", "open_loop")]["paper"] == 3.4e7

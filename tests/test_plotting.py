@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from jaxtraffic.paper import plotting as P
+from jaxtraffic.paper import plotting
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 RHO_BAR, V_BAR, H_BAR = 0.10735931, 3.104839, 1.5
@@ -41,9 +41,9 @@ def test_learning_curve(tmp_path):
         ev = "" if u % 3 else f"{-50.0 * math.exp(-u / 2.0):.4f}"  # evaluation only every 3rd update
         lines.append(f"{u},{(u + 1) * 1000},{1.5 * u:.2f},{-80.0 * math.exp(-u / 3.0):.4f},{ev},x")
     csv.write_text("\n".join(lines) + "\n")
-    out = P.plot_learning_curve(csv, tmp_path / "lc.png")
+    out = plotting.plot_learning_curve(csv, tmp_path / "lc.png")
     assert_png(tmp_path / "lc.png", out)
-    data = P.read_learning_curve(csv)
+    data = plotting.read_learning_curve(csv)
     assert np.isnan(data["eval_reward"][1]) and data["env_steps"][-1] == 12000
 
 
@@ -51,13 +51,13 @@ def test_learning_curve_rejects_empty(tmp_path):
     csv = tmp_path / "empty.csv"
     csv.write_text("update,env_steps,wall_s,mean_reward,eval_reward\n")
     with pytest.raises(ValueError):
-        P.plot_learning_curve(csv, tmp_path / "lc.png")
+        plotting.plot_learning_curve(csv, tmp_path / "lc.png")
 
 
 def test_reward(tmp_path, series):
     t, decay, grow = series
     seeds = np.stack([-decay * (1 + 0.1 * k) for k in range(3)])
-    out = P.plot_reward(tmp_path / "reward.png", t,
+    out = plotting.plot_reward(tmp_path / "reward.png", t,
                         {"open loop (D = 4 s)": -grow, "PPO (D = 4 s)": seeds, "Lyapunov (D = 0)": -decay},
                         markers={"open loop (D = 4 s)": 20.0})
     assert_png(tmp_path / "reward.png", out)
@@ -71,7 +71,7 @@ def test_spacetime(tmp_path, series):
     v = 0.3333 / rho
     rows = {"open loop": (rho, v, np.full_like(rho, H_BAR)),  # constant h panel gets a note
             "PPO": (RHO_BAR + 0.5 * (rho - RHO_BAR), v, H_BAR + 0.2 * wave)}
-    out = P.plot_spacetime(tmp_path / "st.png", t, x, rows, (RHO_BAR, V_BAR, H_BAR), "synthetic",
+    out = plotting.plot_spacetime(tmp_path / "st.png", t, x, rows, (RHO_BAR, V_BAR, H_BAR), "synthetic",
                            diverged_at={"open loop": 25.0})
     assert_png(tmp_path / "st.png", out)
 
@@ -87,18 +87,18 @@ def test_fields_on_uniform_grids_are_images_placed_on_their_cells():
     x = np.linspace(0.0, 1000.0, 21)
     f = np.zeros((t.size, x.size))
     ax = Figure().subplots()
-    img = P._field_image(ax, t, x, f)
+    img = plotting._field_image(ax, t, x, f)
     assert isinstance(img, AxesImage)
     np.testing.assert_allclose(img.get_extent(), (-0.5, 300.5, -25.0, 1025.0), rtol=1e-6)
-    assert isinstance(P._field_image(ax, t, x ** 1.5, f), QuadMesh)
+    assert isinstance(plotting._field_image(ax, t, x ** 1.5, f), QuadMesh)
 
 
 def test_l2_norms_and_panels(tmp_path, series):
     t, decay, grow = series
     s = {"backstepping": (0.007 * decay, 0.2 * decay),
          "PPO": (np.stack([0.007 * decay, 0.008 * decay]), np.stack([0.2 * decay, 0.3 * decay]))}
-    assert_png(tmp_path / "l2.png", P.plot_l2_norms(tmp_path / "l2.png", t, s, "synthetic L2"))
-    assert_png(tmp_path / "l2p.png", P.plot_l2_panels(tmp_path / "l2p.png", t, {"D = 3 s": s, "D = 5 s": {
+    assert_png(tmp_path / "l2.png", plotting.plot_l2_norms(tmp_path / "l2.png", t, s, "synthetic L2"))
+    assert_png(tmp_path / "l2p.png", plotting.plot_l2_panels(tmp_path / "l2p.png", t, {"D = 3 s": s, "D = 5 s": {
         "open loop": (0.007 * grow, 0.2 * grow)}}, "synthetic panels"))
 
 
@@ -110,11 +110,11 @@ def test_robustness_map(tmp_path):
     maps = {"open loop": (base * 3, base * 3 > 0.02), "PPO": (base, div),
             "all diverged": (base, np.ones_like(div)),
             "none": (np.where(div, np.nan, base), np.zeros_like(div))}
-    out = P.plot_robustness_map(tmp_path / "robust.png", delays, alphas, maps, "synthetic robustness",
+    out = plotting.plot_robustness_map(tmp_path / "robust.png", delays, alphas, maps, "synthetic robustness",
                                 initial_l2=0.007)
     assert_png(tmp_path / "robust.png", out)
     # a single controller, a single cell
-    out = P.plot_robustness_map(tmp_path / "one.png", delays[:1], alphas[:1],
+    out = plotting.plot_robustness_map(tmp_path / "one.png", delays[:1], alphas[:1],
                                 {"PPO": (base[:1, :1], div[:1, :1])}, "one cell", nominal=None)
     assert_png(tmp_path / "one.png", out)
 
@@ -140,10 +140,10 @@ def test_draws_into_the_callers_axes_and_subfigures_without_a_file(series):
     fig = Figure(figsize=(12, 8), layout="constrained")
     left, right = fig.subfigures(1, 2)
     ax = left.subplots()
-    assert P.plot_reward(None, t, {"PPO (D = 4 s)": -decay}, ax=ax) is left  # the (sub)figure of ax
+    assert plotting.plot_reward(None, t, {"PPO (D = 4 s)": -decay}, ax=ax) is left  # the (sub)figure of ax
     assert ax.get_yscale() == "log" and ax.lines
     s = {"backstepping": (0.007 * decay, 0.2 * decay)}
-    assert P.plot_l2_norms(None, t, s, "into a subfigure", fig=right) is right
+    assert plotting.plot_l2_norms(None, t, s, "into a subfigure", fig=right) is right
     assert len(right.axes) == 2 and len(fig.axes) == 3
 
 
@@ -158,8 +158,8 @@ import matplotlib
 before = matplotlib.rcParams._get_backend_or_none()
 import numpy as np
 import jaxtraffic
-from jaxtraffic.paper import plotting as P
-P.plot_reward(None, np.arange(3.0), {"PPO": -np.ones(3)})
+from jaxtraffic.paper import plotting
+plotting.plot_reward(None, np.arange(3.0), {"PPO": -np.ones(3)})
 import sys
 print(before, matplotlib.rcParams._get_backend_or_none(), "matplotlib.pyplot" in sys.modules)
 """

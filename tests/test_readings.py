@@ -11,7 +11,7 @@ from conftest import SMALL
 
 import jaxtraffic
 from jaxtraffic.control.base import Controller
-from jaxtraffic.sim import metrics as M
+from jaxtraffic.sim import metrics as sim_metrics
 from jaxtraffic.sim.plant import (
     NoiseReading,
     closed_loop_step,
@@ -23,10 +23,10 @@ from jaxtraffic.sim.plant import (
 
 def test_fuel_rate_kmh_is_the_si_rate_of_kmh_values():
     v, a = jnp.array([3.0, 10.0, 25.0]), jnp.array([0.5, -0.2, 0.0])
-    np.testing.assert_allclose(M.fuel_rate_kmh(v, a), M.fuel_rate(3.6 * v, 3.6 * a), rtol=1e-7)
+    np.testing.assert_allclose(sim_metrics.fuel_rate_kmh(v, a), sim_metrics.fuel_rate(3.6 * v, 3.6 * a), rtol=1e-7)
     v_kmh = 3.6 * 10.0
     hand = 25e-3 + 24.5e-6 * v_kmh + 32.5e-9 * v_kmh**3 + 125e-6 * v_kmh * (3.6 * -0.2)
-    np.testing.assert_allclose(M.fuel_rate_kmh(v, a)[1], hand, rtol=1e-6)
+    np.testing.assert_allclose(sim_metrics.fuel_rate_kmh(v, a)[1], hand, rtol=1e-6)
 
 
 @pytest.fixture(scope="module")
@@ -60,13 +60,13 @@ def test_switch_on_is_the_jerk_of_step_d():
     vs = [jnp.full((n,), 3.0), jnp.full((n,), 3.0), jnp.full((n,), 3.5), jnp.full((n,), 3.5)]
     rho = jnp.full((n,), 0.1)
     for switch in (0, 1):
-        acc = M.init_metrics(n)
+        acc = sim_metrics.init_metrics(n)
         for k in range(3):
-            record = M.StepRecord(step=jnp.asarray(k), rho=rho, v=vs[k], v_next=vs[k + 1], h_sent=rho, cfl=0.0,
-                                  active=jnp.asarray(True))
-            acc = M.update_metrics(acc, record, M.MetricsTarget(rho_bar=0.1, v_bar=3.0, h_bar=0.1, dx=dx, dt=dt,
-                                                                switch_step=switch))
-        tot = M.totals(acc, dx)
+            record = sim_metrics.StepRecord(step=jnp.asarray(k), rho=rho, v=vs[k], v_next=vs[k + 1], h_sent=rho,
+                                            cfl=0.0, active=jnp.asarray(True))
+            target = sim_metrics.MetricsTarget(rho_bar=0.1, v_bar=3.0, h_bar=0.1, dx=dx, dt=dt, switch_step=switch)
+            acc = sim_metrics.update_metrics(acc, record, target)
+        tot = sim_metrics.totals(acc, dx)
         # a = 0, 1, 0 m/s^2 -> a_t = 0, 2, -2 m/s^3; weight dt * 1000 rho = 50 per node, L = 40 m
         expected = 0.0 if switch == 0 else 4.0 * 50.0 * 40.0
         np.testing.assert_allclose(float(tot["J_comfort_switch_on"]), expected, rtol=1e-6)

@@ -24,7 +24,7 @@ from jaxtraffic import (
 )
 from jaxtraffic.model.solver import is_physical
 from jaxtraffic.sim import Memory, Record
-from jaxtraffic.sim import metrics as M
+from jaxtraffic.sim import metrics as sim_metrics
 from jaxtraffic.sim.plant import closed_loop_step, initial_state, plant_alpha_sequence, select_state
 
 SENTINELS = ("time_to_reward_target_s", "diverged_at_s")  # documented inf = "never"
@@ -203,7 +203,7 @@ def test_metrics_at_equilibrium_paper_grid():
     # float32 streaming sums over 3000 steps: ~1e-5 relative rounding
     assert float(m["J_TTT"]) == pytest.approx(1000.0 * rho_bar * 1000.0 * 300.0, rel=5e-5)
     assert float(m["J_fuel"]) == pytest.approx(8.077e5, rel=1e-4)
-    xi = M.FUEL_B0 + M.FUEL_B1 * v_bar + M.FUEL_B3 * v_bar**3
+    xi = sim_metrics.FUEL_B0 + sim_metrics.FUEL_B1 * v_bar + sim_metrics.FUEL_B3 * v_bar**3
     assert float(m["J_fuel"]) == pytest.approx(xi * 1000.0 * rho_bar * 1000.0 * 300.0, rel=5e-5)
     assert 0.0 <= float(m["J_comfort"]) < 1e-3
     assert float(m["final_rho_L2"]) < 1e-6 and float(m["final_v_L2"]) < 1e-4
@@ -228,7 +228,7 @@ def test_metrics_scale_with_horizon_and_match_trajectory():
     dx, dt = float(p.dx), float(p.dt)
     j_ttt = dt * np.sum(dx * (rec.sum(axis=1) - 0.5 * (rec[:, 0] + rec[:, -1])))
     assert float(res.metrics["J_TTT"]) == pytest.approx(j_ttt, rel=1e-5)
-    np.testing.assert_allclose(tr.reward, M.reward(tr.rho, tr.v, rho_bar, v_bar, p.dx), rtol=1e-6)
+    np.testing.assert_allclose(tr.reward, sim_metrics.reward(tr.rho, tr.v, rho_bar, v_bar, p.dx), rtol=1e-6)
     np.testing.assert_allclose(tr.t, np.arange(60) * dt, rtol=1e-6)
 
 
@@ -309,8 +309,8 @@ def test_time_to_reward_target_matches_the_recorded_rewards():
     rho0, v0 = paper_initial_condition(p)
     res = simulate(p, lyapunov(), n_steps=200, rho0=rho0, v0=v0, record=Record(every=1))
     r = np.append(np.asarray(res.trajectory.reward), float(res.metrics["final_reward"]))
-    bad = np.flatnonzero(r < M.REWARD_TARGET)
-    assert r[0] < M.REWARD_TARGET and r[-1] >= M.REWARD_TARGET  # it really crosses the target
+    bad = np.flatnonzero(r < sim_metrics.REWARD_TARGET)
+    assert r[0] < sim_metrics.REWARD_TARGET and r[-1] >= sim_metrics.REWARD_TARGET  # it really crosses the target
     expected = (bad[-1] + 1) * float(p.dt)
     assert float(res.metrics["time_to_reward_target_s"]) == pytest.approx(expected)
     assert 0.0 < expected < 200 * float(p.dt)

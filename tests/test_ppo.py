@@ -250,7 +250,7 @@ def test_learning_rate_schedule():
     np.testing.assert_allclose(lrs, 1e-2 * np.repeat([1.0, 0.84, 0.68, 0.52, 0.36, 0.2, 0.2, 0.2], 2), rtol=1e-5)
     assert float(ppo.lr_schedule(TOY_CFG)(jnp.asarray(1000))) == pytest.approx(1e-2)  # 0: constant
     with pytest.raises(ValueError, match="lr_final"):
-        ppo.validate_config(TOY_CFG.replace(lr_final=1.5))
+        ppo.check_ppo_config(TOY_CFG.replace(lr_final=1.5))
 
 
 def test_decayed_learning_rate_reaches_adam():

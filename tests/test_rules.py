@@ -17,7 +17,7 @@ from jaxtraffic.learn.env import make_env_params
 from jaxtraffic.learn.gradient.config import POLICY_DEFAULTS, GradientConfig
 from jaxtraffic.learn.gradient.objective import Weights, weights_of
 from jaxtraffic.learn.gradient.policy import gradient_setup
-from jaxtraffic.learn.ppo import PPOConfig, validate_config
+from jaxtraffic.learn.ppo import PPOConfig, check_ppo_config
 
 # a value of each GradConfig field other than its default and every policy's default, valid for the gains policy
 GIVEN = {"grad_steps": 6, "grad_lr": 0.02, "train_delays": (1.0, 2.0), "train_alphas": (0.2, 0.3),
@@ -62,8 +62,8 @@ def test_every_rule_names_a_config_field_and_rules_imports_no_jaxtraffic():
     ("gain_filter", 0.0, lambda v: GradientConfig(gain_filter=v)),
     ("wave_weight", -1.0, lambda v: make_env_params(wave_weight=v)),
     ("gain_max", 0.0, lambda v: make_env_params(gain_max=(1.0, v, 3.0))),
-    ("lr_final", 1.5, lambda v: validate_config(PPOConfig(lr_final=v))),
-    ("gamma", 0.0, lambda v: validate_config(PPOConfig(gamma=v))),
+    ("lr_final", 1.5, lambda v: check_ppo_config(PPOConfig(lr_final=v))),
+    ("gamma", 0.0, lambda v: check_ppo_config(PPOConfig(gamma=v))),
     ("grad_lr", -1.0, lambda v: GradientConfig(grad_lr=v)),
     ("waves_weight", -0.5, lambda v: GradientConfig(waves_weight=v)),
     ("grad_steps", 0, lambda v: GradientConfig(grad_steps=v)),

@@ -2,7 +2,7 @@
 
 A name is the config tree's field (``learn.config``), its flag (``--`` + the name with dashes) and the field of
 the struct that uses it (``learn.env.EnvParams``, ``learn.ppo.PPOConfig``, ``learn.gradient.GradientConfig``).
-The config tree (``learn.config.checks``), ``learn.env.make_env_params``, ``learn.ppo.validate_config`` and
+The config tree (``learn.config.checks``), ``learn.env.make_env_params``, ``learn.ppo.check_ppo_config`` and
 ``GradientConfig.__post_init__`` all check their fields against this table (``check_range``, ``check_fields``),
 with one message, e.g. ``grad_lr = -1.0 (--grad-lr): must be > 0.0``. This module imports nothing from
 jaxtraffic: it is the lowest layer of ``learn`` (``learn.config`` imports ``learn.env`` and

@@ -84,7 +84,7 @@ class TrafficParams:
             value = getattr(self, name)
             if isinstance(value, numbers.Integral) and not isinstance(value, (bool, int)):
                 object.__setattr__(self, name, int(value))
-        validate(self)
+        check_params(self)
 
     @classmethod
     def reference(cls, **changes: object) -> TrafficParams:
@@ -115,7 +115,7 @@ class TrafficParams:
 
 def params_valid(p: TrafficParams) -> jax.Array:
     """Whether the (possibly traced) parameters are usable, as a boolean array: the range checks of
-    ``validate`` that can be done inside a program (every float finite, lengths and times > 0, alpha in
+    ``check_params`` that can be done inside a program (every float finite, lengths and times > 0, alpha in
     [0, 1], alpha_noise >= 0, h_min < h_bar <= h_max... , 0 <= delay <= max_delay_steps dt). ``sim.plant``
     freezes a plant whose parameters fail it at step 0 (``sim.outcome.Divergence.PARAMS``) instead of running a
     different system."""
@@ -129,7 +129,7 @@ def params_valid(p: TrafficParams) -> jax.Array:
     return ok & jnp.all(f["delay"] >= 0) & jnp.all(d <= p.max_delay_steps)
 
 
-def validate(p: TrafficParams, cfl_max: float = 1.0) -> None:
+def check_params(p: TrafficParams, cfl_max: float = 1.0) -> None:
     """Raise ``ValueError`` with a clear message if concrete parameters are invalid.
 
     Checks positivity of lengths and times, alpha in [0, 1], actuator bounds, that the inflow
@@ -257,7 +257,7 @@ def cfl_number(p: TrafficParams) -> float:
 
 
 def cfl_bound(p: TrafficParams) -> float:
-    """The CFL number the construction check bounds (``validate``): max|lambda| dt_s/dx at the
+    """The CFL number the construction check bounds (``check_params``): max|lambda| dt_s/dx at the
     equilibrium density over the whole actuator range h in [h_min, h_max]. |lambda2| = |v - 1/(rho
     h_mix(h))| is largest at h = h_min (about 14 m/s at the defaults against 3.6 at h_bar), which a
     controller reaches whenever it saturates, so the equilibrium CFL (``cfl_number``) is not a

@@ -19,7 +19,8 @@ learning environment (``learn.env``) and every trainer are scans of it. Order of
 CONTROL (2, the controller returned a non-finite time gap), INITIAL (3, the initial state was not
 finite or not physical; only reachable with traced inputs, concrete ones are rejected),
 PARAMS (4, traced parameters outside their valid range, ``model.params.params_valid``: a delay
-beyond the buffer, a negative one, alpha outside [0, 1], ...; concrete ones are rejected by ``validate``).
+beyond the buffer, a negative one, alpha outside [0, 1], ...; concrete ones are rejected by
+``model.params.check_params``).
 A controller whose traced settings are invalid (backstepping with a NaN or negative assumed delay) returns
 a non-finite time gap, hence CONTROL. ``sim.outcome.check_outcome`` raises on a diverged result.
 """

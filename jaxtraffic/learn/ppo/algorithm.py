@@ -117,7 +117,7 @@ class Runner:
 
 
 # --------------------------------------------------------------------------- pure PPO maths
-def validate_config(ppo_config: PPOConfig) -> None:
+def check_ppo_config(ppo_config: PPOConfig) -> None:
     """Reject hyperparameters that make no sense (ValueError): each field against its range in ``learn.rules``
     (the config tree's field and flag of the same name)."""
     check_fields(ppo_config)
@@ -320,7 +320,7 @@ def make_train(ppo_config: PPOConfig, env_params: Any, devices: list | None = No
     mesh = train_mesh(ppo_config, devices)
     n_dev = mesh.size
     local_envs = ppo_config.num_envs // n_dev
-    validate_config(ppo_config)
+    check_ppo_config(ppo_config)
     sharded, replicated_ = NamedSharding(mesh, P(AXIS)), NamedSharding(mesh, P())
 
     def _init(ppo_config, env_params, keys):

@@ -19,7 +19,7 @@ horizon is below backstepping's and J_comfort within ``j_slack`` of its, and at 
 plant does not diverge and is still converging.
 
 The trainer's checkpoint selection (below): ``scores`` of one evaluation per member, and the best
-checkpoint kept per member (``new_best``, ``update_best``; saved as best.msgpack by
+checkpoint kept per member (``BestCheckpoints``; saved as best.msgpack by
 ``learn.runs.checkpoint``). Not to be confused with ``learn.config.checks``, which checks config values.
 """
 
@@ -27,10 +27,14 @@ from __future__ import annotations
 
 import enum
 import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from flax import serialization
 
 from jaxtraffic.control.adapter import ControllerGrid, adapt, baseline_grid
 from jaxtraffic.control.baselines import backstepping
@@ -60,8 +64,8 @@ def _half_and_end(res):
     return res.trajectory.rho_L2[:, 1], res.metrics["final_rho_L2"], res.metrics["J_comfort"], res.metrics["diverged"]
 
 
-def make_validator(nominal, steps: int, delays, ics=DEFAULT_ICS, j_slack: float = 1.2, plant=None):
-    """``validate(controller, n_members) -> dict`` of numpy arrays: ``score`` (members,) and the
+def make_suite(nominal, steps: int, delays, ics=DEFAULT_ICS, j_slack: float = 1.2, plant=None):
+    """``suite(controller, n_members) -> dict`` of numpy arrays: ``score`` (members,) and the
     per-scenario ``rho_L2_half``, ``rho_L2_end`` (veh/km), ``J_comfort``, ``ratio`` (members, S).
     ``controller``: a policy controller on the grid of ``nominal`` whose settings carry a leading member
     axis. ``plant``: the discretisation the suite runs on (n_points, scheme, substeps; default the
@@ -81,7 +85,7 @@ def make_validator(nominal, steps: int, delays, ics=DEFAULT_ICS, j_slack: float 
     if ref_div.any():
         raise ValueError("backstepping diverged on the validation suite")
 
-    def validate(controller, n_members: int) -> dict:
+    def suite(controller, n_members: int) -> dict:
         ctrl = adapt(jax.tree.map(lambda x: jnp.repeat(x, n_s, axis=0), controller), grid, judge)  # member-major
         tile = lambda x: jnp.tile(x, (n_members,) + (1,) * (x.ndim - 1))  # noqa: E731
         res = simulate_batch(jax.tree.map(tile, plants), ctrl, n_steps=steps, rho0=tile(rho0), v0=tile(v0),
@@ -94,9 +98,9 @@ def make_validator(nominal, steps: int, delays, ics=DEFAULT_ICS, j_slack: float 
         return {"score": ratio.max(axis=1), "ratio": ratio, "rho_L2_half": half * 1e3, "rho_L2_end": end * 1e3,
                 "J_comfort": jc, "labels": labels}
 
-    validate.reference = {"rho_L2_half": ref_half * 1e3, "rho_L2_end": ref_end * 1e3, "J_comfort": ref_j,
+    suite.reference = {"rho_L2_half": ref_half * 1e3, "rho_L2_end": ref_end * 1e3, "J_comfort": ref_j,
                           "labels": labels}
-    return validate
+    return suite
 
 
 # ----------------------------------------------------------------------------- checkpoint selection
@@ -110,41 +114,62 @@ def validation_delays(env_params) -> tuple[float, ...]:
                                                       env_params.delay_max)}))
 
 
-def scores(reward: np.ndarray, candidate: np.ndarray, validate, controller) -> np.ndarray:
+def scores(reward: np.ndarray, candidate: np.ndarray, suite, controller) -> np.ndarray:
     """Per-member score of one evaluation (lower is better): the suite's score of the ``candidate``
     members (``controller()``: their policy controller with a leading member axis, built only if
     needed); the others rank below every candidate, by evaluation reward ``reward``. Without a suite
-    (``validate`` None) the evaluation reward ranks the candidates too."""
+    (``suite`` None) the evaluation reward ranks the candidates too."""
     score = UNVALIDATED - np.where(np.isfinite(reward), np.maximum(reward, -1e6), -1e6)
-    if validate is None:
+    if suite is None:
         return np.where(candidate, -reward, score)
     if candidate.any():
-        score = np.where(candidate, validate(controller(), len(reward))["score"], score)
+        score = np.where(candidate, suite(controller(), len(reward))["score"], score)
     return score
 
 
-def new_best(params, mean, var) -> dict:
-    """The best-checkpoint record of members that have none yet (score inf)."""
-    n = np.shape(mean)[0]
-    return {"params": params, "mean": np.asarray(mean), "var": np.asarray(var), "score": np.full((n,), np.inf),
-            "env_steps": np.zeros((n,), np.int64)}
+@dataclass(frozen=True)
+class BestCheckpoints:
+    """Per member (leading axis M): the best-scoring policy so far (flax ``params``, observation ``mean`` and
+    ``var``), its ``score`` (``scores``; inf: none yet) and the ``env_steps`` at which it was reached."""
 
+    params: Any
+    mean: np.ndarray
+    var: np.ndarray
+    score: np.ndarray
+    env_steps: np.ndarray
 
-def update_best(best: dict, score: np.ndarray, env_steps: int, policy) -> dict:
-    """Keep, per member, the checkpoint (params + observation statistics) with the lowest score;
-    ``policy()``: the current (params, mean, var) with a leading member axis, read only if needed."""
-    better = score < best["score"]
-    if not better.any():
-        return best
-    params, mean, var = policy()
+    @classmethod
+    def empty(cls, params, mean, var) -> BestCheckpoints:
+        """The record of members that have no best checkpoint yet (score inf); the arrays give the structure."""
+        n = np.shape(mean)[0]
+        return cls(params=params, mean=np.asarray(mean), var=np.asarray(var), score=np.full((n,), np.inf),
+                   env_steps=np.zeros((n,), np.int64))
 
-    def pick(old, new):
-        mask = better.reshape((-1,) + (1,) * (np.ndim(new) - 1))
-        return np.where(mask, np.asarray(new), np.asarray(old))
+    def update(self, score: np.ndarray, env_steps: int, policy: Callable[[], tuple]) -> BestCheckpoints:
+        """Keep, per member, the checkpoint with the lowest score; ``policy()``: the current (params, mean, var)
+        with a leading member axis, read only if a member improved."""
+        better = score < self.score
+        if not better.any():
+            return self
+        params, mean, var = policy()
 
-    return {"params": jax.tree.map(pick, best["params"], params), "mean": pick(best["mean"], mean),
-            "var": pick(best["var"], var), "score": np.where(better, score, best["score"]),
-            "env_steps": np.where(better, env_steps, best["env_steps"])}
+        def pick(old, new):
+            mask = better.reshape((-1,) + (1,) * (np.ndim(new) - 1))
+            return np.where(mask, np.asarray(new), np.asarray(old))
+
+        return BestCheckpoints(params=jax.tree.map(pick, self.params, params), mean=pick(self.mean, mean),
+                               var=pick(self.var, var), score=np.where(better, score, self.score),
+                               env_steps=np.where(better, env_steps, self.env_steps))
+
+    def state_dict(self) -> dict:
+        """What best.msgpack holds (``runs.checkpoint.save_best``)."""
+        return {"params": serialization.to_state_dict(jax.device_get(self.params)),
+                **{k: np.asarray(getattr(self, k)) for k in ("mean", "var", "score", "env_steps")}}
+
+    def restored(self, state: dict) -> BestCheckpoints:
+        """This record's structure filled with a loaded best.msgpack (``runs.checkpoint.load_best``)."""
+        return BestCheckpoints(params=serialization.from_state_dict(self.params, state["params"]),
+                               **{k: np.asarray(state[k]) for k in ("mean", "var", "score", "env_steps")})
 
 
 class Validation(enum.Enum):

@@ -34,6 +34,7 @@ import dataclasses
 import functools
 import math
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -73,7 +74,7 @@ def build(config: TrainConfig) -> tuple[algorithm.PPOConfig, learn_env.EnvParams
     ppo_config = algorithm.PPOConfig(num_seeds=config.run.seeds, hidden=config.algo.hidden(),
                                      **{f.name: algo[f.name] for f in dataclasses.fields(algorithm.PPOConfig)
                                         if f.name in algo})
-    algorithm.validate_config(ppo_config)
+    algorithm.check_ppo_config(ppo_config)
     env_params = config.env_params()
     check_devices(config, len(jax.devices()))
     check_memory(config)
@@ -127,6 +128,35 @@ def _certified(gains: np.ndarray, candidate: np.ndarray, config: TrainConfig) ->
                      for g, c in zip(np.asarray(gains), np.asarray(candidate), strict=True)])
 
 
+@dataclass
+class Members:
+    """PPO's per-member bookkeeping, saved in the checkpoint's progress (``Progress.own``), so that a resumed
+    run stops and restarts exactly where an uninterrupted one would: per member, the consecutive evaluations
+    meeting the stop rule (``streak``), the env steps at its (re)start and whether it has met the rule since
+    (``start_steps``, ``met``); the restarts (one ``{"env_steps", "members"}`` entry each) and the member that
+    stopped the run."""
+
+    streak: list[int]
+    start_steps: list[int]
+    met: list[bool]
+    restarts: list[dict] = field(default_factory=list)
+    stop_member: int | None = None
+
+    @classmethod
+    def of(cls, own: dict, n: int) -> Members:
+        """The record saved in ``own`` (a checkpoint's progress), or a fresh one for ``n`` members."""
+        return cls(streak=list(own.get("member_streak", [0] * n)),
+                   start_steps=list(own.get("member_start_steps", [0] * n)),
+                   met=list(own.get("member_met", [False] * n)), restarts=list(own.get("restarts", [])),
+                   stop_member=own.get("stop_member"))
+
+    def to_own(self) -> dict:
+        """The record as saved (``streak``: the longest streak)."""
+        return {"member_streak": self.streak, "streak": max(self.streak), "member_start_steps": self.start_steps,
+                "member_met": self.met, "restarts": self.restarts,
+                **({} if self.stop_member is None else {"stop_member": self.stop_member})}
+
+
 class PPOTraining:
     """PPO's hooks for ``runs.loop`` (``runs.loop.Algorithm``)."""
 
@@ -141,11 +171,11 @@ class PPOTraining:
         self.total, self.checkpoint_every = run.total_steps, run.checkpoint_every
         self.init, self.train_chunk = algorithm.make_train(ppo_config, env_params, env=learn_env.TrafficEnv)
         self.evaluate = make_evaluator(ppo_config, env_params, max(1, round(run.eval_horizon_s / config.plant.dt)))
-        self.validate = None
+        self.suite = None
         if run.val_horizon_s > 0:
             val_steps = 2 * max(1, round(run.val_horizon_s / config.plant.dt / 2))
             judge = TrafficParams.reference() if run.val_plant == "reference" else None
-            self.validate = selection.make_validator(env_params.traffic, val_steps,
+            self.suite = selection.make_suite(env_params.traffic, val_steps,
                                                      selection.validation_delays(env_params), plant=judge)
         self.steps_per_chunk = ppo_config.steps_per_update * ppo_config.updates_per_chunk
         self.last_eval: dict = {}
@@ -158,7 +188,7 @@ class PPOTraining:
         self.say = say
         self.runner = self.init(jax.random.PRNGKey(self.config.run.seed))
         self.rep = members.replicated(self.runner)  # the shared leaves on this process (a collective)
-        self.best = selection.new_best(*self._policy())
+        self.best = selection.BestCheckpoints.empty(*self._policy())
         self.progress = Progress("env_steps", MILESTONES)
         if saved is not None:
             state, meta = saved
@@ -170,9 +200,10 @@ class PPOTraining:
             self.rep = members.replicated(self.runner)
             saved_best = ckpt.load_best(self.run_dir)
             if saved_best is not None:
-                self.best = ckpt.restore_best(self.best, saved_best)
+                self.best = self.best.restored(saved_best)
             if self.config.run.keep_going:
                 self.progress.stopped = False
+        self.members = Members.of(self.progress.own, self.ppo_config.num_seeds)
         self.best_saved = self.best
         c, run = self.ppo_config, self.config.run
         return (f"training PPO: {c.num_envs} envs x {c.num_steps} steps/update, {c.updates_per_chunk} updates/chunk,"
@@ -187,10 +218,10 @@ class PPOTraining:
         candidate = paper & (True if run.min_wave_speed is None else ev["wave_speed"] >= run.min_wave_speed)
         if run.require_certificate:
             candidate = candidate & _certified(ev["equilibrium_gains"], candidate, self.config)
-        score = selection.scores(reward, candidate, self.validate, functools.partial(
+        score = selection.scores(reward, candidate, self.suite, functools.partial(
             member_controller, self.ppo_config, self.env_params, self.rep.params, self.rep.stats.mean,
             self.rep.stats.var))
-        ok = candidate & ((score <= run.val_target) if self.validate is not None else True)
+        ok = candidate & ((score <= run.val_target) if self.suite is not None else True)
         return paper, ok, score
 
     def chunk(self, clock: Clock) -> tuple[dict, str]:
@@ -205,20 +236,21 @@ class PPOTraining:
         ev = self.last_eval = self.evaluate(self.runner)
         prog.env_steps += self.steps_per_chunk
         paper, ok, score = self._judge(ev)
-        self.best = selection.update_best(self.best, score, prog.env_steps, self._policy)
+        self.best = self.best.update(score, prog.env_steps, self._policy)
         prog.wall_s = clock.wall()
         row = self._row(m, ev, score)
         prog.rows.append(row)
         prog.mark("paper_rule", bool(paper.any()))
         prog.mark("stop_rule", bool(ok.any()))
         # per member: consecutive evaluations meeting the rule; a population stops on its first member
-        streak = np.where(ok, np.asarray(prog.own.get("member_streak", [0] * self.ppo_config.num_seeds)) + 1, 0)
-        prog.own["member_streak"], prog.own["streak"] = streak.tolist(), int(streak.max())
-        if prog.own["streak"] >= run.stop_patience and not run.keep_going:
+        streak = np.where(ok, np.asarray(self.members.streak) + 1, 0)
+        self.members.streak = streak.tolist()
+        if int(streak.max()) >= run.stop_patience and not run.keep_going:
             prog.stopped = True
-            prog.own["stop_member"] = int(np.argmax(streak))
+            self.members.stop_member = int(np.argmax(streak))
         self.runner = self._maybe_restart(ok)
-        row["restarts"] = len(prog.own.get("restarts", []))
+        row["restarts"] = len(self.members.restarts)
+        prog.own = self.members.to_own()
         rate = clock.rate(prog.env_steps)
         eta = max(0, run.total_steps - prog.env_steps) / rate if rate > 0 else math.nan
         rate_txt = f"{rate:8.0f}" if math.isfinite(rate) else "       ?"
@@ -238,7 +270,7 @@ class PPOTraining:
                "eval_reward_max": float(reward.max()), "eval_J_comfort": float(ev["J_comfort"].mean()),
                "eval_rho_L2_veh_km": float(ev["final_rho_L2"].mean()) * VEH_PER_KM,
                "eval_wave_speed": float(ev["wave_speed"].mean()),
-               "val_score": float(np.min(score)), "best_val_score": float(np.min(self.best["score"]))}
+               "val_score": float(np.min(score)), "best_val_score": float(np.min(self.best.score))}
         row.update({k: float(m[k][:, -1].mean()) for k in ("eta1", "eta2", "eta3", "entropy", "approx_kl",
                                                            "value_loss")})
         return row
@@ -246,13 +278,10 @@ class PPOTraining:
     def _maybe_restart(self, ok: np.ndarray):
         """Random restarts: re-initialise every member that has not met the stop rule (``ok``) within
         ``run.restart_steps`` env steps of its (re)start, from the key ``fold_in(seed key, restart number)``; the
-        best checkpoints are kept. Bookkeeping in ``progress.own`` (saved with the checkpoint, so a resumed run
-        restarts exactly where an uninterrupted one would): ``member_start_steps``, ``member_met``, ``restarts``
-        (one ``{"env_steps", "members"}`` entry per restart)."""
-        prog, run, own = self.progress, self.config.run, self.progress.own
-        n = ok.shape[0]
-        start = np.asarray(own.get("member_start_steps", [0] * n))
-        met = np.asarray(own.get("member_met", [False] * n)) | ok
+        best checkpoints are kept. Bookkeeping in ``self.members`` (``Members``: saved with the checkpoint)."""
+        prog, run, own = self.progress, self.config.run, self.members
+        start = np.asarray(own.start_steps)
+        met = np.asarray(own.met) | ok
         due = (~met) & (prog.env_steps - start >= run.restart_steps)
         stopped = prog.stopped
         if run.restart_steps and not run.keep_going:  # process 0's decision on every process (a collective)
@@ -260,13 +289,13 @@ class PPOTraining:
             due, stopped = votes[:-1].astype(bool), bool(votes[-1])
         if (not run.restart_steps or run.keep_going or stopped or prog.env_steps >= run.total_steps
                 or not due.any()):
-            own["member_start_steps"], own["member_met"] = start.tolist(), met.tolist()
+            own.start_steps, own.met = start.tolist(), met.tolist()
             return self.runner
-        restarts = own.setdefault("restarts", [])
+        restarts = own.restarts
         restarts.append({"env_steps": prog.env_steps, "members": np.flatnonzero(due).tolist()})
         fresh = self.init(jax.random.fold_in(jax.random.PRNGKey(run.seed), len(restarts)))
-        own["member_start_steps"] = np.where(due, prog.env_steps, start).tolist()
-        own["member_met"] = np.where(due, False, met).tolist()
+        own.start_steps = np.where(due, prog.env_steps, start).tolist()
+        own.met = np.where(due, False, met).tolist()
         self.say(f"restart {len(restarts)}: member(s) {restarts[-1]['members']} re-initialised (stop rule not met "
                  f"within {run.restart_steps} env steps of their start; best checkpoints kept)")
         return members.restart_members(self.runner, fresh, due)
@@ -278,27 +307,27 @@ class PPOTraining:
         host = distributed.to_host(runner)  # gathered on every process: a collective
         if writer:
             ckpt.save_checkpoint(run_dir, host, meta)
-            ckpt.save_best(run_dir, self.best, meta.get(ckpt.PROBLEM))
+            ckpt.save_best(run_dir, self.best.state_dict(), meta.get(ckpt.PROBLEM))
         self.best_saved = self.best
 
     def saved_best(self, run_dir: Path, writer: bool) -> None:
         if writer and self.best_saved is not self.best:
-            ckpt.save_best(run_dir, self.best, ckpt.problem_of(self.config))
+            ckpt.save_best(run_dir, self.best.state_dict(), ckpt.problem_of(self.config))
         self.best_saved = self.best
 
     def finish(self, interrupted: bool, run_dir: Path, writer: bool) -> str:
         prog, run, best = self.progress, self.config.run, self.best
         ev = self.last_eval or self.evaluate(self.runner)
-        best_member = int(np.argmin(best["score"]))
+        best_member = int(np.argmin(best.score))
         summary = {
             **summary_base(prog, interrupted, run.eval_horizon_s),
             "min_wave_speed": run.min_wave_speed, "stop_rule_reached": prog.seconds_to("stop_rule") is not None,
             "stopped": bool(prog.stopped), "target_reward": run.target_reward, "best_seed": best_member,
-            "best_val_score": best["score"], "best_env_steps": best["env_steps"],
-            "restarts": prog.own.get("restarts", []),
-            "validation": None if self.validate is None else {
+            "best_val_score": best.score, "best_env_steps": best.env_steps,
+            "restarts": self.members.restarts,
+            "validation": None if self.suite is None else {
                 "delays": selection.validation_delays(self.env_params), "plant": run.val_plant,
-                "horizon_s": run.val_horizon_s, "target": run.val_target, "reference": self.validate.reference},
+                "horizon_s": run.val_horizon_s, "target": run.val_target, "reference": self.suite.reference},
             "final_eval": dict(ev)}
         if writer:
             write_json(run_dir / ckpt.SUMMARY, summary)  # load_policy reads best_seed from it
@@ -308,7 +337,7 @@ class PPOTraining:
         rule = f"first reached after {sec:.1f} s" if sec is not None else "not reached"
         return (f"done: {prog.env_steps} env steps in {prog.wall_s:.1f} s; eval reward per seed "
                 f"{np.round(ev['final_reward'], 4)}; stop rule {rule}; best checkpoint: member {best_member}, score "
-                f"{best['score'][best_member]:.3g} at {best['env_steps'][best_member]} env steps; outputs in {run_dir}")
+                f"{best.score[best_member]:.3g} at {best.env_steps[best_member]} env steps; outputs in {run_dir}")
 
 
 def config_file(config: TrainConfig, env_params: learn_env.EnvParams) -> dict:

@@ -121,12 +121,11 @@ def check_problem(config: TrainConfig, stored: Any, path: Path) -> None:
                          "(config.json edited after training, or taken from another run)")
 
 
-def save_best(run_dir: str | Path, best: dict, problem: str | None = None) -> None:
-    """Write the per-member best checkpoints (params, obs mean/var, score, env_steps) atomically, with the
-    trained problem (``problem_of``)."""
-    state = {"params": serialization.to_state_dict(jax.device_get(best["params"])),
-             **{k: np.asarray(best[k]) for k in _BEST_ARRAYS}, **({PROBLEM: problem} if problem else {})}
-    _write_checked(Path(run_dir) / BEST, state)
+def save_best(run_dir: str | Path, state: dict, problem: str | None = None) -> None:
+    """Write the per-member best checkpoints (``state``: a state dict with params, obs mean/var, score,
+    env_steps; ``ppo.selection.BestCheckpoints.state_dict``) atomically, with the trained problem
+    (``problem_of``)."""
+    _write_checked(Path(run_dir) / BEST, {**state, **({PROBLEM: problem} if problem else {})})
 
 
 def load_best(run_dir: str | Path) -> dict | None:
@@ -139,12 +138,6 @@ def load_best(run_dir: str | Path) -> dict | None:
             and all(k in state for k in _BEST_ARRAYS)):
         raise _broken(path, "not a best-checkpoint file (no params, statistics and scores)")
     return state
-
-
-def restore_best(template: dict, state: dict) -> dict:
-    """Fill ``template`` (a best-checkpoint dict of the right structure) with a loaded state dict."""
-    return {"params": serialization.from_state_dict(template["params"], state["params"]),
-            **{k: np.asarray(state[k]) for k in _BEST_ARRAYS}}
 
 
 def restore_runner(template: Any, state: dict, path: str | Path = CHECKPOINT) -> Any:

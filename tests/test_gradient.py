@@ -12,7 +12,7 @@ import pytest
 from conftest import SMALL
 
 from jaxtraffic import TrafficParams, simulate
-from jaxtraffic.cli.train import settings_from_args
+from jaxtraffic.cli.train import config_from_args
 from jaxtraffic.learn import load_policy
 from jaxtraffic.learn.config import TrainConfig
 from jaxtraffic.learn.gradient import objective
@@ -71,18 +71,18 @@ def test_a_few_steps_lower_the_objective():
 
 @pytest.mark.slow
 def test_network_run_lowers_objective_round_trips_and_resumes_exactly(tmp_path):
-    tc = TrainConfig.from_flat(algo="gradient", policy="network", out_dir=str(tmp_path / "a"), delay=2.0,
+    config = TrainConfig.from_flat(algo="gradient", policy="network", out_dir=str(tmp_path / "a"), delay=2.0,
                                n_points=SMALL["n_points"], dt=SMALL["dt"], train_delays=(2.0,), train_horizon_s=30.0,
                                steps_per_chunk=2, grad_steps=4, eval_horizon_s=30.0, quiet=True)
-    train_gradient(tc)
+    train_gradient(config)
     for name in ("config.json", "checkpoint.msgpack", "learning_curve.csv", "learning_curve.png", "summary.json"):
         assert (tmp_path / "a" / name).exists(), name
-    ctrl, config = load_policy(tmp_path / "a")
-    assert config == tc
+    ctrl, loaded = load_policy(tmp_path / "a")
+    assert loaded == config
     summary = json.loads((tmp_path / "a" / "summary.json").read_text())
     assert summary["provenance"]["versions"]["jax"] == jax.__version__ and summary["updates"] == 4
     # the same 4 steps in process: the loaded controller acts exactly like the trained parameters
-    cfg, plant = gradient_setup(tc)
+    cfg, plant = gradient_setup(config)
     init, chunk = objective.make_train(cfg, plant)
     state, m1 = chunk(init(jax.random.PRNGKey(0)))
     state, m2 = chunk(state)
@@ -94,19 +94,19 @@ def test_network_run_lowers_objective_round_trips_and_resumes_exactly(tmp_path):
 
     np.testing.assert_array_equal(actions(ctrl), actions(objective.make_controller(state.theta, cfg, plant)))
     # 2 steps, then --resume to 4: the same policy as 4 steps in one go
-    half = tc.replace(out_dir=str(tmp_path / "b"), grad_steps=2)
+    half = config.replace(out_dir=str(tmp_path / "b"), grad_steps=2)
     train_gradient(half)
     train_gradient(half.replace(grad_steps=4, resume=True))
     np.testing.assert_array_equal(actions(load_policy(tmp_path / "b")[0]), actions(ctrl))
 
 
 def test_train_cli_gradient_defaults_come_from_the_library():
-    tc = settings_from_args(["--algo", "gradient", "--policy", "network"])
-    cfg, _ = gradient_setup(tc)
-    assert tc.run.out_dir == "runs/gradient-network"
+    config = config_from_args(["--algo", "gradient", "--policy", "network"])
+    cfg, _ = gradient_setup(config)
+    assert config.run.out_dir == "runs/gradient-network"
     assert cfg == objective.GradientConfig.for_policy("network")
-    assert gradient_setup(settings_from_args(["--algo", "gradient"]))[0] == objective.GradientConfig()
+    assert gradient_setup(config_from_args(["--algo", "gradient"]))[0] == objective.GradientConfig()
     # the gain bound is the gradient trainer's own (PPO's --gain-max, per gain, does not apply)
-    per_gain = settings_from_args(["--algo", "gradient", "--gain-max", "1,2,2"])
+    per_gain = config_from_args(["--algo", "gradient", "--gain-max", "1,2,2"])
     assert gradient_setup(per_gain)[0] == objective.GradientConfig()
-    assert gradient_setup(settings_from_args(["--algo", "gradient", "--grad-gain-max", "2"]))[0].grad_gain_max == 2.0
+    assert gradient_setup(config_from_args(["--algo", "gradient", "--grad-gain-max", "2"]))[0].grad_gain_max == 2.0

@@ -597,10 +597,10 @@ def test_resume_keeps_the_saved_run_control_and_refuses_other_changes(ref_run):
     saved = load_config(ref_run)
     cfg = saved.replace(lr=0.5, seeds=3, total_steps=7 * CHUNK, out_dir=str(ref_run), resume=True)
     with pytest.raises(ValueError, match=r"would change it: --lr 0.5 \(the run's value: 0.001\), --seeds 3"):
-        train_cli.resume_settings(cfg, {"lr": 0.5, "seeds": 3, "total_steps": 7 * CHUNK, "n_points": 21})
+        train_cli.resumed_config(cfg, {"lr": 0.5, "seeds": 3, "total_steps": 7 * CHUNK, "n_points": 21})
     # an equal value is no change; a run-control flag applies; one not given keeps the run's saved value
     default = TrainConfig().replace(out_dir=str(ref_run), resume=True, total_steps=7 * CHUNK, n_points=21)
-    merged = train_cli.resume_settings(default, {"total_steps": 7 * CHUNK, "n_points": 21, "resume": True})
+    merged = train_cli.resumed_config(default, {"total_steps": 7 * CHUNK, "n_points": 21, "resume": True})
     assert merged.run.total_steps == 7 * CHUNK and merged.run.resume and merged.run.out_dir == str(ref_run)
     assert merged.run.keep_going == saved.run.keep_going and merged.run.max_wall_s == saved.run.max_wall_s
     assert merged.replace(total_steps=saved.run.total_steps, resume=False) == saved.replace(out_dir=str(ref_run))

@@ -11,7 +11,7 @@ from conftest import SMALL
 from extras import available
 
 from jaxtraffic import TrafficParams, equilibrium, paper_initial_condition, simulate, simulate_batch, stack_params
-from jaxtraffic.cli.train import settings_from_args
+from jaxtraffic.cli.train import config_from_args
 from jaxtraffic.control import backstepping, constant_gains, schedule_gains, scheduled_gains, takes_delay, tell_delay
 from jaxtraffic.learn.gradient import objective
 from jaxtraffic.learn.gradient.policy import gradient_setup
@@ -103,9 +103,9 @@ def test_schedule_gradient_matches_central_differences_and_stays_on_its_knots(x6
 
 
 def test_default_training_plants_are_held_out_from_both_maps():
-    tc = settings_from_args(["--algo", "gradient", "--policy", "schedule"])
-    cfg, _ = gradient_setup(tc)
-    assert cfg == objective.GradientConfig.for_policy("schedule") and tc.run.out_dir == "runs/gradient-schedule"
+    config = config_from_args(["--algo", "gradient", "--policy", "schedule"])
+    cfg, _ = gradient_setup(config)
+    assert cfg == objective.GradientConfig.for_policy("schedule") and config.run.out_dir == "runs/gradient-schedule"
     dt = float(TrafficParams().dt)
     maps = {"paper": (robust_axis(17, 0.0, 8.0, dt), robust_axis(12, 0.05, 0.6)),
             "reference": (robust_axis(9, 0.0, 8.0, dt), robust_axis(6, 0.05, 0.6))}
@@ -121,14 +121,14 @@ def test_a_schedule_run_trains_saves_and_loads(tmp_path):
     from jaxtraffic.learn import load_policy
 
     out = tmp_path / "s"
-    tc = settings_from_args(["--algo", "gradient", "--policy", "schedule", "--out-dir", str(out), "--quiet",
+    config = config_from_args(["--algo", "gradient", "--policy", "schedule", "--out-dir", str(out), "--quiet",
                              "--n-points", "21", "--train-delays", "2,6", "--train-alphas", "0.15",
                              "--train-horizon-s", "10", "--grad-steps", "5", "--eval-horizon-s", "10",
                              *(["--tensorboard", str(tmp_path / "tb")] if available("tensorboardX") else [])])
     from jaxtraffic.learn.gradient.trainer import train_gradient
 
-    train_gradient(tc)
-    if tc.run.tensorboard:  # the gradient trainer writes its curve's rows as TensorBoard scalars too
+    train_gradient(config)
+    if config.run.tensorboard:  # the gradient trainer writes its curve's rows as TensorBoard scalars too
         events = list((tmp_path / "tb").glob("events.out.tfevents.*"))
         assert len(events) == 1 and b"train/objective" in events[0].read_bytes()
     ctrl, config = load_policy(out)

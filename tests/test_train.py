@@ -281,8 +281,8 @@ def test_diverge_penalty_flag_reaches_the_environment():
     """--diverge-penalty sets EnvParams.diverge_penalty (the reward of a diverging step); default 100."""
     from jaxtraffic.learn.ppo.trainer import build
 
-    assert float(build(train_cli.settings_from_args([]))[1].diverge_penalty) == 100.0
-    assert float(build(train_cli.settings_from_args(["--diverge-penalty", "2e4"]))[1].diverge_penalty) == 2e4
+    assert float(build(train_cli.config_from_args([]))[1].diverge_penalty) == 100.0
+    assert float(build(train_cli.config_from_args(["--diverge-penalty", "2e4"]))[1].diverge_penalty) == 2e4
 
 
 def test_cli_invalid_value_from_the_shell(tmp_path):

@@ -82,7 +82,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def settings_from_args(argv: list[str] | None = None) -> TrainConfig:
+def config_from_args(argv: list[str] | None = None) -> TrainConfig:
     """The training configuration the flags ``argv`` (default: the command line's) describe."""
     return _config(build_parser().parse_args(argv))
 
@@ -105,7 +105,7 @@ def explicit_flags(argv: list[str] | None = None) -> dict:
     return vars(p.parse_args(argv))
 
 
-def resume_settings(config: TrainConfig, given: dict) -> TrainConfig:
+def resumed_config(config: TrainConfig, given: dict) -> TrainConfig:
     """On --resume: the run's saved configuration, with the run-control flags given on the command line
     (``config.RUN_CONTROL``; for the gradient trainer also --grad-steps) applied, and recorded in the
     run's config.json; a flag that would change the trained problem is an error."""
@@ -134,7 +134,7 @@ def main(argv: list[str] | None = None) -> Path:
         given = explicit_flags(argv)
         if config.run.resume:
             check_resumable(Path(config.run.out_dir))
-            config = resume_settings(config, given)
+            config = resumed_config(config, given)
         check_flags_apply(config.run.algo, given)  # (on resume: the run's algorithm)
         return train_gradient(config) if config.run.algo == "gradient" else train(config)
     except TrainingInterrupted as exc:  # the trainer has said what is saved

@@ -65,9 +65,8 @@ def evaluation(ctrl: Controller, plant: TrafficParams, n_steps: int, gains: Any 
 
 def policy_evaluation(theta: Any, grad_config: GradientConfig, plant: TrafficParams, n_steps: int) -> dict:
     """``evaluation`` of the controller of ``theta`` acting on ``plant``."""
-    n = grad_config.controller_points or plant.n_points
-    own = (objective.own_controller(theta, grad_config, n, objective.ROAD_LENGTH / (n - 1), plant.delay),
-           plant.replace(n_points=n, substeps=1))
+    own = (own_grid_controller(theta, grad_config, plant, plant.delay),
+           plant.replace(n_points=grad_config.controller_points or plant.n_points, substeps=1))
     return evaluation(objective.make_controller(theta, grad_config, plant), plant, n_steps,
                       objective.fixed_gains(theta, grad_config, plant.delay), own)
 

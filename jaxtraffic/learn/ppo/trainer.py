@@ -151,8 +151,8 @@ class Members:
                    stop_member=own.get("stop_member"))
 
     def to_own(self) -> dict:
-        """The record as saved (``streak``: the longest streak)."""
-        return {"member_streak": self.streak, "streak": max(self.streak), "member_start_steps": self.start_steps,
+        """The record as saved."""
+        return {"member_streak": self.streak, "member_start_steps": self.start_steps,
                 "member_met": self.met, "restarts": self.restarts,
                 **({} if self.stop_member is None else {"stop_member": self.stop_member})}
 
@@ -191,8 +191,7 @@ class PPOTraining:
         self.best = selection.BestCheckpoints.empty(*self._policy())
         self.progress = Progress("env_steps", MILESTONES)
         if saved is not None:
-            state, meta = saved
-            ckpt.check_device_count(state, len(jax.devices()), self.run_dir / ckpt.CHECKPOINT)
+            state, meta = saved  # (its device count was checked by ``train``)
             self.progress = Progress.from_meta(meta, "env_steps", MILESTONES)
             # every leaf placed like the fresh runner's (sharded over the mesh): uncommitted arrays would recompile
             restored = ckpt.restore_runner(self.runner, state, self.run_dir / ckpt.CHECKPOINT)

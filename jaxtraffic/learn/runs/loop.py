@@ -102,9 +102,8 @@ class Progress:
             if key.startswith("seconds_to_") and value is not None:
                 name = key.removeprefix("seconds_to_")
                 prog.firsts[name] = (float(value), int(meta.get(prefix + name) or 0))
-        taken = {*_PLAIN, *prog.milestone_fields(), *(f"{x}_to_{m}" for m in prog.firsts for x in ("seconds", counter)),
-                 ckpt.PROBLEM}
-        prog.own = {k: v for k, v in meta.items() if k not in taken and not k.startswith(("seconds_to_", prefix))}
+        prog.own = {k: v for k, v in meta.items()
+                    if k not in (*_PLAIN, ckpt.PROBLEM) and not k.startswith(("seconds_to_", prefix))}
         return prog
 
 

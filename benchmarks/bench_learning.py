@@ -49,7 +49,7 @@ print(f"{cfg.n_scenarios} {int(hwm) / 1024:.0f} {t:.2f}")
 DELAY_SNIPPET = r"""
 import json, sys
 import jaxtraffic as jt
-from jaxtraffic.learn import load_policy
+from jaxtraffic.runs import load_policy
 c, _ = load_policy(sys.argv[1])
 out = {}
 for d in range(7):

@@ -90,7 +90,7 @@ def evaluate_run(run_dir: Path, ref: dict, judge: str = "paper") -> dict:
     """The checks (a)-(d) on the plant ``judge`` (the policy acting on its own grid); on the reference plant
     also (e): density L2 at 300 s and J_comfort within 10 % on the plant refined twice (no chattering)."""
     import jaxtraffic as jt
-    from jaxtraffic.learn import load_policy
+    from jaxtraffic.runs import load_policy
 
     p = plant_of(judge)
     ctrl, _ = load_policy(run_dir, plant=p)

@@ -31,9 +31,9 @@ import numpy as np  # noqa: E402
 from machine import cpu_model, load  # noqa: E402  (benchmarks/machine.py)
 
 from jaxtraffic.learn import ppo  # noqa: E402
-from jaxtraffic.learn.config import TrainConfig  # noqa: E402
 from jaxtraffic.learn.env import TrafficEnv  # noqa: E402
-from jaxtraffic.learn.ppo.trainer import build  # noqa: E402
+from jaxtraffic.runs.config import TrainConfig  # noqa: E402
+from jaxtraffic.runs.ppo.trainer import build  # noqa: E402
 
 
 def pmap_module(rev: str):

@@ -43,10 +43,10 @@ from machine import cpu_model, load  # noqa: E402  (benchmarks/machine.py)
 
 from jaxtraffic import backstepping, open_loop, simulate  # noqa: E402
 from jaxtraffic.learn import ppo  # noqa: E402
-from jaxtraffic.learn.config import TrainConfig  # noqa: E402
 from jaxtraffic.learn.env import TrafficEnv  # noqa: E402
-from jaxtraffic.learn.policy import load_policy  # noqa: E402
-from jaxtraffic.learn.ppo.trainer import build, make_evaluator  # noqa: E402
+from jaxtraffic.runs.config import TrainConfig  # noqa: E402
+from jaxtraffic.runs.policy import load_policy  # noqa: E402
+from jaxtraffic.runs.ppo.trainer import build, make_evaluator  # noqa: E402
 
 SIM_STEPS = 3000  # 300 s at dt = 0.1 s
 

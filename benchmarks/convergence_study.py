@@ -36,9 +36,9 @@ import numpy as np
 
 import jaxtraffic as jt
 from jaxtraffic.control.adapter import adapt, baseline_grid
-from jaxtraffic.files import atomic_write_text, write_json  # noqa: E402
-from jaxtraffic.learn.policy import load_policy, policy_grid
-from jaxtraffic.provenance import provenance
+from jaxtraffic.io.files import atomic_write_text, write_json  # noqa: E402
+from jaxtraffic.io.provenance import provenance
+from jaxtraffic.runs.policy import load_policy, policy_grid
 
 LEVELS = ((201, 1), (401, 1), (801, 2), (1601, 4), (3201, 8))  # the fewest solver steps the CFL bound allows
 METRICS = ("rho_L2_300", "rho_L2_600", "v_L2_300", "J_TTT", "J_fuel", "t_reward", "J_comfort", "J_comfort_a2",

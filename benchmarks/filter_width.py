@@ -19,7 +19,7 @@ from pathlib import Path
 import jaxtraffic as jt
 from jaxtraffic.cli import train as train_cli
 from jaxtraffic.control.adapter import adapt, baseline_grid
-from jaxtraffic.learn.policy import load_policy, policy_certificate, policy_grid
+from jaxtraffic.runs.policy import load_policy, policy_certificate, policy_grid
 
 
 def judge(ctrl, grid, plant: jt.TrafficParams) -> dict[str, float]:

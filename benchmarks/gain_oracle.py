@@ -27,7 +27,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import cpu_model, load  # noqa: E402  (benchmarks/machine.py)
 
 from jaxtraffic.control.gain_law import FILTER_SIGMA  # noqa: E402
-from jaxtraffic.files import write_json  # noqa: E402
+from jaxtraffic.io.files import write_json  # noqa: E402
+from jaxtraffic.io.provenance import provenance  # noqa: E402
 from jaxtraffic.paper.oracle import (  # noqa: E402
     DEFAULT_GRID,
     gain_grid_map,
@@ -36,7 +37,6 @@ from jaxtraffic.paper.oracle import (  # noqa: E402
     oracle_rows,
 )
 from jaxtraffic.paper.scenarios import EvalConfig, robust_axis  # noqa: E402
-from jaxtraffic.provenance import provenance  # noqa: E402
 
 MAPS = {"paper": (17, 12), "reference": (9, 6)}  # evaluate.py's default map sizes per plant
 

@@ -26,7 +26,7 @@ TINY = ["--n-points", "21", "--num-envs", "4", "--num-steps", "8", "--updates-pe
         "--max-delay-steps", "20", "--keep-going", "--quiet"]
 GRAD = ["--algo", "gradient", "--policy", "gains", "--n-points", "21", "--train-delays", "1", "--train-horizon-s",
         "2", "--steps-per-chunk", "1", "--eval-horizon-s", "2", "--quiet"]
-LOAD = ("import sys; from jaxtraffic.learn import load_policy\ntry:\n    load_policy('{run}')\n"
+LOAD = ("import sys; from jaxtraffic.runs import load_policy\ntry:\n    load_policy('{run}')\n"
         "except ValueError as e:\n    sys.exit(f'load_policy: {{e}}')")  # a library error: one line, exit 1
 SUMMARY = "import json; print('{key}', json.load(open('{run}/summary.json'))['{key}'])"
 TRACED = ("import jax, jax.numpy as jnp, jaxtraffic as jt; p = jt.TrafficParams(n_points=21, max_delay_steps=100); "
@@ -122,7 +122,7 @@ def cases(tmp: Path) -> list[tuple[str, str, list, dict, int, str]]:
                                                                    "--tensorboard", "D"] + r("s5")], {}, 2,
          "used by --algo ppo only"),
         ("4", "gradient with PPO's batch rule broken (--num-minibatches 7 in config)",
-         [["-c", "from jaxtraffic.learn.config import TrainConfig; TrainConfig.from_flat(algo='gradient', "
+         [["-c", "from jaxtraffic.runs.config import TrainConfig; TrainConfig.from_flat(algo='gradient', "
                  "num_minibatches=7); print('accepted')"]], {}, 0, "accepted"),
         ("5", "evaluate.py SIGINT during the robustness map", [T + ["--total-steps", "64"] + r("e"),
                                                                E + ["--run", str(tmp / "e"), "--out", str(tmp / "eo"),
@@ -172,7 +172,7 @@ def cases(tmp: Path) -> list[tuple[str, str, list, dict, int, str]]:
         ("7", "evaluate.py --run <gradient run> describes it", [
             [str(REPO / "train.py"), *GRAD, "--grad-steps", "1"] + r("gd"),
             ["-c", "import sys; sys.path.insert(0, '.'); from jaxtraffic.cli.evaluate import _describe; "
-                   f"from jaxtraffic.learn.config import load_config; print(_describe('{tmp / 'gd'}', "
+                   f"from jaxtraffic.runs.config import load_config; print(_describe('{tmp / 'gd'}', "
                    f"load_config('{tmp / 'gd'}'))['description'])"]], {}, 0, "gradient-trained gains"),
         ("8", "learning_curve.png a symlink to a file outside", [
             T + ["--total-steps", "64"] + r("sl"),

@@ -17,8 +17,8 @@ import argparse
 import itertools
 
 import jaxtraffic as jt
-from jaxtraffic.learn import load_policy
 from jaxtraffic.paper.scenarios import EvalConfig, run_robustness
+from jaxtraffic.runs import load_policy
 
 STD_MAX = 0.5e-3  # veh/m: the map's "stabilised" threshold
 

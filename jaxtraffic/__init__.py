@@ -18,7 +18,7 @@ Gymnasium: when gymnasium is installed, ``import jaxtraffic`` registers ``"jaxtr
 Devices: the batched entry points shard their batch over ``jax.devices()``. XLA shows a CPU host as
 one device; ``split_host_devices()``, called before any JAX computation, makes it one device per core
 (the command lines do this; ``import jaxtraffic`` changes nothing in your process; see
-``jaxtraffic._devices``).
+``jaxtraffic.platform.devices``).
 
 Public API (see README.md for a module map):
     TrafficParams, equilibrium                      -- parameters and equilibrium
@@ -30,7 +30,6 @@ Public API (see README.md for a module map):
     open_loop, lyapunov, backstepping, constant_gains, Controller, Observation -- controllers
 """
 
-from jaxtraffic._devices import split_host_devices
 from jaxtraffic._registration import register_gymnasium
 from jaxtraffic._version import __version__
 from jaxtraffic.control import (
@@ -44,6 +43,7 @@ from jaxtraffic.control import (
     saturate,
 )
 from jaxtraffic.model.params import TrafficParams, cfl_number, equilibrium, steps_for
+from jaxtraffic.platform.devices import split_host_devices
 from jaxtraffic.sim import (
     AlphaInput,
     Divergence,

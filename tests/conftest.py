@@ -29,7 +29,7 @@ import xla_flags
 os.environ.setdefault("JAXTRAFFIC_NO_DEVICE_SPLIT", "1")
 # cheaper compilation in the test process and its subprocesses (tests/xla_flags.py)
 xla_flags.apply()
-# The command-line jobs' persistent compilation cache (jaxtraffic.compile_cache) goes to a directory of
+# The command-line jobs' persistent compilation cache (jaxtraffic.platform.compile_cache) goes to a directory of
 # this session, never the user's ~/.cache; the suite's train.py / evaluate.py runs share it (.ci/run sets
 # one for both tiers).
 _WORKER = os.environ.get("PYTEST_XDIST_WORKER")  # "gw0", "gw1", ... in a pytest-xdist worker, else None

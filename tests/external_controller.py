@@ -5,9 +5,9 @@ elsewhere takes (``ecosystem.policy_as_controller``), on the run's grid. It must
 from __future__ import annotations
 
 from jaxtraffic.ecosystem import policy_as_controller
-from jaxtraffic.learn.policy import load_policy, policy_grid
-from jaxtraffic.learn.ppo.export import load_predict
-from jaxtraffic.learn.ppo.trainer import build
+from jaxtraffic.runs.policy import load_policy, policy_grid
+from jaxtraffic.runs.ppo.export import load_predict
+from jaxtraffic.runs.ppo.trainer import build
 
 
 def predict_controller(run_dir: str):

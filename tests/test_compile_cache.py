@@ -1,4 +1,4 @@
-"""The command-line jobs' persistent compilation cache (jaxtraffic.compile_cache).
+"""The command-line jobs' persistent compilation cache (jaxtraffic.platform.compile_cache).
 
 The rules that leave the cache off are checked in-process (they change nothing); enabling it changes
 jax's process-wide configuration, so that is checked in subprocesses: the first stores the program,
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import jax
 
-from jaxtraffic import compile_cache
+from jaxtraffic.platform import compile_cache
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -43,7 +43,7 @@ def test_left_off_or_to_the_user(tmp_path):
 
 _CHILD = textwrap.dedent("""
     import sys, jax, jax.numpy as jnp
-    from jaxtraffic import compile_cache
+    from jaxtraffic.platform import compile_cache
     hits = []
     jax.monitoring.register_event_listener(
         lambda name, **kw: hits.append(1) if name == "/jax/compilation_cache/cache_hits" else None)

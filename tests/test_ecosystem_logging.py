@@ -9,9 +9,9 @@ import csv
 import pytest
 from extras import available
 
-from jaxtraffic.learn.config import TrainConfig
-from jaxtraffic.learn.ppo.trainer import train
-from jaxtraffic.learn.runs.curve import CURVE_FIELDS
+from jaxtraffic.runs.config import TrainConfig
+from jaxtraffic.runs.curve import CURVE_FIELDS
+from jaxtraffic.runs.ppo.trainer import train
 
 TINY = {"n_points": 21, "delay": 0.5, "max_delay_steps": 20, "num_envs": 4, "num_steps": 8, "updates_per_chunk": 2,
         "update_epochs": 2, "num_minibatches": 2, "horizon_s": 3.0, "eval_horizon_s": 2.0, "val_horizon_s": 2.0,
@@ -54,7 +54,7 @@ def test_tensorboard_without_tensorboardx_is_a_clear_error(monkeypatch, tmp_path
         return real_import(name, *args, **kwargs)
 
     monkeypatch.setattr(builtins, "__import__", no_tbx)
-    from jaxtraffic.learn.runs.tensorboard import TensorBoardWriter
+    from jaxtraffic.runs.tensorboard import TensorBoardWriter
 
     with pytest.raises(ValueError, match=r"jaxtraffic\[tb\]"):
         TensorBoardWriter(tmp_path / "tb")

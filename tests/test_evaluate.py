@@ -118,7 +118,7 @@ def test_evaluate_end_to_end(tiny_run, tmp_path):
                 assert m[scenario]["ppo_predict"][key] == pytest.approx(m[scenario]["ppo"][key], rel=1e-3, abs=1e-8)
     assert "ppo_predict" in robust and "ppo_predict" in rel["refined"] and "| ppo_predict |" in report
     # the evaluated controllers themselves, loadable from the results
-    from jaxtraffic.learn import load_policy
+    from jaxtraffic.runs import load_policy
 
     assert {p.name for p in (out / "runs").iterdir()} == {"ppo", "grad_gains", "grad_robust"}
     load_policy(out / "runs" / "ppo")

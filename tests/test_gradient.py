@@ -13,11 +13,11 @@ from conftest import SMALL
 
 from jaxtraffic import TrafficParams, simulate
 from jaxtraffic.cli.train import config_from_args
-from jaxtraffic.learn import load_policy
-from jaxtraffic.learn.config import TrainConfig
 from jaxtraffic.learn.gradient import objective
-from jaxtraffic.learn.gradient.policy import gradient_setup
-from jaxtraffic.learn.gradient.trainer import train_gradient
+from jaxtraffic.runs import load_policy
+from jaxtraffic.runs.config import TrainConfig
+from jaxtraffic.runs.gradient.policy import gradient_setup
+from jaxtraffic.runs.gradient.trainer import train_gradient
 from jaxtraffic.sim import Record
 
 BASE = TrafficParams(delay=2.0, **SMALL)  # 41 nodes, dt = 0.5 s

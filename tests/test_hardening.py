@@ -28,15 +28,16 @@ from conftest import leaves_equal
 from tiny_runs import xla_env
 
 import jaxtraffic as jt
-from jaxtraffic import TrafficParams, files
+from jaxtraffic import TrafficParams
 from jaxtraffic.cli import evaluate as evaluate_cli
 from jaxtraffic.cli import train as train_cli
 from jaxtraffic.control import Controller, saturate
-from jaxtraffic.learn.config import TrainConfig, load_config
-from jaxtraffic.learn.config.checks import check_devices
-from jaxtraffic.learn.policy import load_policy
-from jaxtraffic.learn.runs import checkpoint as ckpt
-from jaxtraffic.learn.runs.session import StopSignals
+from jaxtraffic.io import files
+from jaxtraffic.runs import checkpoint as ckpt
+from jaxtraffic.runs.config import TrainConfig, load_config
+from jaxtraffic.runs.config.checks import check_devices
+from jaxtraffic.runs.policy import load_policy
+from jaxtraffic.runs.session import StopSignals
 from jaxtraffic.sim.outcome import Divergence
 
 REPO = Path(__file__).resolve().parents[1]

@@ -9,12 +9,12 @@ from pathlib import Path
 
 import pytest
 
-from jaxtraffic.files import write_json
-from jaxtraffic.learn.config import TrainConfig, config_json
-from jaxtraffic.learn.ppo.selection import BAD, UNVALIDATED, Validation, format_scores
-from jaxtraffic.learn.runs import checkpoint as ckpt
-from jaxtraffic.learn.runs.loop import Progress, prepare, run_training
-from jaxtraffic.learn.runs.session import TrainingInterrupted
+from jaxtraffic.io.files import write_json
+from jaxtraffic.runs import checkpoint as ckpt
+from jaxtraffic.runs.config import TrainConfig, config_json
+from jaxtraffic.runs.loop import Progress, prepare, run_training
+from jaxtraffic.runs.ppo.selection import BAD, UNVALIDATED, Validation, format_scores
+from jaxtraffic.runs.session import TrainingInterrupted
 
 
 class Counting:

@@ -1,4 +1,4 @@
-"""Multi-process PPO training (``jaxtraffic.distributed``): 2 processes on localhost (CPU, gloo, one
+"""Multi-process PPO training (``jaxtraffic.platform.distributed``): 2 processes on localhost (CPU, gloo, one
 device each) against one process with 2 devices, on a tiny problem.
 
 Each child runs ``train.py``'s ``main`` twice: a fresh run of 1 chunk, then ``--resume`` to 2 chunks
@@ -21,8 +21,8 @@ import numpy as np
 import pytest
 from tiny_runs import REPO, TINY, xla_env
 
-from jaxtraffic import distributed
-from jaxtraffic.learn.runs import checkpoint as ckpt
+from jaxtraffic.platform import distributed
+from jaxtraffic.runs import checkpoint as ckpt
 
 CHILD = r"""
 import json, sys

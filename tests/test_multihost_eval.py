@@ -1,4 +1,4 @@
-"""Multi-process gradient training and evaluation (``jaxtraffic.distributed``): 2 processes on
+"""Multi-process gradient training and evaluation (``jaxtraffic.platform.distributed``): 2 processes on
 localhost (CPU, gloo, one device each) against one process with 2 devices, on a tiny problem.
 
 Each child runs ``train.py --algo gradient`` (a network policy, 3 scenarios: an odd count, so the
@@ -24,7 +24,7 @@ import pytest
 from test_multihost import _finish, _free_port, _gloo
 from tiny_runs import REPO, xla_env
 
-from jaxtraffic.learn.runs import checkpoint as ckpt
+from jaxtraffic.runs import checkpoint as ckpt
 
 CHILD = r"""
 import json, sys

@@ -121,7 +121,7 @@ def test_robustness_map(tmp_path):
 
 def test_learning_curve_renamed_column(tmp_path):
     """``eval_rho_L2`` (veh/km) is now ``eval_rho_L2_veh_km``: older CSVs and resumed rows read as it."""
-    from jaxtraffic.learn.runs.curve import CURVE_FIELDS, read_learning_curve, write_curve
+    from jaxtraffic.runs.curve import CURVE_FIELDS, read_learning_curve, write_curve
 
     old = tmp_path / "old.csv"
     old.write_text("update,eval_rho_L2\n1,0.5\n")

@@ -6,7 +6,7 @@ import re
 
 import jax
 
-from jaxtraffic.provenance import code_version, describe, provenance
+from jaxtraffic.io.provenance import code_version, describe, provenance
 
 
 def test_provenance_names_the_commit_and_the_versions():
@@ -32,14 +32,15 @@ def test_installed_inside_another_git_repository_records_the_version_not_that_co
 
     user = tmp_path / "their-project"
     site = user / ".venv" / "lib" / "site-packages"
-    (site / "jaxtraffic").mkdir(parents=True)
-    for name in ("_version.py", "provenance.py"):
+    (site / "jaxtraffic" / "io").mkdir(parents=True)
+    for name in ("_version.py", "io/provenance.py"):
         shutil.copy(Path(jaxtraffic.__file__).parent / name, site / "jaxtraffic" / name)
-    (site / "jaxtraffic" / "__init__.py").write_text("")
+    for package in ("", "io/"):
+        (site / "jaxtraffic" / package / "__init__.py").write_text("")
     git = ["git", "-C", str(user), "-c", "user.name=u", "-c", "user.email=u@example.com"]
     subprocess.run([*git, "init", "-q"], check=True)
     subprocess.run([*git, "commit", "-q", "--allow-empty", "-m", "theirs"], check=True)
-    code = "import json; from jaxtraffic.provenance import code_version; print(json.dumps(code_version()))"
+    code = "import json; from jaxtraffic.io.provenance import code_version; print(json.dumps(code_version()))"
     out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=60,
                          env={"PATH": __import__("os").environ["PATH"], "PYTHONPATH": str(site)})
     assert out.returncode == 0, out.stderr

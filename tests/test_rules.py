@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 
 from jaxtraffic.learn import rules
-from jaxtraffic.learn.config import TrainConfig
-from jaxtraffic.learn.config.tree import SECTIONS, GradConfig
 from jaxtraffic.learn.env import make_env_params
 from jaxtraffic.learn.gradient.config import POLICY_DEFAULTS, GradientConfig
 from jaxtraffic.learn.gradient.objective import Weights, weights_of
-from jaxtraffic.learn.gradient.policy import gradient_setup
 from jaxtraffic.learn.ppo import PPOConfig, check_ppo_config
+from jaxtraffic.runs.config import TrainConfig
+from jaxtraffic.runs.config.tree import SECTIONS, GradConfig
+from jaxtraffic.runs.gradient.policy import gradient_setup
 
 # a value of each GradConfig field other than its default and every policy's default, valid for the gains policy
 GIVEN = {"grad_steps": 6, "grad_lr": 0.02, "train_delays": (1.0, 2.0), "train_alphas": (0.2, 0.3),

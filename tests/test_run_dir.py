@@ -11,9 +11,9 @@ import pytest
 from tiny_runs import TINY
 
 from jaxtraffic.cli import train as train_cli
-from jaxtraffic.learn.config import load_config
-from jaxtraffic.learn.runs import checkpoint as ckpt
-from jaxtraffic.learn.runs.session import NonFiniteTraining, RunLock, check_finite, claim_run_dir
+from jaxtraffic.runs import checkpoint as ckpt
+from jaxtraffic.runs.config import load_config
+from jaxtraffic.runs.session import NonFiniteTraining, RunLock, check_finite, claim_run_dir
 
 GRAD = ["--algo", "gradient", "--policy", "gains", "--n-points", "21", "--train-delays", "1",
         "--train-horizon-s", "2", "--steps-per-chunk", "1", "--eval-horizon-s", "2", "--quiet"]
@@ -90,7 +90,7 @@ def test_cli_run_directory_ownership_and_resume_keeps_the_saved_run_control(tmp_
 def test_config_and_checkpoint_are_bound_together(tiny_run_a, tmp_path):
     import shutil
 
-    from jaxtraffic.learn import load_policy
+    from jaxtraffic.runs import load_policy
 
     run = tmp_path / "a"
     shutil.copytree(tiny_run_a, run)
@@ -113,7 +113,7 @@ def test_config_and_checkpoint_are_bound_together(tiny_run_a, tmp_path):
 def test_symlinks_in_a_run_directory_are_replaced_not_followed(tmp_path):
     import os
 
-    from jaxtraffic.learn.runs.curve import append_curve, plot_learning_curve, write_curve
+    from jaxtraffic.runs.curve import append_curve, plot_learning_curve, write_curve
 
     outside = tmp_path / "precious.txt"
     outside.write_text("keep")
@@ -134,7 +134,7 @@ def test_symlinks_in_a_run_directory_are_replaced_not_followed(tmp_path):
 
 
 def test_a_compilation_cache_others_can_write_is_not_used(tmp_path, capsys):
-    from jaxtraffic import compile_cache
+    from jaxtraffic.platform import compile_cache
 
     shared = tmp_path / "cache"
     shared.mkdir()
@@ -232,7 +232,7 @@ def test_gradient_scenarios_the_plant_cannot_represent_and_flags_of_the_other_al
 
 
 def test_ppo_rules_do_not_block_a_gradient_run_and_gradient_flags_do_not_pass_for_ppo(tmp_path, capsys):
-    from jaxtraffic.learn.config import TrainConfig
+    from jaxtraffic.runs.config import TrainConfig
 
     TrainConfig.from_flat(algo="gradient", num_minibatches=7)  # PPO's batch rule does not apply
     code, err = _main([*TINY, "--out-dir", str(tmp_path / "p"), "--grad-steps", "3"], capsys)
@@ -242,8 +242,8 @@ def test_ppo_rules_do_not_block_a_gradient_run_and_gradient_flags_do_not_pass_fo
 
 
 def test_sizes_and_horizons_beyond_what_can_run_are_flag_errors(tmp_path, capsys):
-    from jaxtraffic.learn.config import TrainConfig
-    from jaxtraffic.learn.config.checks import check_memory
+    from jaxtraffic.runs.config import TrainConfig
+    from jaxtraffic.runs.config.checks import check_memory
 
     for flags, match in ((["--horizon-s", "1e30"], "horizon_s = 1e+30 (--horizon-s): must be at most 1e+08 time steps"),
                          (["--max-delay-steps", "2147483648"], "(--max-delay-steps): must lie in [0, 1000000]"),

@@ -14,8 +14,8 @@ from jaxtraffic import TrafficParams, equilibrium, paper_initial_condition, simu
 from jaxtraffic.cli.train import config_from_args
 from jaxtraffic.control import backstepping, constant_gains, schedule_gains, scheduled_gains, takes_delay, tell_delay
 from jaxtraffic.learn.gradient import objective
-from jaxtraffic.learn.gradient.policy import gradient_setup
 from jaxtraffic.paper.scenarios import EvalConfig, robust_axis, run_robustness
+from jaxtraffic.runs.gradient.policy import gradient_setup
 from jaxtraffic.sim import Record
 
 KNOTS = (0.0, 4.0, 8.0)
@@ -118,14 +118,14 @@ def test_default_training_plants_are_held_out_from_both_maps():
 
 
 def test_a_schedule_run_trains_saves_and_loads(tmp_path):
-    from jaxtraffic.learn import load_policy
+    from jaxtraffic.runs import load_policy
 
     out = tmp_path / "s"
     config = config_from_args(["--algo", "gradient", "--policy", "schedule", "--out-dir", str(out), "--quiet",
                              "--n-points", "21", "--train-delays", "2,6", "--train-alphas", "0.15",
                              "--train-horizon-s", "10", "--grad-steps", "5", "--eval-horizon-s", "10",
                              *(["--tensorboard", str(tmp_path / "tb")] if available("tensorboardX") else [])])
-    from jaxtraffic.learn.gradient.trainer import train_gradient
+    from jaxtraffic.runs.gradient.trainer import train_gradient
 
     train_gradient(config)
     if config.run.tensorboard:  # the gradient trainer writes its curve's rows as TensorBoard scalars too

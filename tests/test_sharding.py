@@ -1,4 +1,4 @@
-"""Devices: the default split of the host into one XLA device per core (``jaxtraffic._devices``) and
+"""Devices: the default split of the host into one XLA device per core (``jaxtraffic.platform.devices``) and
 batches sharded over the devices (``sim.sharding``): results independent of the device count."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxtraffic import _devices
+from jaxtraffic.platform import devices as _devices
 
 REPO = Path(__file__).resolve().parents[1]
 

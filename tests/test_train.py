@@ -1,4 +1,4 @@
-"""The training loop and CLI (train.py, jaxtraffic/learn/ppo/trainer.py), checkpoints and policy loading,
+"""The training loop and CLI (train.py, jaxtraffic/runs/ppo/trainer.py), checkpoints and policy loading,
 on a tiny problem (21 nodes, 4 environments x 8 steps, 2 updates per chunk).
 
 The training runs are the suite's one tiny training session (``tiny_runs.py``, started once per
@@ -25,10 +25,10 @@ from conftest import leaves_equal
 from tiny_runs import CHUNK, REPO, RUNS, TINY
 
 from jaxtraffic.cli import train as train_cli
-from jaxtraffic.learn.config import TrainConfig, load_config
-from jaxtraffic.learn.policy import load_policy
-from jaxtraffic.learn.runs import checkpoint as ckpt
-from jaxtraffic.learn.runs.curve import CURVE_FIELDS
+from jaxtraffic.runs import checkpoint as ckpt
+from jaxtraffic.runs.config import TrainConfig, load_config
+from jaxtraffic.runs.curve import CURVE_FIELDS
+from jaxtraffic.runs.policy import load_policy
 
 SUMMARY_KEYS = {"env_steps", "wall_s", "seconds_to_stop_rule", "env_steps_to_stop_rule", "stop_rule_reached",
                 "target_reward", "interrupted", "best_seed", "final_eval", "eval_horizon_s", "seconds_to_paper_rule",
@@ -279,7 +279,7 @@ def test_cli_invalid_values_exit_2(argv, match, tmp_path, capsys):
 
 def test_diverge_penalty_flag_reaches_the_environment():
     """--diverge-penalty sets EnvParams.diverge_penalty (the reward of a diverging step); default 100."""
-    from jaxtraffic.learn.ppo.trainer import build
+    from jaxtraffic.runs.ppo.trainer import build
 
     assert float(build(train_cli.config_from_args([]))[1].diverge_penalty) == 100.0
     assert float(build(train_cli.config_from_args(["--diverge-penalty", "2e4"]))[1].diverge_penalty) == 2e4
@@ -316,7 +316,7 @@ def test_two_cpu_devices(two_device_proc):
 def test_population_run(tmp_path):
     """The default is a population (``config.POPULATION`` members in one jit): every member is
     evaluated, the best one is the run's policy, and the members are different policies."""
-    from jaxtraffic.learn.config import POPULATION
+    from jaxtraffic.runs.config import POPULATION
 
     assert TrainConfig().run.seeds == POPULATION == 2
     argv = list(TINY)

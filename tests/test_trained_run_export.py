@@ -10,9 +10,9 @@ import pytest
 from jaxtraffic import simulate
 from jaxtraffic.control.gain_policy import feature_size
 from jaxtraffic.ecosystem import controller_grid, policy_as_controller
-from jaxtraffic.learn.policy import load_policy, policy_grid
-from jaxtraffic.learn.ppo.export import load_predict
-from jaxtraffic.learn.ppo.trainer import build
+from jaxtraffic.runs.policy import load_policy, policy_grid
+from jaxtraffic.runs.ppo.export import load_predict
+from jaxtraffic.runs.ppo.trainer import build
 
 
 def test_predict_of_a_run_made_back_into_a_controller_acts_like_the_run(tiny_run_a):

@@ -1,4 +1,4 @@
-"""The validation suite of PPO checkpoints (jaxtraffic/learn/ppo/selection.py), tiny grid."""
+"""The validation suite of PPO checkpoints (jaxtraffic/runs/ppo/selection.py), tiny grid."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from jaxtraffic.control.baselines import backstepping, open_loop
-from jaxtraffic.learn.ppo.selection import BAD, make_suite
 from jaxtraffic.model.params import TrafficParams
+from jaxtraffic.runs.ppo.selection import BAD, make_suite
 
 TP = TrafficParams(n_points=21, delay=0.5)
 

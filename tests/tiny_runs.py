@@ -30,11 +30,11 @@ from xla_flags import with_test_flags
 from jaxtraffic.cli import train as train_cli
 from jaxtraffic.control import Observation
 from jaxtraffic.control.gain_policy import policy_controller
-from jaxtraffic.learn.config import TrainConfig
-from jaxtraffic.learn.gradient.trainer import train_gradient
-from jaxtraffic.learn.policy import load_policy
 from jaxtraffic.learn.ppo import algorithm as ppo
-from jaxtraffic.learn.ppo.trainer import build
+from jaxtraffic.runs.config import TrainConfig
+from jaxtraffic.runs.gradient.trainer import train_gradient
+from jaxtraffic.runs.policy import load_policy
+from jaxtraffic.runs.ppo.trainer import build
 from jaxtraffic.sim import initial_state, paper_initial_condition
 
 REPO = Path(__file__).resolve().parents[1]
@@ -242,7 +242,7 @@ import json, sys, tempfile
 import jax, numpy as np
 sys.path.insert(0, ".")
 import train
-from jaxtraffic.learn.runs import checkpoint as ckpt
+from jaxtraffic.runs import checkpoint as ckpt
 from jaxtraffic.learn.ppo import algorithm as ppo
 
 orig, cache = ppo.make_train, {}

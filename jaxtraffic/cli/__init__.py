@@ -6,6 +6,6 @@ plain ``import jaxtraffic`` does not impose on a library user's process. ``DEVIC
 device count set, or None when nothing was changed.
 """
 
-from jaxtraffic._devices import split_host_devices
+from jaxtraffic.platform.devices import split_host_devices
 
 DEVICE_SPLIT = split_host_devices()

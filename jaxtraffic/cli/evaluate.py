@@ -15,7 +15,7 @@ Small flags for tests: ``--n-points``, ``--horizon``, ``--seeds``, ``--robust-gr
 Table 2's scenario is rerun on each plant refined twice and with the other scheme unless
 ``--no-numerics-check``.
 The same command runs as N cooperating processes with ``--coordinator-address HOST:PORT
---num-processes N --process-id I`` or the ``JAX_*`` variables (``jaxtraffic.distributed``; README,
+--num-processes N --process-id I`` or the ``JAX_*`` variables (``jaxtraffic.platform.distributed``; README,
 "Running on a cluster"): the batched rollouts (and any training the job starts) are split over
 every process's devices, and only process 0 prints and writes.
 The logic lives in ``jaxtraffic.paper``; ``main(argv)`` returns the metrics dict.
@@ -34,15 +34,16 @@ import time
 from pathlib import Path
 from typing import Any
 
-from jaxtraffic import compile_cache, distributed, paper
+from jaxtraffic import paper
 from jaxtraffic.cli import external, staging
 from jaxtraffic.cli import train as train_cli
-from jaxtraffic.files import atomic_write_text
-from jaxtraffic.learn.config import TrainConfig
-from jaxtraffic.learn.config.checks import MAX_STEPS
-from jaxtraffic.learn.policy import load_policy, policy_grid
+from jaxtraffic.io.files import atomic_write_text
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.paper.oracle import load_oracle
+from jaxtraffic.platform import compile_cache, distributed
+from jaxtraffic.runs.config import TrainConfig
+from jaxtraffic.runs.config.checks import MAX_STEPS
+from jaxtraffic.runs.policy import load_policy, policy_grid
 
 _REF = TrafficParams.reference()
 DEFAULT_RUN = Path("runs/default")
@@ -117,7 +118,7 @@ def _log(msg: str) -> None:
 
 
 def _curve(path: Path) -> dict | None:
-    from jaxtraffic.learn.runs.curve import read_learning_curve
+    from jaxtraffic.runs.curve import read_learning_curve
 
     try:
         return read_learning_curve(path) if path.exists() else None
@@ -255,7 +256,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         distributed.initialize(*(getattr(args, k) for k in distributed.FLAGS))  # before any computation
     except ValueError as err:
         raise _fail(str(err)) from None
-    compile_cache.enable()  # before the first compilation (jaxtraffic.compile_cache)
+    compile_cache.enable()  # before the first compilation (jaxtraffic.platform.compile_cache)
     final = args.out  # written whole at the end, or left as it was (cli.staging)
     work = staging.staging_dir(final) if distributed.is_writer() else None
     args.out = work or final

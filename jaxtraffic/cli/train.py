@@ -7,7 +7,7 @@ config.json, checkpoint.msgpack, learning_curve.csv/.png and summary.json. Ctrl-
 after the current chunk with its checkpoint saved (exit 130 / 143); ``--resume`` continues from it.
 The same command runs as N cooperating processes (PPO and ``--algo gradient``) with
 ``--coordinator-address HOST:PORT --num-processes N --process-id I`` or the ``JAX_*`` variables
-(``jaxtraffic.distributed``; README, "Running on a cluster").
+(``jaxtraffic.platform.distributed``; README, "Running on a cluster").
 """
 
 from __future__ import annotations
@@ -19,11 +19,11 @@ import os
 import sys
 from pathlib import Path
 
-from jaxtraffic import compile_cache, distributed
-from jaxtraffic.learn.config import RUN_CONTROL, SECTIONS, RunConfig, TrainConfig, check_flags_apply, load_config
-from jaxtraffic.learn.gradient.trainer import train_gradient
-from jaxtraffic.learn.ppo.trainer import train
-from jaxtraffic.learn.runs.session import TrainingInterrupted, check_resumable
+from jaxtraffic.platform import compile_cache, distributed
+from jaxtraffic.runs.config import RUN_CONTROL, SECTIONS, RunConfig, TrainConfig, check_flags_apply, load_config
+from jaxtraffic.runs.gradient.trainer import train_gradient
+from jaxtraffic.runs.ppo.trainer import train
+from jaxtraffic.runs.session import TrainingInterrupted, check_resumable
 
 
 def _pair(kind):
@@ -122,7 +122,7 @@ def resumed_config(config: TrainConfig, given: dict) -> TrainConfig:
 
 
 def main(argv: list[str] | None = None) -> Path:
-    """Parse flags, start ``jax.distributed`` if asked (``jaxtraffic.distributed``: before anything
+    """Parse flags, start ``jax.distributed`` if asked (``jaxtraffic.platform.distributed``: before anything
     runs on a device), train, return the run directory. Exit status 2 for invalid flags or a broken
     run directory, 130 / 143 after SIGINT / SIGTERM (see ``learn.ppo.trainer``)."""
     try:
@@ -130,7 +130,7 @@ def main(argv: list[str] | None = None) -> Path:
         config = _config(args)
         cluster = [getattr(args, k) for k in distributed.FLAGS]
         distributed.initialize(*cluster)
-        compile_cache.enable()  # before the first compilation (jaxtraffic.compile_cache)
+        compile_cache.enable()  # before the first compilation (jaxtraffic.platform.compile_cache)
         given = explicit_flags(argv)
         if config.run.resume:
             check_resumable(Path(config.run.out_dir))

@@ -22,7 +22,7 @@ from jaxtraffic.model import delay as delay_buffer
 from jaxtraffic.model import fundamental as fd
 from jaxtraffic.model.linear import LinearModel, linear_step, linearize, riemann_w
 from jaxtraffic.model.params import TrafficParams, equilibrium
-from jaxtraffic.tracing import is_traced
+from jaxtraffic.platform.tracing import is_traced
 
 Array = jax.Array
 

@@ -21,7 +21,7 @@ from jaxtraffic.control.base import Controller, Observation
 from jaxtraffic.model.linear import linearize
 from jaxtraffic.model.params import TrafficParams, equilibrium
 from jaxtraffic.model.spatial import smooth
-from jaxtraffic.tracing import is_traced
+from jaxtraffic.platform.tracing import is_traced
 
 Array = jax.Array
 

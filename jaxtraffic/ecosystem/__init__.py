@@ -42,8 +42,8 @@ from jaxtraffic.control.adapter import ControllerGrid
 from jaxtraffic.control.base import Controller
 from jaxtraffic.control.gain_policy import ACTION_EPS, function_controller, normalised_to_action
 from jaxtraffic.learn import env as learn_env
-from jaxtraffic.learn.config import TrainConfig
-from jaxtraffic.learn.config.checks import check_initial_amplitudes
+from jaxtraffic.runs.config import TrainConfig
+from jaxtraffic.runs.config.checks import check_initial_amplitudes
 
 N_GAINS = learn_env.TrafficEnv.action_size
 

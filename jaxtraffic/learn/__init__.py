@@ -1,15 +1,9 @@
-"""The learning layer (imports ``model``, ``control``, ``sim``), by concern:
+"""The learning algorithms a library user calls (imports ``model``, ``control``, ``sim``):
 
-    env.py       the gymnax-style environment
-    config/      the config tree (``TrainConfig``) and its checks
-    runs/        what every run shares: checkpoints, run directory and signals, learning curve, TensorBoard, and
-                 the one host training loop (``runs.loop.run_training``)
-    ppo/         PPO: the algorithm, its losses, members, validation and selection, its trainer, its policy
-    gradient/    gradient-based and CEM training: settings, objective, CEM, its trainer, its policy
-    policy.py    ``load_policy``: a trained run's controller, whatever the algorithm
+    env.py       the gymnax-style environment (``TrafficEnv``, ``EnvParams``)
+    rules.py     the allowed range of every hyperparameter
+    ppo/         pure-JAX PPO: the algorithm (``make_train``, ``PPOConfig``) and its losses
+    gradient/    gradient-based and CEM training of gain laws: settings, rollout objective, CEM
 
-Submodules are imported explicitly (``from jaxtraffic.learn.ppo import trainer``)."""
-
-from jaxtraffic.learn.policy import load_policy
-
-__all__ = ["load_policy"]
+The run machinery above them (run directory, training loop, checkpoints, selection, ``load_policy``) is
+``jaxtraffic.runs``. Submodules are imported explicitly (``from jaxtraffic.learn import ppo``)."""

@@ -22,7 +22,7 @@ from flax import struct
 
 from jaxtraffic.model import fundamental
 from jaxtraffic.model.schemes import SCHEME_NAMES
-from jaxtraffic.tracing import concrete
+from jaxtraffic.platform.tracing import concrete
 
 SCHEMES = SCHEME_NAMES  # model.schemes.SCHEMES maps each name to its composed pieces
 FLOAT_FIELDS = ("L", "l", "q_in", "alpha", "tau_acc", "tau_m", "h_bar", "h_m", "delay", "dt", "h_min", "h_max",

@@ -17,7 +17,7 @@ import numpy as np
 
 from jaxtraffic.control.gain_law import FILTER_SIGMA
 from jaxtraffic.control.stability import GROWTH_TOL, growth_rates, stable_region, wavenumbers
-from jaxtraffic.drawing import new_figure, save_figure
+from jaxtraffic.io.drawing import new_figure, save_figure
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.paper.learned import LEARNED_LABELS
 

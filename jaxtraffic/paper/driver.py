@@ -12,10 +12,10 @@ from typing import Any
 
 import jax
 
-from jaxtraffic import distributed
 from jaxtraffic.control import Controller, backstepping, lyapunov, open_loop
 from jaxtraffic.control.adapter import ControllerGrid
-from jaxtraffic.files import to_jsonable
+from jaxtraffic.io.files import to_jsonable
+from jaxtraffic.io.provenance import provenance
 from jaxtraffic.model.params import equilibrium
 from jaxtraffic.paper.claims import evaluate_claims, paper_like_reading
 from jaxtraffic.paper.figures import FIG7, ROBUSTNESS, make_figures
@@ -33,7 +33,7 @@ from jaxtraffic.paper.scenarios import (
 )
 from jaxtraffic.paper.summaries import UNITS, equilibrium_indices, summarise
 from jaxtraffic.paper.table2 import table2_rows, write_table2
-from jaxtraffic.provenance import provenance
+from jaxtraffic.platform import distributed
 
 
 # ----------------------------------------------------------------------------- driver
@@ -93,7 +93,7 @@ def evaluate_all(controllers: dict[str, Controller], eval_config: EvalConfig, ou
     rerun on a refined plant and with the other scheme. ``oracle``: the oracle rows of this map
     (``paper.oracle.load_oracle``), drawn beside the controllers' waves and tabulated in REPORT.md.
 
-    In a multi-process run (``jaxtraffic.distributed``) every process must call it with the same
+    In a multi-process run (``jaxtraffic.platform.distributed``) every process must call it with the same
     arguments: the batched rollouts are split over every process's devices, every process gets
     the metrics, and only process 0 draws and writes.
     """

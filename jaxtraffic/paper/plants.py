@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from jaxtraffic.drawing import new_figure, save_figure
-from jaxtraffic.files import atomic_write_text, write_json
+from jaxtraffic.io.drawing import new_figure, save_figure
+from jaxtraffic.io.files import atomic_write_text, write_json
 from jaxtraffic.paper.learned import LEARNED_LABELS, STABLE_STD
 from jaxtraffic.paper.scenarios import EvalConfig, learned, others
 from jaxtraffic.paper.summaries import _fmt

@@ -31,8 +31,8 @@ from matplotlib import colors, ticker
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure, SubFigure
 
-from jaxtraffic.drawing import finish_figure, new_figure
-from jaxtraffic.learn.runs.curve import plot_learning_curve, read_learning_curve
+from jaxtraffic.io.drawing import finish_figure, new_figure
+from jaxtraffic.runs.curve import plot_learning_curve, read_learning_curve
 from jaxtraffic.sim.metrics import REWARD_TARGET, VEH_PER_KM
 
 __all__ = ["plot_l2_norms", "plot_l2_panels", "plot_learning_curve", "plot_reward", "plot_robustness_map",

@@ -8,7 +8,8 @@ from typing import Any
 
 import numpy as np
 
-from jaxtraffic.files import from_jsonable
+from jaxtraffic.io.files import from_jsonable
+from jaxtraffic.io.provenance import describe
 from jaxtraffic.paper.claims import CRITERIA, _t
 from jaxtraffic.paper.learned import STABLE_STD
 from jaxtraffic.paper.numerics import NUMERICS_CONTROLLERS, survives
@@ -22,7 +23,6 @@ from jaxtraffic.paper.scenarios import (
     others,
 )
 from jaxtraffic.paper.summaries import INDICES, PAPER_TABLE2, _fmt
-from jaxtraffic.provenance import describe
 
 
 def readings_summary(claims: list[dict[str, Any]], metrics: dict, eval_config: EvalConfig) -> list[str]:

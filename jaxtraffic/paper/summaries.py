@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from jaxtraffic.files import to_jsonable
+from jaxtraffic.io.files import to_jsonable
 from jaxtraffic.model.params import equilibrium
 from jaxtraffic.paper.scenarios import SETTLE_FRACTION, EvalConfig, Outcome
 from jaxtraffic.sim.metrics import EXTRA_INDICES, VEH_PER_KM, fuel_rate, fuel_rate_kmh

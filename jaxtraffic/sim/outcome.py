@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from jaxtraffic.tracing import is_traced
+from jaxtraffic.platform.tracing import is_traced
 
 __all__ = ["Divergence", "DivergedError", "check_outcome"]
 

@@ -23,6 +23,7 @@ from jaxtraffic.control.base import Controller
 from jaxtraffic.control.baselines import open_loop
 from jaxtraffic.model.fundamental import in_physical_region
 from jaxtraffic.model.params import TrafficParams, check_nominal, check_steps, equilibrium
+from jaxtraffic.platform.tracing import is_traced
 from jaxtraffic.sim import metrics
 from jaxtraffic.sim.batching import chunked_vmap, stack_params
 from jaxtraffic.sim.initial import equilibrium_state, paper_initial_condition
@@ -45,7 +46,6 @@ from jaxtraffic.sim.sharding import (
     sharded_batch,
     spans_processes,
 )
-from jaxtraffic.tracing import is_traced
 
 Array = jax.Array
 

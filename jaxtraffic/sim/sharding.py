@@ -5,7 +5,7 @@ split over a one-axis ``Mesh`` (``shard_map``: each device runs ``fn`` on its sh
 communication). The default mesh is this process's devices, ``jax.local_devices()``, which is
 what a call traced inside a user's ``jit`` gets. A host-level batched call (``simulate_batch`` with
 concrete inputs, the gradient trainer) takes ``host_mesh``: in a multi-process run
-(``jaxtraffic.distributed``) that is every device of every process, its inputs are placed
+(``jaxtraffic.platform.distributed``) that is every device of every process, its inputs are placed
 ``replicate``-d on every device, its outputs are gathered into every process inside the same
 program (a replicated output), and ``local_copy`` hands each process ordinary local arrays. So N
 processes share the work of one batch and all of them see the whole result; every process must
@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from jaxtraffic.tracing import is_traced
+from jaxtraffic.platform.tracing import is_traced
 
 AXIS = "batch"
 

@@ -356,7 +356,7 @@ def make_train(ppo_config: PPOConfig, env_params: Any, devices: list | None = No
 def train_mesh(ppo_config: PPOConfig, devices: list | None = None) -> Mesh:
     """The one-axis (``AXIS``) mesh PPO splits its environments over: ``devices``, or the most of
     ``jax.devices()`` that ``num_envs`` and the minibatches divide; ``ValueError`` if they do not."""
-    if devices is None:  # every device the batch splits over (one per core by default, jaxtraffic._devices)
+    if devices is None:  # every device the batch splits over (one per core by default, jaxtraffic.platform.devices)
         devices = list(jax.devices())
         k = max(k for k in range(1, len(devices) + 1) if ppo_config.num_envs % k == 0
                 and ((ppo_config.num_envs // k) * ppo_config.num_steps) % ppo_config.num_minibatches == 0 or k == 1)

@@ -1,7 +1,7 @@
 """The training configuration: the config tree (``tree``: plant, env, algo, grad, run; config.json and its
 loader) and the checks every field passes when a tree is built (``checks``)."""
 
-from jaxtraffic.learn.config.tree import (
+from jaxtraffic.runs.config.tree import (
     ALGOS,
     BEFORE_FIELD,
     CONFIG_VERSION,

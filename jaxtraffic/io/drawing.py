@@ -12,7 +12,7 @@ from pathlib import Path
 
 from matplotlib.figure import Figure, SubFigure
 
-from jaxtraffic.files import atomic_write_bytes
+from jaxtraffic.io.files import atomic_write_bytes
 
 __all__ = ["DPI", "finish_figure", "new_figure", "save_figure"]
 

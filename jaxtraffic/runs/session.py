@@ -22,9 +22,9 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jaxtraffic import distributed
-from jaxtraffic.files import clean_stale_tmp
-from jaxtraffic.learn.runs import checkpoint as ckpt
+from jaxtraffic.io.files import clean_stale_tmp
+from jaxtraffic.platform import distributed
+from jaxtraffic.runs import checkpoint as ckpt
 
 __all__ = ["NonFiniteTraining", "RunLock", "StopSignals", "TrainingInterrupted", "check_finite", "check_out_dir",
            "check_resumable", "claim_run_dir", "fmt_time", "open_run_dir", "own_run_dir", "report_interruption"]

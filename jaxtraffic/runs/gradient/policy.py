@@ -10,11 +10,11 @@ import jax.numpy as jnp
 from flax import serialization
 
 from jaxtraffic.control.base import Controller
-from jaxtraffic.learn.config import TrainConfig
 from jaxtraffic.learn.gradient import objective
 from jaxtraffic.learn.gradient.config import GradientConfig
-from jaxtraffic.learn.runs import checkpoint as ckpt
 from jaxtraffic.model.params import TrafficParams
+from jaxtraffic.runs import checkpoint as ckpt
+from jaxtraffic.runs.config import TrainConfig
 
 __all__ = ["gradient_setup", "load_gradient_policy", "own_grid_controller"]
 

@@ -268,7 +268,7 @@ class TrainConfig:
     run: RunConfig = RunConfig()
 
     def __post_init__(self) -> None:
-        from jaxtraffic.learn.config.checks import check_config  # every field's type and range (ValueError)
+        from jaxtraffic.runs.config.checks import check_config  # every field's type and range (ValueError)
         check_config(self)
 
     @classmethod

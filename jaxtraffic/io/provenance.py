@@ -21,7 +21,7 @@ from typing import Any
 from jaxtraffic._version import __version__
 
 PACKAGES = ("jax", "jaxlib", "flax", "optax", "chex", "numpy", "matplotlib")
-_REPO = Path(__file__).resolve().parents[1]
+_REPO = Path(__file__).resolve().parents[2]  # (jaxtraffic/io/provenance.py: the repository is two levels up)
 
 
 def _git(*args: str) -> str | None:
@@ -64,7 +64,7 @@ def _cpu_model() -> str:
 
 def provenance() -> dict[str, Any]:
     """Code version, package versions, Python, machine (CPU model, cores, JAX backend and devices), the
-    persistent compilation cache directory in use (None: none; ``jaxtraffic.compile_cache``), time."""
+    persistent compilation cache directory in use (None: none; ``jaxtraffic.platform.compile_cache``), time."""
     versions = {}
     for name in PACKAGES:
         try:

@@ -20,8 +20,8 @@ from matplotlib import ticker
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure, SubFigure
 
-from jaxtraffic.drawing import finish_figure, new_figure
-from jaxtraffic.files import atomic_write_text
+from jaxtraffic.io.drawing import finish_figure, new_figure
+from jaxtraffic.io.files import atomic_write_text
 from jaxtraffic.sim.metrics import REWARD_TARGET
 
 CURVE_FIELDS = ["update", "env_steps", "wall_s", "mean_reward", "eval_reward", "eval_reward_min",

@@ -42,21 +42,22 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxtraffic import distributed
 from jaxtraffic.control.gain_policy import equilibrium_gains, policy_controller
 from jaxtraffic.control.stability import certify
-from jaxtraffic.files import write_json
+from jaxtraffic.io.files import write_json
 from jaxtraffic.learn import env as learn_env
-from jaxtraffic.learn.config import TrainConfig, config_json
-from jaxtraffic.learn.config.checks import check_devices, check_initial_amplitudes, check_memory
-from jaxtraffic.learn.policy import load_policy, policy_certificate
-from jaxtraffic.learn.ppo import algorithm, members, selection
-from jaxtraffic.learn.runs import checkpoint as ckpt
-from jaxtraffic.learn.runs.curve import CURVE_FIELDS
-from jaxtraffic.learn.runs.loop import Clock, Progress, prepare, run_training, summary_base
-from jaxtraffic.learn.runs.session import check_finite, fmt_time
+from jaxtraffic.learn.ppo import algorithm
 from jaxtraffic.model.linear import gain_law_wave_speed, linearize
 from jaxtraffic.model.params import TrafficParams
+from jaxtraffic.platform import distributed
+from jaxtraffic.runs import checkpoint as ckpt
+from jaxtraffic.runs.config import TrainConfig, config_json
+from jaxtraffic.runs.config.checks import check_devices, check_initial_amplitudes, check_memory
+from jaxtraffic.runs.curve import CURVE_FIELDS
+from jaxtraffic.runs.loop import Clock, Progress, prepare, run_training, summary_base
+from jaxtraffic.runs.policy import load_policy, policy_certificate
+from jaxtraffic.runs.ppo import members, selection
+from jaxtraffic.runs.session import check_finite, fmt_time
 from jaxtraffic.sim.initial import paper_initial_condition
 from jaxtraffic.sim.metrics import VEH_PER_KM
 from jaxtraffic.sim.rollout import simulate_batch

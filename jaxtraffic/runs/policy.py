@@ -10,10 +10,8 @@ from typing import Any
 from jaxtraffic.control.adapter import ControllerGrid, adapt
 from jaxtraffic.control.base import Controller
 from jaxtraffic.control.stability import certify_controller
-from jaxtraffic.learn.config import TrainConfig, load_config
-from jaxtraffic.learn.gradient.policy import load_gradient_policy
-from jaxtraffic.learn.ppo.policy import load_ppo_policy
-from jaxtraffic.learn.runs.checkpoint import (
+from jaxtraffic.model.params import TrafficParams
+from jaxtraffic.runs.checkpoint import (
     BEST,
     CHECKPOINT,
     CONFIG,
@@ -22,7 +20,9 @@ from jaxtraffic.learn.runs.checkpoint import (
     load_best,
     load_checkpoint,
 )
-from jaxtraffic.model.params import TrafficParams
+from jaxtraffic.runs.config import TrainConfig, load_config
+from jaxtraffic.runs.gradient.policy import load_gradient_policy
+from jaxtraffic.runs.ppo.policy import load_ppo_policy
 
 __all__ = ["LOADERS", "load_policy", "policy_certificate", "policy_grid"]
 

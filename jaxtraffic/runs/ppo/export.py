@@ -18,7 +18,7 @@ import numpy as np
 
 from jaxtraffic.control.gain_policy import normalize_obs
 from jaxtraffic.control.networks import ActorCritic
-from jaxtraffic.learn.policy import load_policy
+from jaxtraffic.runs.policy import load_policy
 
 __all__ = ["load_predict"]
 

@@ -24,12 +24,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
-from jaxtraffic import distributed
-from jaxtraffic.files import write_json
-from jaxtraffic.learn.config import RUN_CONTROL, TrainConfig, load_config
-from jaxtraffic.learn.runs import checkpoint as ckpt
-from jaxtraffic.learn.runs.curve import append_curve, plot_learning_curve, write_curve
-from jaxtraffic.learn.runs.session import (
+from jaxtraffic.io.files import write_json
+from jaxtraffic.io.provenance import provenance
+from jaxtraffic.platform import distributed
+from jaxtraffic.runs import checkpoint as ckpt
+from jaxtraffic.runs.config import RUN_CONTROL, TrainConfig, load_config
+from jaxtraffic.runs.curve import append_curve, plot_learning_curve, write_curve
+from jaxtraffic.runs.session import (
     StopSignals,
     TrainingInterrupted,
     agree_stop,
@@ -40,8 +41,7 @@ from jaxtraffic.learn.runs.session import (
     own_run_dir,
     report_interruption,
 )
-from jaxtraffic.learn.runs.tensorboard import TensorBoardWriter
-from jaxtraffic.provenance import provenance
+from jaxtraffic.runs.tensorboard import TensorBoardWriter
 
 __all__ = ["Algorithm", "Clock", "Progress", "run_training"]
 

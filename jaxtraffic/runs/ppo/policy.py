@@ -13,10 +13,10 @@ import numpy as np
 from jaxtraffic.control.base import Controller
 from jaxtraffic.control.gain_law import sigma_nodes
 from jaxtraffic.control.gain_policy import feature_size, policy_controller
-from jaxtraffic.files import from_jsonable, read_json
-from jaxtraffic.learn.config import TrainConfig
-from jaxtraffic.learn.runs.checkpoint import BEST, CHECKPOINT, CONFIG, SUMMARY, load_best, load_checkpoint
+from jaxtraffic.io.files import from_jsonable, read_json
 from jaxtraffic.model.params import TrafficParams
+from jaxtraffic.runs.checkpoint import BEST, CHECKPOINT, CONFIG, SUMMARY, load_best, load_checkpoint
+from jaxtraffic.runs.config import TrainConfig
 
 __all__ = ["SavedPolicy", "load_ppo_policy", "load_run"]
 

@@ -8,7 +8,7 @@ A checkpoint file is a msgpack map ``{"format": "jaxtraffic-checkpoint", "versio
 ``score``, ``env_steps``; ``learn.selection``), which ``load_policy`` loads by default. The loaders
 check the digest, so a truncated, empty or corrupted file is an error naming it, never a silent load (files
 written before the checksum, a bare payload, still load). Every file is written whole or not at
-all (``jaxtraffic.files``: atomic writes, JSON with non-finite numbers).
+all (``jaxtraffic.io.files``: atomic writes, JSON with non-finite numbers).
 """
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ import msgpack
 import numpy as np
 from flax import serialization
 
-from jaxtraffic.files import atomic_write_bytes, to_jsonable
-from jaxtraffic.learn.config import RUN_CONTROL, TrainConfig
+from jaxtraffic.io.files import atomic_write_bytes, to_jsonable
+from jaxtraffic.runs.config import RUN_CONTROL, TrainConfig
 
 CHECKPOINT = "checkpoint.msgpack"
 CONFIG = "config.json"

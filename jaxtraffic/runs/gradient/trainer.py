@@ -8,7 +8,7 @@ chunk the deterministic controller is evaluated on the paper's initial condition
 first met the paper's stop rule and when it first beat backstepping on both final density L2 and J_comfort. The
 checkpoint is written after every chunk; ``resume`` continues from it exactly (training is deterministic).
 
-Multi-process runs (``jaxtraffic.distributed``): the scenarios of every Adam step are split over every device
+Multi-process runs (``jaxtraffic.platform.distributed``): the scenarios of every Adam step are split over every device
 of every process (``objective.make_train``), the stop and wall-budget decisions are process 0's and a signal to
 any process stops all of them after the same chunk (``runs.session.agree_stop``), and only process 0 prints and
 writes. A checkpoint holds no per-device state, so it resumes on any number of processes and devices (to float
@@ -30,17 +30,17 @@ from jaxtraffic.control.adapter import adapt, baseline_grid
 from jaxtraffic.control.base import Controller
 from jaxtraffic.control.baselines import backstepping
 from jaxtraffic.control.gain_policy import equilibrium_gains
-from jaxtraffic.files import write_json
-from jaxtraffic.learn.config import TrainConfig, config_json
+from jaxtraffic.io.files import write_json
 from jaxtraffic.learn.gradient import cem, objective
 from jaxtraffic.learn.gradient.config import GradientConfig
-from jaxtraffic.learn.gradient.policy import gradient_setup, own_grid_controller
-from jaxtraffic.learn.policy import policy_certificate
-from jaxtraffic.learn.runs import checkpoint as ckpt
-from jaxtraffic.learn.runs.loop import Clock, Progress, prepare, run_training, summary_base
-from jaxtraffic.learn.runs.session import check_finite, fmt_time
 from jaxtraffic.model.linear import gain_law_wave_speed, linearize
 from jaxtraffic.model.params import TrafficParams
+from jaxtraffic.runs import checkpoint as ckpt
+from jaxtraffic.runs.config import TrainConfig, config_json
+from jaxtraffic.runs.gradient.policy import gradient_setup, own_grid_controller
+from jaxtraffic.runs.loop import Clock, Progress, prepare, run_training, summary_base
+from jaxtraffic.runs.policy import policy_certificate
+from jaxtraffic.runs.session import check_finite, fmt_time
 from jaxtraffic.sim.metrics import REWARD_TARGET
 from jaxtraffic.sim.rollout import simulate
 

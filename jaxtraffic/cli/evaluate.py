@@ -37,7 +37,6 @@ from typing import Any
 from jaxtraffic import paper
 from jaxtraffic.cli import external, staging
 from jaxtraffic.cli import train as train_cli
-from jaxtraffic.io.files import atomic_write_text
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.paper.oracle import load_oracle
 from jaxtraffic.platform import compile_cache, distributed
@@ -327,24 +326,16 @@ def _main(args: argparse.Namespace, argv: list[str] | None, t0: float, nd: int, 
         n_points=ref_n, scheme="muscl", substeps=ref_s, robust_delays=paper.robust_axis(rd, 0.0, 8.0, dt),
         robust_alphas=paper.robust_axis(ra, 0.05, 0.6), **common)
     meta = {"policy": policy, "policy_delay0": policy0, "argv": list(sys.argv[1:] if argv is None else argv)}
-    results = {}
+    configs = {plant: configs[plant] for plant in args.plants}
+    oracles = {}
     for plant in args.plants:
-        out = args.out if plant == "paper" else args.out / plant
-        _log(f"== {plant} plant: {configs[plant].describe()} -> {out}")
-        oracle = load_oracle(args.oracle_dir / f"{plant}.json", configs[plant])
-        _log(f"   oracle rows: {args.oracle_dir / (plant + '.json')}" if oracle else
-             f"   no oracle rows for this map in {args.oracle_dir} (benchmarks/gain_oracle.py --plant {plant})")
-        results[plant] = paper.evaluate_all({"ppo": ppo, **grad, **own}, configs[plant], out, {**meta, "plant": plant},
-                                            ppo_delay0=ppo0, learning_curve_csv=lc, log=_log,
-                                            learned_runs=learned_runs, grids=grids, oracle=oracle)
+        oracles[plant] = load_oracle(args.oracle_dir / f"{plant}.json", configs[plant])
+        _log(f"   oracle rows of the {plant} map: {args.oracle_dir / (plant + '.json')}" if oracles[plant] else
+             f"   no oracle rows for the {plant} map in {args.oracle_dir} (benchmarks/gain_oracle.py --plant {plant})")
+    results = paper.evaluate_plants({"ppo": ppo, **grad, **own}, configs, args.out, meta, oracles=oracles, log=_log,
+                                    ppo_delay0=ppo0, learning_curve_csv=lc, learned_runs=learned_runs, grids=grids)
     if distributed.is_writer():
         export_runs(learned_runs, args.out / "runs")
-        if len(results) > 1:
-            paper.compare_plants(results, {k: configs[k] for k in results}, args.out, log=_log)
-        section = paper.certificate_section(learned_runs, args.out, log=_log)
-        report = args.out / "REPORT.md"
-        if section and report.exists():
-            atomic_write_text(report, report.read_text().rstrip() + "\n\n" + "\n".join(section))
     metrics = results[args.plants[0]]
     _log(f"total {time.perf_counter() - t0:.1f} s; verdicts: "
          + "; ".join(f"{k}: {json.dumps(m['meta']['claims'])}" for k, m in results.items()))

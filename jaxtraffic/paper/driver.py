@@ -14,14 +14,14 @@ import jax
 
 from jaxtraffic.control import Controller, backstepping, lyapunov, open_loop
 from jaxtraffic.control.adapter import ControllerGrid
-from jaxtraffic.io.files import to_jsonable
+from jaxtraffic.io.files import atomic_write_text, to_jsonable
 from jaxtraffic.io.provenance import provenance
 from jaxtraffic.model.params import equilibrium
 from jaxtraffic.paper.claims import evaluate_claims, paper_like_reading
 from jaxtraffic.paper.figures import FIG7, ROBUSTNESS, make_figures
 from jaxtraffic.paper.learned import comparison_section
 from jaxtraffic.paper.numerics import deploy, relative_to, run_numerics
-from jaxtraffic.paper.report import numerics_summary, readings_summary, robustness_summary, write_report
+from jaxtraffic.paper.report import numerics_summary, readings_summary, report_text, robustness_summary
 from jaxtraffic.paper.scenarios import (
     CTRL_DELAY,
     SCENARIOS,
@@ -77,11 +77,21 @@ class _Background:
 
 
 def evaluate_all(controllers: dict[str, Controller], eval_config: EvalConfig, out_dir: str | Path,
-                 meta: dict[str, Any], ppo_delay0: Controller | None = None,
-                 learning_curve_csv: str | Path | None = None, log: Callable[[str], None] = print,
-                 learned_runs: dict[str, dict] | None = None, grids: dict[str, ControllerGrid] | None = None,
-                 oracle: dict[str, dict] | None = None) -> dict[str, Any]:
-    """Run every scenario and the robustness map, write all outputs; return the metrics dict.
+                 meta: dict[str, Any], **options: Any) -> dict[str, Any]:
+    """``evaluate_plant``, then its REPORT.md written into ``out_dir``; return the metrics dict."""
+    metrics, report = evaluate_plant(controllers, eval_config, out_dir, meta, **options)
+    if distributed.is_writer():
+        atomic_write_text(Path(out_dir) / "REPORT.md", report)
+    return metrics
+
+
+def evaluate_plant(controllers: dict[str, Controller], eval_config: EvalConfig, out_dir: str | Path,
+                   meta: dict[str, Any], ppo_delay0: Controller | None = None,
+                   learning_curve_csv: str | Path | None = None, log: Callable[[str], None] = print,
+                   learned_runs: dict[str, dict] | None = None, grids: dict[str, ControllerGrid] | None = None,
+                   oracle: dict[str, dict] | None = None) -> tuple[dict[str, Any], str]:
+    """Run every scenario and the robustness map, write every output but REPORT.md; return the metrics dict
+    and REPORT.md's text (``paper.job`` adds the sections that compare plants and certify the learned laws).
 
     ``controllers`` must hold "ppo" (the D = 4 s policy); the baselines are added if missing.
     ``ppo_delay0``: a separate policy for scenario delay0 (else the D = 4 s one is used).
@@ -147,12 +157,12 @@ def evaluate_all(controllers: dict[str, Controller], eval_config: EvalConfig, ou
     meta["claim5_readings"] = {n: r["verdict"] for c in claims if c["id"] == 5 for n, r in c["readings"].items()}
     metrics["meta"] = meta
     metrics = to_jsonable(metrics)
+    report = ""
     if writer:
-        _write(out_dir, claims, metrics, meta, figures, robust, _robustness_json(robust, eval_config), eval_config,
-               numerics,
-               lc_data, learned_runs, oracle)
+        report = _write(out_dir, claims, metrics, meta, figures, robust, _robustness_json(robust, eval_config),
+                        eval_config, numerics, lc_data, learned_runs, oracle)
     log(f"done in {meta['runtime_s']:.1f} s -> {out_dir}")
-    return metrics
+    return metrics, report
 
 
 def _scenarios(ctrls: dict[str, Controller], ppo_delay0: Controller | None, eval_config: EvalConfig, out_dir: Path,
@@ -243,8 +253,8 @@ def _robustness_json(robust: dict[str, dict[str, Any]], eval_config: EvalConfig)
 
 def _write(out_dir: Path, claims: list, metrics: dict, meta: dict, figures: list, robust: dict, robust_json: dict,
            eval_config: EvalConfig, numerics: dict | None, lc_data: Any, learned_runs: dict | None,
-           oracle: dict[str, dict] | None) -> None:
-    """robustness.json, metrics.json, REPORT.md and claims.json."""
+           oracle: dict[str, dict] | None) -> str:
+    """robustness.json, metrics.json and claims.json; returns REPORT.md's text."""
     (out_dir / "robustness.json").write_text(json.dumps(to_jsonable(robust_json), indent=1, allow_nan=False))
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=1, allow_nan=False))
     notes = []
@@ -253,8 +263,8 @@ def _write(out_dir: Path, claims: list, metrics: dict, meta: dict, figures: list
     sections = readings_summary(claims, metrics, eval_config) + numerics_summary(numerics, metrics, eval_config)
     sections += robustness_summary(robust, eval_config, oracle) + comparison_section(
         metrics, learned_runs or {}, robust, tuple(eval_config.robust_alphas), tuple(eval_config.robust_delays))
-    write_report(out_dir / "REPORT.md", claims, metrics, meta, figures, notes, sections=sections)
+    report = report_text(out_dir, claims, metrics, meta, figures, notes, sections=sections)
     (out_dir / "claims.json").write_text(json.dumps(to_jsonable(
         [{**{k: v for k, v in c.items() if k != "checks"},
           "checks": [ch.__dict__ for ch in c["checks"]]} for c in claims]), indent=1, allow_nan=False))
-
+    return report

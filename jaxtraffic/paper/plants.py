@@ -140,9 +140,10 @@ def plot_plants(png: Path, table: dict[str, Any], plants: list[str]) -> None:
 
 
 def compare_plants(results: dict[str, dict], configs: dict[str, EvalConfig], out_dir: str | Path,
-                   log: Callable[[str], None] = print) -> dict[str, Any]:
+                   log: Callable[[str], None] = print) -> tuple[dict[str, Any], str]:
     """Write plants.md, plants.json and fig_plants_delay4.png into ``out_dir`` (the first plant's output
-    directory; the others' are its subdirectories named after them) and append plants.md to its REPORT.md."""
+    directory; the others' are its subdirectories named after them); return the table and plants.md's text (a
+    section of the first plant's REPORT.md, ``paper.job``)."""
     out_dir = Path(out_dir)
     plants = list(results)
     first = plants[0]
@@ -168,9 +169,6 @@ def compare_plants(results: dict[str, dict], configs: dict[str, EvalConfig], out
     text = "\n".join(lines)
     atomic_write_text(out_dir / "plants.md", text)
     write_json(out_dir / "plants.json", table)
-    report = out_dir / "REPORT.md"
-    if report.exists():
-        atomic_write_text(report, report.read_text().rstrip() + "\n\n" + text)
     log("  plants: plants.md, plants.json, fig_plants_delay4.png; claims "
         + "; ".join(f"{p}: {table['claims'][p]}" for p in plants))
-    return table
+    return table, text

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from jaxtraffic.io.files import from_jsonable
+from jaxtraffic.io.files import atomic_write_text, from_jsonable
 from jaxtraffic.io.provenance import describe
 from jaxtraffic.paper.claims import CRITERIA, _t
 from jaxtraffic.paper.learned import STABLE_STD
@@ -159,8 +159,15 @@ def robustness_summary(robust: dict[str, dict[str, np.ndarray]], eval_config: Ev
 
 def write_report(path: Path, claims: list[dict[str, Any]], metrics: dict, meta: dict,
                  figures: list[str], extra_notes: list[str], sections: list[str] | None = None) -> None:
-    """REPORT.md: each claim, the checks with measured values and verdicts, the figures embedded;
-    ``sections``: further markdown lines (e.g. the robustness summary) before the other figures.
+    """Write ``report_text`` to ``path`` (REPORT.md)."""
+    atomic_write_text(path, report_text(path.parent, claims, metrics, meta, figures, extra_notes, sections))
+
+
+def report_text(out_dir: Path, claims: list[dict[str, Any]], metrics: dict, meta: dict,
+                figures: list[str], extra_notes: list[str], sections: list[str] | None = None) -> str:
+    """REPORT.md's text: each claim, the checks with measured values and verdicts, the figures embedded;
+    ``sections``: further markdown lines (e.g. the robustness summary) before the other figures; tables are read
+    from ``out_dir``.
     ``metrics`` may be the JSON form (``learn.runs.checkpoint.to_jsonable``: NaN as "nan")."""
     metrics = from_jsonable(metrics)
     lines = ["# Reproduction report: PPO control of congested freeway traffic (paper section 4)", ""]
@@ -189,7 +196,7 @@ def write_report(path: Path, claims: list[dict[str, Any]], metrics: dict, meta: 
         lines.append("")
         for t in c.get("tables", []):
             lines += [f"See [{t}]({t}).", ""]
-            tp = path.parent / t
+            tp = out_dir / t
             if tp.exists():
                 lines += tp.read_text().splitlines()[2:] + [""]
         for f in c["figures"]:
@@ -218,5 +225,5 @@ def write_report(path: Path, claims: list[dict[str, Any]], metrics: dict, meta: 
     for f in figures:
         if f not in shown:
             lines += [f"![{f}]({f})", ""]
-    path.write_text("\n".join(lines) + "\n")
+    return "\n".join(lines) + "\n"
 

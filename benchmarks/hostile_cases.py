@@ -126,7 +126,7 @@ def cases(tmp: Path) -> list[tuple[str, str, list, dict, int, str]]:
                  "num_minibatches=7); print('accepted')"]], {}, 0, "accepted"),
         ("5", "evaluate.py SIGINT during the robustness map", [T + ["--total-steps", "64"] + r("e"),
                                                                E + ["--run", str(tmp / "e"), "--out", str(tmp / "eo"),
-                                                                    "--horizon", "4", "--seeds", "1", "--robust-grid",
+                                                                    "--horizon", "4", "--noise-seeds", "1", "--robust-grid",
                                                                     "2x2", "--gradient", "none", "--plants", "paper"]],
          {"signal_on": ("robustness map", signal.SIGINT)}, 130, "nothing was written to"),
         ("5", "evaluate.py --robust-grid 1000000x1000000", [E + ["--robust-grid", "1000000x1000000", "--out",

@@ -49,7 +49,7 @@ def test_evaluate_end_to_end(tiny_run, tmp_path):
     rows = oracle_rows(triples, *gain_grid_map(map_cfg, triples, log=lambda _: None))
     (tmp_path / "oracle").mkdir()
     (tmp_path / "oracle" / "paper.json").write_text(json.dumps(oracle_json(map_cfg, triples, rows, 25.0)))
-    metrics = evaluate.main(["--run", str(tiny_run), "--out", str(out), "--horizon", "6", "--seeds", "2",
+    metrics = evaluate.main(["--run", str(tiny_run), "--out", str(out), "--horizon", "6", "--noise-seeds", "2",
                              "--robust-grid", "2x2", "--gradient", "existing", "--runs-root", str(runs_root),
                              "--reference-grid", "41x1", "--reference-robust-grid", "2x1",
                              "--oracle-dir", str(tmp_path / "oracle"),

@@ -304,7 +304,10 @@ def test_out_dir_not_writable(tmp_path, capsys):
     (["--horizon", "inf"], "--horizon must be a number of seconds in (0, 1e+07], got inf"),
     (["--horizon", "1e30"], "--horizon must be a number of seconds in (0, 1e+07], got 1e+30"),
     (["--robust-horizon", "0"], "--robust-horizon must be"),
-    (["--seeds", "0"], "--seeds must be >= 1, got 0"),
+    (["--noise-seeds", "0"], "--noise-seeds must lie in [1, 1000], got 0"),
+    (["--noise-seeds", "1000001"], "--noise-seeds must lie in [1, 1000], got 1000001"),
+    (["--seeds", "8"], "--seeds was renamed --noise-seeds"),
+    (["--seed", "8"], "Unrecognized options: --seed"),
     (["--robust-grid", "3"], "--robust-grid must look like AxB"),
     (["--robust-grid", "1000000x1000000"], "--robust-grid 1000000x1000000 has 1000000000000 cells; at most 10000"),
     (["--plants", "paper,moon"], "--plants must name one or both of"),
@@ -628,7 +631,7 @@ def test_evaluate_interrupted_exits_cleanly_and_leaves_its_output_as_it_was(ref_
     out.mkdir()
     (out / "REPORT.md").write_text("earlier")
     proc = subprocess.Popen([sys.executable, str(REPO / "evaluate.py"), "--run", str(ref_run), "--out", str(out),
-                             "--horizon", "4", "--seeds", "1", "--robust-grid", "2x2", "--gradient", "none",
+                             "--horizon", "4", "--noise-seeds", "1", "--robust-grid", "2x2", "--gradient", "none",
                              "--plants", "paper"],
                             cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     for line in proc.stdout:  # the robustness map runs beside the figure and numerics threads

@@ -35,7 +35,7 @@ grad = ["--algo", "gradient", "--policy", "network", "--n-points", "21", "--trai
         "--train-horizon-s", "4", "--steps-per-chunk", "1", "--eval-horizon-s", "4", "--quiet"]
 train.main(grad + cluster + ["--out-dir", first, "--grad-steps", "2"])
 train.main(grad + cluster + ["--out-dir", run, "--grad-steps", "4", "--resume"])
-evaluate.main(cluster + ["--run", run, "--out", out, "--horizon", "4", "--seeds", "2", "--robust-grid", "3x2",
+evaluate.main(cluster + ["--run", run, "--out", out, "--horizon", "4", "--noise-seeds", "2", "--robust-grid", "3x2",
                          "--robust-horizon", "4", "--gradient", "none", "--plants", "paper", "--no-numerics-check"])
 import jax, numpy as np
 from jaxtraffic.sim.sharding import host_mesh, spans_processes

@@ -23,7 +23,6 @@ The logic lives in ``jaxtraffic.paper``; ``main(argv)`` returns the metrics dict
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import math
@@ -37,6 +36,7 @@ from typing import Any
 from jaxtraffic import paper
 from jaxtraffic.cli import external, staging
 from jaxtraffic.cli import train as train_cli
+from jaxtraffic.cli.options import EvaluateOptions, parse_evaluate, program
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.paper.oracle import load_oracle
 from jaxtraffic.platform import compile_cache, distributed
@@ -47,7 +47,9 @@ from jaxtraffic.runs.policy import load_policy, policy_grid
 _REF = TrafficParams.reference()
 DEFAULT_RUN = Path("runs/default")
 PLANTS = ("paper", "reference")
+PROG = program("evaluate.py")  # in messages: the program the user typed
 MAX_CELLS = 10_000  # of a robustness map (the paper's is 17 x 12 = 204)
+MAX_NOISE_SEEDS = 1_000  # of the alpha-noise scenario (the paper: 8)
 MAX_HORIZON_S = MAX_STEPS * float(TrafficParams().dt)  # a rollout's step bound (learn.config.checks) at the paper's dt
 # wall-clock cap of the PPO training the main job starts when runs/default is missing: a run that has
 # not met its stop rule by then keeps its best checkpoint so far (the main job stays bounded)
@@ -65,50 +67,9 @@ GRADIENT_RUNS = {
 }
 
 
-def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--run", type=Path, default=None, help="PPO run dir trained with D = 4 s "
-                    f"(default: {DEFAULT_RUN}, trained first if missing)")
-    ap.add_argument("--run-delay0", type=Path, default=None,
-                    help="optional PPO run trained with D = 0, used in scenario delay0")
-    ap.add_argument("--out", type=Path, default=Path("results"), help="output directory (default results/)")
-    ap.add_argument("--n-points", type=int, default=None,
-                    help="grid points (default 201; with a run, taken from its config.json)")
-    ap.add_argument("--horizon", type=float, default=300.0, help="simulated time, s (default 300)")
-    ap.add_argument("--seeds", type=int, default=8, help="noise seeds for alpha_noise (default 8)")
-    ap.add_argument("--robust-grid", default="17x12",
-                    help="NDxNA: plant delays 0..8 s x plant alphas 0.05..0.6 (default 17x12; 0x0 skips "
-                    "the robustness map)")
-    ap.add_argument("--robust-horizon", type=float, default=None,
-                    help="simulated time of the robustness map, s (default 2 x --horizon)")
-    ap.add_argument("--gradient", choices=("auto", "existing", "none"), default="auto",
-                    help="gradient-trained controllers (RUNS_ROOT/" + ", ".join(d for d, _, _ in GRADIENT_RUNS.values())
-                    + "): auto = use them, training the missing ones first; existing = only those already "
-                    "trained; none = skip")
-    ap.add_argument("--runs-root", type=Path, default=Path("runs"), help="where the gradient runs live")
-    ap.add_argument("--plants", default="paper,reference",
-                    help="the plants every experiment runs on: paper (upwind on the PPO run's grid, the paper's "
-                    "method), reference (the converged plant, --reference-grid) or both (default paper,reference)")
-    ap.add_argument("--reference-grid", default=f"{_REF.n_points}x{_REF.substeps}",
-                    help="the reference plant's POINTSxSUBSTEPS (MUSCL; default "
-                    f"{_REF.n_points}x{_REF.substeps}, TrafficParams.reference); also the gradient runs' "
-                    "training plant")
-    ap.add_argument("--reference-robust-grid", default="9x6",
-                    help="NDxNA of the robustness map on the reference plant (default 9x6: 1 s x 0.11 steps)")
-    ap.add_argument("--oracle-dir", type=Path, default=Path("docs/results/oracle"),
-                    help="oracle rows of the robustness maps (PLANT.json from benchmarks/gain_oracle.py --out DIR), "
-                    "drawn and tabulated beside the controllers when computed on the same map (default "
-                    "docs/results/oracle, the committed ones; a missing file leaves them out)")
-    ap.add_argument("--controller", action="append", default=[], metavar="NAME=SOURCE:FUNCTION[:ARGUMENT]",
-                    help="also judge a controller of your own, wherever PPO is (every scenario, the maps, the "
-                    "numerical check): FUNCTION(ARGUMENT) from a Python file or module returns a Controller or "
-                    "(Controller, ControllerGrid), e.g. a policy trained elsewhere "
-                    "(jaxtraffic.ecosystem.policy_as_controller; examples/sb3_ppo.py); repeatable")
-    ap.add_argument("--no-numerics-check", action="store_true",
-                    help="skip rerunning Table 2's scenario on each plant refined twice and with the other scheme")
-    distributed.add_flags(ap)
-    return ap.parse_args(argv)
+def parse_args(argv: list[str] | None) -> EvaluateOptions:
+    """The options of the command line (``cli.options.EvaluateOptions``; tyro derives the flags from it)."""
+    return parse_evaluate(argv, PROG)
 
 
 def _log(msg: str) -> None:
@@ -204,11 +165,11 @@ def _describe(run_dir: Path, config: TrainConfig) -> dict[str, Any]:
 
 
 def _fail(msg: str) -> SystemExit:
-    print(f"evaluate.py: error: {msg}", file=sys.stderr)
+    print(f"{PROG}: error: {msg}", file=sys.stderr)
     return SystemExit(2)
 
 
-def check_args(args: argparse.Namespace) -> tuple[int, int]:
+def check_args(args: EvaluateOptions) -> tuple[int, int]:
     """Reject bad flags (``SystemExit(2)`` with a message naming the flag, the value and the allowed
     range) before anything is created or compiled; returns the robustness grid sizes."""
     nd, na = parse_grid(args.robust_grid, "--robust-grid")
@@ -224,8 +185,8 @@ def check_args(args: argparse.Namespace) -> tuple[int, int]:
     if ref_n < 3 or ref_s < 1:
         raise _fail(f"--reference-grid needs >= 3 points and >= 1 substep, got {args.reference_grid!r}")
     parse_grid(args.reference_robust_grid, "--reference-robust-grid")
-    if args.seeds < 1:
-        raise _fail(f"--seeds must be >= 1, got {args.seeds}")
+    if not 1 <= args.noise_seeds <= MAX_NOISE_SEEDS:
+        raise _fail(f"--noise-seeds must lie in [1, {MAX_NOISE_SEEDS}], got {args.noise_seeds}")
     for flag, value in (("--horizon", args.horizon), ("--robust-horizon", args.robust_horizon)):
         if value is not None and not (math.isfinite(value) and 0 < value <= MAX_HORIZON_S):
             raise _fail(f"{flag} must be a number of seconds in (0, {MAX_HORIZON_S:.0e}], got {value}")
@@ -252,7 +213,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     t0 = time.perf_counter()
     nd, na = check_args(args)
     try:
-        distributed.initialize(*(getattr(args, k) for k in distributed.FLAGS))  # before any computation
+        distributed.initialize(*args.cluster.values())  # before any computation
     except ValueError as err:
         raise _fail(str(err)) from None
     compile_cache.enable()  # before the first compilation (jaxtraffic.platform.compile_cache)
@@ -268,19 +229,19 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         return metrics
     except staging.Stopped as stop:  # SIGINT / SIGTERM / SIGHUP: exit 128 + signal, nothing half-written
         staging.discard(work)
-        print(f"evaluate.py: interrupted ({stop}): nothing was written to {final} (what it held is unchanged)",
+        print(f"{PROG}: interrupted ({stop}): nothing was written to {final} (what it held is unchanged)",
               file=sys.stderr, flush=True)
         raise staging.leave(stop.exit_code) from None
     except (ValueError, FileNotFoundError) as err:  # a broken run directory: one line naming the file
         staging.discard(work)
-        print(f"evaluate.py: error: {err}", file=sys.stderr, flush=True)
+        print(f"{PROG}: error: {err}", file=sys.stderr, flush=True)
         raise staging.leave(2) from None
     except BaseException:
         staging.discard(work)
         raise
 
 
-def _main(args: argparse.Namespace, argv: list[str] | None, t0: float, nd: int, na: int) -> dict[str, Any]:
+def _main(args: EvaluateOptions, argv: list[str] | None, t0: float, nd: int, na: int) -> dict[str, Any]:
     run_dir = find_or_train_run(args.run, args.n_points)
     ppo, config = load_policy(run_dir)
     for flag, value in (("--horizon", args.horizon), ("--robust-horizon", args.robust_horizon)):
@@ -316,7 +277,7 @@ def _main(args: argparse.Namespace, argv: list[str] | None, t0: float, nd: int, 
                             "summary": json.loads((run_dir / "summary.json").read_text())
                             if (run_dir / "summary.json").exists() else {}}, **grad_runs,
                     **{name: {"run_dir": f"--controller {name}", "summary": {}, "curve": None} for name in own}}
-    common = {"dt": dt, "horizon_s": args.horizon, "seeds": tuple(range(args.seeds)),
+    common = {"dt": dt, "horizon_s": args.horizon, "seeds": tuple(range(args.noise_seeds)),
               "robust_horizon_s": args.robust_horizon or 2.0 * args.horizon,
               "numerics_check": not args.no_numerics_check}
     configs = {"paper": paper.EvalConfig(n_points=n_points, robust_delays=paper.robust_axis(nd, 0.0, 8.0, dt),

@@ -39,6 +39,7 @@ from jaxtraffic.runs.session import (
     claim_run_dir,
     finish_together,
     own_run_dir,
+    print_or_drop,
     report_interruption,
 )
 from jaxtraffic.runs.tensorboard import TensorBoardWriter
@@ -197,7 +198,8 @@ def run_training(config: TrainConfig, run_dir: Path, saved: tuple[Any, dict] | N
     ``callbacks``: each learning-curve row (a dict) as soon as its chunk is evaluated; ``run.tensorboard``
     adds a ``TensorBoardWriter``."""
     writer = distributed.is_writer()  # process 0 prints and writes; the others only compute
-    say = (lambda *a: None) if config.run.quiet or not writer else (lambda *a: print(*a, flush=True))
+    # (a closed stdout stops the printing only: print_or_drop)
+    say = (lambda *a: None) if config.run.quiet or not writer else print_or_drop
     owned = [TensorBoardWriter(config.run.tensorboard)] if config.run.tensorboard and writer else []
     try:
         with own_run_dir(run_dir, config.run.resume, config.run.overwrite, writer, say), finish_together(name), \

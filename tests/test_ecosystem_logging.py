@@ -5,9 +5,10 @@ installed). One tiny run (21 nodes, 4 environments x 8 steps, 3 chunks)."""
 from __future__ import annotations
 
 import csv
+import time
 
 import pytest
-from extras import available
+from extras import available, need
 
 from jaxtraffic.runs.config import TrainConfig
 from jaxtraffic.runs.curve import CURVE_FIELDS
@@ -58,3 +59,25 @@ def test_tensorboard_without_tensorboardx_is_a_clear_error(monkeypatch, tmp_path
 
     with pytest.raises(ValueError, match=r"jaxtraffic\[tb\]"):
         TensorBoardWriter(tmp_path / "tb")
+
+
+def test_tensorboard_drops_the_steps_a_resume_logs_again(tmp_path):
+    """An interrupted session logged up to 3 chunks, its checkpoint holds 1: the resumed session's rows replace
+    chunks 2 and 3 (read back as TensorBoard reads them), none is drawn twice."""
+    need("tensorboardX")
+    accumulator = need("tensorboard.backend.event_processing.event_accumulator")
+    from jaxtraffic.runs.tensorboard import TensorBoardWriter
+
+    first = TensorBoardWriter(tmp_path)
+    for k in (1, 2, 3):
+        first({"env_steps": k * CHUNK, "eval_reward": -float(k)})
+    first.close()
+    time.sleep(1.1)  # (event file names hold the second: the resumed session's file sorts after)
+    resumed = TensorBoardWriter(tmp_path, purge_step=CHUNK + 1)  # what run_training passes: checkpoint + 1
+    for k in (2, 3):
+        resumed({"env_steps": k * CHUNK, "eval_reward": 10.0 * k})
+    resumed.close()
+    acc = accumulator.EventAccumulator(str(tmp_path))
+    acc.Reload()
+    got = [(e.step, e.value) for e in acc.Scalars("train/eval_reward")]
+    assert got == [(CHUNK, -1.0), (2 * CHUNK, 20.0), (3 * CHUNK, 30.0)]

@@ -200,7 +200,9 @@ def run_training(config: TrainConfig, run_dir: Path, saved: tuple[Any, dict] | N
     writer = distributed.is_writer()  # process 0 prints and writes; the others only compute
     # (a closed stdout stops the printing only: print_or_drop)
     say = (lambda *a: None) if config.run.quiet or not writer else print_or_drop
-    owned = [TensorBoardWriter(config.run.tensorboard)] if config.run.tensorboard and writer else []
+    # (on resume: the steps logged after the checkpoint by the interrupted session are dropped, not drawn twice)
+    purge = int(saved[1]["env_steps"]) + 1 if saved is not None else None
+    owned = [TensorBoardWriter(config.run.tensorboard, purge)] if config.run.tensorboard and writer else []
     try:
         with own_run_dir(run_dir, config.run.resume, config.run.overwrite, writer, say), finish_together(name), \
                 StopSignals(say) as stop:

@@ -42,7 +42,7 @@ from jaxtraffic.runs.session import (
     print_or_drop,
     report_interruption,
 )
-from jaxtraffic.runs.tensorboard import TensorBoardWriter
+from jaxtraffic.runs.tracking import TensorBoardWriter, as_callback
 
 __all__ = ["Algorithm", "Clock", "Progress", "run_training"]
 
@@ -195,8 +195,8 @@ def run_training(config: TrainConfig, run_dir: Path, saved: tuple[Any, dict] | N
     ``TrainingInterrupted`` after a signal (the checkpoint of the last completed chunk is on disk).
 
     ``config``, ``run_dir``, ``saved``: from ``prepare``. ``config_file()``: config.json's content.
-    ``callbacks``: each learning-curve row (a dict) as soon as its chunk is evaluated; ``run.tensorboard``
-    adds a ``TensorBoardWriter``."""
+    ``callbacks``: each learning-curve row (a dict) as soon as its chunk is evaluated (a ``tracking.Tracker``:
+    ``tracking.as_callback``); ``run.tensorboard`` adds a ``TensorBoardWriter``, closed at the end."""
     writer = distributed.is_writer()  # process 0 prints and writes; the others only compute
     # (a closed stdout stops the printing only: print_or_drop)
     say = (lambda *a: None) if config.run.quiet or not writer else print_or_drop
@@ -206,8 +206,8 @@ def run_training(config: TrainConfig, run_dir: Path, saved: tuple[Any, dict] | N
     try:
         with own_run_dir(run_dir, config.run.resume, config.run.overwrite, writer, say), finish_together(name), \
                 StopSignals(say) as stop:
-            return _loop(config, run_dir, saved, make_algorithm, config_file, [*callbacks, *owned], say, stop,
-                         writer)
+            return _loop(config, run_dir, saved, make_algorithm, config_file,
+                         [*callbacks, *map(as_callback, owned)], say, stop, writer)
     finally:
         for board in owned:
             board.close()

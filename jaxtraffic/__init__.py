@@ -13,7 +13,9 @@ Layers (imports flow one way, base <- model <- control <- sim <- learn <- ecosys
     cli/      the train and evaluate command lines
 
 Gymnasium: when gymnasium is installed, ``import jaxtraffic`` registers ``"jaxtraffic/Gain-v0"``
-(``jaxtraffic._registration``; the environment module is imported only by ``gymnasium.make``).
+(``jaxtraffic._registration``; the environment module is imported only by ``gymnasium.make``); so
+does ``gymnax.make`` once gymnax is imported (before ``import jaxtraffic``, or
+``import jaxtraffic.ecosystem.gymnax_env`` after it).
 
 Devices: the batched entry points shard their batch over ``jax.devices()``. XLA shows a CPU host as
 one device; ``split_host_devices()``, called before any JAX computation, makes it one device per core
@@ -30,7 +32,7 @@ Public API (see README.md for a module map):
     open_loop, lyapunov, backstepping, constant_gains, Controller, Observation -- controllers
 """
 
-from jaxtraffic._registration import register_gymnasium
+from jaxtraffic._registration import register_gymnasium, register_gymnax
 from jaxtraffic._version import __version__
 from jaxtraffic.control import (
     Controller,
@@ -61,6 +63,7 @@ from jaxtraffic.sim import (
 )
 
 register_gymnasium()  # gymnasium.make("jaxtraffic/Gain-v0") when gymnasium is installed (_registration)
+register_gymnax()  # gymnax.make("jaxtraffic/Gain-v0") when gymnax is already imported (never imports it)
 
 __all__ = [
     "__version__", "AlphaInput", "Controller", "Divergence", "Memory", "Observation", "Record", "SimResult",

@@ -9,9 +9,13 @@ USAGE = "usage: python -m jaxtraffic {train,evaluate} [flags]   (python -m jaxtr
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    if not argv or argv[0] not in ("train", "evaluate"):
-        print(USAGE, file=sys.stderr if argv else sys.stdout)
-        return 2 if argv else 0
+    if not argv or argv[0] in ("-h", "--help"):  # asked for (or nothing to do): usage on stdout, not an error
+        print(USAGE)
+        return 0
+    if argv[0] not in ("train", "evaluate"):
+        print(USAGE, file=sys.stderr)
+        print(f"python -m jaxtraffic: error: unknown command {argv[0]!r}", file=sys.stderr)
+        return 2
     if argv[0] == "train":
         from jaxtraffic.cli.train import main as run
     else:

@@ -1,4 +1,4 @@
-"""Gymnasium registration of the gain environment, run at ``import jaxtraffic``.
+"""Gymnasium and gymnax registration of the gain environment, run at ``import jaxtraffic``.
 
 Gymnasium 1.x has no plugin (entry-point) registration, so ``gymnasium.make("jaxtraffic/Gain-v0")``
 finds the id only once a module has called ``gymnasium.register``. ``import jaxtraffic`` does it
@@ -7,15 +7,24 @@ points, so ``jaxtraffic.ecosystem.gym_env`` (and ``learn.env``) are imported onl
 Cost: the import of gymnasium itself, ~60 ms after jax (BENCHMARKS.md, "Ecosystem adapters").
 The module-prefixed id ``"jaxtraffic:jaxtraffic/Gain-v0"`` needs no import first: gymnasium imports
 ``jaxtraffic``, which registers the id.
+
+gymnax (>= 1.0: ``gymnax.register(id, factory)``, no string entry points) gets the same id once
+``jaxtraffic.ecosystem.gymnax_env`` is imported, or at ``import jaxtraffic`` when gymnax is already
+imported: importing gymnax costs ~1.2 s (all its environments), so ``import jaxtraffic`` never does it.
+``gymnax.make("jaxtraffic/Gain-v0", n_points=21)`` -> ``(GainGymnaxEnv, its default params)``.
 """
 
 from __future__ import annotations
 
+import importlib
 import importlib.util
+import sys
+from typing import Any
 
 ENV_ID = "jaxtraffic/Gain-v0"
+GYMNAX_ENTRY = "jaxtraffic.ecosystem.gymnax_env"
 
-__all__ = ["ENV_ID", "register_gymnasium"]
+__all__ = ["ENV_ID", "register_gymnasium", "register_gymnax"]
 
 
 def register_gymnasium() -> bool:
@@ -31,4 +40,27 @@ def register_gymnasium() -> bool:
     if ENV_ID not in gymnasium.registry:
         gymnasium.register(ENV_ID, entry_point="jaxtraffic.ecosystem.gym_env:GainEnv",
                            vector_entry_point="jaxtraffic.ecosystem.gym_env:GainVectorEnv")
+    return True
+
+
+def _make_gymnax_env(**config: Any) -> Any:
+    """gymnax's factory: ``GainGymnaxEnv(**config)``, its module named by a string as gymnasium's entry points
+    are (imported on first use; this bottom layer imports no layer above it)."""
+    return importlib.import_module(GYMNAX_ENTRY).GainGymnaxEnv(**config)
+
+
+def register_gymnax(import_gymnax: bool = False) -> bool:
+    """Register ``ENV_ID`` with gymnax's registry (``gymnax.make``); False when gymnax is not imported
+    (and ``import_gymnax`` is False), not installed, or older than 1.0 (no ``gymnax.register``).
+    Idempotent."""
+    if "gymnax" not in sys.modules and not (import_gymnax and importlib.util.find_spec("gymnax") is not None):
+        return False
+    try:
+        import gymnax
+    except ImportError:
+        return False
+    if not hasattr(gymnax, "register"):
+        return False
+    if ENV_ID not in gymnax.registered_envs:
+        gymnax.register(ENV_ID, _make_gymnax_env)
     return True

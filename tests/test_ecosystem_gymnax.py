@@ -89,3 +89,28 @@ def test_example_purejaxrl_style_ppo_trains():
     last = [x for x in out.splitlines() if "last update" in x][0]
     returns = [float(v) for v in last.split("[")[1].split("]")[0].split()]
     assert len(returns) == 2 and np.isfinite(returns).all() and all(r < 0 for r in returns), last
+
+
+
+def test_gymnax_make_finds_the_registered_id():
+    import gymnax
+
+    env, params = gymnax.make("jaxtraffic/Gain-v0", **CONFIG)  # registered by importing gymnax_env (above)
+    assert isinstance(env, GainGymnaxEnv) and "jaxtraffic/Gain-v0" in gymnax.registered_envs
+    assert int(params.horizon) == 10 and env.observation_space(params).shape == (OBS,)
+
+
+def _python(code: str) -> str:
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                         env={**xla_env(), "PYTHONPATH": str(REPO)}, cwd=REPO)
+    assert out.returncode == 0, out.stderr
+    return out.stdout.strip()
+
+
+def test_import_jaxtraffic_registers_with_an_imported_gymnax():
+    """gymnax imported first, then jaxtraffic (no gymnax module of jaxtraffic imported by hand): ``make``
+    works; ``import jaxtraffic`` alone does not import gymnax (~1.2 s)."""
+    made = _python("import gymnax, jaxtraffic; env, p = gymnax.make('jaxtraffic/Gain-v0', n_points=21); "
+                   "print(type(env).__name__, int(p.horizon))")
+    assert made == "GainGymnaxEnv 1000"  # the default 100 s horizon, dt 0.1 s
+    assert _python("import sys, jaxtraffic; print('gymnax' in sys.modules)") == "False"

@@ -110,6 +110,7 @@ def test_evaluate_end_to_end(tiny_run, tmp_path):
     plants = json.loads((out / "plants.json").read_text())
     assert set(plants["claims"]) == {"paper", "reference"} and set(plants["claims"]["reference"]) == set("123456")
     assert "The experiments on the reference plant" in report and (out / "fig_plants_delay4.png").stat().st_size
+    assert "rho L2 6 s (veh/km), paper" in report and "D = 4 s, 6 s, backstepping" in report  # --horizon 6, as run
     # the controller brought in: the PPO run bridged through predict(obs) scores as the run itself, on both
     # plants, and stands in REPORT.md's tables (the map, the numerical check, the learned controllers' section)
     for m in (on_disk, ref):

@@ -652,17 +652,43 @@ def test_closed_stdout_and_ctrl_c_at_import_give_no_traceback(tmp_path):
             "--train-horizon-s", "2", "--steps-per-chunk", "1", "--eval-horizon-s", "2", "--grad-steps", "3"]
     proc = subprocess.Popen([sys.executable, str(REPO / "train.py"), *grad, "--out-dir", str(tmp_path / "g")],
                             cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    proc.stdout.readline()  # like `train.py ... | head -1`
+    proc.stdout.readline()  # like `train.py ... | head -1`: the printing stops, the training goes on to its end
     proc.stdout.close()
     err = proc.stderr.read()
-    assert proc.wait(timeout=300) == 2 and "standard output was closed (broken pipe)" in err, err[-2000:]
-    assert "Traceback" not in err
+    assert proc.wait(timeout=300) == 0 and "standard output was closed (broken pipe)" in err, err[-2000:]
+    assert "Traceback" not in err and err.count("broken pipe") == 1
+    summary = json.loads((tmp_path / "g" / ckpt.SUMMARY).read_text())
+    assert summary["interrupted"] is False
     early = subprocess.Popen([sys.executable, str(REPO / "train.py"), "--help"], cwd=REPO, env=_env(),
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     time.sleep(0.3)  # still importing jax
     early.send_signal(signal.SIGINT)
     rc, _, err = _finish(early, timeout=60)
     assert rc == 130 and "Traceback" not in err, (rc, err)
+
+
+@pytest.mark.slow
+def test_ctrl_c_under_a_closed_pipe_saves_summarises_and_exits_130(tmp_path):
+    """``train.py ... | tee log``, then Ctrl-C: the reader dies first, the next progress line meets a closed pipe;
+    the printing stops, the run does not: the last completed chunk (the second or later) is checkpointed, not
+    the session's first one (saved otherwise: every 10th), summary.json is written, exit 130 (not 2)."""
+    run = tmp_path / "piped"
+    proc = _start(run, "--total-steps", str(1000 * CHUNK), quiet=False)
+    lines = []
+    for line in proc.stdout:  # two chunks' progress lines, then the reader goes and Ctrl-C arrives
+        lines.append(line)
+        if sum(x.startswith("[") and "steps]" in x for x in lines) == 2 or len(lines) > 50:
+            break
+    proc.stdout.close()
+    proc.send_signal(signal.SIGINT)
+    err = proc.stderr.read()
+    rc = proc.wait(timeout=300)
+    assert rc == 130, (rc, "".join(lines), err[-3000:])
+    assert "SIGINT received" in err and "standard output was closed (broken pipe)" in err
+    assert "Traceback" not in err and "continue with --resume" in err, err[-2000:]
+    _, meta = ckpt.load_checkpoint(run)
+    summary = json.loads((run / ckpt.SUMMARY).read_text())
+    assert summary["interrupted"] is True and summary["env_steps"] == meta["env_steps"] >= 2 * CHUNK
 
 
 @pytest.mark.slow

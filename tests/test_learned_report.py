@@ -31,11 +31,13 @@ def test_comparison_section_reports_each_run_and_the_map():
     runs = {"grad_gains": {"run_dir": "runs/g", "summary": {"wall_s": 12.5, "env_steps": 9e5},
                            "curve": {"wall_s": np.array([9.0]), "eval_rho_L2": np.array([0.1]),
                                      "eval_J_comfort": np.array([2000.0])}}}
-    lines = comparison_section(metrics, runs, {"grad_gains": calm, "backstepping": rough}, alphas, delays)
+    lines = comparison_section(metrics, runs, {"grad_gains": calm, "backstepping": rough}, alphas, delays, 20.0)
+    text = "\n".join(lines)
+    assert "D = 4 s, 20 s, backstepping" in text and "300 s" not in text  # the evaluation's horizon, as run
     row = next(line for line in lines if line.startswith("| gradient: 3 constant gains"))
     cells = [c.strip() for c in row.split("|")[1:-1]]
     assert cells[2:5] == ["12.5", "9e+05", "9.0"]
     assert cells[5:8] == ["0.100", "2000", "0.50"]
     assert cells[8:] == ["2/4", "0-4"]
     assert any(line.startswith("| backstepping") and "| 1/4 |" in line for line in lines)
-    assert comparison_section(metrics, {}, {}, alphas, delays) == []
+    assert comparison_section(metrics, {}, {}, alphas, delays, 300.0) == []

@@ -168,3 +168,17 @@ print(before, matplotlib.rcParams._get_backend_or_none(), "matplotlib.pyplot" in
     assert out.returncode == 0, out.stderr[-2000:]
     before, after, pyplot = out.stdout.split()
     assert before == after == "None" and pyplot == "False"
+
+
+def test_the_suffix_names_the_format_written(tmp_path, series):
+    """A .pdf path receives a PDF (vector), .svg an SVG, .png a PNG; a suffix matplotlib cannot write (or none)
+    is a clear error before anything is written."""
+    t, decay, grow = series
+    for name, head in (("r.pdf", b"%PDF-"), ("r.svg", b"<?xml"), ("r.png", PNG_MAGIC)):
+        plotting.plot_reward(tmp_path / name, t, {"a": -decay, "b": -grow})
+        assert (tmp_path / name).read_bytes().startswith(head), name
+    assert b"<svg" in (tmp_path / "r.svg").read_bytes()[:1000]
+    for bad, why in (("r.docx", "matplotlib cannot write .docx files"), ("r", "no suffix to name the format")):
+        with pytest.raises(ValueError, match=why):
+            plotting.plot_reward(tmp_path / "new" / bad, t, {"a": -decay})
+    assert not (tmp_path / "new").exists()

@@ -261,7 +261,9 @@ def test_module_entry_points_and_the_gradient_chunk_rule(tmp_path, capsys):
     import jaxtraffic.__main__ as entry
 
     assert entry.main([]) == 0 and "python -m jaxtraffic {train,evaluate}" in capsys.readouterr().out
-    assert entry.main(["bogus"]) == 2
+    for ask in ("--help", "-h"):  # help is not an error: usage on stdout, exit 0
+        assert entry.main([ask]) == 0 and "python -m jaxtraffic {train,evaluate}" in capsys.readouterr().out
+    assert entry.main(["bogus"]) == 2 and "unknown command 'bogus'" in capsys.readouterr().err
     code, err = _main([*GRAD, "--grad-steps", "6", "--steps-per-chunk", "5", "--out-dir", str(tmp_path / "r")], capsys)
     assert code == 2 and "grad_steps = 6 (--grad-steps): must be a multiple of --steps-per-chunk (5)" in err
     assert not (tmp_path / "r").exists()

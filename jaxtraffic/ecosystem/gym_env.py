@@ -36,8 +36,13 @@ fields of the training config tree (``n_points=21``, ``delay=2.0``, ``horizon_s=
 Processes: the environments hold JAX state, and JAX is not fork-safe. For Gymnasium's
 ``AsyncVectorEnv`` / SB3's ``SubprocVecEnv`` use ``context="forkserver"`` (or ``"spawn"``) and the
 module-prefixed id ``"jaxtraffic:jaxtraffic/Gain-v0"`` (a new process imports jaxtraffic, which
-registers the id); with ``fork`` the children hang. ``GainVectorEnv`` already steps the whole batch in
-one compiled call and is the faster choice on one machine.
+registers the id); with ``fork`` the children hang. ``forkserver`` and ``spawn`` start the children by
+importing the parent's main module: a script must create the vector environment under
+``if __name__ == "__main__":`` (otherwise each child runs the script again and Python raises "An attempt has
+been made to start a new process before the current process has finished its bootstrapping phase").
+``GainVectorEnv`` already steps the whole batch in one compiled call and is the faster choice on one machine.
+
+``RecordVideo`` writes its videos with moviepy (in the ``[gym]`` extra).
 """
 
 from __future__ import annotations

@@ -13,6 +13,9 @@ environments itself, reusing the delay buffer (O(n) per step). gymnax's wrappers
 Actions are normalised gains in [-1, 1]^3 (see ``jaxtraffic.ecosystem``); ``raw_actions=True``
 takes the environment's own unbounded pre-tanh action instead (``learn.env.action_to_gains``), for a
 policy that squashes itself.
+
+Importing this module registers the environment with gymnax: ``gymnax.make("jaxtraffic/Gain-v0",
+n_points=21)`` returns ``(GainGymnaxEnv(n_points=21), its default params)`` (``_registration``).
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ import jax
 import jax.numpy as jnp
 from gymnax.environments import environment, spaces
 
+from jaxtraffic._registration import register_gymnax
 from jaxtraffic.ecosystem import ENV_ID, N_GAINS, normalised_to_action, resolve_env_params
 from jaxtraffic.learn import env as learn_env
 
@@ -95,3 +99,6 @@ class GainGymnaxEnv(environment.Environment[learn_env.EnvState, learn_env.EnvPar
         if self.raw_actions:
             return spaces.Box(-jnp.inf, jnp.inf, (N_GAINS,), jnp.float32)
         return spaces.Box(-1.0, 1.0, (N_GAINS,), jnp.float32)
+
+
+register_gymnax()  # gymnax.make(ENV_ID, **config) (gymnax is imported above)

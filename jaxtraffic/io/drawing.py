@@ -14,7 +14,7 @@ from matplotlib.figure import Figure, SubFigure
 
 from jaxtraffic.io.files import atomic_write_bytes
 
-__all__ = ["DPI", "finish_figure", "new_figure", "save_figure"]
+__all__ = ["DPI", "figure_format", "finish_figure", "new_figure", "save_figure"]
 
 DPI = 110  # dots per inch of every PNG
 
@@ -25,19 +25,32 @@ def new_figure(fig: Figure | SubFigure | None = None, **kwargs) -> Figure | SubF
     return Figure(layout="constrained", **kwargs) if fig is None else fig
 
 
+def figure_format(path: str | Path) -> str:
+    """The file format ``path``'s suffix names (``.png``, ``.pdf``, ``.svg``, ... : what matplotlib writes);
+    ``ValueError`` for a suffix it cannot write, or none."""
+    suffix = Path(path).suffix.lower().removeprefix(".")
+    known = Figure().canvas.get_supported_filetypes()
+    if suffix not in known:
+        raise ValueError(f"figure path {path}: " + (f"matplotlib cannot write .{suffix} files" if suffix else
+                         "no suffix to name the format") + f"; use one of {', '.join('.' + k for k in known)}")
+    return suffix
+
+
 def save_figure(fig: Figure | SubFigure, png_path: str | Path) -> Path:
-    """Write ``fig`` (the whole figure a subfigure belongs to) as a PNG at ``png_path``, atomically."""
+    """Write ``fig`` (the whole figure a subfigure belongs to) at ``png_path``, atomically, in the format its
+    suffix names (``figure_format``: PNG at ``DPI`` for ``.png``, a vector PDF for ``.pdf``, ...)."""
     png_path = Path(png_path)
+    fmt = figure_format(png_path)  # (checked before anything is written)
     png_path.parent.mkdir(parents=True, exist_ok=True)
     buf = io.BytesIO()  # written atomically: replaces a symbolic link at png_path instead of following it
     root = fig.figure if isinstance(fig, SubFigure) else fig
-    root.savefig(buf, format="png", dpi=DPI, bbox_inches="tight")
+    root.savefig(buf, format=fmt, dpi=DPI, bbox_inches="tight")
     atomic_write_bytes(png_path, buf.getvalue())
     return png_path
 
 
 def finish_figure(fig: Figure | SubFigure, png_path: str | Path | None) -> Figure | SubFigure:
-    """Save ``fig`` at ``png_path`` when one is given; return it."""
+    """Save ``fig`` at ``png_path`` when one is given (in the format its suffix names); return it."""
     if png_path is not None:
         save_figure(fig, png_path)
     return fig

@@ -262,7 +262,8 @@ def _write(out_dir: Path, claims: list, metrics: dict, meta: dict, figures: list
         notes.append("- No learning curve was available, so figure 3a is missing.")
     sections = readings_summary(claims, metrics, eval_config) + numerics_summary(numerics, metrics, eval_config)
     sections += robustness_summary(robust, eval_config, oracle) + comparison_section(
-        metrics, learned_runs or {}, robust, tuple(eval_config.robust_alphas), tuple(eval_config.robust_delays))
+        metrics, learned_runs or {}, robust, tuple(eval_config.robust_alphas), tuple(eval_config.robust_delays),
+        eval_config.horizon_s)
     report = report_text(out_dir, claims, metrics, meta, figures, notes, sections=sections)
     (out_dir / "claims.json").write_text(json.dumps(to_jsonable(
         [{**{k: v for k, v in c.items() if k != "checks"},

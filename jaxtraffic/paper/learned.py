@@ -44,10 +44,10 @@ def _num(x: Any, fmt: str) -> str:
 
 
 def comparison_section(metrics: dict, runs: dict[str, dict], robust: dict[str, dict[str, np.ndarray]],
-                       alphas: tuple[float, ...], delays: tuple[float, ...]) -> list[str]:
+                       alphas: tuple[float, ...], delays: tuple[float, ...], horizon_s: float) -> list[str]:
     """Markdown lines of the section. ``runs``: controller name -> {"summary": summary.json of its
     run, "curve": its learning curve (column -> array) or None, "run_dir": ...} for every learned
-    controller evaluated."""
+    controller evaluated. ``horizon_s``: the evaluation's simulated time, s."""
     if not runs:
         return []
     d4 = metrics["delay4"]
@@ -60,7 +60,7 @@ def comparison_section(metrics: dict, runs: dict[str, dict], robust: dict[str, d
              "summary.json and learning curve (wall time includes compilation, on the machine that trained it; "
              "*s to beat backstepping*: first evaluation during training whose final rho L2 and J_comfort are both "
              "below backstepping's); quality figures "
-             "from this evaluation (paper initial condition, D = 4 s, 300 s, backstepping for reference: "
+             f"from this evaluation (paper initial condition, D = 4 s, {horizon_s:g} s, backstepping for reference: "
              f"final rho L2 {_num(1e3 * bs['final_rho_L2'], '.3f') if bs else 'n/a'} veh/km, J_comfort "
              f"{_num(bs.get('J_comfort'), '.4g')}). *Map* = stabilised cells of the robustness map (not "
              f"diverged, final std_x(rho) < {STABLE_STD * 1e3:g} veh/km); *delays* = plant delays of the map "

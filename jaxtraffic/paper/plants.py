@@ -66,8 +66,8 @@ def _claims_lines(table: dict[str, Any], plants: list[str]) -> list[str]:
     return lines
 
 
-def _delay4_lines(table: dict[str, Any], plants: list[str]) -> list[str]:
-    lines = ["| controller | " + " | ".join(f"rho L2 300 s (veh/km), {p}" for p in plants) + " | "
+def _delay4_lines(table: dict[str, Any], plants: list[str], horizon_s: float) -> list[str]:
+    lines = ["| controller | " + " | ".join(f"rho L2 {horizon_s:g} s (veh/km), {p}" for p in plants) + " | "
              + " | ".join(f"J_comfort, {p}" for p in plants) + " | vs backstepping (L2, J_comfort) on each |",
              "|---|" + "---|" * (2 * len(plants) + 1)]
     for c in (*DELAY4, *others(next(iter(table["delay4"].values())))):
@@ -86,9 +86,10 @@ def _delay4_lines(table: dict[str, Any], plants: list[str]) -> list[str]:
     return lines
 
 
-def _numerics_lines(table: dict[str, Any], plants: list[str], results: dict[str, dict]) -> list[str]:
+def _numerics_lines(table: dict[str, Any], plants: list[str], results: dict[str, dict], horizon_s: float) -> list[str]:
     lines = ["Each plant's own numerical check (Table 2's scenario on the plant refined twice, points and solver "
-             "steps, and with the other scheme; relative change of the density L2 at 300 s and J_comfort):", "",
+             f"steps, and with the other scheme; relative change of the density L2 at {horizon_s:g} s and J_comfort):",
+             "",
              "| plant | controller | refined: L2 | refined: J_comfort | other scheme: L2 | other scheme: J_comfort |",
              "|---|---|---|---|---|---|"]
     for p in plants:
@@ -116,15 +117,16 @@ def _map_lines(robust: dict[str, dict], plants: list[str]) -> list[str]:
     return lines
 
 
-def plot_plants(png: Path, table: dict[str, Any], plants: list[str]) -> None:
-    """Bars: density L2 at 300 s and J_comfort at D = 4 s, per controller, one colour per plant (log axes)."""
+def plot_plants(png: Path, table: dict[str, Any], plants: list[str], horizon_s: float) -> None:
+    """Bars: density L2 at ``horizon_s`` (s) and J_comfort at D = 4 s, per controller, one colour per plant (log
+    axes)."""
     names = [c for c in (*DELAY4, *others(table["delay4"][plants[0]])) if c != "open_loop"
              and all(c in table["delay4"][p] for p in plants)]
     fig = new_figure(figsize=(11, 3.8))
     axes = fig.subplots(1, 2)
     width = 0.8 / len(plants)
-    for ax, key, scale, label in ((axes[0], "final_rho_L2", 1e3, "density L2 at 300 s (veh/km)"),
-                                  (axes[1], "J_comfort", 1.0, "J_comfort over 300 s")):
+    for ax, key, scale, label in ((axes[0], "final_rho_L2", 1e3, f"density L2 at {horizon_s:g} s (veh/km)"),
+                                  (axes[1], "J_comfort", 1.0, f"J_comfort over {horizon_s:g} s")):
         for i, p in enumerate(plants):
             vals = [scale * table["delay4"][p][c][key] for c in names]
             ax.bar(np.arange(len(names)) + i * width, vals, width, label=p)
@@ -149,7 +151,8 @@ def compare_plants(results: dict[str, dict], configs: dict[str, EvalConfig], out
     first = plants[0]
     table = plant_table(results, configs)
     robust = {p: json.loads((_out_dir(out_dir, p, first) / "robustness.json").read_text()) for p in plants}
-    plot_plants(out_dir / "fig_plants_delay4.png", table, plants)
+    horizon_s = configs[first].horizon_s  # (every plant's evaluation runs the same time)
+    plot_plants(out_dir / "fig_plants_delay4.png", table, plants, horizon_s)
     lines = [TITLE, "",
              "Every experiment ran on " + " and ".join(f"the **{p}** plant ({configs[p].describe()})" for p in plants)
              + ". Every controller acts on its own grid on both (the baselines on the paper's 5 m grid at 0.1 s, "
@@ -157,7 +160,7 @@ def compare_plants(results: dict[str, dict], configs: dict[str, EvalConfig], out
              "plant's discretisation, not the controller's. The reference plant is where the results no longer "
              "depend on the grid (docs/model.md section 15).", "",
              "### Claim by claim", "", *_claims_lines(table, plants), "",
-             "### D = 4 s (Table 2's scenario)", "", *_delay4_lines(table, plants), "",
+             "### D = 4 s (Table 2's scenario)", "", *_delay4_lines(table, plants, horizon_s), "",
              "![plants](fig_plants_delay4.png)", "",
              "| " + " | ".join(plants) + " |", "|" + "---|" * len(plants),
              "| " + " | ".join(f"![{p}]({'' if p == first else p + '/'}fig6_l2_delay4.png)" for p in plants) + " |",
@@ -165,7 +168,7 @@ def compare_plants(results: dict[str, dict], configs: dict[str, EvalConfig], out
              + " |", "",
              "### Robustness maps (plant delay x plant alpha; stabilised: not diverged, final spatial std of rho "
              "< 0.5 veh/km)", "", *_map_lines(robust, plants), "",
-             "### Numerical checks", "", *_numerics_lines(table, plants, results), ""]
+             "### Numerical checks", "", *_numerics_lines(table, plants, results, horizon_s), ""]
     text = "\n".join(lines)
     atomic_write_text(out_dir / "plants.md", text)
     write_json(out_dir / "plants.json", table)

@@ -2,8 +2,9 @@
 
 Every function takes numpy arrays (no rollout objects) and returns a matplotlib figure, drawn
 without pyplot (no backend switch: usable in a notebook, where it displays itself); given a path it
-also writes the figure as a PNG there. ``plot_reward`` draws into an ``ax=`` of yours, the
-multi-panel ones into a ``fig=`` (a ``Figure`` or a ``SubFigure``, e.g. from ``fig.subfigures``).
+also writes the figure there, in the format the path's suffix names (``.png``, ``.pdf``, ``.svg``, ...; a suffix
+matplotlib cannot write is a ``ValueError``: ``io.drawing.figure_format``). ``plot_reward`` draws into an ``ax=``
+of yours, the multi-panel ones into a ``fig=`` (a ``Figure`` or a ``SubFigure``, e.g. from ``fig.subfigures``).
 
 Units on the axes: x in m, t in s, density in veh/km, speed in m/s, time gap in s. Space-time maps
 use a diverging colour map centred on the equilibrium value with symmetric, robust limits (the

@@ -1,6 +1,7 @@
 """The lab: what every training run shares, whatever its algorithm. The run's configuration (``config``),
 the checkpoint format and run-directory files (``checkpoint``), the run directory's ownership and signals
-(``session``), the learning curve (``curve``), TensorBoard (``tensorboard``), the host training loop
+(``session``), the learning curve (``curve``), experiment tracking (``tracking``: TensorBoard, MLflow), the host
+training loop
 (``loop``), each algorithm's trainer and saved policy (``ppo/``, ``gradient/``) and ``load_policy``
 (``policy``): a trained run's controller, whatever the algorithm."""
 

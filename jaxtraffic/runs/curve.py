@@ -88,7 +88,7 @@ def reward_axis(ax: Axes, values: np.ndarray) -> None:
 def plot_learning_curve(csv_path: str | Path, png_path: str | Path | None = None, title: str | None = None, *,
                         fig: Figure | SubFigure | None = None) -> Figure | SubFigure:
     """Paper fig. 3a: training reward against environment steps and against wall-clock seconds; returns
-    the figure (drawn into ``fig`` if given), saved as a PNG at ``png_path`` if given.
+    the figure (drawn into ``fig`` if given), saved at ``png_path`` if given (in the format its suffix names).
 
     Reads ``csv_path`` (header ``update,env_steps,wall_s,mean_reward,eval_reward,...``) and plots
     the mean training reward and the deterministic evaluation reward (of the best member, in a

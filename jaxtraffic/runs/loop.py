@@ -39,9 +39,10 @@ from jaxtraffic.runs.session import (
     claim_run_dir,
     finish_together,
     own_run_dir,
+    print_or_drop,
     report_interruption,
 )
-from jaxtraffic.runs.tensorboard import TensorBoardWriter
+from jaxtraffic.runs.tracking import TensorBoardWriter, as_callback
 
 __all__ = ["Algorithm", "Clock", "Progress", "run_training"]
 
@@ -194,16 +195,19 @@ def run_training(config: TrainConfig, run_dir: Path, saved: tuple[Any, dict] | N
     ``TrainingInterrupted`` after a signal (the checkpoint of the last completed chunk is on disk).
 
     ``config``, ``run_dir``, ``saved``: from ``prepare``. ``config_file()``: config.json's content.
-    ``callbacks``: each learning-curve row (a dict) as soon as its chunk is evaluated; ``run.tensorboard``
-    adds a ``TensorBoardWriter``."""
+    ``callbacks``: each learning-curve row (a dict) as soon as its chunk is evaluated (a ``tracking.Tracker``:
+    ``tracking.as_callback``); ``run.tensorboard`` adds a ``TensorBoardWriter``, closed at the end."""
     writer = distributed.is_writer()  # process 0 prints and writes; the others only compute
-    say = (lambda *a: None) if config.run.quiet or not writer else (lambda *a: print(*a, flush=True))
-    owned = [TensorBoardWriter(config.run.tensorboard)] if config.run.tensorboard and writer else []
+    # (a closed stdout stops the printing only: print_or_drop)
+    say = (lambda *a: None) if config.run.quiet or not writer else print_or_drop
+    # (on resume: the steps logged after the checkpoint by the interrupted session are dropped, not drawn twice)
+    purge = int(saved[1]["env_steps"]) + 1 if saved is not None else None
+    owned = [TensorBoardWriter(config.run.tensorboard, purge)] if config.run.tensorboard and writer else []
     try:
         with own_run_dir(run_dir, config.run.resume, config.run.overwrite, writer, say), finish_together(name), \
                 StopSignals(say) as stop:
-            return _loop(config, run_dir, saved, make_algorithm, config_file, [*callbacks, *owned], say, stop,
-                         writer)
+            return _loop(config, run_dir, saved, make_algorithm, config_file,
+                         [*callbacks, *map(as_callback, owned)], say, stop, writer)
     finally:
         for board in owned:
             board.close()

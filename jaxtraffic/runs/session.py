@@ -27,12 +27,28 @@ from jaxtraffic.platform import distributed
 from jaxtraffic.runs import checkpoint as ckpt
 
 __all__ = ["NonFiniteTraining", "RunLock", "StopSignals", "TrainingInterrupted", "check_finite", "check_out_dir",
-           "check_resumable", "claim_run_dir", "fmt_time", "open_run_dir", "own_run_dir", "report_interruption"]
+           "check_resumable", "claim_run_dir", "fmt_time", "open_run_dir", "own_run_dir", "print_or_drop",
+           "report_interruption"]
 
 LOCK = ".lock"  # held (flock) by the training that writes the directory
 # what a run writes: a fresh run in a directory holding any of them would mix two runs
 RUN_FILES = (ckpt.CONFIG, ckpt.CHECKPOINT, ckpt.BEST, ckpt.SUMMARY, "learning_curve.csv", "learning_curve.png")
 RESULTS = (ckpt.CHECKPOINT, ckpt.BEST, ckpt.SUMMARY)  # what a fresh run would mix with
+
+
+def print_or_drop(*args, file=None) -> None:
+    """``print(*args, file=file, flush=True)``; a closed stream (a pipe whose reader went: ``train.py | head``,
+    Ctrl-C under ``| tee``, which kills the reader first) stops that stream's output only: it is pointed at
+    /dev/null from then on (its file descriptor too, so that the exit's flush cannot fail) and the training goes
+    on to its checkpoint and summary."""
+    stream = sys.stdout if file is None else file
+    try:
+        print(*args, file=stream, flush=True)
+    except BrokenPipeError:  # (EPIPE: Python ignores SIGPIPE)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), stream.fileno())
+        if stream is sys.stdout:  # said once, where it can still be read
+            print_or_drop("standard output was closed (broken pipe): training goes on without printing; Ctrl-C "
+                          "(SIGINT) or SIGTERM saves and stops as usual", file=sys.stderr)
 
 
 class TrainingInterrupted(KeyboardInterrupt):
@@ -57,11 +73,11 @@ class StopSignals:
 
     def _handle(self, signum, frame):
         if self.signum is not None:
-            print(f"\n{signal.Signals(signum).name} again: exiting now without saving", file=sys.stderr, flush=True)
+            print_or_drop(f"\n{signal.Signals(signum).name} again: exiting now without saving", file=sys.stderr)
             os._exit(128 + signum)
         self.signum = signum
-        print(f"\n{signal.Signals(signum).name} received: stopping after the current chunk (send it again to "
-              "quit without saving)", file=sys.stderr, flush=True)
+        print_or_drop(f"\n{signal.Signals(signum).name} received: stopping after the current chunk (send it again "
+                      "to quit without saving)", file=sys.stderr)
 
     def __enter__(self):
         if threading.current_thread() is threading.main_thread():
@@ -139,7 +155,7 @@ def report_interruption(signum: int, run_dir: Path, any_chunk: bool, new_chunk: 
     else:
         msg = (f"interrupted ({name}): the checkpoint of the last completed chunk ({progress}) is saved in "
                f"{run_dir}; continue with --resume")
-    print(msg, file=sys.stderr, flush=True)
+    print_or_drop(msg, file=sys.stderr)
     if not any_chunk or not new_chunk:
         raise TrainingInterrupted(signum, msg)
     return msg

@@ -58,7 +58,7 @@ MAIN_JOB_PPO_WALL_S = 600.0
 # grid; "half": MUSCL on the paper's grid refined once (401 points, one solver step), the controller on the paper's
 # grid: it agrees with the reference plant on which high-alpha plants diverge (MUSCL on the paper's grid does not)
 # at a quarter of its cost, so that the robust schedule's CEM (36 plants x 600 s x 24 candidates x 10
-# generations) fits its 10-minute budget (BENCHMARKS.md "A robust learned controller")
+# generations) fits its 10-minute budget (docs/model.md section 17, "The training plant's discretisation")
 GRADIENT_RUNS = {
     "grad_gains": ("gradient-gains", ["--algo", "gradient", "--policy", "gains"], "reference"),
     "grad_network": ("gradient-network", ["--algo", "gradient", "--policy", "network"], "reference"),

@@ -20,7 +20,7 @@ one device; ``split_host_devices()``, called before any JAX computation, makes i
 (the command lines do this; ``import jaxtraffic`` changes nothing in your process; see
 ``jaxtraffic.platform.devices``).
 
-Public API (see README.md for a module map):
+Public API (the module map: docs/api/index.md):
     TrafficParams, equilibrium                      -- parameters and equilibrium
     simulate, simulate_batch, stack_params          -- jit-compiled, vmappable rollouts
     Record, Memory, AlphaInput                      -- rollout options (recording, checkpointing, plant alphas)

@@ -15,8 +15,8 @@ Small flags for tests: ``--n-points``, ``--horizon``, ``--seeds``, ``--robust-gr
 Table 2's scenario is rerun on each plant refined twice and with the other scheme unless
 ``--no-numerics-check``.
 The same command runs as N cooperating processes with ``--coordinator-address HOST:PORT
---num-processes N --process-id I`` or the ``JAX_*`` variables (``jaxtraffic.platform.distributed``; README,
-"Running on a cluster"): the batched rollouts (and any training the job starts) are split over
+--num-processes N --process-id I`` or the ``JAX_*`` variables (``jaxtraffic.platform.distributed``;
+docs/tutorials/cluster.md): the batched rollouts (and any training the job starts) are split over
 every process's devices, and only process 0 prints and writes.
 The logic lives in ``jaxtraffic.paper``; ``main(argv)`` returns the metrics dict.
 """

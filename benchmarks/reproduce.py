@@ -1,6 +1,6 @@
 #!/usr/bin/env python
-"""Rerun the main job and say whether each headline claim of the README still holds (on the paper's grid,
-on the reference plant, and the learned controllers' certificates).
+"""Rerun the main job and say whether each headline claim of the results page (docs/main-job.md) still holds
+(on the paper's grid, on the reference plant, and the learned controllers' certificates).
 
     python benchmarks/reproduce.py [--out DIR] [--skip-run] [--reference docs/results]
 

@@ -1,16 +1,17 @@
 """jaxtraffic: JAX simulation and control of congested mixed ACC/manual freeway traffic.
 
-Layers (imports flow one way, base <- model <- control <- sim <- learn <- ecosystem, paper <- cli;
+Layers (imports flow one way, io/platform <- model <- control <- sim <- learn <- runs <- ecosystem, paper <- cli;
 ``tests/test_architecture.py`` enforces it):
-    files, drawing, provenance, distributed, ...   atomic files and JSON, figures, run records, processes
-    model/    parameters, fundamental diagram, ARZ solver, delay buffer, linearisation
-    control/  controller interface, baselines, three-gain law, learned gain policy
-    sim/      plant state and the one closed-loop step, rollouts, initial conditions, metrics
-    learn/    environment, config tree, run machinery and the one training loop (runs/), PPO (ppo/),
-              gradient-based and CEM training (gradient/), load_policy
+    io/        atomic files and JSON, figures without pyplot, provenance
+    platform/  devices, multi-process runs, the compilation cache, tracing
+    model/     parameters, fundamental diagram, ARZ solver, delay buffer, linearisation
+    control/   controller interface, baselines, three-gain law, learned gain policy, stability certificate
+    sim/       plant state and the one closed-loop step, rollouts, initial conditions, metrics
+    learn/     the algorithms: environment, PPO (ppo/), gradient-based and CEM training (gradient/)
+    runs/      the lab: run directory, training loop, checkpoints, trainers, selection, load_policy
     ecosystem/ Gymnasium, gymnax and Stable-Baselines3 adapters
-    paper/    the paper's scenarios, summaries, claims, report and figures
-    cli/      the train and evaluate command lines
+    paper/     the paper's scenarios, summaries, claims, report and figures
+    cli/       the train and evaluate command lines
 
 Gymnasium: when gymnasium is installed, ``import jaxtraffic`` registers ``"jaxtraffic/Gain-v0"``
 (``jaxtraffic._registration``; the environment module is imported only by ``gymnasium.make``); so
@@ -22,7 +23,7 @@ one device; ``split_host_devices()``, called before any JAX computation, makes i
 (the command lines do this; ``import jaxtraffic`` changes nothing in your process; see
 ``jaxtraffic.platform.devices``).
 
-Public API (see README.md for a module map):
+Public API (the module map: docs/api/index.md):
     TrafficParams, equilibrium                      -- parameters and equilibrium
     simulate, simulate_batch, stack_params          -- jit-compiled, vmappable rollouts
     Record, Memory, AlphaInput                      -- rollout options (recording, checkpointing, plant alphas)

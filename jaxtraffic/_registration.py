@@ -4,7 +4,7 @@ Gymnasium 1.x has no plugin (entry-point) registration, so ``gymnasium.make("jax
 finds the id only once a module has called ``gymnasium.register``. ``import jaxtraffic`` does it
 when gymnasium is installed (``find_spec``: nothing is imported when it is not), with string entry
 points, so ``jaxtraffic.ecosystem.gym_env`` (and ``learn.env``) are imported only by ``make``.
-Cost: the import of gymnasium itself, ~60 ms after jax (BENCHMARKS.md, "Ecosystem adapters").
+Cost: the import of gymnasium itself, ~60 ms after jax (docs/model.md section 19.4).
 The module-prefixed id ``"jaxtraffic:jaxtraffic/Gain-v0"`` needs no import first: gymnasium imports
 ``jaxtraffic``, which registers the id.
 

@@ -1,5 +1,5 @@
 """The package's import structure: no import cycle (module-level or inside functions), and imports flow one
-way through the layers the README's module map states."""
+way through the layers the module map (docs/api/index.md) states."""
 
 from __future__ import annotations
 
@@ -75,7 +75,7 @@ def test_no_import_cycle():
 
 def test_every_module_has_a_layer():
     unplaced = [m for m in GRAPH if m != "jaxtraffic" and _layer(m) is None]
-    assert not unplaced, f"place these modules in the layers of tests/test_architecture.py and the README: {unplaced}"
+    assert not unplaced, f"place these modules in the layers of this test and docs/api/index.md: {unplaced}"
 
 
 def test_imports_flow_down_the_layers():

@@ -15,8 +15,8 @@ Small flags for tests: ``--n-points``, ``--horizon``, ``--seeds``, ``--robust-gr
 Table 2's scenario is rerun on each plant refined twice and with the other scheme unless
 ``--no-numerics-check``.
 The same command runs as N cooperating processes with ``--coordinator-address HOST:PORT
---num-processes N --process-id I`` or the ``JAX_*`` variables (``jaxtraffic.platform.distributed``; README,
-"Running on a cluster"): the batched rollouts (and any training the job starts) are split over
+--num-processes N --process-id I`` or the ``JAX_*`` variables (``jaxtraffic.platform.distributed``;
+docs/tutorials/cluster.md): the batched rollouts (and any training the job starts) are split over
 every process's devices, and only process 0 prints and writes.
 The logic lives in ``jaxtraffic.paper``; ``main(argv)`` returns the metrics dict.
 """
@@ -59,7 +59,7 @@ MAIN_JOB_PPO_WALL_S = 600.0
 # grid; "half": MUSCL on the paper's grid refined once (401 points, one solver step), the controller on the paper's
 # grid: it agrees with the reference plant on which high-alpha plants diverge (MUSCL on the paper's grid does not)
 # at a quarter of its cost, so that the robust schedule's CEM (36 plants x 600 s x 24 candidates x 10
-# generations) fits its 10-minute budget (BENCHMARKS.md "A robust learned controller")
+# generations) fits its 10-minute budget (docs/model.md section 17, "The training plant's discretisation")
 GRADIENT_RUNS = {
     "grad_gains": ("gradient-gains", ["--algo", "gradient", "--policy", "gains"], "reference"),
     "grad_network": ("gradient-network", ["--algo", "gradient", "--policy", "network"], "reference"),

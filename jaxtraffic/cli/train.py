@@ -7,7 +7,7 @@ config.json, checkpoint.msgpack, learning_curve.csv/.png and summary.json. Ctrl-
 after the current chunk with its checkpoint saved (exit 130 / 143); ``--resume`` continues from it.
 The same command runs as N cooperating processes (PPO and ``--algo gradient``) with
 ``--coordinator-address HOST:PORT --num-processes N --process-id I`` or the ``JAX_*`` variables
-(``jaxtraffic.platform.distributed``; README, "Running on a cluster").
+(``jaxtraffic.platform.distributed``; docs/tutorials/cluster.md).
 """
 
 from __future__ import annotations

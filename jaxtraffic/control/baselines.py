@@ -200,7 +200,7 @@ def predict_recursive(rho_t: Array, v_t: Array, sent: delay_buffer.DelayBuffer, 
     predictor would add A^d e_n.) On the discrete linear plant e_n is rounding, so P_n equals
     ``predict``'s x^{n+d} up to rounding grown by the model over at most ``anchor_every`` steps;
     on the nonlinear plant it misses (A^d - I) e of the innovations since the last anchor
-    (measured against the exact prediction in BENCHMARKS.md). Cost: two linear steps per control
+    (measured against the exact prediction: docs/model.md section 13.5). Cost: two linear steps per control
     step plus d per anchor; under ``vmap`` the exact loop runs only on anchor steps, which every
     environment of a batch shares (same step counter), so it is skipped at the other steps.
     """

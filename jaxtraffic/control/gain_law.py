@@ -28,8 +28,8 @@ Array = jax.Array
 GAIN_NAMES = ("eta1", "eta2", "eta3")
 # m, the default width of the learned gain law's spatial filter (``learn``): of 0, 10, 15, 20, 25, 30 m, the
 # smallest at which both the gradient-trained gains and the default PPO policy are certified with a margin
-# (max growth <= 2e-4/s; at 20 m the gains sit at the tolerance and PPO above it; BENCHMARKS.md,
-# "The learned law's spatial filter")
+# (max growth <= 2e-4/s; at 20 m the gains sit at the tolerance and PPO above it; docs/model.md section 16,
+# "Used in training")
 FILTER_SIGMA = 25.0
 
 

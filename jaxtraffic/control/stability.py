@@ -145,7 +145,7 @@ def dominant_eigenvalue(Z: Array) -> Array:
 def _dominant_eigenpair(Z: Array) -> tuple[Array, Array, Array]:
     """(lambda, right eigenvector, left eigenvector) of the eigenvalue of largest modulus of ``Z`` (batched over
     leading axes), by numpy's LAPACK on the host (``jax.pure_callback``): XLA's CPU ``eig`` deadlocks now and
-    then inside a jitted, vmapped program on this project's 2-device CPU setup (BENCHMARKS.md). Call it from a
+    then inside a jitted, vmapped program on a 2-device CPU setup (docs/model.md section 16). Call it from a
     program on one device."""
     vec = jax.ShapeDtypeStruct(Z.shape[:-1], Z.dtype)
     shapes = (jax.ShapeDtypeStruct(Z.shape[:-2], Z.dtype), vec, vec)

@@ -1,7 +1,7 @@
 """A persistent XLA compilation cache for the command-line jobs (``train.py``, ``evaluate.py``).
 
 Compiling the PPO chunk, its initialisation and the evaluation rollouts takes about half of a
-default training's wall time on a 2-core CPU (BENCHMARKS.md). JAX can keep compiled executables
+default training's wall time on a 2-core CPU (docs/model.md section 19.3). JAX can keep compiled executables
 on disk and load them in a later process instead of compiling again; a loaded executable is the
 program a fresh compilation would produce, so results are bit-identical with and without it.
 

@@ -17,13 +17,13 @@ It does nothing when
 otherwise it appends ``--xla_force_host_platform_device_count=<cores>`` to ``XLA_FLAGS``
 (cores: the CPUs this process may run on, ``os.sched_getaffinity``). The flag only shapes the
 CPU platform: on a GPU/TPU machine ``jax.devices()`` still lists the accelerators. Nothing is
-changed on a one-core machine. What it costs not to split: BENCHMARKS.md, "The device split".
+changed on a one-core machine. What it costs not to split: docs/model.md section 19.1.
 
 The batched entry points (``simulate_batch``, the evaluation, the trainers) shard their batch
 over ``jax.devices()``; see ``jaxtraffic.sim.sharding``. A rollout's numbers do not depend on the
 device count beyond float32 rounding; a PPO training's do (its minibatches and gradient sums
-split over the devices, and the training is chaotic in such rounding): BENCHMARKS.md "PPO
-reliability" measures the default recipe on one device and on two.
+split over the devices, and the training is chaotic in such rounding): docs/model.md section 19.1
+(the default recipe measured on one device and on two).
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 The map counts a plant as *stabilised* when it did not diverge and its final std_x(rho) is below
 ``sim.metrics.STABLE_STD`` (0.5 veh/km), and as *diverged* when it left the physical region. Both are counts:
 their gradient is zero almost everywhere, and the smooth wave objectives of ``learn.gradient.objective`` trade them
-badly (measured, BENCHMARKS.md "A robust learned controller"). CEM optimises the counts themselves, on the
+badly (measured, docs/model.md section 17). CEM optimises the counts themselves, on the
 training scenarios of a ``GradientConfig`` (plants offset from the map's cells):
 
     fitness(theta) = #stabilised - DIVERGED_COST #diverged - TIE_WEIGHT mean_s log(final std_s + 1e-3 veh/km)

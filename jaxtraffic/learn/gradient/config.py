@@ -93,9 +93,10 @@ class GradientConfig:
 
 # The network policy: a smaller step (its first layer sees 3 n + 3 inputs), half the steps, and
 # plant delays 0-6 s (it is meant to stabilise all of them). The schedule: trained by CEM on the map's own counts
-# (learn.gradient.cem; the smooth wave objectives traded divergence badly, BENCHMARKS.md), over the robustness
-# map's ranges (delays 0-8 s, alphas 0.05-0.6) on plants offset from both maps' cells (the map is judged on held-out
-# plants), 600 s as the map, started from a law that stabilises the nominal plant; the wave objective is its Adam option
+# (learn.gradient.cem; the smooth wave objectives traded divergence badly, docs/model.md section 17), over the
+# robustness map's ranges (delays 0-8 s, alphas 0.05-0.6) on plants offset from both maps' cells (the map is judged
+# on held-out plants), 600 s as the map, started from a law that stabilises the nominal plant; the wave objective
+# is its Adam option
 POLICY_DEFAULTS: dict[str, dict[str, Any]] = {
     "gains": {},
     "network": {"grad_lr": 3e-3, "grad_steps": 20, "train_delays": (0.0, 3.0, 6.0)},

@@ -13,7 +13,7 @@ device of every process, ``jax.devices()``): ``init`` and ``train_chunk`` are ``
 ``jax.shard_map`` with the per-device body, one code path for one device, many devices and many
 processes. Gradients and observation statistics are averaged across devices (``lax.pmean``), so
 parameters stay replicated. Seeds are a ``vmap`` inside each device. (This replaced ``pmap``,
-with bit-identical results on 1 and 2 devices and the same speed: BENCHMARKS.md, issue 16.)
+with bit-identical results on 1 and 2 devices and the same speed: docs/model.md section 19.2.)
 
 Config is a pytree (rejax style): shape-setting fields are static, float hyperparameters are
 traced leaves, so changing a learning rate or a clip range does not recompile.

@@ -39,7 +39,7 @@ _EP = _defaults(EnvParams)
 _PPO = _defaults(PPOConfig)
 _GRAD = _defaults(GradientConfig)
 ALGOS = ("ppo", "gradient")
-# The default PPO recipe is a population (BENCHMARKS.md "A population by default"): POPULATION members
+# The default PPO recipe is a population (docs/model.md section 13.8, "Why a population"): POPULATION members
 # trained at once, each on PPOConfig's num_envs / POPULATION environments, so that a chunk steps as many
 # environments as one member of PPOConfig's size; the run stops on the first member that meets the rule.
 POPULATION = 2

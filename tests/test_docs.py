@@ -1,0 +1,134 @@
+"""The README and the documentation site's sources: the README keeps the two set-up commands verbatim and stays
+short, every relative link of the README and of docs/ resolves, mkdocs.yml's pages exist, and the code cites
+docs/model.md sections that exist (not BENCHMARKS.md). The site itself is built by ``mkdocs build --strict``
+in CI (``.ci/run``); these checks need no mkdocs."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+MAIN_COMMAND = "pip install -e . && python evaluate.py"
+TEST_COMMAND = 'pip install -e ".[test]" && python -m pytest -q'
+# [text](target) and ![alt](target); the target up to whitespace or ")"
+LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)")
+CITATION = re.compile(r"docs/model\.md,?\s+sections?\s+((?:\d+(?:\.\d+)?)(?:(?:\s*(?:,|-|and)\s*)\d+(?:\.\d+)?)*)")
+
+
+def relative_links(markdown: str) -> list[str]:
+    """The link targets of a markdown text that point into the repository (no URL, no in-page anchor),
+    without their anchors; code spans and fenced code blocks are skipped."""
+    text = re.sub(r"```.*?```", "", markdown, flags=re.S)
+    text = re.sub(r"`[^`\n]*`", "", text)
+    targets = []
+    for target in LINK.findall(text):
+        if re.match(r"^[a-z][a-z0-9+.-]*:", target) or target.startswith("#"):
+            continue
+        targets.append(target.split("#", 1)[0])
+    return targets
+
+
+def model_sections() -> set[str]:
+    """The section numbers of docs/model.md's headings ("13", "13.8", ...)."""
+    text = (ROOT / "docs" / "model.md").read_text(encoding="utf-8")
+    return {m.group(1) for m in re.finditer(r"^#{2,4}\s+(\d+(?:\.\d+)?)\.?\s", text, flags=re.M)}
+
+
+def cited_sections(text: str) -> set[str]:
+    """Every section number a text cites as "docs/model.md section N" / "sections N-M, K and L" (ranges
+    expanded over whole sections)."""
+    cited: set[str] = set()
+    for group in CITATION.findall(text):
+        for part in re.split(r"\s*(?:,|and)\s*", group):
+            if "-" in part:
+                lo, hi = (int(float(x)) for x in part.split("-"))
+                cited.update(str(n) for n in range(lo, hi + 1))
+            elif part:
+                cited.add(part)
+    return cited
+
+
+# --- the README ---------------------------------------------------------------------------------------------
+
+
+def test_readme_keeps_the_two_commands_verbatim_and_is_short():
+    text = README.read_text(encoding="utf-8")
+    lines = text.splitlines()
+    assert any(line.strip() == MAIN_COMMAND for line in lines), "the main command, on a line of its own"
+    assert any(line.strip() == TEST_COMMAND for line in lines), "the test command, on a line of its own"
+    assert len(lines) <= 150, f"README.md has {len(lines)} lines (at most ~150; the rest belongs on the site)"
+
+
+def test_readme_links_resolve():
+    targets = relative_links(README.read_text(encoding="utf-8"))
+    assert targets, "the README links to the docs"
+    missing = [t for t in targets if not (ROOT / t).exists()]
+    assert not missing, f"README.md links to files that do not exist: {missing}"
+
+
+def test_relative_links_helper_skips_urls_anchors_and_code():
+    text = "[a](docs/x.md#s) ![f](img.png) [u](https://e.org) [h](#top) `[c](no.md)`\n```\n[d](no2.md)\n```"
+    assert relative_links(text) == ["docs/x.md", "img.png"]
+
+
+# --- the site's sources --------------------------------------------------------------------------------------
+
+
+def nav_pages(mkdocs_yml: str) -> list[str]:
+    """The page paths of mkdocs.yml's ``nav:`` block (``- Title: page.md`` or ``- page.md`` entries)."""
+    nav = mkdocs_yml.split("\nnav:", 1)[1]
+    nav = re.split(r"\n\S", nav, maxsplit=1)[0]  # up to the next top-level key
+    return re.findall(r"^\s*-\s+(?:[^:\n]+:\s+)?(\S+\.md)\s*$", nav, flags=re.M)
+
+
+def test_mkdocs_nav_pages_and_snippets_exist():
+    mkdocs_yml = (ROOT / "mkdocs.yml").read_text(encoding="utf-8")
+    docs = ROOT / re.search(r"^docs_dir:\s*(\S+)", mkdocs_yml, flags=re.M).group(1)
+    pages = nav_pages(mkdocs_yml)
+    assert {"index.md", "model.md", "controllers.md", "benchmarks.md", "changelog.md"} <= set(pages)
+    missing = [p for p in pages if not (docs / p).exists()]
+    assert not missing, f"mkdocs.yml's nav names missing pages: {missing}"
+    for page in docs.rglob("*.md"):
+        for snippet in re.findall(r'^--8<--\s+"([^"]+)"', page.read_text(encoding="utf-8"), flags=re.M):
+            assert (ROOT / snippet).exists(), f"{page.relative_to(ROOT)} includes a missing file {snippet}"
+
+
+def test_nav_pages_parser():
+    text = "site_name: x\nnav:\n  - Home: index.md\n  - Group:\n      - A b: sub/a.md\n  - c.md\nplugins:\n  - d.md\n"
+    assert nav_pages(text) == ["index.md", "sub/a.md", "c.md"]
+
+
+def test_docs_relative_links_resolve():
+    docs = ROOT / "docs"
+    broken = []
+    for page in docs.rglob("*.md"):
+        if "results" in page.relative_to(docs).parts:  # generated by evaluate.py (its links are mkdocs-checked)
+            continue
+        for target in relative_links(page.read_text(encoding="utf-8")):
+            if target and not (page.parent / target).exists():
+                broken.append(f"{page.relative_to(ROOT)} -> {target}")
+    assert not broken, f"links to missing files: {broken}"
+
+
+# --- the code's citations -----------------------------------------------------------------------------------
+
+
+def test_code_cites_existing_model_sections_not_benchmarks():
+    sections = model_sections()
+    assert {"1", "13", "13.8", "16", "17"} <= sections  # the parser reads the headings
+    bad, benchmarks = [], []
+    for path in sorted((ROOT / "jaxtraffic").rglob("*.py")):
+        text = path.read_text(encoding="utf-8")
+        name = str(path.relative_to(ROOT))
+        bad += [f"{name}: section {s}" for s in sorted(cited_sections(text)) if s not in sections]
+        if "BENCHMARKS.md" in text:
+            benchmarks.append(name)
+    assert not bad, f"citations of docs/model.md sections that do not exist: {bad}"
+    assert not benchmarks, f"cite docs/model.md for a default's reason, not BENCHMARKS.md: {benchmarks}"
+
+
+def test_cited_sections_parser():
+    text = "see docs/model.md sections 7-9 and 13.8, and docs/model.md section 16; docs/model.md sections 4, 5, 10"
+    assert cited_sections(text) == {"7", "8", "9", "13.8", "16", "4", "5", "10"}

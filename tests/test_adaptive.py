@@ -136,3 +136,15 @@ def test_state_is_jittable_pytree():
     cs = jax.jit(ctrl.init)(obs, NOMINAL)
     h, cs2 = jax.jit(ctrl.act)(cs, obs, NOMINAL, jax.random.PRNGKey(0))
     assert h.shape == (N,) and bool(cs2.started) and not bool(cs.started)
+
+
+@pytest.mark.parametrize("alpha_hat", [0.05, 0.15, 0.3, 0.6])
+def test_hold_target_model_rests_at_the_nominal_equilibrium(alpha_hat):
+    """With hold_target the law's model has the nominal equilibrium (at its time gap h*); without, the
+    estimated plant's own at h_bar (which differs unless alpha_hat is the nominal's)."""
+    from jaxtraffic.control.adaptive import estimated_model
+    held = estimated_model(adaptive_backstepping(hold_target=True).settings, NOMINAL, jnp.float32(alpha_hat))
+    own = estimated_model(adaptive_backstepping().settings, NOMINAL, jnp.float32(alpha_hat))
+    np.testing.assert_allclose(np.array(equilibrium(held)), np.array(equilibrium(NOMINAL)), rtol=1e-5)
+    assert float(own.h_bar) == NOMINAL.h_bar
+    assert (abs(float(equilibrium(own)[0]) - float(equilibrium(NOMINAL)[0])) > 1e-5) == (alpha_hat != 0.15)

@@ -22,8 +22,10 @@ that the gain does not wind up when the state carries no information (at the pla
 J ~ 0 and r is rounding). ``gamma`` is 1 (adapting) or 0 (the estimate stays alpha0).
 
 The law: backstepping (``control.baselines``) with the nominal's alpha replaced by the estimate,
-i.e. the linearisation, the predictor and the Lyapunov law all use a_n, and the target is the
-equilibrium of the estimated model at h_bar (the plant's own equilibrium once a_n = alpha).
+i.e. the linearisation, the predictor and the Lyapunov law all use a_n (certainty equivalence). It
+linearises about the estimated model's equilibrium at h_bar (the plant's own once a_n = alpha, where
+the open loop would rest), or, with ``hold_target``, about the nominal equilibrium, which the
+estimated plant holds under h* = h_mix^{-1}(h_mix(h_bar; alpha_nominal); a_n) (``estimated_model``).
 
 Assumptions: the plant's alpha is constant or slowly varying against the forgetting window
 (1/(1 - lam) steps); the delay the controller is told is the plant's (a wrong delay misaligns the
@@ -43,6 +45,7 @@ from flax import struct
 from jaxtraffic.control.base import Controller
 from jaxtraffic.control.baselines import _check_setting, _checked_gain, _lyapunov_h, assumed_delay_steps, predict
 from jaxtraffic.model import delay as delay_buffer
+from jaxtraffic.model import fundamental as fd
 from jaxtraffic.model.linear import linearize
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.model.solver import arz_step
@@ -59,7 +62,8 @@ class AdaptiveSettings:
     (NaN: the nominal's alpha); forgetting: lam in (0, 1] per control step; adapt: 1 to adapt, 0 to
     keep alpha0; shock_scale: density jump (veh/m) above which a node's weight falls off;
     min_info: floor under R, (m/s)^2 (> 0): below it the state carries too little information and the
-    gain no longer grows.
+    gain no longer grows; hold_target: 1 to linearise about the nominal equilibrium (held by the time
+    gap h* of the estimated plant), 0 about the estimated plant's equilibrium at h_bar.
     """
 
     k: Array
@@ -69,6 +73,7 @@ class AdaptiveSettings:
     adapt: Array
     shock_scale: Array
     min_info: Array
+    hold_target: Array
 
 
 @struct.dataclass
@@ -126,17 +131,31 @@ def estimator_update(settings: AdaptiveSettings, cs: EstimatorState, rho: Array,
     return cs.replace(alpha_hat=a_new.astype(a.dtype), info=info, prev_rho=rho, prev_v=v, started=jnp.ones((), bool))
 
 
+def estimated_model(settings: AdaptiveSettings, nominal: TrafficParams, alpha_hat: Array) -> TrafficParams:
+    """The model the law uses: ``nominal`` with ACC share ``alpha_hat``, linearised about its equilibrium at
+    h_bar (the estimated plant's own), or, with ``hold_target``, about the nominal equilibrium
+    (rho_bar, v_bar), which the estimated plant holds under the time gap h* = h_mix^{-1}(h_mix(h_bar; alpha);
+    alpha_hat) (docs/model.md section 12), clipped to [h_min, h_max]."""
+    model = nominal.replace(alpha=alpha_hat)
+    h_star = fd.h_mix_inv(fd.h_mix(nominal.h_bar, nominal), model)
+    c, b = fd.mix_coefficients(model)
+    ok = fd.h_mix(nominal.h_bar, nominal) < c / b
+    h_star = jnp.clip(jnp.where(ok, h_star, nominal.h_max), nominal.h_min, nominal.h_max)
+    return model.replace(h_bar=jnp.where(settings.hold_target > 0, h_star, nominal.h_bar))
+
+
 def _act(settings: AdaptiveSettings, cs: EstimatorState, obs, nominal: TrafficParams, key):
     d = assumed_delay_steps(settings.delay, obs.sent, nominal)
     cs = estimator_update(settings, cs, obs.rho, obs.v, delay_buffer.read(obs.sent, d), nominal)
-    lm = linearize(nominal.replace(alpha=cs.alpha_hat))
+    lm = linearize(estimated_model(settings, nominal, cs.alpha_hat))
     r_hat, v_hat = predict(obs.rho - lm.rho_bar, obs.v - lm.v_bar, obs.sent, d, lm)
     return _lyapunov_h(r_hat, v_hat, _checked_gain(settings), lm), cs
 
 
 def adaptive_backstepping(delay: float | Array = 4.0, k: float | Array = 1.0, *, alpha0: float | Array = float("nan"),
                           forgetting: float | Array = 0.99, adapt: bool | Array = True,
-                          shock_scale: float | Array = 2e-3, min_info: float | Array = 1e-6) -> Controller:
+                          shock_scale: float | Array = 2e-3, min_info: float | Array = 1e-6,
+                          hold_target: bool | Array = False) -> Controller:
     """Backstepping with its model's ACC share estimated online (module docstring).
 
     Args:
@@ -147,6 +166,8 @@ def adaptive_backstepping(delay: float | Array = 4.0, k: float | Array = 1.0, *,
         adapt: False keeps alpha0 (then, told alpha0 = the nominal's alpha, it equals ``backstepping``).
         shock_scale: density difference across a node (veh/m) at which its weight halves (> 0).
         min_info: floor under the information R, (m/s)^2 (> 0; module docstring).
+        hold_target: linearise about the nominal equilibrium, held by the estimated plant's time gap h*
+            (``estimated_model``), instead of the estimated plant's own equilibrium at h_bar.
     Returns:
         A ``Controller`` named "adaptive_backstepping"; its state is an ``EstimatorState``.
     """
@@ -156,6 +177,7 @@ def adaptive_backstepping(delay: float | Array = 4.0, k: float | Array = 1.0, *,
         _check_setting(name, value, minimum=0.0)
     as_f = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
     settings = AdaptiveSettings(k=as_f(k), delay=as_f(delay), alpha0=as_f(alpha0), forgetting=as_f(forgetting),
-                                adapt=as_f(1.0 if adapt is True else 0.0 if adapt is False else adapt),
-                                shock_scale=as_f(shock_scale), min_info=as_f(min_info))
+                                adapt=as_f(adapt),
+                                shock_scale=as_f(shock_scale), min_info=as_f(min_info),
+                                hold_target=as_f(hold_target))
     return Controller(settings=settings, act_fn=_act, init_fn=_init, name="adaptive_backstepping")

@@ -50,7 +50,8 @@ def controllers() -> dict[str, tuple]:
     return {"open_loop": (open_loop(), False), "backstepping": (backstepping(), False),
             "backstepping_alpha": (adaptive_backstepping(adapt=False), True),
             "adaptive": (adaptive_backstepping(), False),
-            "adaptive_hold": (adaptive_backstepping(hold_target=True), False)}
+            "adaptive_hold": (adaptive_backstepping(hold_target=True), False),
+            "backstepping_alpha_hold": (adaptive_backstepping(adapt=False, hold_target=True), True)}
 
 
 def run_map(cfg: EvalConfig, names: list[str], cells: int | None, log=print) -> dict:
@@ -103,7 +104,7 @@ def summarise(out: dict, log=print) -> dict:
     log(f"  {'controller':<20s} {'told':<9s} {'stabilised':>10s} {'diverged':>8s}   (of {int((~excluded).sum())}"
         f" controllable; all {dd.size} cells in brackets)")
     for name, told in (("open_loop", "nothing"), ("backstepping", "D"), ("backstepping_alpha", "D, alpha"),
-                       ("adaptive", "D"), ("adaptive_hold", "D")):
+                       ("adaptive", "D"), ("backstepping_alpha_hold", "D, alpha"), ("adaptive_hold", "D")):
         if name not in out:
             continue
         div = np.asarray(out[name]["diverged"], bool)
@@ -113,12 +114,15 @@ def summarise(out: dict, log=print) -> dict:
         table[name] = row
         log(f"  {name:<20s} {told:<9s} {row['stabilised']:>10d} {row['diverged']:>8d}   "
             f"({row['stabilised_all']}, {row['diverged_all']})")
-    if "adaptive" in out and "alpha_hat" in out["adaptive"]:
-        err = np.abs(np.asarray(out["adaptive"]["alpha_hat"]) - aa)
-        ok = ~excluded & ~np.asarray(out["adaptive"]["diverged"], bool)
+    for name in ("adaptive", "adaptive_hold"):
+        if name not in out or "alpha_hat" not in out[name]:
+            continue
+        err = np.abs(np.asarray(out[name]["alpha_hat"]) - aa)
+        ok = ~excluded & ~np.asarray(out[name]["diverged"], bool)
         worst = np.flatnonzero(ok)[err[ok].argmax()]
-        log(f"  adaptive: |alpha_hat - alpha| at the end over the controllable non-diverged cells: max "
-            f"{err[worst]:.4f} (at D {dd[worst]:g} s, alpha {aa[worst]:g}), median {np.median(err[ok]):.4f}")
+        log(f"  {name}: |alpha_hat - alpha| at the end over the controllable non-diverged cells: max "
+            f"{err[worst]:.4f} (at D {dd[worst]:g} s, alpha {aa[worst]:g}), median {np.median(err[ok]):.4f}, "
+            f"> 0.01 in {int((err[ok] > 0.01).sum())} cells")
     return table
 
 
@@ -210,7 +214,8 @@ def nominal_point(cfg: EvalConfig) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--plant", choices=("paper", "reference", "refined"), default="paper")
-    ap.add_argument("--controllers", default="open_loop,backstepping,backstepping_alpha,adaptive")
+    ap.add_argument("--controllers", default="open_loop,backstepping,backstepping_alpha,adaptive,"
+                    "backstepping_alpha_hold,adaptive_hold")
     ap.add_argument("--cells", type=int, default=0, help="run only the first N cells (1: the cell (4 s, 0.16))")
     ap.add_argument("--horizon", type=float, default=600.0)
     ap.add_argument("--trace", action="store_true", help="the estimate over time at (--delay, --alpha) and the map")

@@ -3,7 +3,8 @@
 Counts over plant delay x plant alpha (600 s, no noise, the paper's initial condition on the nominal
 equilibrium, target and model alpha 0.15): stabilised = not diverged and final spatial std of rho
 < 0.5 veh/km; diverged. Rows: backstepping told D; backstepping told D and the plant's alpha (the
-information bound); adaptive backstepping told D only; open loop (told nothing, to find the cells
+information bound; linearised about the plant's own equilibrium at h_bar, and ``_hold``: about the nominal
+one); adaptive backstepping told D only (the same two linearisations; ``_hold`` is the default); open loop (told nothing, to find the cells
 that are inconsistent before any control acts). Every controller acts on the paper's grid (201
 points, 0.1 s) through ``control.adapter`` as in ``paper.numerics.deploy``.
 
@@ -48,8 +49,8 @@ def eval_config(plant: str, horizon_s: float = 600.0) -> EvalConfig:
 def controllers() -> dict[str, tuple]:
     """name -> (controller, told alpha?)."""
     return {"open_loop": (open_loop(), False), "backstepping": (backstepping(), False),
-            "backstepping_alpha": (adaptive_backstepping(adapt=False), True),
-            "adaptive": (adaptive_backstepping(), False),
+            "backstepping_alpha": (adaptive_backstepping(adapt=False, hold_target=False), True),
+            "adaptive": (adaptive_backstepping(hold_target=False), False),
             "adaptive_hold": (adaptive_backstepping(hold_target=True), False),
             "backstepping_alpha_hold": (adaptive_backstepping(adapt=False, hold_target=True), True)}
 
@@ -131,7 +132,7 @@ def trace(cfg: EvalConfig, delays, alphas, n_steps: int, every: int, alpha0: flo
     (delays[i] s, alphas[i]) from the paper's initial condition, every ``every`` steps; the cells
     run as one vmapped scan. Arrays of shape (cells, n_steps // every)."""
     nom = cfg.nominal()
-    ctrl = adapt(adaptive_backstepping(alpha0=alpha0, **estimator), baseline_grid(nom), nom)
+    ctrl = adapt(adaptive_backstepping(alpha0=alpha0, hold_target=False, **estimator), baseline_grid(nom), nom)
     rho0, v0 = paper_initial_condition(nom)
     rho_bar, v_bar = equilibrium(nom)
 
@@ -203,7 +204,8 @@ def nominal_point(cfg: EvalConfig) -> None:
     cfg300 = EvalConfig(**{**cfg.__dict__, "horizon_s": 300.0})
     nom = cfg300.nominal()
     env = [nom.replace(delay=4.0)]
-    for name, c in (("backstepping", backstepping(4.0)), ("adaptive", adaptive_backstepping(4.0)),
+    for name, c in (("backstepping", backstepping(4.0)),
+                    ("adaptive", adaptive_backstepping(4.0, hold_target=False)),
                     ("adaptive_hold", adaptive_backstepping(4.0, hold_target=True))):
         res = run_batch(adapt(c, baseline_grid(nom), nom), env, [0], cfg300, record=False)
         m = res.metrics

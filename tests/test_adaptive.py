@@ -53,13 +53,16 @@ def test_told_alpha_without_adaptation_equals_backstepping():
     """adapt=False with the nominal's alpha (alpha0 NaN) is backstepping to rounding, on a plant
     whose alpha differs (so the state is far from trivial)."""
     plant = NOMINAL.replace(alpha=0.3)
-    a = _run(plant, adaptive_backstepping(delay=2.0, adapt=False), record=True)
+    a = _run(plant, adaptive_backstepping(delay=2.0, adapt=False, hold_target=False), record=True)
     b = _run(plant, backstepping(delay=2.0), record=True)
     # equal to rounding: the two programs fuse the linearisation differently (1 ulp in h at ~30 % of the
     # entries, measured), and the difference does not grow over 30 s
     np.testing.assert_allclose(np.asarray(a.trajectory.h), np.asarray(b.trajectory.h), rtol=2e-6, atol=0)
     np.testing.assert_allclose(np.asarray(a.final.rho), np.asarray(b.final.rho), rtol=2e-6, atol=0)
     assert float(a.controller_state.alpha_hat) == np.float32(0.15)
+    # holding the target (the default) at the nominal alpha: h* = h_bar up to the rounding of h_mix's inverse
+    c = _run(plant, adaptive_backstepping(delay=2.0, adapt=False), record=True)
+    np.testing.assert_allclose(np.asarray(c.trajectory.h), np.asarray(b.trajectory.h), rtol=1e-5, atol=0)
 
 
 def test_told_alpha_changes_the_law():
@@ -143,8 +146,8 @@ def test_hold_target_model_rests_at_the_nominal_equilibrium(alpha_hat):
     """With hold_target the law's model has the nominal equilibrium (at its time gap h*); without, the
     estimated plant's own at h_bar (which differs unless alpha_hat is the nominal's)."""
     from jaxtraffic.control.adaptive import estimated_model
-    held = estimated_model(adaptive_backstepping(hold_target=True).settings, NOMINAL, jnp.float32(alpha_hat))
-    own = estimated_model(adaptive_backstepping().settings, NOMINAL, jnp.float32(alpha_hat))
+    held = estimated_model(adaptive_backstepping().settings, NOMINAL, jnp.float32(alpha_hat))
+    own = estimated_model(adaptive_backstepping(hold_target=False).settings, NOMINAL, jnp.float32(alpha_hat))
     np.testing.assert_allclose(np.array(equilibrium(held)), np.array(equilibrium(NOMINAL)), rtol=1e-5)
     assert float(own.h_bar) == NOMINAL.h_bar
     assert (abs(float(equilibrium(own)[0]) - float(equilibrium(NOMINAL)[0])) > 1e-5) == (alpha_hat != 0.15)

@@ -2,9 +2,10 @@
 
 Counts over plant delay x plant alpha (600 s, no noise, the paper's initial condition on the nominal
 equilibrium, target and model alpha 0.15): stabilised = not diverged and final spatial std of rho
-< 0.5 veh/km; diverged. Rows: backstepping told D; backstepping told D and the plant's alpha (the
-information bound; linearised about the plant's own equilibrium at h_bar, and ``_hold``: about the nominal
-one); adaptive backstepping told D only (the same two linearisations; ``_hold`` is the default); open loop (told nothing, to find the cells
+< 0.5 veh/km; diverged. Rows: backstepping told D; backstepping told D and
+the plant's alpha (the information bound; linearised about the plant's own equilibrium at h_bar, and
+``_hold``: about the nominal one); adaptive backstepping told D only (the same two linearisations;
+``_hold`` is the default); open loop (told nothing, to find the cells
 that are inconsistent before any control acts). Every controller acts on the paper's grid (201
 points, 0.1 s) through ``control.adapter`` as in ``paper.numerics.deploy``.
 

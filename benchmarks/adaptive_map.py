@@ -133,7 +133,8 @@ def trace(cfg: EvalConfig, delays, alphas, n_steps: int, every: int, alpha0: flo
     (delays[i] s, alphas[i]) from the paper's initial condition, every ``every`` steps; the cells
     run as one vmapped scan. Arrays of shape (cells, n_steps // every)."""
     nom = cfg.nominal()
-    ctrl = adapt(adaptive_backstepping(alpha0=alpha0, hold_target=False, **estimator), baseline_grid(nom), nom)
+    estimator = {"hold_target": False, **estimator}
+    ctrl = adapt(adaptive_backstepping(alpha0=alpha0, **estimator), baseline_grid(nom), nom)
     rho0, v0 = paper_initial_condition(nom)
     rho_bar, v_bar = equilibrium(nom)
 
@@ -229,11 +230,12 @@ def main() -> None:
     ap.add_argument("--forgetting", type=float, default=0.99, help="trace: the estimator's forgetting factor")
     ap.add_argument("--shock-scale", type=float, default=2e-3, help="trace: its shock weight scale, veh/m (inf: none)")
     ap.add_argument("--no-map", action="store_true", help="trace: the single cell only")
+    ap.add_argument("--hold", action="store_true", help="trace: the default law (hold_target) instead of the plain one")
     ap.add_argument("--out", default="")
     args = ap.parse_args()
     cfg = eval_config(args.plant, args.horizon)
     if args.trace:
-        est = {"forgetting": args.forgetting, "shock_scale": args.shock_scale}
+        est = {"forgetting": args.forgetting, "shock_scale": args.shock_scale, "hold_target": args.hold}
         print(f"estimator: {est}")
         print_trace(cfg, args.delay, args.alpha, args.alpha0, args.horizon, **est)
         if not args.no_map:

@@ -229,13 +229,15 @@ def main() -> None:
     ap.add_argument("--alpha0", type=float, default=float("nan"), help="initial estimate (default: nominal 0.15)")
     ap.add_argument("--forgetting", type=float, default=0.99, help="trace: the estimator's forgetting factor")
     ap.add_argument("--shock-scale", type=float, default=2e-3, help="trace: its shock weight scale, veh/m (inf: none)")
+    ap.add_argument("--resid-scale", type=float, default=0.0, help="trace: its residual weight scale, m/s (0: off)")
     ap.add_argument("--no-map", action="store_true", help="trace: the single cell only")
     ap.add_argument("--hold", action="store_true", help="trace: the default law (hold_target) instead of the plain one")
     ap.add_argument("--out", default="")
     args = ap.parse_args()
     cfg = eval_config(args.plant, args.horizon)
     if args.trace:
-        est = {"forgetting": args.forgetting, "shock_scale": args.shock_scale, "hold_target": args.hold}
+        est = {"forgetting": args.forgetting, "shock_scale": args.shock_scale, "hold_target": args.hold,
+               "resid_scale": args.resid_scale}
         print(f"estimator: {est}")
         print_trace(cfg, args.delay, args.alpha, args.alpha0, args.horizon, **est)
         if not args.no_map:

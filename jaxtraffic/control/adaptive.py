@@ -75,6 +75,7 @@ class AdaptiveSettings:
     shock_scale: Array
     min_info: Array
     hold_target: Array
+    resid_scale: Array
 
 
 @struct.dataclass
@@ -120,6 +121,9 @@ def estimator_update(settings: AdaptiveSettings, cs: EstimatorState, rho: Array,
     a = cs.alpha_hat
     v_pred, sens = jax.jvp(speed, (a,), (jnp.ones_like(a),))
     w = shock_weights(cs.prev_rho, settings.shock_scale)
+    robust = settings.resid_scale > 0  # Cauchy weights on the residual (a robust fit); 0: off
+    scale = jnp.where(robust, settings.resid_scale, 1.0)
+    w = jnp.where(robust, w / (1.0 + ((v - v_pred) / scale) ** 2), w)
     ok = jnp.all(jnp.isfinite(v_pred)) & jnp.all(jnp.isfinite(sens)) & cs.started
     resid = jnp.where(ok, v - v_pred, 0.0)
     sens = jnp.where(ok, sens, 0.0)
@@ -156,7 +160,7 @@ def _act(settings: AdaptiveSettings, cs: EstimatorState, obs, nominal: TrafficPa
 def adaptive_backstepping(delay: float | Array = 4.0, k: float | Array = 1.0, *, alpha0: float | Array = float("nan"),
                           forgetting: float | Array = 0.99, adapt: bool | Array = True,
                           shock_scale: float | Array = 2e-3, min_info: float | Array = 1e-6,
-                          hold_target: bool | Array = True) -> Controller:
+                          hold_target: bool | Array = True, resid_scale: float | Array = 0.0) -> Controller:
     """Backstepping with its model's ACC share estimated online (module docstring).
 
     Args:
@@ -171,16 +175,19 @@ def adaptive_backstepping(delay: float | Array = 4.0, k: float | Array = 1.0, *,
         hold_target: linearise about the nominal equilibrium, held by the estimated plant's time gap h*
             (``estimated_model``; the default: it stabilises 50 of the reference map's 52 controllable
             cells against 43), instead of the estimated plant's own equilibrium at h_bar.
+        resid_scale: residual (m/s) at which a node's weight halves (Cauchy weights, a robust fit; the
+            default 0 leaves them out, as measured in docs/model.md section 18.1).
     Returns:
         A ``Controller`` named "adaptive_backstepping"; its state is an ``EstimatorState``.
     """
     _check_setting("assumed delay", delay, minimum=0.0)
     _check_setting("backstepping gain k", k)
-    for name, value in (("forgetting", forgetting), ("shock_scale", shock_scale), ("min_info", min_info)):
+    for name, value in (("forgetting", forgetting), ("shock_scale", shock_scale), ("min_info", min_info),
+                        ("resid_scale", resid_scale)):
         _check_setting(name, value, minimum=0.0)
     as_f = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
     settings = AdaptiveSettings(k=as_f(k), delay=as_f(delay), alpha0=as_f(alpha0), forgetting=as_f(forgetting),
                                 adapt=as_f(adapt),
                                 shock_scale=as_f(shock_scale), min_info=as_f(min_info),
-                                hold_target=as_f(hold_target))
+                                hold_target=as_f(hold_target), resid_scale=as_f(resid_scale))
     return Controller(settings=settings, act_fn=_act, init_fn=_init, name="adaptive_backstepping")

@@ -1,6 +1,6 @@
 """Adaptive delay compensation: backstepping whose model's ACC share alpha is estimated online.
 
-The estimator (docs/model.md section "Online estimation of the ACC share") fits alpha to the speed
+The estimator (docs/model.md section 18) fits alpha to the speed
 equation, whose relaxation term (V(rho, h; alpha) - v) / tau_mix(alpha) and characteristic speed
 depend on it. At control step n the controller knows x^{n-1} = (rho, v) (its previous observation),
 the time gap the plant applied over step n-1 (``read(sent, d)``, d: the delay it is told) and x^n.
@@ -34,7 +34,8 @@ input in the regression and biases the estimate); the other physical constants (
 h_m, l, q_in) are known; measurements are noise-free full-state (rho, v at every node of the
 controller's grid). The one-step model is the controller's own discretisation, so on a finer plant
 the residual carries the discretisation error as well (small where the state is smooth; the
-shock weights keep it from dominating).
+shock weights keep it from dominating; where the plant keeps shocks the controller's grid does not
+resolve, the estimate drifts: docs/model.md section 18.1, known limits).
 """
 
 from __future__ import annotations

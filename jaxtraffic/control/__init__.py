@@ -1,6 +1,7 @@
 """The control layer (imports only ``model``): the controller interface, the baselines, the
 three-gain law and the learned gain policy as a controller (it does not import the trainer)."""
 
+from jaxtraffic.control.adaptive import AdaptiveSettings, EstimatorState, adaptive_backstepping
 from jaxtraffic.control.base import Controller, Observation, saturate, takes_delay, tell_delay
 from jaxtraffic.control.baselines import (
     BacksteppingSettings,
@@ -28,7 +29,8 @@ from jaxtraffic.control.gain_policy import (
 )
 
 __all__ = [
-    "GAIN_NAMES", "BacksteppingSettings", "Controller", "DelaySchedule", "LyapunovSettings", "Observation",
+    "GAIN_NAMES", "AdaptiveSettings", "EstimatorState", "adaptive_backstepping",
+    "BacksteppingSettings", "Controller", "DelaySchedule", "LyapunovSettings", "Observation",
     "backstepping", "constant_gains", "equilibrium_gains", "gain_law", "gain_target_controller", "lyapunov",
     "lyapunov_equivalent_gains", "lyapunov_input", "lyapunov_law", "open_loop", "policy_controller", "predict",
     "saturate", "schedule_gains", "scheduled_gains", "takes_delay", "tell_delay",

@@ -3,15 +3,15 @@
     python evaluate.py [--run RUN_DIR] [--run-delay0 RUN_DIR] [--out results/]
 
 Without ``--run`` it uses ``runs/default`` if that holds a trained run (config.json and
-checkpoint.msgpack), else trains one with ``train.py``'s defaults first; likewise the gradient-trained
-runs (``GRADIENT_RUNS``: the gains and the network trained on the reference plant, the robust delay schedule
-on MUSCL at 401 points). Every experiment runs on two plants
-(``--plants``): the paper's grid (upwind, the PPO run's points; outputs in ``--out``) and the reference
-plant (``TrafficParams.reference``: MUSCL, 801 points, 2 solver steps per 0.1 s; outputs in
+checkpoint.msgpack), else trains it first from its recipe (``jaxtraffic/paper/recipes/ppo.toml``, through
+``runs.train_run``); likewise the gradient-trained runs (``GRADIENT_RUNS``: the gains and the network trained on the
+reference plant, the robust delay schedule on MUSCL at 401 points; their recipes are in the same folder).
+Every experiment runs on two plants (``--plants``): the paper's grid (upwind, the PPO run's points; outputs in
+``--out``) and the reference plant (``TrafficParams.reference``: MUSCL, 801 points, 2 solver steps per 0.1 s; outputs in
 ``--out``/reference), each controller acting on its own grid (``control.adapter``); ``plants.md`` and
 REPORT.md then say, claim by claim, which conclusions survive on the reference plant. Outputs per plant:
 metrics.json, robustness.json, claims.json, table2.md, table2.csv, the figures (PNG) and REPORT.md.
-Small flags for tests: ``--n-points``, ``--horizon``, ``--seeds``, ``--robust-grid``, ``--reference-grid``.
+Small flags for tests: ``--n-points``, ``--horizon``, ``--noise-seeds``, ``--robust-grid``, ``--reference-grid``.
 Table 2's scenario is rerun on each plant refined twice and with the other scheme unless
 ``--no-numerics-check``.
 The same command runs as N cooperating processes with ``--coordinator-address HOST:PORT
@@ -35,14 +35,16 @@ from typing import Any
 
 from jaxtraffic import paper
 from jaxtraffic.cli import external, staging
-from jaxtraffic.cli import train as train_cli
 from jaxtraffic.cli.options import EvaluateOptions, parse_evaluate, program
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.paper.oracle import load_oracle
+from jaxtraffic.paper.recipes import recipe, training_plant
 from jaxtraffic.platform import compile_cache, distributed
-from jaxtraffic.runs.config import TrainConfig
+from jaxtraffic.runs import train_run
+from jaxtraffic.runs.config import TrainConfig, load_config
 from jaxtraffic.runs.config.checks import MAX_STEPS
 from jaxtraffic.runs.policy import load_policy, policy_grid
+from jaxtraffic.runs.session import TrainingInterrupted
 
 _REF = TrafficParams.reference()
 DEFAULT_RUN = Path("runs/default")
@@ -51,19 +53,12 @@ PROG = program("evaluate.py")  # in messages: the program the user typed
 MAX_CELLS = 10_000  # of a robustness map (the paper's is 17 x 12 = 204)
 MAX_NOISE_SEEDS = 1_000  # of the alpha-noise scenario (the paper: 8)
 MAX_HORIZON_S = MAX_STEPS * float(TrafficParams().dt)  # a rollout's step bound (learn.config.checks) at the paper's dt
-# wall-clock cap of the PPO training the main job starts when runs/default is missing: a run that has
-# not met its stop rule by then keeps its best checkpoint so far (the main job stays bounded)
-MAIN_JOB_PPO_WALL_S = 600.0
-# the gradient-trained controllers evaluated beside PPO: name -> (run directory under --runs-root, train.py
-# flags, training plant). "reference": the reference plant (--reference-grid) with the controller on the paper's
-# grid; "half": MUSCL on the paper's grid refined once (401 points, one solver step), the controller on the paper's
-# grid: it agrees with the reference plant on which high-alpha plants diverge (MUSCL on the paper's grid does not)
-# at a quarter of its cost, so that the robust schedule's CEM (36 plants x 600 s x 24 candidates x 10
-# generations) fits its 10-minute budget (docs/model.md section 17, "The training plant's discretisation")
+# the gradient-trained controllers evaluated beside PPO: name -> (run directory under --runs-root and recipe of
+# paper.recipes, its training plant: paper.recipes.training_plant)
 GRADIENT_RUNS = {
-    "grad_gains": ("gradient-gains", ["--algo", "gradient", "--policy", "gains"], "reference"),
-    "grad_network": ("gradient-network", ["--algo", "gradient", "--policy", "network"], "reference"),
-    "grad_robust": ("gradient-robust", ["--algo", "gradient", "--policy", "schedule"], "half"),
+    "grad_gains": ("gradient-gains", "reference"),
+    "grad_network": ("gradient-network", "reference"),
+    "grad_robust": ("gradient-robust", "half"),
 }
 
 
@@ -95,30 +90,32 @@ def find_or_train_run(run: Path | None, n_points: int | None) -> Path:
     if (DEFAULT_RUN / "config.json").exists() and (DEFAULT_RUN / "checkpoint.msgpack").exists():
         _log(f"using the existing run {DEFAULT_RUN}")
         return DEFAULT_RUN
-    _log(f"no trained run at {DEFAULT_RUN}: training one with train.py's defaults first "
-         f"(at most {MAIN_JOB_PPO_WALL_S:g} s)")
-    targv = ["--out-dir", str(DEFAULT_RUN), "--max-wall-s", str(MAIN_JOB_PPO_WALL_S)] + (
-        ["--n-points", str(n_points)] if n_points else [])
-    return Path(train_cli.main(targv))
+    _log(f"no trained run at {DEFAULT_RUN}: training it first (paper/recipes/ppo.toml, at most "
+         f"{recipe('ppo').run.max_wall_s:g} s)")
+    config = recipe("ppo").replace(out_dir=str(DEFAULT_RUN), **({"n_points": n_points} if n_points else {}))
+    return train_run(config)
 
 
-def gradient_controllers(mode: str, root: Path, plant_flags: dict[str, list[str]]
+def gradient_controllers(mode: str, root: Path, controller_points: int, reference: tuple[int, int]
                          ) -> tuple[dict[str, Any], dict[str, Any], dict[str, dict]]:
     """(name -> controller on its own grid, name -> its grid, name -> {"summary", "curve", "run_dir"}) of
-    the gradient-trained runs (``GRADIENT_RUNS`` under ``root``), training the missing ones first (with
-    ``plant_flags``: per training plant of ``GRADIENT_RUNS``, its flags and the controller grid) when ``mode`` is
-    "auto"."""
+    the gradient-trained runs (``GRADIENT_RUNS`` under ``root``), training the missing ones first from their recipes
+    when ``mode`` is "auto" (the controller on ``controller_points`` nodes, the reference plant ``reference`` =
+    (points, substeps)); an interrupted one is resumed."""
     ctrls, grids, runs = {}, {}, {}
-    for name, (sub, flags, plant) in GRADIENT_RUNS.items() if mode != "none" else ():
-        flags = [*flags, *plant_flags[plant]]
+    for name, (sub, plant) in GRADIENT_RUNS.items() if mode != "none" else ():
         run_dir = root / sub
         if not (run_dir / "summary.json").exists():
             if mode != "auto":
                 continue
-            resume = ["--resume"] if (run_dir / "checkpoint.msgpack").exists() else []  # an interrupted training
-            _log(f"no trained run at {run_dir}: {'continuing' if resume else 'training'} it first "
-                 f"(train.py {' '.join(flags + resume)})")
-            train_cli.main([*flags, "--out-dir", str(run_dir), *resume])
+            if (run_dir / "checkpoint.msgpack").exists():  # an interrupted training
+                config = load_config(run_dir).replace(resume=True)
+            else:
+                config = recipe(sub).replace(out_dir=str(run_dir),
+                                             **training_plant(plant, controller_points, reference))
+            _log(f"no trained run at {run_dir}: {'continuing' if config.run.resume else 'training'} it first "
+                 f"(paper/recipes/{sub}.toml on {config.plant.n_points} points)")
+            train_run(config)
         ctrl, config = load_policy(run_dir)
         ctrls[name], grids[name] = ctrl, policy_grid(config)
         runs[name] = {"run_dir": str(run_dir), "summary": json.loads((run_dir / "summary.json").read_text()),
@@ -126,7 +123,7 @@ def gradient_controllers(mode: str, root: Path, plant_flags: dict[str, list[str]
     return ctrls, grids, runs
 
 
-RUN_FILES = ("config.json", "summary.json", "learning_curve.csv")
+RUN_FILES = ("config.json", "config.toml", "summary.json", "learning_curve.csv")
 
 
 def export_runs(learned_runs: dict[str, dict], root: Path) -> None:
@@ -227,6 +224,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             staging.publish(work, final)
             _log(f"outputs moved into {final}")
         return metrics
+    except TrainingInterrupted as stop:  # a signal during a training the job started: its checkpoint is saved
+        staging.discard(work)
+        print(f"{PROG}: interrupted during a training ({stop}): nothing was written to {final}; the run's checkpoint "
+              "is kept and the next evaluate.py continues it", file=sys.stderr, flush=True)
+        raise staging.leave(stop.exit_code) from None
     except staging.Stopped as stop:  # SIGINT / SIGTERM / SIGHUP: exit 128 + signal, nothing half-written
         staging.discard(work)
         print(f"{PROG}: interrupted ({stop}): nothing was written to {final} (what it held is unchanged)",
@@ -264,11 +266,7 @@ def _main(args: EvaluateOptions, argv: list[str] | None, t0: float, nd: int, na:
     policy0 = desc0 or {**policy, "description": f"the D = 4 s policy ({policy['description']}); "
                         "no D = 0 run was given"}
     ref_n, ref_s = parse_grid(args.reference_grid, "--reference-grid")
-    plant_flags = {"reference": ["--n-points", str(ref_n), "--scheme", "muscl", "--substeps", str(ref_s),
-                                 "--controller-points", str(n_points)],
-                   "half": ["--n-points", str(2 * (n_points - 1) + 1), "--scheme", "muscl", "--controller-points",
-                            str(n_points)]}
-    grad, grad_grids, grad_runs = gradient_controllers(args.gradient, args.runs_root, plant_flags)
+    grad, grad_grids, grad_runs = gradient_controllers(args.gradient, args.runs_root, n_points, (ref_n, ref_s))
     grids.update(grad_grids)
     own, own_grids = external.load(args.controller)  # --controller: the user's own, judged wherever PPO is
     grids.update(own_grids)
@@ -279,7 +277,7 @@ def _main(args: EvaluateOptions, argv: list[str] | None, t0: float, nd: int, na:
                     **{name: {"run_dir": f"--controller {name}", "summary": {}, "curve": None} for name in own}}
     common = {"dt": dt, "horizon_s": args.horizon, "seeds": tuple(range(args.noise_seeds)),
               "robust_horizon_s": args.robust_horizon or 2.0 * args.horizon,
-              "numerics_check": not args.no_numerics_check}
+              "numerics_check": args.numerics_check}
     configs = {"paper": paper.EvalConfig(n_points=n_points, robust_delays=paper.robust_axis(nd, 0.0, 8.0, dt),
                                          robust_alphas=paper.robust_axis(na, 0.05, 0.6), **common)}
     rd, ra = parse_grid(args.reference_robust_grid, "--reference-robust-grid")

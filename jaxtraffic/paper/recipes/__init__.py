@@ -1,0 +1,41 @@
+"""The main job's training runs as data: one TOML configuration per run (``train.py --config FILE`` reads the
+same files), loaded by ``recipe(name)``.
+
+    ppo.toml               the paper's PPO policy at D = 4 s on the paper's grid
+    gradient-gains.toml    three constant gains trained by Adam through the reference plant
+    gradient-network.toml  the actor network trained by Adam through the reference plant
+    gradient-robust.toml   the robust delay schedule, trained by CEM over the robustness map's ranges
+
+``evaluate.py`` sets each run's directory and, from its own grids, the training plant (``training_plant``).
+"""
+
+from __future__ import annotations
+
+from importlib import resources
+
+from jaxtraffic.runs.config import TrainConfig
+from jaxtraffic.runs.config.toml import config_from_toml
+
+NAMES = ("ppo", "gradient-gains", "gradient-network", "gradient-robust")
+
+
+def recipe(name: str) -> TrainConfig:
+    """The configuration of the main job's run ``name`` (one of ``NAMES``)."""
+    if name not in NAMES:
+        raise ValueError(f"no recipe {name!r}; the recipes are {NAMES}")
+    text = resources.files(__package__).joinpath(f"{name}.toml").read_text()
+    return config_from_toml(text, f"jaxtraffic/paper/recipes/{name}.toml")
+
+
+def training_plant(kind: str, controller_points: int, reference: tuple[int, int]) -> dict:
+    """The training plant of a gradient recipe as config fields: ``kind`` "reference" is the reference plant
+    (MUSCL, ``reference`` = (points, substeps)); "half" is MUSCL on the controller's grid refined once (it agrees
+    with the reference plant on which high-alpha plants diverge at a quarter of its cost, docs/model.md
+    section 17). The controller acts on its own grid of ``controller_points`` nodes."""
+    if kind == "reference":
+        n_points, substeps = reference
+    elif kind == "half":
+        n_points, substeps = 2 * (controller_points - 1) + 1, 1
+    else:
+        raise ValueError(f"training plant kind must be 'reference' or 'half', got {kind!r}")
+    return {"n_points": n_points, "scheme": "muscl", "substeps": substeps, "controller_points": controller_points}

@@ -27,15 +27,13 @@ import argparse
 import dataclasses
 import json
 import math
-import os
-import shutil
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
 from jaxtraffic import paper
-from jaxtraffic.cli import external, staging
+from jaxtraffic.cli import errors, external, staging
 from jaxtraffic.cli import train as train_cli
 from jaxtraffic.io.files import atomic_write_text
 from jaxtraffic.model.params import TrafficParams
@@ -48,6 +46,7 @@ from jaxtraffic.runs.policy import load_policy, policy_grid
 _REF = TrafficParams.reference()
 DEFAULT_RUN = Path("runs/default")
 PLANTS = ("paper", "reference")
+MAX_SEEDS = 1000  # noise seeds of alpha_noise (the paper's 8); each is a rollout per controller and plant
 MAX_CELLS = 10_000  # of a robustness map (the paper's is 17 x 12 = 204)
 MAX_HORIZON_S = MAX_STEPS * float(TrafficParams().dt)  # a rollout's step bound (learn.config.checks) at the paper's dt
 # wall-clock cap of the PPO training the main job starts when runs/default is missing: a run that has
@@ -105,7 +104,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                     help="also judge a controller of your own, wherever PPO is (every scenario, the maps, the "
                     "numerical check): FUNCTION(ARGUMENT) from a Python file or module returns a Controller or "
                     "(Controller, ControllerGrid), e.g. a policy trained elsewhere "
-                    "(jaxtraffic.ecosystem.policy_as_controller; examples/sb3_ppo.py); repeatable")
+                    "(jaxtraffic.ecosystem.policy_as_controller; examples/sb3_ppo.py); repeatable. This RUNS the "
+                    "file's (or module's) code with your permissions, like `python FILE`: only give code you trust")
     ap.add_argument("--no-numerics-check", action="store_true",
                     help="skip rerunning Table 2's scenario on each plant refined twice and with the other scheme")
     distributed.add_flags(ap)
@@ -172,16 +172,18 @@ RUN_FILES = ("config.json", "summary.json", "learning_curve.csv")
 def export_runs(learned_runs: dict[str, dict], root: Path) -> None:
     """The evaluated controllers themselves, small enough to commit: each run's config.json, summary.json,
     learning curve and the checkpoint ``load_policy`` reads (best.msgpack when there is one, else
-    checkpoint.msgpack) in ``root/NAME``, loadable with ``load_policy(root/NAME)``."""
+    checkpoint.msgpack) in ``root/NAME``, loadable with ``load_policy(root/NAME)``. Only regular files are
+    copied (a symbolic link in a run directory is skipped, never followed), with their permission bits."""
     for name, run in learned_runs.items():
         src, dst = Path(run["run_dir"]), root / name
-        if not src.is_dir():  # a --controller of the user's: no run directory
+        if src.is_symlink() or not src.is_dir():  # a --controller of the user's: no run directory
             continue
         dst.mkdir(parents=True, exist_ok=True)
-        ckpt = "best.msgpack" if (src / "best.msgpack").exists() else "checkpoint.msgpack"
+        best = src / "best.msgpack"
+        ckpt = "best.msgpack" if best.is_file() and not best.is_symlink() else "checkpoint.msgpack"
         for f in (*RUN_FILES, ckpt):
-            if (src / f).exists():
-                shutil.copyfile(src / f, dst / f)
+            if staging.copy_regular(src / f, dst / f) == "link":
+                _log(f"note: {src / f} is a symbolic link; not exported")
 
 
 def parse_grid(text: str, flag: str) -> tuple[int, int]:
@@ -225,8 +227,8 @@ def check_args(args: argparse.Namespace) -> tuple[int, int]:
     if ref_n < 3 or ref_s < 1:
         raise _fail(f"--reference-grid needs >= 3 points and >= 1 substep, got {args.reference_grid!r}")
     parse_grid(args.reference_robust_grid, "--reference-robust-grid")
-    if args.seeds < 1:
-        raise _fail(f"--seeds must be >= 1, got {args.seeds}")
+    if not 1 <= args.seeds <= MAX_SEEDS:
+        raise _fail(f"--seeds must be in [1, {MAX_SEEDS}], got {args.seeds}")
     for flag, value in (("--horizon", args.horizon), ("--robust-horizon", args.robust_horizon)):
         if value is not None and not (math.isfinite(value) and 0 < value <= MAX_HORIZON_S):
             raise _fail(f"{flag} must be a number of seconds in (0, {MAX_HORIZON_S:.0e}], got {value}")
@@ -237,48 +239,67 @@ def check_args(args: argparse.Namespace) -> tuple[int, int]:
             raise _fail(f"{flag} {run}: not a run directory (no config.json there)")
         if run is not None and not (run / "checkpoint.msgpack").is_file():
             raise _fail(f"{flag} {run}: no checkpoint.msgpack there (the training never completed a chunk)")
-    out = args.out
-    if out.exists() and not out.is_dir():
-        raise _fail(f"--out {out}: exists and is not a directory")
-    parent = out
-    while not parent.exists():
-        parent = parent.parent
-    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
-        raise _fail(f"--out {out}: {parent} is not a writable directory")
     return nd, na
 
 
+def _raw_out_empty(argv: list[str] | None) -> bool:
+    """Whether ``--out ""`` was given (argparse's ``Path("")`` is ``.``, the current folder)."""
+    argv = sys.argv[1:] if argv is None else argv
+    return any((a == "--out" and i + 1 < len(argv) and argv[i + 1] == "") or a == "--out="
+               for i, a in enumerate(argv))
+
+
+def check_paths(args: argparse.Namespace, argv: list[str] | None) -> None:
+    """Every path argument checked before anything is trained (``SystemExit(2)`` naming it)."""
+    why = "an empty path; name a folder (default results/)" if _raw_out_empty(argv) else staging.check_out(args.out)
+    if why:
+        raise _fail(f"--out {args.out}: {why}")
+    for spec in external.parse(args.controller):
+        if spec["source"].endswith(".py") and not Path(spec["source"]).is_file():
+            raise _fail(f"--controller {spec['name']}: no file {spec['source']}")
+    for flag, path in (("--runs-root", args.runs_root), ("--oracle-dir", args.oracle_dir)):
+        if path.exists() and not path.is_dir():
+            raise _fail(f"{flag} {path}: exists and is not a directory")
+        if path.is_symlink() and not path.exists():
+            raise _fail(f"{flag} {path}: a dangling symbolic link")
+
+
 def main(argv: list[str] | None = None) -> dict[str, Any]:
+    """Run the evaluation (exit statuses: ``cli.errors``; 2 for bad flags, 74 for an OS error, 128+N on a
+    signal; ``--out`` is replaced whole or left as it was, ``cli.staging``)."""
     args = parse_args(argv)
     t0 = time.perf_counter()
     nd, na = check_args(args)
+    check_paths(args, argv)
     try:
         distributed.initialize(*(getattr(args, k) for k in distributed.FLAGS))  # before any computation
     except ValueError as err:
         raise _fail(str(err)) from None
     compile_cache.enable()  # before the first compilation (jaxtraffic.platform.compile_cache)
     final = args.out  # written whole at the end, or left as it was (cli.staging)
-    work = staging.staging_dir(final) if distributed.is_writer() else None
-    args.out = work or final
+    stage = None
     try:
         with staging.signals_raise():
+            stage = staging.Staging(final) if distributed.is_writer() else None
+            args.out = stage.work if stage else final
             metrics = _main(args, argv, t0, nd, na)
-        if work is not None:
-            staging.publish(work, final)
-            _log(f"outputs moved into {final}")
+            if stage is not None:
+                stage.publish()
+                _log(f"outputs moved into {final}")
         return metrics
     except staging.Stopped as stop:  # SIGINT / SIGTERM / SIGHUP: exit 128 + signal, nothing half-written
-        staging.discard(work)
+        if stage is not None:
+            stage.discard()
         print(f"evaluate.py: interrupted ({stop}): nothing was written to {final} (what it held is unchanged)",
               file=sys.stderr, flush=True)
         raise staging.leave(stop.exit_code) from None
-    except (ValueError, FileNotFoundError) as err:  # a broken run directory: one line naming the file
-        staging.discard(work)
-        print(f"evaluate.py: error: {err}", file=sys.stderr, flush=True)
-        raise staging.leave(2) from None
-    except BaseException:
-        staging.discard(work)
-        raise
+    except BaseException as err:  # one line naming the file and the cause (cli.errors)
+        if stage is not None:
+            stage.discard()
+        code = errors.report("evaluate.py", err)
+        if code is None:
+            raise
+        raise staging.leave(code) from None
 
 
 def _main(args: argparse.Namespace, argv: list[str] | None, t0: float, nd: int, na: int) -> dict[str, Any]:
@@ -331,7 +352,11 @@ def _main(args: argparse.Namespace, argv: list[str] | None, t0: float, nd: int, 
     for plant in args.plants:
         out = args.out if plant == "paper" else args.out / plant
         _log(f"== {plant} plant: {configs[plant].describe()} -> {out}")
-        oracle = load_oracle(args.oracle_dir / f"{plant}.json", configs[plant])
+        try:
+            oracle = load_oracle(args.oracle_dir / f"{plant}.json", configs[plant])
+        except (TypeError, KeyError, AttributeError, IndexError) as err:  # valid JSON of the wrong shape
+            raise ValueError(f"{args.oracle_dir / (plant + '.json')}: not an oracle file "
+                             f"(benchmarks/gain_oracle.py): {type(err).__name__}: {err}") from None
         _log(f"   oracle rows: {args.oracle_dir / (plant + '.json')}" if oracle else
              f"   no oracle rows for this map in {args.oracle_dir} (benchmarks/gain_oracle.py --plant {plant})")
         results[plant] = paper.evaluate_all({"ppo": ppo, **grad, **own}, configs[plant], out, {**meta, "plant": plant},

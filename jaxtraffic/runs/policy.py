@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import numbers
 from pathlib import Path
 from typing import Any
 
@@ -60,6 +61,10 @@ def load_policy(run_dir: str | Path, seed: int | None = None, checkpoint: str = 
     trained by gradient (``"algo": "gradient"`` in its config.json) loads through
     ``gradient.policy.load_gradient_policy``.
     """
+    if checkpoint not in ("best", "last"):
+        raise ValueError(f"checkpoint must be 'best' or 'last', got {checkpoint!r}")
+    if seed is not None and (not isinstance(seed, numbers.Integral) or isinstance(seed, bool) or seed < 0):
+        raise ValueError(f"seed must be None (the run's best member) or an int >= 0, got {seed!r}")
     run_dir = Path(run_dir)
     config = load_config(run_dir)
     best = run_dir / BEST

@@ -37,7 +37,7 @@ MAX_BYTES = 2 << 30  # 2 GiB; a default training + evaluation stores about 30 MB
 MIN_COMPILE_S = 0.5  # programs that compile faster are not worth a disk entry
 _OFF = ("0", "off", "false", "no")
 
-__all__ = ["ENV", "MAX_BYTES", "MIN_COMPILE_S", "default_dir", "enable", "private"]
+__all__ = ["ENV", "MAX_BYTES", "MIN_COMPILE_S", "default_dir", "enable", "private", "usable"]
 
 
 def default_dir(env: dict | None = None) -> Path:
@@ -61,6 +61,18 @@ def private(where: Path) -> bool:
     return True
 
 
+def usable(where: Path) -> bool:
+    """Create the cache directory ``where`` (0700) if needed; whether it can be used (``private``); if not, one
+    line on stderr says why (e.g. a read-only home: the job then runs without a cache)."""
+    try:
+        where.mkdir(mode=0o700, parents=True, exist_ok=True)
+    except OSError as err:
+        print(f"warning: the compilation cache {where} cannot be created ({err.strerror or err}); running without "
+              f"a cache (set {ENV} to a writable directory, or to 0 to silence this)", file=sys.stderr)
+        return False
+    return private(where)
+
+
 def enable(path: str | os.PathLike | None = None, env: dict | None = None) -> Path | None:
     """Turn on jax's persistent compilation cache (see the module docstring for the rules).
 
@@ -82,13 +94,7 @@ def enable(path: str | os.PathLike | None = None, env: dict | None = None) -> Pa
     except ImportError:
         return None
     where = Path(path if path is not None else (choice or default_dir(env))).expanduser()
-    try:
-        where.mkdir(mode=0o700, parents=True, exist_ok=True)
-    except OSError as err:  # e.g. a read-only home: run without a cache, and say so
-        print(f"warning: the compilation cache {where} cannot be created ({err.strerror or err}); running without "
-              f"a cache (set {ENV} to a writable directory, or to 0 to silence this)", file=sys.stderr)
-        return None
-    if not private(where):
+    if not usable(where):
         return None
     jax.config.update("jax_compilation_cache_dir", str(where))
     jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)

@@ -251,7 +251,9 @@ def _raw_out_empty(argv: list[str] | None) -> bool:
 
 def check_paths(args: argparse.Namespace, argv: list[str] | None) -> None:
     """Every path argument checked before anything is trained (``SystemExit(2)`` naming it)."""
-    why = "an empty path; name a folder (default results/)" if _raw_out_empty(argv) else staging.check_out(args.out)
+    if _raw_out_empty(argv):
+        raise _fail('--out "": an empty path; name a folder (default results/)')
+    why = staging.check_out(args.out)
     if why:
         raise _fail(f"--out {args.out}: {why}")
     for spec in external.parse(args.controller):

@@ -223,7 +223,7 @@ def test_traffic_params_accept_numpy_integers():
 
 
 @pytest.mark.parametrize("kwargs, match", [
-    ({"n_steps": 10.0}, "n_steps must be an int in \\[1, 2\\*\\*31\\) \\(the rollout counts steps in int32\\), got 10.0"),
+    ({"n_steps": 10.0}, r"n_steps must be an int in \[1, 2\*\*31\) \(the rollout counts steps in int32\), got 10.0"),
     ({"n_steps": 0}, "n_steps must be an int in"),
     ({"n_steps": 10, "record_every": -1}, "record_every must be an int >= 0"),
     ({"n_steps": 10, "record_every": 3}, "not a multiple of record_every"),

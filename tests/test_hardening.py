@@ -304,7 +304,7 @@ def test_out_dir_not_writable(tmp_path, capsys):
     (["--horizon", "inf"], "--horizon must be a number of seconds in (0, 1e+07], got inf"),
     (["--horizon", "1e30"], "--horizon must be a number of seconds in (0, 1e+07], got 1e+30"),
     (["--robust-horizon", "0"], "--robust-horizon must be"),
-    (["--seeds", "0"], "--seeds must be >= 1, got 0"),
+    (["--seeds", "0"], "--seeds must be in [1, 1000], got 0"),
     (["--robust-grid", "3"], "--robust-grid must look like AxB"),
     (["--robust-grid", "1000000x1000000"], "--robust-grid 1000000x1000000 has 1000000000000 cells; at most 10000"),
     (["--plants", "paper,moon"], "--plants must name one or both of"),

@@ -488,3 +488,26 @@ def test_wrong_shape_theta_is_refused_before_resume_rewrites_files(tiny_runs_roo
     err = capsys.readouterr().err
     assert exc.value.code == 2 and "theta has shape (5,)" in err and "Traceback" not in err, err
     assert checksum(run) == before
+
+
+def test_a_signal_during_the_move_waits_for_it(tmp_path, monkeypatch, capsys):
+    """SIGTERM in the middle of publishing: the move completes (the report is whole), then a note says so."""
+    import signal
+
+    out = tmp_path / "res"
+    stage = staging.Staging(out)
+    for name in ("a", "b", "c"):
+        (stage.work / name).write_text(name)
+    real, calls = os.rename, []
+
+    def rename_and_signal(src, dst):
+        calls.append(dst)
+        if len(calls) == 2:
+            os.kill(os.getpid(), signal.SIGTERM)
+        real(src, dst)
+
+    monkeypatch.setattr(os, "rename", rename_and_signal)
+    with staging.signals_raise():
+        stage.publish()
+    assert sorted(p.name for p in out.iterdir()) == [staging.MARKER, "a", "b", "c"]
+    assert "SIGTERM received while the report was moved" in capsys.readouterr().err

@@ -11,7 +11,7 @@ a symbolic link: a second job on the same ``--out`` is refused), removes stale s
 the same ``--out`` (recognised by their own marker and their owner, while the lock proves no live job uses them),
 and creates a fresh staging folder with ``tempfile.mkdtemp`` in the parent (mode 0700, an unpredictable name).
 ``publish()`` then moves each entry written there into ``out``, replacing the entry of the same name (entries of
-``out`` the job did not write are left alone), with the signals blocked and every step undone if one fails:
+``out`` the job did not write are left alone), with the signals deferred and every step undone if one fails:
 ``out`` ends up holding the new report or, unchanged, the previous one. ``discard()`` removes the staging folder.
 
 ``signals_raise()`` turns SIGINT, SIGTERM and SIGHUP into ``Stopped`` in the main thread (a
@@ -142,12 +142,12 @@ class Staging:
         """Move the report into ``out`` (see the module docstring) and release the lock."""
         (self.work / STAGING_MARKER).unlink()
         (self.work / MARKER).write_text("a report written by evaluate.py; evaluate.py --out may replace it\n")
-        old = signal.pthread_sigmask(signal.SIG_BLOCK, SIGNALS)
-        try:
+        with _deferred_signals() as got:
             _swap(self.work, self.out)
-        finally:
-            signal.pthread_sigmask(signal.SIG_SETMASK, old)
         self.close()
+        if got:  # the move is a few renames: it was let finish, and the job is complete
+            print(f"note: {signal.Signals(got[0]).name} received while the report was moved into {self.out}; "
+                  "the move was completed first", file=sys.stderr, flush=True)
 
     def discard(self) -> None:
         shutil.rmtree(self.work, ignore_errors=True)
@@ -157,6 +157,22 @@ class Staging:
         if self._fd >= 0:
             os.close(self._fd)
             self._fd = -1
+
+
+@contextlib.contextmanager
+def _deferred_signals() -> Iterator[list[int]]:
+    """While active (main thread only), SIGINT/SIGTERM/SIGHUP are recorded in the yielded list instead of acting
+    (Python runs signal handlers in the main thread, whichever thread the signal reaches)."""
+    got: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield got
+        return
+    old = {sig: signal.signal(sig, lambda signum, frame: got.append(signum)) for sig in SIGNALS}
+    try:
+        yield got
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
 
 
 def _swap(work: Path, out: Path) -> None:

@@ -257,8 +257,9 @@ def check_paths(args: argparse.Namespace, argv: list[str] | None) -> None:
     if why:
         raise _fail(f"--out {args.out}: {why}")
     for spec in external.parse(args.controller):
-        if spec["source"].endswith(".py") and not Path(spec["source"]).is_file():
-            raise _fail(f"--controller {spec['name']}: no file {spec['source']}")
+        source = str(spec["source"])
+        if source.endswith(".py") and not Path(source).is_file():
+            raise _fail(f"--controller {spec['name']}: no file {source}")
     for flag, path in (("--runs-root", args.runs_root), ("--oracle-dir", args.oracle_dir)):
         if path.exists() and not path.is_dir():
             raise _fail(f"{flag} {path}: exists and is not a directory")

@@ -143,13 +143,13 @@ def cases(tmp: Path) -> list[tuple[str, str, list, dict, int, str]]:
         ("6", "--num-steps 1000000000", [T + ["--num-steps", "1000000000"] + r("o6")], {}, 2,
          "the rollouts alone need"),
         ("6", "train.py ... | head -1", [[str(REPO / "train.py"), *GRAD[:-1], "--grad-steps", "3"] + r("p")],
-         {"stdin_close_after": 1}, 2, "standard output was closed (broken pipe)"),
+         {"stdin_close_after": 1}, 74, "standard output was closed (broken pipe)"),
         ("6", "Ctrl-C while jax is imported", [[str(REPO / "train.py"), "--help"]], {"signal_on": ("", signal.SIGINT)},
          130, ""),
         ("6", "a full disk (a 300 kB tmpfs: root only)",
          [T + ["--total-steps", "64", "--out-dir", str(tmp / "full" / "r")]],
-         {"pre": lambda: _mount(tmp / "full"), "post": lambda: subprocess.run(["umount", str(tmp / "full")])}, 2,
-         "No space left on device: "),
+         {"pre": lambda: _mount(tmp / "full"), "post": lambda: subprocess.run(["umount", str(tmp / "full")])}, 74,
+         "No space left on device"),
         ("6", "gradient --init-gains 1,2", [[str(REPO / "train.py"), *GRAD, "--init-gains", "1,2"] + r("o7")], {}, 2,
          "must be three gains"),
         ("6", "config.json nested 100 000 deep", [T + ["--total-steps", "64"] + r("q"),
@@ -187,12 +187,26 @@ def cases(tmp: Path) -> list[tuple[str, str, list, dict, int, str]]:
           or os.chmod(tmp / "ww", 0o777)}, 0, "writable by other users"),
         ("8", "SIGHUP during training", [T + ["--total-steps", "100000"] + r("hup")],
          {"signal_on": ("compiling", signal.SIGHUP), "quiet_off": True}, 129, "SIGHUP received"),
+        # round three (issue 37): --out only where the job owns, paths checked before the work
+        ("9", "evaluate.py --out <a project folder holding runs/>", [
+            ["-c", f"import os; os.makedirs('{tmp / 'proj' / 'runs' / 'mine'}'); "
+                   f"open('{tmp / 'proj' / 'runs' / 'mine' / 'config.json'}', 'w').write('{{}}'); "
+                   f"open('{tmp / 'proj' / 'runs' / 'mine' / 'checkpoint.msgpack'}', 'w').write('')"],
+            E + ["--run", str(tmp / "proj" / "runs" / "mine"), "--out", str(tmp / "proj")]], {}, 2,
+         "holds no report of evaluate.py's"),
+        ("9", "evaluate.py --out ''", [E + ["--out", ""]], {}, 2, "an empty path"),
+        ("9", "evaluate.py --out <dangling symlink>", [
+            ["-c", f"import os; os.symlink('{tmp / 'nowhere'}', '{tmp / 'dangling'}')"],
+            E + ["--out", str(tmp / "dangling")]], {}, 2, "a dangling symbolic link"),
+        ("9", "evaluate.py --controller <missing file>", [E + ["--out", str(tmp / "c9"), "--controller",
+                                                              f"mine={tmp / 'nope.py'}:make"]], {}, 2,
+         "--controller mine: no file"),
     ]
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--only", default="", help="comma-separated case numbers (1-8)")
+    ap.add_argument("--only", default="", help="comma-separated case numbers (1-9)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     only = set(filter(None, args.only.split(",")))

@@ -223,8 +223,8 @@ def test_traffic_params_accept_numpy_integers():
 
 
 @pytest.mark.parametrize("kwargs, match", [
-    ({"n_steps": 10.0}, "n_steps must be an int >= 1, got 10.0"),
-    ({"n_steps": 0}, "n_steps must be an int >= 1"),
+    ({"n_steps": 10.0}, r"n_steps must be an int in \[1, 2\*\*31\) \(the rollout counts steps in int32\), got 10.0"),
+    ({"n_steps": 0}, "n_steps must be an int in"),
     ({"n_steps": 10, "record_every": -1}, "record_every must be an int >= 0"),
     ({"n_steps": 10, "record_every": 3}, "not a multiple of record_every"),
 ])
@@ -630,6 +630,7 @@ def test_evaluate_interrupted_exits_cleanly_and_leaves_its_output_as_it_was(ref_
     out = tmp_path / "res"
     out.mkdir()
     (out / "REPORT.md").write_text("earlier")
+    (out / ".jaxtraffic-report").write_text("")  # a previous report of evaluate.py's
     proc = subprocess.Popen([sys.executable, str(REPO / "evaluate.py"), "--run", str(ref_run), "--out", str(out),
                              "--horizon", "4", "--noise-seeds", "1", "--robust-grid", "2x2", "--gradient", "none",
                              "--plants", "paper"],
@@ -642,8 +643,8 @@ def test_evaluate_interrupted_exits_cleanly_and_leaves_its_output_as_it_was(ref_
     assert rc == 128 + sig, (rc, err[-2000:])
     assert f"interrupted ({signal.Signals(sig).name}): nothing was written to {out}" in err
     assert "Traceback" not in err and "terminate called" not in err, err[-2000:]
-    assert sorted(p.name for p in out.iterdir()) == ["REPORT.md"] and (out / "REPORT.md").read_text() == "earlier"
-    assert not list(tmp_path.glob(".res.partial-*"))
+    assert sorted(p.name for p in out.iterdir()) == [".jaxtraffic-report", "REPORT.md"]
+    assert (out / "REPORT.md").read_text() == "earlier" and not list(tmp_path.glob(".res.jaxtraffic-partial-*"))
 
 
 @pytest.mark.slow

@@ -160,23 +160,27 @@ def test_publish_replaces_what_the_job_wrote_and_leaves_the_rest(tmp_path):
 
     out = tmp_path / "results"
     (out / "reference").mkdir(parents=True)
+    (out / staging.MARKER).write_text("")  # a previous report of evaluate.py's
     (out / "REPORT.md").write_text("old")
     (out / "reference" / "stale.png").write_text("old")
     (out / "convergence").mkdir()  # another tool's output in the same directory
-    work = staging.staging_dir(out)
-    assert work.parent == tmp_path and work.name.startswith(".results.partial-")
+    dead = tmp_path / f".results{staging._PARTIAL}killed"  # a killed run's leftovers: our marker, our uid
+    dead.mkdir()
+    (dead / staging.STAGING_MARKER).write_text("1")
+    foreign = tmp_path / f".results{staging._PARTIAL}notours"  # no marker: not ours to remove
+    foreign.mkdir()
+    stage = staging.Staging(out)
+    work = stage.work
+    assert work.parent == tmp_path and work.name.startswith(".results.jaxtraffic-partial-")
+    assert work.stat().st_mode & 0o777 == 0o700 and not dead.exists() and foreign.is_dir()
     (work / "reference").mkdir(parents=True)
     (work / "REPORT.md").write_text("new")
     (work / "reference" / "metrics.json").write_text("{}")
-    staging.publish(work, out)
+    stage.publish()
     assert not work.exists() and (out / "REPORT.md").read_text() == "new"
     assert sorted(p.name for p in (out / "reference").iterdir()) == ["metrics.json"]  # whole, not mixed
     assert (out / "convergence").is_dir() and sorted(p.name for p in out.iterdir()) == [
-        "REPORT.md", "convergence", "reference"]
-    dead = tmp_path / ".results.partial-999999999"  # a killed run's leftovers (no such process)
-    dead.mkdir()
-    staging.staging_dir(out)
-    assert not dead.exists()
+        staging.MARKER, "REPORT.md", "convergence", "reference"]
 
 
 @pytest.mark.parametrize("outcome", ["done", "signal", "error"])
@@ -189,6 +193,7 @@ def test_evaluate_writes_whole_or_nothing(outcome, tmp_path, monkeypatch, capsys
     out = tmp_path / "results"
     out.mkdir()
     (out / "REPORT.md").write_text("earlier")
+    (out / staging.MARKER).write_text("")
 
     def fake_main(args, *rest):
         (args.out / "REPORT.md").parent.mkdir(parents=True, exist_ok=True)
@@ -213,7 +218,7 @@ def test_evaluate_writes_whole_or_nothing(outcome, tmp_path, monkeypatch, capsys
         assert exc.value.code == (143 if outcome == "signal" else 2) and err.count("\n") == 1, err
         assert ("interrupted (SIGTERM)" if outcome == "signal" else "error: runs/x/config.json: broken") in err
         assert (out / "REPORT.md").read_text() == "earlier"
-    assert [p.name for p in tmp_path.iterdir() if ".partial-" in p.name] == []
+    assert [p.name for p in tmp_path.iterdir() if ".jaxtraffic-partial-" in p.name] == []
 
 
 @pytest.mark.parametrize("argv, match", [

@@ -26,15 +26,13 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
-import shutil
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
 from jaxtraffic import paper
-from jaxtraffic.cli import external, staging
+from jaxtraffic.cli import errors, external, staging
 from jaxtraffic.cli.options import EvaluateOptions, parse_evaluate, program
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.paper.oracle import load_oracle
@@ -129,16 +127,18 @@ RUN_FILES = ("config.json", "config.toml", "summary.json", "learning_curve.csv")
 def export_runs(learned_runs: dict[str, dict], root: Path) -> None:
     """The evaluated controllers themselves, small enough to commit: each run's config.json, summary.json,
     learning curve and the checkpoint ``load_policy`` reads (best.msgpack when there is one, else
-    checkpoint.msgpack) in ``root/NAME``, loadable with ``load_policy(root/NAME)``."""
+    checkpoint.msgpack) in ``root/NAME``, loadable with ``load_policy(root/NAME)``. Only regular files are
+    copied (a symbolic link in a run directory is skipped, never followed), with their permission bits."""
     for name, run in learned_runs.items():
         src, dst = Path(run["run_dir"]), root / name
-        if not src.is_dir():  # a --controller of the user's: no run directory
+        if src.is_symlink() or not src.is_dir():  # a --controller of the user's: no run directory
             continue
         dst.mkdir(parents=True, exist_ok=True)
-        ckpt = "best.msgpack" if (src / "best.msgpack").exists() else "checkpoint.msgpack"
+        best = src / "best.msgpack"
+        ckpt = "best.msgpack" if best.is_file() and not best.is_symlink() else "checkpoint.msgpack"
         for f in (*RUN_FILES, ckpt):
-            if (src / f).exists():
-                shutil.copyfile(src / f, dst / f)
+            if staging.copy_regular(src / f, dst / f) == "link":
+                _log(f"note: {src / f} is a symbolic link; not exported")
 
 
 def parse_grid(text: str, flag: str) -> tuple[int, int]:
@@ -194,53 +194,76 @@ def check_args(args: EvaluateOptions) -> tuple[int, int]:
             raise _fail(f"{flag} {run}: not a run directory (no config.json there)")
         if run is not None and not (run / "checkpoint.msgpack").is_file():
             raise _fail(f"{flag} {run}: no checkpoint.msgpack there (the training never completed a chunk)")
-    out = args.out
-    if out.exists() and not out.is_dir():
-        raise _fail(f"--out {out}: exists and is not a directory")
-    parent = out
-    while not parent.exists():
-        parent = parent.parent
-    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
-        raise _fail(f"--out {out}: {parent} is not a writable directory")
     return nd, na
 
 
+def _raw_out_empty(argv: list[str] | None) -> bool:
+    """Whether ``--out ""`` was given (argparse's ``Path("")`` is ``.``, the current folder)."""
+    argv = sys.argv[1:] if argv is None else argv
+    return any((a == "--out" and i + 1 < len(argv) and argv[i + 1] == "") or a == "--out="
+               for i, a in enumerate(argv))
+
+
+def check_paths(args: EvaluateOptions, argv: list[str] | None) -> None:
+    """Every path argument checked before anything is trained (``SystemExit(2)`` naming it)."""
+    if _raw_out_empty(argv):
+        raise _fail('--out "": an empty path; name a folder (default results/)')
+    why = staging.check_out(args.out)
+    if why:
+        raise _fail(f"--out {args.out}: {why}")
+    for spec in external.parse(args.controller):
+        source = str(spec["source"])
+        if source.endswith(".py") and not Path(source).is_file():
+            raise _fail(f"--controller {spec['name']}: no file {source}")
+    for flag, path in (("--runs-root", args.runs_root), ("--oracle-dir", args.oracle_dir)):
+        if path.exists() and not path.is_dir():
+            raise _fail(f"{flag} {path}: exists and is not a directory")
+        if path.is_symlink() and not path.exists():
+            raise _fail(f"{flag} {path}: a dangling symbolic link")
+
+
 def main(argv: list[str] | None = None) -> dict[str, Any]:
+    """Run the evaluation (exit statuses: ``cli.errors``; 2 for bad flags, 74 for an OS error, 128+N on a
+    signal; ``--out`` is replaced whole or left as it was, ``cli.staging``)."""
     args = parse_args(argv)
     t0 = time.perf_counter()
     nd, na = check_args(args)
+    check_paths(args, argv)
     try:
         distributed.initialize(*args.cluster.values())  # before any computation
     except ValueError as err:
         raise _fail(str(err)) from None
     compile_cache.enable()  # before the first compilation (jaxtraffic.platform.compile_cache)
     final = args.out  # written whole at the end, or left as it was (cli.staging)
-    work = staging.staging_dir(final) if distributed.is_writer() else None
-    args.out = work or final
+    stage = None
     try:
         with staging.signals_raise():
+            stage = staging.Staging(final) if distributed.is_writer() else None
+            args.out = stage.work if stage else final
             metrics = _main(args, argv, t0, nd, na)
-        if work is not None:
-            staging.publish(work, final)
-            _log(f"outputs moved into {final}")
+            if stage is not None:
+                stage.publish()
+                _log(f"outputs moved into {final}")
         return metrics
     except TrainingInterrupted as stop:  # a signal during a training the job started: its checkpoint is saved
-        staging.discard(work)
+        if stage is not None:
+            stage.discard()
         print(f"{PROG}: interrupted during a training ({stop}): nothing was written to {final}; the run's checkpoint "
               "is kept and the next evaluate.py continues it", file=sys.stderr, flush=True)
         raise staging.leave(stop.exit_code) from None
     except staging.Stopped as stop:  # SIGINT / SIGTERM / SIGHUP: exit 128 + signal, nothing half-written
-        staging.discard(work)
+        if stage is not None:
+            stage.discard()
         print(f"{PROG}: interrupted ({stop}): nothing was written to {final} (what it held is unchanged)",
               file=sys.stderr, flush=True)
         raise staging.leave(stop.exit_code) from None
-    except (ValueError, FileNotFoundError) as err:  # a broken run directory: one line naming the file
-        staging.discard(work)
-        print(f"{PROG}: error: {err}", file=sys.stderr, flush=True)
-        raise staging.leave(2) from None
-    except BaseException:
-        staging.discard(work)
-        raise
+    except BaseException as err:  # one line naming the file and the cause (cli.errors)
+        if stage is not None:
+            stage.discard()
+        code = errors.report(PROG, err)
+        if code is None:
+            raise
+        raise staging.leave(code) from None
 
 
 def _main(args: EvaluateOptions, argv: list[str] | None, t0: float, nd: int, na: int) -> dict[str, Any]:
@@ -288,7 +311,11 @@ def _main(args: EvaluateOptions, argv: list[str] | None, t0: float, nd: int, na:
     configs = {plant: configs[plant] for plant in args.plants}
     oracles = {}
     for plant in args.plants:
-        oracles[plant] = load_oracle(args.oracle_dir / f"{plant}.json", configs[plant])
+        try:
+            oracles[plant] = load_oracle(args.oracle_dir / f"{plant}.json", configs[plant])
+        except (TypeError, KeyError, AttributeError, IndexError) as err:  # valid JSON of the wrong shape
+            raise ValueError(f"{args.oracle_dir / (plant + '.json')}: not an oracle file "
+                             f"(benchmarks/gain_oracle.py): {type(err).__name__}: {err}") from None
         _log(f"   oracle rows of the {plant} map: {args.oracle_dir / (plant + '.json')}" if oracles[plant] else
              f"   no oracle rows for the {plant} map in {args.oracle_dir} (benchmarks/gain_oracle.py --plant {plant})")
     results = paper.evaluate_plants({"ppo": ppo, **grad, **own}, configs, args.out, meta, oracles=oracles, log=_log,

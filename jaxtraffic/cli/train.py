@@ -15,10 +15,9 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
-import os
-import sys
 from pathlib import Path
 
+from jaxtraffic.cli import errors
 from jaxtraffic.platform import compile_cache, distributed
 from jaxtraffic.runs.config import RUN_CONTROL, SECTIONS, RunConfig, TrainConfig, check_flags_apply, load_config
 from jaxtraffic.runs.gradient.trainer import train_gradient
@@ -124,7 +123,7 @@ def resumed_config(config: TrainConfig, given: dict) -> TrainConfig:
 def main(argv: list[str] | None = None) -> Path:
     """Parse flags, start ``jax.distributed`` if asked (``jaxtraffic.platform.distributed``: before anything
     runs on a device), train, return the run directory. Exit status 2 for invalid flags or a broken
-    run directory, 130 / 143 after SIGINT / SIGTERM (see ``learn.ppo.trainer``)."""
+    run directory, 74 for an OS error (``cli.errors``), 130 / 143 after SIGINT / SIGTERM (``runs.ppo.trainer``)."""
     try:
         args = build_parser().parse_args(argv)
         config = _config(args)
@@ -139,13 +138,8 @@ def main(argv: list[str] | None = None) -> Path:
         return train_gradient(config) if config.run.algo == "gradient" else train(config)
     except TrainingInterrupted as exc:  # the trainer has said what is saved
         raise SystemExit(exc.exit_code) from None
-    except BrokenPipeError:  # stdout closed early (train.py | head): say so once, without a traceback
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-        print("train.py: error: standard output was closed (broken pipe); stopped", file=sys.stderr)
-        raise SystemExit(2) from None
-    except (ValueError, OSError) as err:  # invalid parameters / run directory, a full disk, no permission...
-        print(f"train.py: error: {err}", file=sys.stderr)
-        raise SystemExit(2) from err
+    except (ValueError, OSError) as err:  # one line and status 2 / 74 (cli.errors)
+        raise SystemExit(errors.report("train.py", err)) from None
 
 
 if __name__ == "__main__":  # python -m jaxtraffic.cli.train

@@ -22,7 +22,7 @@ from jaxtraffic.model import delay as delay_buffer
 from jaxtraffic.model import fundamental as fd
 from jaxtraffic.model.linear import LinearModel, linear_step, linearize, riemann_w
 from jaxtraffic.model.params import TrafficParams, equilibrium
-from jaxtraffic.platform.tracing import is_traced
+from jaxtraffic.platform.tracing import concrete, is_traced
 
 Array = jax.Array
 
@@ -223,14 +223,32 @@ def _backstepping_recursive_act(settings, cstate, obs, nominal, key):
     return _lyapunov_h(r_hat, v_hat, _checked_gain(settings), lm), cstate
 
 
+def check_assumed_delay(controller: Controller | None, params: TrafficParams) -> None:
+    """``ValueError`` if ``controller`` is a backstepping law whose (concrete) assumed delay, in steps of
+    ``params.dt``, exceeds the plant's delay buffer (``max_delay_steps``): it would be clipped to the buffer's
+    capacity in silence. Other controllers, traced settings and batched ``params`` are not checked."""
+    if controller is None or not isinstance(controller.settings, BacksteppingSettings):
+        return
+    d, dt = concrete(controller.settings.delay), concrete(params.dt)
+    if d is None or dt is None or np.ndim(dt) or not np.all(np.isfinite(d)):
+        return
+    steps = int(np.max(np.round(np.asarray(d, np.float64) / float(dt))))
+    if steps > params.max_delay_steps:
+        raise ValueError(f"backstepping: the assumed delay {float(np.max(d)):g} s is {steps} steps of "
+                         f"dt = {float(dt):g} s, beyond the plant's delay buffer "
+                         f"(max_delay_steps = {params.max_delay_steps}, "
+                         f"{params.max_delay_steps * float(dt):g} s); raise max_delay_steps or lower the delay")
+
+
 def backstepping(delay: float | Array = 4.0, k: float | Array = 1.0, recursive: bool = False) -> Controller:
     """Delay-compensated (predictor / backstepping) feedback, docs/model.md section 8.
 
     Applies the Lyapunov law with gain ``k`` to the state predicted ``delay`` seconds (D_ctrl)
     ahead by the discrete linearised model with nominal parameters over the inputs already sent
     (see ``predict``). D_ctrl is its own setting, independent of the plant's delay; it is
-    rounded to a whole number of steps and clipped to the buffer capacity (``max_delay_steps``).
-    With delay = 0 it equals ``lyapunov(k)`` exactly.
+    rounded to a whole number of steps; ``simulate`` refuses one beyond the plant's buffer capacity
+    (``max_delay_steps``; ``check_assumed_delay``; a traced one is clipped to it). With delay = 0 it
+    equals ``lyapunov(k)`` exactly.
 
     ``recursive=True``: the cheaper ``predict_recursive`` (one linear step per control step plus an
     exact re-anchoring every ``ANCHOR_EVERY`` steps) instead of d linear steps per control step;

@@ -20,7 +20,8 @@ Both are numpy in, numpy out, over ``learn.env``'s pure functions:
     array, ``None`` elsewhere, mask ``info["_final_obs"]``) holds the last observation of the
     finished episode (``SB3VecEnv`` uses this mode).
 
-  ``reset(seed=...)``: an int seeds every environment, a list one seed per environment;
+  ``reset(seed=...)`` (ints >= 0; ``num_envs`` an int >= 1): an int seeds every environment, a list one
+  seed per environment;
   ``reset(options={"reset_mask": mask})`` resets only the environments where ``mask`` is True (the
   others keep their episode; all observations are returned). ``info["gains"]`` holds the applied gains.
 
@@ -29,7 +30,9 @@ Both are numpy in, numpy out, over ``learn.env``'s pure functions:
 ``gymnasium.wrappers.RecordVideo`` (``metadata["render_fps"]``: real time, 1 / dt).
 
 Spaces (see ``jaxtraffic.ecosystem``): action ``Box(-1, 1, (3,))``, normalised gains (target gains
-= gain_max * a); observation ``Box(-inf, inf, (obs_size,))``, float32. Keyword arguments name
+= gain_max * a; a finite action outside the box is clipped to it, a NaN or infinite one is refused with a
+``ValueError`` before the step: it would poison the state and every later observation); observation
+``Box(-inf, inf, (obs_size,))``, float32. Keyword arguments name
 fields of the training config tree (``n_points=21``, ``delay=2.0``, ``horizon_s=10``, ...), or give
 ``env_params=``.
 
@@ -47,6 +50,7 @@ been made to start a new process before the current process has finished its boo
 
 from __future__ import annotations
 
+import numbers
 from typing import Any
 
 import gymnasium as gym
@@ -87,6 +91,23 @@ def _metadata(params: learn_env.EnvParams, **extra: Any) -> dict[str, Any]:
     return {"render_modes": RENDER_MODES, "render_fps": round(1.0 / float(params.traffic.dt)), **extra}
 
 
+def _check_seed(seed: Any, what: str = "seed") -> None:
+    """ValueError unless ``seed`` is None or an int in [0, 2**63) (Gymnasium's rule; 1.5 or -1 are refused)."""
+    if seed is not None and not (isinstance(seed, numbers.Integral) and not isinstance(seed, (bool, np.bool_))
+                                 and 0 <= seed < 2**63):
+        raise ValueError(f"{what} must be None or an int >= 0, got {seed!r}")
+
+
+def _action(action: Any, shape: tuple[int, ...]) -> jax.Array:
+    """The action as float32 of ``shape``; ValueError for a NaN or infinite entry (it would poison the state and
+    every observation after it): a finite action outside [-1, 1] is clipped to the action space by the step."""
+    a = np.asarray(action, np.float32).reshape(shape)
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"the action must be finite, got {np.asarray(action).tolist()!r} (NaN or inf; a policy "
+                         "that diverged?); the action space is Box(-1, 1)")
+    return jnp.asarray(a)
+
+
 def _step(key, state, action, params):
     """(next key, obs, state, reward, terminated, truncated, final obs, gains, final density): one step."""
     key, k = jax.random.split(key)
@@ -117,6 +138,7 @@ class GainEnv(gym.Env):
         self._history = History(1, self.env_params.horizon, self.env_params.traffic.n_points) if render_mode else None
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        _check_seed(seed)
         super().reset(seed=seed)
         self._key, obs, self._state = self._reset_fn(_key_from(self.np_random), self.env_params)
         if self._history is not None:
@@ -126,7 +148,7 @@ class GainEnv(gym.Env):
     def step(self, action):
         if self._state is None:
             raise gym.error.ResetNeeded("call reset() before step()")
-        action = jnp.asarray(np.asarray(action, np.float32).reshape(N_GAINS))
+        action = _action(action, (N_GAINS,))
         self._key, _, self._state, r, term, trunc, final_obs, gains, rho = self._step_fn(
             self._key, self._state, action, self.env_params)
         if self._history is not None:
@@ -168,8 +190,8 @@ class GainVectorEnv(gym.vector.VectorEnv):
                  render_mode: str | None = None, autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
                  **config: Any):
         self.render_mode = _check_render_mode(render_mode)
-        if num_envs < 1:
-            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        if not isinstance(num_envs, numbers.Integral) or isinstance(num_envs, bool) or num_envs < 1:
+            raise ValueError(f"num_envs must be an int >= 1, got {num_envs!r}")
         mode = _autoreset_mode(autoreset_mode)
         self.num_envs = int(num_envs)
         self.env_params = resolve_env_params(env_params, **config)
@@ -202,6 +224,8 @@ class GainVectorEnv(gym.vector.VectorEnv):
     def reset(self, *, seed: int | list[int | None] | None = None, options: dict | None = None):
         """Reset the environments (those of ``options["reset_mask"]``, else all). ``seed``: an int seeds
         them all (one key split per environment), a list one seed each (None: drawn)."""
+        for i, s in enumerate(seed if isinstance(seed, (list, tuple)) else [seed]):
+            _check_seed(s, f"seed[{i}]" if isinstance(seed, (list, tuple)) else "seed")
         super().reset(seed=seed if isinstance(seed, int) else None)
         mask = (options or {}).get("reset_mask")
         if mask is not None:
@@ -225,7 +249,7 @@ class GainVectorEnv(gym.vector.VectorEnv):
     def step(self, actions):
         if self._state is None:
             raise gym.error.ResetNeeded("call reset() before step()")
-        actions = jnp.asarray(np.asarray(actions, np.float32).reshape(self.num_envs, N_GAINS))
+        actions = _action(actions, (self.num_envs, N_GAINS))
         hold = self._hold
         self._keys, obs, self._state, r, term, trunc, final_obs, gains, rho = self._step_fn(
             self._keys, self._state, actions, self.env_params, jnp.asarray(hold))

@@ -213,13 +213,13 @@ def check_nominal(plant: TrafficParams, nominal: TrafficParams | None) -> None:
 
 
 def check_steps(n_steps: object, record_every: object = 0) -> None:
-    """Raise ``ValueError`` unless ``n_steps`` is an int >= 1 and ``record_every`` an int >= 0
+    """Raise ``ValueError`` unless ``n_steps`` is an int in [1, 2**31) and ``record_every`` an int >= 0
     dividing it (numpy integers are accepted; floats are not)."""
     def is_int(x: object) -> bool:
         return isinstance(x, numbers.Integral) and not isinstance(x, (bool, np.bool_))
 
-    if not is_int(n_steps) or n_steps < 1:
-        raise ValueError(f"n_steps must be an int >= 1, got {n_steps!r}")
+    if not is_int(n_steps) or not 1 <= n_steps < 2**31:
+        raise ValueError(f"n_steps must be an int in [1, 2**31) (the rollout counts steps in int32), got {n_steps!r}")
     if not is_int(record_every) or record_every < 0:
         raise ValueError(f"record_every must be an int >= 0 (0: no trajectory), got {record_every!r}")
     if record_every and n_steps % record_every:

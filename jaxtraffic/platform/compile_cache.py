@@ -14,8 +14,9 @@ program a fresh compilation would produce, so results are bit-identical with and
   * otherwise ``$XDG_CACHE_HOME/jaxtraffic/xla`` (``~/.cache/jaxtraffic/xla``).
 
 The directory is created private to the user (mode 0700: jax executes what it loads from there,
-so it must not be writable by others); an existing directory that others can write to is not used
-(a warning says so). Its size is bounded (``MAX_BYTES``; least recently used
+so it must not be writable by others); an existing directory that others can write to, that another
+user owns or that is a symbolic link is not used, and a path that cannot be created leaves the cache off;
+in each case a one-line warning says so. Its size is bounded (``MAX_BYTES``; least recently used
 entries are evicted), which also makes jax guard every read and write with a file lock, so that
 processes running at once (several trainings, the processes of a multi-process run) never read
 a half-written entry. Only programs that took at least ``MIN_COMPILE_S`` to compile are stored.
@@ -27,6 +28,7 @@ directory is the command-line jobs' choice, and a library user calls ``enable()`
 from __future__ import annotations
 
 import os
+import stat
 import sys
 from pathlib import Path
 
@@ -35,7 +37,7 @@ MAX_BYTES = 2 << 30  # 2 GiB; a default training + evaluation stores about 30 MB
 MIN_COMPILE_S = 0.5  # programs that compile faster are not worth a disk entry
 _OFF = ("0", "off", "false", "no")
 
-__all__ = ["ENV", "MAX_BYTES", "MIN_COMPILE_S", "default_dir", "enable", "private"]
+__all__ = ["ENV", "MAX_BYTES", "MIN_COMPILE_S", "default_dir", "enable", "private", "usable"]
 
 
 def default_dir(env: dict | None = None) -> Path:
@@ -46,15 +48,29 @@ def default_dir(env: dict | None = None) -> Path:
 
 
 def private(where: Path) -> bool:
-    """Whether no other user can write to the cache directory ``where`` (jax executes what it loads from
-    there); if they can, say so on stderr."""
-    mode = where.stat().st_mode
-    if mode & 0o022:
-        print(f"warning: the compilation cache {where} is writable by other users (mode {mode & 0o777:o}); "
-              "running without a cache (chmod go-w it, or set JAXTRAFFIC_COMPILATION_CACHE to a private "
-              "directory)", file=sys.stderr)
+    """Whether the cache directory ``where`` is a real directory (not a link) of this user that no other user
+    can write to (jax executes what it loads from there); if not, say so on stderr (one line)."""
+    st = where.lstat()
+    why = ("is a symbolic link" if stat.S_ISLNK(st.st_mode) else "is not a directory" if not stat.S_ISDIR(st.st_mode)
+           else f"belongs to another user (uid {st.st_uid})" if st.st_uid != os.getuid()
+           else f"is writable by other users (mode {st.st_mode & 0o777:o})" if st.st_mode & 0o022 else None)
+    if why:
+        print(f"warning: the compilation cache {where} {why}; running without a cache (use a private directory "
+              f"of your own: chmod go-w it, or set {ENV})", file=sys.stderr)
         return False
     return True
+
+
+def usable(where: Path) -> bool:
+    """Create the cache directory ``where`` (0700) if needed; whether it can be used (``private``); if not, one
+    line on stderr says why (e.g. a read-only home: the job then runs without a cache)."""
+    try:
+        where.mkdir(mode=0o700, parents=True, exist_ok=True)
+    except OSError as err:
+        print(f"warning: the compilation cache {where} cannot be created ({err.strerror or err}); running without "
+              f"a cache (set {ENV} to a writable directory, or to 0 to silence this)", file=sys.stderr)
+        return False
+    return private(where)
 
 
 def enable(path: str | os.PathLike | None = None, env: dict | None = None) -> Path | None:
@@ -78,11 +94,7 @@ def enable(path: str | os.PathLike | None = None, env: dict | None = None) -> Pa
     except ImportError:
         return None
     where = Path(path if path is not None else (choice or default_dir(env))).expanduser()
-    try:
-        where.mkdir(mode=0o700, parents=True, exist_ok=True)
-    except OSError:
-        return None  # e.g. a read-only home: run without a cache
-    if not private(where):
+    if not usable(where):
         return None
     jax.config.update("jax_compilation_cache_dir", str(where))
     jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)

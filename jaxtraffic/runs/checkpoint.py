@@ -152,7 +152,7 @@ def restore_runner(template: Any, state: dict, path: str | Path = CHECKPOINT) ->
         extra = sorted(set(flat_have) - set(flat_want))[:3]
         raise ValueError(f"{path}: the saved state does not match this configuration (missing {missing}, "
                          f"unexpected {extra}); was it written with another network or jaxtraffic version?")
-    if "update" in flat_want:  # shape (devices, seeds)
+    if "update" in flat_want and np.ndim(flat_want["update"]) >= 1:  # PPO: shape (devices, seeds)
         check_device_count(state, np.shape(flat_want["update"])[0], path)
     for k, w in flat_want.items():
         if np.shape(w) != np.shape(flat_have[k]):

@@ -4,8 +4,12 @@
 
 from __future__ import annotations
 
+import numbers
 from pathlib import Path
 from typing import Any
+
+import jax
+import numpy as np
 
 from jaxtraffic.control.adapter import ControllerGrid, adapt
 from jaxtraffic.control.base import Controller
@@ -60,6 +64,14 @@ def load_policy(run_dir: str | Path, seed: int | None = None, checkpoint: str = 
     trained by gradient (``"algo": "gradient"`` in its config.json) loads through
     ``gradient.policy.load_gradient_policy``.
     """
+    if checkpoint not in ("best", "last"):
+        raise ValueError(f"checkpoint must be 'best' or 'last', got {checkpoint!r}")
+    if seed is not None and (not isinstance(seed, numbers.Integral) or isinstance(seed, bool) or seed < 0):
+        raise ValueError(f"seed must be None (the run's best member) or an int >= 0, got {seed!r}")
+    if plant is not None and (not isinstance(plant, TrafficParams) or any(
+            np.ndim(x) for x in jax.tree_util.tree_leaves(plant))):
+        raise ValueError("plant must be one concrete TrafficParams (not a batch from stack_params): the controller is "
+                         "adapted to one plant's grid; adapt it once and batch the plants in simulate_batch")
     run_dir = Path(run_dir)
     config = load_config(run_dir)
     best = run_dir / BEST

@@ -143,6 +143,15 @@ def check_resumable(run_dir: Path) -> None:
                          "was trained)")
 
 
+def check_total(meta: dict, counter: str, total: int, flag: str, path: Path) -> None:
+    """On resume: ``ValueError`` if the run's new length ``total`` (``flag``) is below what the checkpoint at
+    ``path`` has already done (its ``meta[counter]``): the run would record a length it has passed."""
+    done = meta.get(counter) if isinstance(meta, dict) else None
+    if isinstance(done, int) and total < done:
+        raise ValueError(f"--resume: {path} has already done {done} {counter.replace('_', ' ')}; {flag} {total} is "
+                         f"below that: give {flag} >= {done} to continue (or leave it out)")
+
+
 def report_interruption(signum: int, run_dir: Path, any_chunk: bool, new_chunk: bool, progress: str) -> str:
     """Say what an interruption left on disk and return the message; raise ``TrainingInterrupted``
     if it left nothing new (otherwise the caller writes its summary first, then raises it)."""

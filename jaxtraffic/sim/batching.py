@@ -71,12 +71,22 @@ def stack_params(*envs: TrafficParams, **fields: Any) -> TrafficParams:
         sizes = {a.shape[0] for a in arrays.values() if a.ndim == 1}
         if any(a.ndim > 1 for a in arrays.values()):
             raise ValueError("stack_params: each field must be a scalar or a 1-d sequence")
-        if len(sizes) != 1:
-            raise ValueError(f"all batched fields need the same length (and at least one is needed), got {sizes}")
+        lengths = {k: a.shape[0] for k, a in arrays.items() if a.ndim == 1}
+        if len(sizes) > 1:
+            raise ValueError(f"stack_params: the batched fields have different lengths {lengths}; give each the "
+                             "same number of environments (or a scalar, shared by all)")
+        if not sizes:
+            raise ValueError("stack_params: give at least one field as a sequence of per-environment values "
+                             "(e.g. stack_params(delay=[0.0, 4.0])), or TrafficParams objects")
         (b,) = sizes
+        if b == 0:
+            raise ValueError(f"stack_params: the batched fields are empty ({lengths}); a batch needs at least one "
+                             "environment")
         arrays = {k: np.broadcast_to(a, (b,)) for k, a in arrays.items()}
         base = TrafficParams(**static)
         envs = tuple(base.replace(**{k: np.asarray(a[i]).item() for k, a in arrays.items()}) for i in range(b))
+    if not envs:
+        raise ValueError("stack_params: give at least one environment (TrafficParams objects or keywords)")
     if len({tuple(getattr(e, f) for f in _STATIC_FIELDS) for e in envs}) != 1:
         raise ValueError(f"stack_params: the static fields {_STATIC_FIELDS} differ between environments")
     return jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x, np.float64) for x in xs]), *envs)

@@ -20,7 +20,7 @@ from flax import struct
 from jax.sharding import Mesh
 
 from jaxtraffic.control.base import Controller
-from jaxtraffic.control.baselines import open_loop
+from jaxtraffic.control.baselines import check_assumed_delay, open_loop
 from jaxtraffic.model.fundamental import in_physical_region
 from jaxtraffic.model.params import TrafficParams, check_nominal, check_steps, equilibrium
 from jaxtraffic.platform.tracing import is_traced
@@ -263,6 +263,7 @@ def simulate(
     """
     record, memory, alpha_input = _options(record, memory, alpha_input)
     _check_rollout_args(params, n_steps, rho0, v0, nominal, record, memory)
+    check_assumed_delay(controller, params)
     _check_alphas(params, alpha_input.alphas, int(n_steps), alpha_input.noise, batched=False)
     return _simulate_jit(params, controller, rho0, v0, key, nominal, int(n_steps), record.every, memory.remat,
                          alpha_input.noise, alpha_input.alphas)
@@ -338,6 +339,7 @@ def simulate_batch(
     if (p_axis, r_axis, k_axis, c_axis, a_axis) == (None,) * 5:
         raise ValueError("simulate_batch: nothing is batched; use simulate")
     _check_rollout_args(params, n_steps, rho0, v0, nominal, record, memory)
+    check_assumed_delay(controller, params)
     _check_alphas(params, alphas, int(n_steps), noise, batched=True)
     inputs = (params, controller, rho0, v0, keys, nominal, alphas)
     mesh = host_mesh(inputs)  # every process's devices in a multi-process run (sim.sharding)

@@ -45,6 +45,7 @@ from typing import Any
 import chex
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from flax import struct
 from jax.sharding import Mesh
@@ -59,6 +60,7 @@ from jaxtraffic.learn.gradient.config import GradientConfig
 from jaxtraffic.model.linear import linearize
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.model.solver import is_physical
+from jaxtraffic.platform.tracing import is_traced
 from jaxtraffic.sim.initial import paper_initial_condition
 from jaxtraffic.sim.options import Memory, Record
 from jaxtraffic.sim.rollout import simulate
@@ -172,6 +174,7 @@ def make_controller(theta: Any, grad_config: GradientConfig, base: TrafficParams
     """The controller of parameters ``theta`` on its own grid, acting on the plant grid of ``base``
     (``control.adapter.on_grid``: restricted observation, interpolated time gap; the period is dt);
     ``delay`` (s): the delay a schedule is told (default ``base.delay``)."""
+    check_road(base)
     n = grad_config.controller_points or base.n_points
     r = (base.n_points - 1) // (n - 1)
     ctrl = own_controller(theta, grad_config, n, ROAD_LENGTH / (n - 1), base.delay if delay is None else delay)
@@ -183,9 +186,20 @@ def weights_of(grad_config: GradientConfig) -> Weights:
                                           jnp.float32) for f in dataclasses.fields(Weights)})
 
 
+def check_road(base: TrafficParams) -> None:
+    """``ValueError`` unless ``base`` is on the road the gradient-trained controllers are built for (``L`` =
+    ``ROAD_LENGTH`` m: their filter and certificate use it); a traced ``L`` is not checked."""
+    length = None if is_traced(base.L) else np.asarray(base.L, np.float64)
+    if length is not None and not np.allclose(length, ROAD_LENGTH, rtol=1e-9):
+        raise ValueError(f"L = {length.tolist()} m: the gradient-trained controllers are built for the paper's road, "
+                         f"L = {ROAD_LENGTH:g} m (objective.ROAD_LENGTH); another road length is not supported")
+
+
 def check_scenarios(grad_config: GradientConfig, base: TrafficParams) -> None:
     """``ValueError`` naming the flag if a training scenario is one the plant cannot represent: a delay beyond
-    the buffer, an initial state outside the physical region, a sampling interval longer than the horizon."""
+    the buffer, an initial state outside the physical region, a sampling interval longer than the horizon, a
+    road of another length (``check_road``)."""
+    check_road(base)
     cap = base.max_delay_steps
     beyond = [d for d in grad_config.train_delays if round(d / float(base.dt)) > cap]
     if beyond:

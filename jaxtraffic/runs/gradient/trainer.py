@@ -17,6 +17,7 @@ rounding: the scenario split changes the sums' order).
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -24,7 +25,6 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import serialization
 
 from jaxtraffic.control.adapter import adapt, baseline_grid
 from jaxtraffic.control.base import Controller
@@ -40,7 +40,7 @@ from jaxtraffic.runs.config import TrainConfig, config_json
 from jaxtraffic.runs.gradient.policy import gradient_setup, own_grid_controller
 from jaxtraffic.runs.loop import Clock, Progress, prepare, run_training, summary_base
 from jaxtraffic.runs.policy import policy_certificate
-from jaxtraffic.runs.session import check_finite, fmt_time
+from jaxtraffic.runs.session import check_finite, check_total, fmt_time
 from jaxtraffic.sim.metrics import REWARD_TARGET
 from jaxtraffic.sim.rollout import simulate
 
@@ -104,7 +104,8 @@ class GradientTraining:
         self.progress = Progress("updates", MILESTONES)
         if saved is not None:
             self.progress = Progress.from_meta(saved[1], "updates", MILESTONES)
-            self.state = serialization.from_state_dict(self.state, saved[0])
+            # every shape checked (another --init-gains / --policy / network): before anything is rewritten
+            self.state = ckpt.restore_runner(self.state, saved[0], Path(config.run.out_dir) / ckpt.CHECKPOINT)
         self.ref = evaluation(adapt(backstepping(config.plant.delay), baseline_grid(plant), plant), plant,
                               self.eval_steps, gains=jnp.zeros(3))
         n_steps = objective.horizon_steps(grad_config, config.plant.dt)
@@ -179,6 +180,34 @@ class GradientTraining:
                 + f"; outputs in {run_dir}")
 
 
+def memory_estimate(grad_config: GradientConfig, plant: TrafficParams) -> float:
+    """A lower bound of the bytes one gradient (or CEM) step holds (float32): every scenario's (and CEM candidate's)
+    plant state (fields, delay buffer), stored once per recording chunk for the backward pass (Adam) plus the
+    chunk recomputed, or once (CEM: no backward pass)."""
+    n_steps = objective.horizon_steps(grad_config, plant.dt)
+    every = grad_config.record_every
+    cem_run = grad_config.grad_method == "cem"
+    batch = grad_config.n_scenarios * (grad_config.cem_population if cem_run else 1)
+    state = (plant.max_delay_steps + 6) * plant.n_points
+    return 4.0 * batch * state * (1 if cem_run else n_steps // every + every)
+
+
+def check_memory(grad_config: GradientConfig, plant: TrafficParams, have: float | None = None) -> None:
+    """The gradient trainer's rollouts must fit this machine's memory (``have`` bytes; default: the physical
+    memory); the same rule and message as PPO's (``runs.config.checks.check_memory``)."""
+    if have is None:
+        try:
+            have = float(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+        except (ValueError, OSError, AttributeError):
+            return
+    need = memory_estimate(grad_config, plant)
+    if need > 0.8 * have:
+        raise ValueError(f"n_scenarios = {grad_config.n_scenarios} (--train-delays x initial states) on "
+                         f"{plant.n_points} points over {objective.horizon_steps(grad_config, plant.dt)} steps: "
+                         f"the rollouts alone need about {need / 2**30:.3g} GiB, more than this machine's "
+                         f"{have / 2**30:.3g} GiB; use fewer scenarios, points or a shorter --train-horizon-s")
+
+
 def train_gradient(config: TrainConfig, callbacks: Sequence[Callable[[dict], None]] = ()) -> Path:
     """Train (or resume) by gradient or CEM and return the run directory. Uses ``config.grad`` (with its own gain
     bound, ``grad_gain_max``), ``config.plant`` (the nominal plant), ``config.env.gain_filter``,
@@ -190,6 +219,9 @@ def train_gradient(config: TrainConfig, callbacks: Sequence[Callable[[dict], Non
     if grad_config.grad_steps % grad_config.steps_per_chunk:  # a chunk is one compiled program of steps_per_chunk steps
         raise ValueError(f"grad_steps = {grad_config.grad_steps} (--grad-steps): must be a multiple of "
                          f"--steps-per-chunk ({grad_config.steps_per_chunk}), the Adam steps of one compiled chunk")
+    check_memory(grad_config, plant)
+    if saved is not None:
+        check_total(saved[1], "updates", grad_config.grad_steps, "--grad-steps", run_dir / ckpt.CHECKPOINT)
     return run_training(config, run_dir, saved, lambda: GradientTraining(config, grad_config, plant),
                         lambda: config_json(config, jax_version=jax.__version__), callbacks,
                         "jaxtraffic.train_gradient")

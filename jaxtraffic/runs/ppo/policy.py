@@ -51,6 +51,11 @@ def load_run(run_dir: str | Path, checkpoint: str = "best") -> tuple[dict, Saved
     if best is None and checkpoint == "best" and "best_val_score" in summary:
         raise ValueError(f"{run_dir / BEST} is missing, though {SUMMARY} says the run kept its best checkpoint: "
                          "restore it, or load the last state explicitly (checkpoint='last')")
+    if best is not None and isinstance(summary.get("best_seed"), int) and "score" in best:
+        chosen = int(np.argmin(np.asarray(best["score"])))  # the trainer's choice (runs.ppo.trainer)
+        if summary["best_seed"] != chosen:
+            raise ValueError(f"{summary_path}: best_seed = {summary['best_seed']}, but the scores in {run_dir / BEST} "
+                             f"make member {chosen} the best (was the file edited?); pass seed= to choose a member")
     if best is not None:  # the best checkpoint of each member (the trainer's selection)
         policy = SavedPolicy(params=jax.tree.map(np.asarray, best["params"]), obs_mean=np.asarray(best["mean"]),
                              obs_var=np.asarray(best["var"]))

@@ -57,7 +57,7 @@ from jaxtraffic.runs.curve import CURVE_FIELDS
 from jaxtraffic.runs.loop import Clock, Progress, prepare, run_training, summary_base
 from jaxtraffic.runs.policy import load_policy, policy_certificate
 from jaxtraffic.runs.ppo import members, selection
-from jaxtraffic.runs.session import check_finite, fmt_time
+from jaxtraffic.runs.session import check_finite, check_total, fmt_time
 from jaxtraffic.sim.initial import paper_initial_condition
 from jaxtraffic.sim.metrics import VEH_PER_KM
 from jaxtraffic.sim.rollout import simulate_batch
@@ -355,5 +355,6 @@ def train(config: TrainConfig, callbacks: Sequence[Callable[[dict], None]] = ())
     ppo_config, env_params = build(config)  # validates: fail before creating the run directory
     if saved is not None:
         ckpt.check_device_count(saved[0], len(jax.devices()), run_dir / ckpt.CHECKPOINT)
+        check_total(saved[1], "env_steps", config.run.total_steps, "--total-steps", run_dir / ckpt.CHECKPOINT)
     return run_training(config, run_dir, saved, lambda: PPOTraining(config, ppo_config, env_params, run_dir),
                         lambda: config_file(config, env_params), callbacks, "jaxtraffic.train")

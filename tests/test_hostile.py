@@ -140,14 +140,15 @@ def test_missing_controller_file_is_refused_before_the_work(tmp_path, capsys, no
 
 def test_unbounded_seeds_are_refused(tmp_path, capsys, no_work):
     code, err = _evaluate(["--run", str(fake_run(tmp_path / "r")), "--out", str(tmp_path / "o"),
-                           "--seeds", "100000000"], capsys)
-    assert code == 2 and "--seeds must be in [1, 1000]" in err and no_work == []
+                           "--noise-seeds", "100000000"], capsys)
+    assert code == 2 and "--noise-seeds must lie in [1, 1000]" in err and no_work == []
 
 
 def test_controller_help_says_it_runs_the_users_code(capsys):
     with pytest.raises(SystemExit):
         evaluate_cli.main(["--help"])
-    assert "RUNS the file's (or module's) code with your permissions" in " ".join(capsys.readouterr().out.split())
+    text = " ".join(capsys.readouterr().out.replace("│", " ").split())  # (tyro draws the help in a box)
+    assert "RUNS the file's (or module's) code with your permissions" in text
 
 
 # ----------------------------------------------------------------------------- 2. the staging folder

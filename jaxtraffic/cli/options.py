@@ -70,7 +70,8 @@ class EvaluateOptions:
     oracle_dir: Path = Path("docs/results/oracle")
     """oracle rows of the maps (PLANT.json of benchmarks/gain_oracle.py); a missing file leaves them out"""
     controller: tuple[str, ...] = ()
-    """NAME=SOURCE:FUNCTION[:ARG]: also judge your own controller; RUNS the Python code of SOURCE"""
+    """NAME=SOURCE:FUNCTION[:ARG]: also judge your own controller. This RUNS the file's (or module's) code with
+    your permissions, like `python FILE`: only give code you trust"""
     numerics_check: bool = True
     """rerun Table 2's scenario on each plant refined twice and with the other scheme"""
     cluster: Annotated[Cluster, tyro.conf.OmitArgPrefixes] = field(default_factory=Cluster)

@@ -279,7 +279,7 @@ def _main(args: EvaluateOptions, argv: list[str] | None, t0: float, nd: int, na:
                     **{name: {"run_dir": f"--controller {name}", "summary": {}, "curve": None} for name in own}}
     common = {"dt": dt, "horizon_s": args.horizon, "seeds": tuple(range(args.noise_seeds)),
               "robust_horizon_s": args.robust_horizon or 2.0 * args.horizon,
-              "numerics_check": not args.no_numerics_check}
+              "numerics_check": args.numerics_check}
     configs = {"paper": paper.EvalConfig(n_points=n_points, robust_delays=paper.robust_axis(nd, 0.0, 8.0, dt),
                                          robust_alphas=paper.robust_axis(na, 0.05, 0.6), **common)}
     rd, ra = parse_grid(args.reference_robust_grid, "--reference-robust-grid")

@@ -106,6 +106,9 @@ def numerics_summary(numerics: dict | None, metrics: dict, eval_config: EvalConf
     return lines + [""]
 
 
+ORACLE_TOLD = {"best_constant": "nothing", "delay_schedule": "D", "per_cell": "D, alpha"}  # what each oracle row knows
+
+
 def robustness_summary(robust: dict[str, dict[str, np.ndarray]], eval_config: EvalConfig,
                        oracle: dict[str, dict] | None = None, table: dict[str, Any] | None = None) -> list[str]:
     """Markdown lines summarising the robustness map (not a claim of the paper); ``oracle``: its oracle rows
@@ -159,8 +162,8 @@ def robustness_summary(robust: dict[str, dict[str, np.ndarray]], eval_config: Ev
                      f"| {int(calm.sum())}/{n} | {offset} | {at} |")
     for k, r in (oracle or {}).items():
         s, d = counts(r, table)
-        lines.append(f"| {ORACLE_LABELS[k]} | D, alpha (chosen knowing the outcome) | {s}/{ctl} | {d}/{ctl} "
-                     "| - | - | - | - |")
+        lines.append(f"| {ORACLE_LABELS[k]} | {ORACLE_TOLD.get(k, 'n/a')} (chosen knowing the outcome) | {s}/{ctl} "
+                     f"| {d}/{ctl} | - | - | - | - |")
     if oracle:
         lines += ["", "Oracle rows (`paper.oracle`, `benchmarks/gain_oracle.py`): constant gains of the filtered "
                   "three-gain law from a grid, chosen knowing the outcome: one triple for the whole map, one per "

@@ -20,6 +20,7 @@ from jaxtraffic.model.params import equilibrium
 from jaxtraffic.paper.claims import evaluate_claims, paper_like_reading
 from jaxtraffic.paper.figures import FIG7, ROBUSTNESS, make_figures
 from jaxtraffic.paper.learned import comparison_section
+from jaxtraffic.paper.maps import map_controllers, map_table
 from jaxtraffic.paper.numerics import deploy, relative_to, run_numerics
 from jaxtraffic.paper.report import numerics_summary, readings_summary, report_text, robustness_summary
 from jaxtraffic.paper.scenarios import (
@@ -30,6 +31,7 @@ from jaxtraffic.paper.scenarios import (
     initial_norms,
     run_robustness,
     run_scenarios,
+    told,
 )
 from jaxtraffic.paper.summaries import UNITS, equilibrium_indices, summarise
 from jaxtraffic.paper.table2 import table2_rows, write_table2
@@ -131,7 +133,9 @@ def evaluate_plant(controllers: dict[str, Controller], eval_config: EvalConfig, 
     log(f"[2/4] robustness map: {len(eval_config.robust_delays)} delays x {len(eval_config.robust_alphas)} alphas, "
         f"{eval_config.robust_horizon_s:g} s"
         + ("" if eval_config.robust_delays and eval_config.robust_alphas else " (skipped)"))
-    robust = run_robustness(ctrls, eval_config, log)
+    map_ctrls = {**ctrls, **deploy(map_controllers(), {}, eval_config)}  # + the map-only model-based rows
+    robust = run_robustness(map_ctrls, eval_config, log)
+    table = map_table(robust, {n: told(n, c) for n, c in map_ctrls.items()}, eval_config) if robust else None
     numerics = None
     if checking is not None:
         log("  numerical check of Table 2 (delay4): refined grid and the other scheme")
@@ -147,7 +151,7 @@ def evaluate_plant(controllers: dict[str, Controller], eval_config: EvalConfig, 
         log("[3/4] figures")
         figures = early.join(log)  # the scenario figures, drawn while the robustness map ran
         figures += make_figures(results, robust, eval_config, out_dir, lc, log, fig7_scenario=fig7,
-                                select=lambda name: name in FIG7 + ROBUSTNESS, oracle=oracle)
+                                select=lambda name: name in FIG7 + ROBUSTNESS, oracle=oracle, table=table)
         log("[4/4] tables, metrics.json, REPORT.md")
         write_table2(table2_rows(metrics, eval_config, numerics), out_dir, eval_config.n_steps * eval_config.dt,
                      metrics, numerics)
@@ -159,8 +163,8 @@ def evaluate_plant(controllers: dict[str, Controller], eval_config: EvalConfig, 
     metrics = to_jsonable(metrics)
     report = ""
     if writer:
-        report = _write(out_dir, claims, metrics, meta, figures, robust, _robustness_json(robust, eval_config),
-                        eval_config, numerics, lc_data, learned_runs, oracle)
+        report = _write(out_dir, claims, metrics, meta, figures, robust, _robustness_json(robust, eval_config, table),
+                        eval_config, numerics, lc_data, learned_runs, oracle, table)
     log(f"done in {meta['runtime_s']:.1f} s -> {out_dir}")
     return metrics, report
 
@@ -237,8 +241,10 @@ def _meta(meta: dict[str, Any], eval_config: EvalConfig, grids: dict[str, Contro
     return meta
 
 
-def _robustness_json(robust: dict[str, dict[str, Any]], eval_config: EvalConfig) -> dict[str, Any]:
-    """robustness.json's content: the map's axes, units and each controller's arrays as nested lists.
+def _robustness_json(robust: dict[str, dict[str, Any]], eval_config: EvalConfig,
+                     table: dict[str, Any] | None = None) -> dict[str, Any]:
+    """robustness.json's content: the map's axes, units, each controller's arrays as nested lists and its
+    counts by what each controller is told ("table", ``maps.map_table``).
 
     Args:
         robust: controller -> quantity -> (n_delays, n_alphas) array (``scenarios.run_robustness``).
@@ -246,14 +252,16 @@ def _robustness_json(robust: dict[str, dict[str, Any]], eval_config: EvalConfig)
     return {"delays_s": list(eval_config.robust_delays), "alphas": list(eval_config.robust_alphas),
             "horizon_s": eval_config.robust_horizon_s,
             "units": {"final_rho_L2": "veh/m", "final_v_L2": "m/s", "final_reward": "dimensionless",
-                      "diverged": "bool", "final_rho_spatial_std": "veh/m"},
-            "note": "arrays indexed [delay][alpha]; backstepping assumes the true plant delay",
-            "controllers": {c: {k: v.tolist() for k, v in r.items()} for c, r in robust.items()}}
+                      "diverged": "bool", "final_rho_spatial_std": "veh/m", "diverged_step": "plant steps (-1: never)"},
+            "note": "arrays indexed [delay][alpha]; controllers told D are told each cell's true plant delay; "
+                    "table: counts over the controllable cells (table.rule) and what each controller is told",
+            "controllers": {c: {k: v.tolist() for k, v in r.items()} for c, r in robust.items()},
+            "table": table or {}}
 
 
 def _write(out_dir: Path, claims: list, metrics: dict, meta: dict, figures: list, robust: dict, robust_json: dict,
            eval_config: EvalConfig, numerics: dict | None, lc_data: Any, learned_runs: dict | None,
-           oracle: dict[str, dict] | None) -> str:
+           oracle: dict[str, dict] | None, table: dict[str, Any] | None = None) -> str:
     """robustness.json, metrics.json and claims.json; returns REPORT.md's text."""
     (out_dir / "robustness.json").write_text(json.dumps(to_jsonable(robust_json), indent=1, allow_nan=False))
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=1, allow_nan=False))
@@ -261,9 +269,9 @@ def _write(out_dir: Path, claims: list, metrics: dict, meta: dict, figures: list
     if lc_data is None:
         notes.append("- No learning curve was available, so figure 3a is missing.")
     sections = readings_summary(claims, metrics, eval_config) + numerics_summary(numerics, metrics, eval_config)
-    sections += robustness_summary(robust, eval_config, oracle) + comparison_section(
+    sections += robustness_summary(robust, eval_config, oracle, table) + comparison_section(
         metrics, learned_runs or {}, robust, tuple(eval_config.robust_alphas), tuple(eval_config.robust_delays),
-        eval_config.horizon_s)
+        eval_config.horizon_s, table)
     report = report_text(out_dir, claims, metrics, meta, figures, notes, sections=sections)
     (out_dir / "claims.json").write_text(json.dumps(to_jsonable(
         [{**{k: v for k, v in c.items() if k != "checks"},

@@ -11,6 +11,7 @@ import numpy as np
 
 from jaxtraffic.model.params import equilibrium
 from jaxtraffic.paper.learned import STABLE_STD
+from jaxtraffic.paper.maps import MAP_LABELS, four_rows, map_table
 from jaxtraffic.paper.oracle import ORACLE_LABELS
 from jaxtraffic.paper.scenarios import (
     CTRL_DELAY,
@@ -25,19 +26,21 @@ from jaxtraffic.paper.scenarios import (
 
 # ----------------------------------------------------------------------------- figures
 FIG7 = ("fig7_spacetime_alpha_noise.png", "fig7_l2_alpha_noise.png")  # drawn from the reading the claims choose
-ROBUSTNESS = ("robustness_map.png", "robustness_map_waves.png")
+ROBUSTNESS = ("robustness_map.png", "robustness_map_waves.png", "robustness_map_told.png")
 LEARNING_CURVE = "fig3a_learning_curve.png"
 
 
 def make_figures(results: dict[str, dict[str, Outcome]], robust: dict[str, dict[str, np.ndarray]],
                  eval_config: EvalConfig, out_dir: Path, learning_curve_csv: Path | None,
                  log: Callable[[str], None] = print, fig7_scenario: str = "alpha_noise",
-                 select: Callable[[str], bool] | None = None, oracle: dict[str, dict] | None = None) -> list[str]:
+                 select: Callable[[str], bool] | None = None, oracle: dict[str, dict] | None = None,
+                 table: dict[str, Any] | None = None) -> list[str]:
     """Write every figure into ``out_dir``; returns the file names written. ``fig7_scenario``: the
     reading of the alpha noise shown as figure 7 (``claims.paper_like_reading``). ``select``: draw only
     the figures whose file name it accepts (default: all), e.g. the scenario figures while the
     robustness map is still running (``FIG7`` and ``ROBUSTNESS`` need later results). ``oracle``: oracle rows
-    (``paper.oracle``) drawn as further panels of the waves map."""
+    (``paper.oracle``) drawn as further panels of the waves map. ``table``: the map's counts by what each
+    controller is told (``maps.map_table``; default: computed here), for the four controllers side by side."""
     from jaxtraffic.paper.plotting import LABELS
 
     canvas = _Canvas(out_dir, select or (lambda name: True), log)
@@ -49,6 +52,7 @@ def make_figures(results: dict[str, dict[str, Outcome]], robust: dict[str, dict[
     _l2_figures(canvas, results, eval_config, t, labels, fig7_scenario)
     if robust and any(canvas.want(name) for name in ROBUSTNESS):
         _robustness_figures(canvas, robust, eval_config, labels, oracle)
+        _told_figure(canvas, robust, eval_config, table or map_table(robust, {}, eval_config))
     return canvas.written
 
 
@@ -179,8 +183,7 @@ def _robustness_figures(canvas: _Canvas, robust: dict[str, dict[str, np.ndarray]
     """
     from jaxtraffic.paper.plotting import plot_robustness_map
 
-    names = {"open_loop": "open loop", "lyapunov": "Lyapunov",
-             "backstepping": "backstepping (assumes the true plant delay)",
+    names = {**MAP_LABELS, "backstepping": "backstepping (assumes the true plant delay)",
              "ppo": "PPO (trained D = 4 s)", **{c: labels.get(c, c) for c in learned(robust) if c != "ppo"}}
     delays, alphas = np.asarray(eval_config.robust_delays), np.asarray(eval_config.robust_alphas)
     horizon = replace(eval_config, horizon_s=eval_config.robust_horizon_s).n_steps * eval_config.dt
@@ -194,4 +197,24 @@ def _robustness_figures(canvas: _Canvas, robust: dict[str, dict[str, np.ndarray]
     canvas.draw(ROBUSTNESS[1], plot_robustness_map, delays, alphas, maps,
                 f"Remaining density waves after {horizon:g} s: spatial standard deviation of rho "
                 "(blind to a uniform offset)", nominal=(CTRL_DELAY, 0.15), initial_l2=initial_norms(eval_config)[0],
+                quantity="final std_x(rho) (veh/km)", stable_below=STABLE_STD)
+
+
+def _told_figure(canvas: _Canvas, robust: dict[str, dict[str, np.ndarray]], eval_config: EvalConfig,
+                 table: dict[str, Any]) -> None:
+    """The remaining waves of the four controllers side by side (``maps.four_rows``: backstepping, adaptive
+    backstepping, the best learned law, backstepping told alpha), each labelled with what it is told."""
+    from jaxtraffic.paper.plotting import plot_robustness_map
+
+    rows = four_rows(table)
+    if not rows:
+        return
+    delays, alphas = np.asarray(eval_config.robust_delays), np.asarray(eval_config.robust_alphas)
+    horizon = replace(eval_config, horizon_s=eval_config.robust_horizon_s).n_steps * eval_config.dt
+    maps = {f"{MAP_LABELS.get(c, c)}, told {table['rows'][c]['told']}":
+            (robust[c]["final_rho_spatial_std"], robust[c]["diverged"]) for c in rows}
+    canvas.draw(ROBUSTNESS[2], plot_robustness_map, delays, alphas, maps,
+                f"Remaining density waves after {horizon:g} s by what each controller is told "
+                f"({len(table['excluded'])} cells inconsistent before any control acts: diverged for all)",
+                nominal=(CTRL_DELAY, 0.15), initial_l2=initial_norms(eval_config)[0],
                 quantity="final std_x(rho) (veh/km)", stable_below=STABLE_STD)

@@ -43,11 +43,21 @@ def _num(x: Any, fmt: str) -> str:
     return "n/a" if x is None or (isinstance(x, float) and not np.isfinite(x)) else format(x, fmt)
 
 
+def _map_cell(table: dict[str, Any], name: str) -> str:
+    """"s/n (told ...)": stabilised of the controllable cells of ``table``'s row ``name``."""
+    r = table["rows"][name]
+    return f"{r['stabilised']}/{table['controllable']} (told {r['told']})"
+
+
 def comparison_section(metrics: dict, runs: dict[str, dict], robust: dict[str, dict[str, np.ndarray]],
-                       alphas: tuple[float, ...], delays: tuple[float, ...], horizon_s: float) -> list[str]:
+                       alphas: tuple[float, ...], delays: tuple[float, ...], horizon_s: float,
+                       table: dict[str, Any] | None = None) -> list[str]:
     """Markdown lines of the section. ``runs``: controller name -> {"summary": summary.json of its
     run, "curve": its learning curve (column -> array) or None, "run_dir": ...} for every learned
-    controller evaluated. ``horizon_s``: the evaluation's simulated time, s."""
+    controller evaluated. ``horizon_s``: the evaluation's simulated time, s. ``table``: the map's counts by
+    what each controller is told (``paper.maps.map_table``): the map column then counts the controllable
+    cells, says what each is told, and the model-based rows (backstepping, adaptive backstepping, told alpha)
+    close the table."""
     if not runs:
         return []
     d4 = metrics["delay4"]
@@ -63,7 +73,8 @@ def comparison_section(metrics: dict, runs: dict[str, dict], robust: dict[str, d
              f"from this evaluation (paper initial condition, D = 4 s, {horizon_s:g} s, backstepping for reference: "
              f"final rho L2 {_num(1e3 * bs['final_rho_L2'], '.3f') if bs else 'n/a'} veh/km, J_comfort "
              f"{_num(bs.get('J_comfort'), '.4g')}). *Map* = stabilised cells of the robustness map (not "
-             f"diverged, final std_x(rho) < {STABLE_STD * 1e3:g} veh/km); *delays* = plant delays of the map "
+             f"diverged, final std_x(rho) < {STABLE_STD * 1e3:g} veh/km; of the controllable cells, and what each "
+             "controller is told, when the map's table is given); *delays* = plant delays of the map "
              "at alpha = 0.15 where it is stabilised.", "",
              "| controller | run | training wall s | env steps | s to beat backstepping | final rho L2 (veh/km) "
              "| J_comfort | J_comfort / backstepping | map | delays (s) |", "|---|---|---|---|---|---|---|---|---|---|"]
@@ -73,6 +84,8 @@ def comparison_section(metrics: dict, runs: dict[str, dict], robust: dict[str, d
         cells, ok_delays = "n/a", "n/a"
         if r is not None:
             cells = f"{stabilised_cells(r)}/{np.asarray(r['diverged']).size}"
+            if table and name in table["rows"]:
+                cells = _map_cell(table, name)
             if j:
                 col = ~np.asarray(r["diverged"], bool)[:, j[0]] & (np.asarray(r["final_rho_spatial_std"])[:, j[0]]
                                                                    < STABLE_STD)
@@ -86,7 +99,12 @@ def comparison_section(metrics: dict, runs: dict[str, dict], robust: dict[str, d
             f"| {_num(s.get('env_steps'), '.3g')} | {_num(t_beat, '.1f')} "
             f"| {_num(1e3 * m['final_rho_L2'] if m else None, '.3f')} | {_num(m.get('J_comfort'), '.4g')} "
             f"| {_num(ratio, '.2f')} | {cells} | {ok_delays} |")
-    if "backstepping" in robust:
+    if table:
+        for name, label in (("backstepping", "backstepping"), ("adaptive_backstepping", "adaptive backstepping"),
+                            ("backstepping_alpha", "backstepping told alpha (information bound)")):
+            if name in table["rows"]:
+                lines.append(f"| {label} | | | | | | | | {_map_cell(table, name)} | |")
+    elif "backstepping" in robust:
         lines.append(f"| backstepping (assumes the true delay) | | | | | | | | "
                      f"{stabilised_cells(robust['backstepping'])}/{np.asarray(robust['backstepping']['diverged']).size}"
                      " | |")

@@ -20,6 +20,7 @@ import numpy as np
 from jaxtraffic.io.drawing import new_figure, save_figure
 from jaxtraffic.io.files import atomic_write_text, write_json
 from jaxtraffic.paper.learned import LEARNED_LABELS, STABLE_STD
+from jaxtraffic.paper.maps import MAP_LABELS, excluded_text, rejudge
 from jaxtraffic.paper.scenarios import EvalConfig, learned, others
 from jaxtraffic.paper.summaries import _fmt
 
@@ -107,13 +108,25 @@ def _numerics_lines(table: dict[str, Any], plants: list[str], results: dict[str,
 
 
 def _map_lines(robust: dict[str, dict], plants: list[str]) -> list[str]:
-    counts = {p: _map_counts(robust[p]) for p in plants}
+    """Markdown: per controller, what it is told and its stabilised / diverged counts on each plant's map, over
+    the controllable cells (robustness.json's "table", ``paper.maps``; an older file without it: over all
+    cells), then the excluded cells of each plant."""
+    tables = {p: robust[p].get("table") or {} for p in plants}
+    counts = {p: ({c: (r["stabilised"], r["diverged"], tables[p]["controllable"]) for c, r in tables[p]["rows"].items()}
+                  if tables[p].get("rows") else _map_counts(robust[p])) for p in plants}
+    told = {c: r.get("told", "n/a") for p in reversed(plants) for c, r in tables[p].get("rows", {}).items()}
     names = [c for c in counts[plants[0]] if all(c in counts[p] for p in plants)]
-    lines = ["| controller | " + " | ".join(f"{p}: stabilised / diverged of cells" for p in plants) + " |",
-             "|---|" + "---|" * len(plants)]
+    lines = ["| controller | told | " + " | ".join(f"{p}: stabilised / diverged of controllable cells" for p in plants)
+             + " |", "|---|---|" + "---|" * len(plants)]
     for c in names:
-        lines.append(f"| {LEARNED_LABELS.get(c, c)} | "
+        lines.append(f"| {MAP_LABELS.get(c, c)} | {told.get(c, 'n/a')} | "
                      + " | ".join(f"{counts[p][c][0]} / {counts[p][c][1]} of {counts[p][c][2]}" for p in plants) + " |")
+    lines.append("")
+    lines += [f"- {p}: {excluded_text(tables[p])}" for p in plants if tables[p].get("rows")]
+    for p in plants:
+        if tables[p].get("rows"):
+            r = rejudge(tables[p])
+            lines.append(f"- {p}: claim 5 re-judged on this map: **{r['verdict']}** ({r['text']})")
     return lines
 
 
@@ -167,7 +180,8 @@ def compare_plants(results: dict[str, dict], configs: dict[str, EvalConfig], out
              "| " + " | ".join(f"![{p}]({'' if p == first else p + '/'}fig5_spacetime_delay4.png)" for p in plants)
              + " |", "",
              "### Robustness maps (plant delay x plant alpha; stabilised: not diverged, final spatial std of rho "
-             "< 0.5 veh/km)", "", *_map_lines(robust, plants), "",
+             "< 0.5 veh/km; told: what each controller is told of the plant, `paper.maps`)", "",
+             *_map_lines(robust, plants), "",
              "### Numerical checks", "", *_numerics_lines(table, plants, results, horizon_s), ""]
     text = "\n".join(lines)
     atomic_write_text(out_dir / "plants.md", text)

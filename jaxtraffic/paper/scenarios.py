@@ -84,13 +84,17 @@ class Scenario:
 EXTRA_LEARNED = ("grad_gains", "grad_network", "grad_robust")
 _L = ("ppo", *EXTRA_LEARNED)
 BASELINES = ("open_loop", "lyapunov", "backstepping")
+# model-based controllers evaluated on the robustness map only (issue 38; ``paper.maps``): adaptive
+# backstepping (told D, alpha estimated online) and backstepping told the plant's alpha (the information bound)
+MAP_ONLY = ("adaptive_backstepping", "backstepping_alpha")
+TOLD_ALPHA = ("backstepping_alpha",)  # told each cell's plant alpha as well as its delay
 
 
 def others(names) -> tuple[str, ...]:
     """The names among ``names`` that are neither a baseline nor one of jaxtraffic's learned controllers: the
     controllers a user brings (``evaluate.py --controller``, e.g. a policy trained elsewhere), evaluated
     wherever PPO is, in the order given."""
-    return tuple(n for n in names if n not in BASELINES and n not in _L)
+    return tuple(n for n in names if n not in BASELINES and n not in _L and n not in MAP_ONLY)
 
 
 def learned(names) -> tuple[str, ...]:
@@ -120,7 +124,7 @@ SCENARIOS = (
 )
 SCENARIO_BY_NAME = {s.name: s for s in SCENARIOS}
 NOISE_SCENARIOS = tuple(s.name for s in SCENARIOS if s.seeded)  # the readings of the alpha noise (claim 5)
-ROBUST_CONTROLLERS = ("open_loop", "lyapunov", "backstepping", "ppo", *EXTRA_LEARNED)
+ROBUST_CONTROLLERS = ("open_loop", "lyapunov", "backstepping", *MAP_ONLY, "ppo", *EXTRA_LEARNED)
 
 
 @dataclass
@@ -311,6 +315,15 @@ def run_scenarios(controllers: dict[str, Controller], eval_config: EvalConfig,
             for s in results}
 
 
+def told(name: str, controller: Controller) -> str:
+    """What ``controller`` (named ``name``) is told on the robustness map: "D, alpha" (``TOLD_ALPHA``), "D" (it
+    takes the delay it compensates, ``control.takes_delay``: backstepping, the adaptive law, a delay schedule)
+    or "nothing" (the open loop, Lyapunov, a law trained at one delay)."""
+    if name in TOLD_ALPHA:
+        return "D, alpha"
+    return "D" if takes_delay(controller) else "nothing"
+
+
 def run_robustness(controllers: dict[str, Controller], eval_config: EvalConfig,
                    log: Callable[[str], None] = print) -> dict[str, dict[str, np.ndarray]]:
     """Final density L2 over plant delay x plant alpha (no noise), one batched rollout per
@@ -322,7 +335,9 @@ def run_robustness(controllers: dict[str, Controller], eval_config: EvalConfig,
     final_rho_spatial_std (veh/m) is the standard deviation over x of the final density: the
     remaining wave amplitude, blind to a uniform offset from the nominal target;
     final_rho_offset (veh/m) is the final density's mean over x minus the plant's own
-    equilibrium density (its alpha, the nominal time gap h_bar: where the open loop would rest)."""
+    equilibrium density (its alpha, the nominal time gap h_bar: where the open loop would rest);
+    "diverged_step": the plant step at which it diverged (-1: never). A controller named in ``TOLD_ALPHA``
+    (``MAP_ONLY``'s information bound) is also told each cell's plant alpha (its ``alpha0``, not adapted)."""
     if not eval_config.robust_delays or not eval_config.robust_alphas:
         return {}
     eval_config = replace(eval_config, horizon_s=eval_config.robust_horizon_s)
@@ -335,17 +350,20 @@ def run_robustness(controllers: dict[str, Controller], eval_config: EvalConfig,
         if name not in controllers:
             continue
         ctrl, batched, chunk = controllers[name], False, None
-        if name == "backstepping":
+        if name in ("backstepping", *MAP_ONLY):
             # the predictor's loop runs to the largest assumed delay of its chunk: one delay per
             # chunk (the batch is delay-major and dealt over the devices), 20 % faster than 64
             chunk = -(-dd.shape[1] // host_mesh().size)
         if takes_delay(ctrl):
             ctrl, batched = tell_delay(ctrl, jnp.asarray(dd.ravel(), jnp.float32)), True
+        if name in TOLD_ALPHA:
+            ctrl = ctrl.replace(settings=ctrl.settings.replace(alpha0=jnp.asarray(aa.ravel(), jnp.float32)))
         t0 = time.perf_counter()
         res = run_batch(ctrl, envs, [0] * len(envs), eval_config, record=False, batch_controller=batched,
                         chunk_size=chunk)
         out[name] = {k: np.asarray(res.metrics[k]).reshape(dd.shape)
                      for k in ("final_rho_L2", "final_v_L2", "final_reward", "diverged")}
+        out[name]["diverged_step"] = np.asarray(res.final.diverged_step).reshape(dd.shape)
         out[name]["final_rho_spatial_std"] = np.std(np.asarray(res.final.rho), axis=-1).reshape(dd.shape)
         out[name]["final_rho_offset"] = np.mean(np.asarray(res.final.rho), axis=-1).reshape(dd.shape) - own_rho
         log(f"  robustness {name:<13s} {len(envs):3d} envs x {eval_config.n_steps} steps"

@@ -20,7 +20,7 @@ from flax import struct
 from jaxtraffic.control.base import Controller, Observation
 from jaxtraffic.model.linear import linearize
 from jaxtraffic.model.params import TrafficParams, equilibrium
-from jaxtraffic.model.spatial import _gaussian_weights
+from jaxtraffic.model.spatial import smooth
 from jaxtraffic.platform.tracing import is_traced
 
 Array = jax.Array
@@ -48,27 +48,9 @@ def gain_law(gains: Array, obs: Observation, nominal: TrafficParams,
     h_bar = nominal.h_bar
     rho_t, v_t = obs.rho - rho_bar, obs.v - v_bar
     if sigma_nodes:
-        rho_t, v_t = shifted_smooth(rho_t, sigma_nodes), shifted_smooth(v_t, sigma_nodes)
+        rho_t, v_t = smooth(rho_t, sigma_nodes), smooth(v_t, sigma_nodes)
     dev = -gains[0] * (obs.h_prev - h_bar) / h_bar - gains[1] * v_t / v_bar + gains[2] * rho_t / rho_bar
     return h_bar + h_bar * dev
-
-
-def shifted_smooth(u: Array, sigma_nodes: float) -> Array:
-    """``model.spatial.smooth`` (the Gaussian filter of width ``sigma_nodes`` node spacings, static, over
-    the last axis) as 2J + 1 shifted multiply-adds of the zero-padded field, in the order of the offsets
-    -J..J: one elementwise pass, several times faster on CPU than the convolution ``smooth`` lowers to
-    (issue 39). Equal to ``smooth`` up to float rounding (the order of its sum differs)."""
-    if not sigma_nodes > 0:
-        raise ValueError(f"filter width must be > 0, got {sigma_nodes}")
-    w = _gaussian_weights(float(sigma_nodes))
-    half, n = len(w) // 2, u.shape[-1]
-    inv_mass = jnp.asarray(1.0 / np.convolve(np.ones(n), w, mode="same"), u.dtype)
-    padded = jnp.pad(u, [(0, 0)] * (u.ndim - 1) + [(half, half)])
-    acc = None
-    for k, wk in enumerate(w.astype(u.dtype)):  # output i gets w[j] u[i + j - half] (w is symmetric)
-        term = padded[..., k:k + n] * wk
-        acc = term if acc is None else acc + term
-    return acc * inv_mass
 
 
 def lyapunov_equivalent_gains(k: float | Array, nominal: TrafficParams) -> Array:

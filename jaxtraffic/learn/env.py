@@ -32,10 +32,10 @@ import functools
 
 import chex
 import jax
-from jax.custom_batching import custom_vmap
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+from jax.custom_batching import custom_vmap
 
 from jaxtraffic.control import gain_policy as gp
 from jaxtraffic.control.gain_law import FILTER_SIGMA, sigma_nodes

@@ -19,7 +19,8 @@ controller's target and the environment's ``gains`` (the applied, filtered gains
 * Episodes last ``horizon`` steps and end by *truncation* (``info["truncated"]``: bootstrap the
   value of ``info["terminal_obs"]``). A plant that leaves the physical region *terminates* with
   reward ``-diverge_penalty``. ``step_env`` resets finished environments itself, reusing the delay
-  buffer's storage (``initial_state(..., sent=...)`` and ``select_state``: O(n), not O(capacity n)).
+  buffer's storage (``initial_state(..., sent=...)`` and ``select_state``: O(n), not O(capacity n)), and
+  only at the steps where an episode of the batch ended (``auto_reset``, ``RESET_ONLY_WHERE_DONE``).
 * Domain randomisation, drawn at each reset: initial amplitude (veh/m), integer wavenumber and
   phase of the cosine perturbation; plant delay (a multiple of dt) and plant alpha (uniform
   ranges); per-step alpha noise (``traffic.alpha_noise``). Metrics stay relative to the nominal
@@ -47,6 +48,13 @@ from jaxtraffic.sim.metrics import node_weight
 from jaxtraffic.sim.plant import PlantState, closed_loop_step, initial_state, plant_alpha, select_state
 
 Array = jax.Array
+
+# step_env's automatic reset: True builds a fresh episode only at the steps where some environment of the batch
+# finished (``auto_reset``, 1.7-2x the environment's steps/s); False builds one for every environment at every
+# step and selects it where done (``_select_reset``, the earlier way). The two agree to float rounding: the fresh
+# observation can differ by an ulp (XLA compiles it in another context), so a trained policy is not bit-identical
+# across the switch (BENCHMARKS.md, "One memory pass per step").
+RESET_ONLY_WHERE_DONE = True
 
 
 @struct.dataclass
@@ -199,7 +207,8 @@ def step_env(key: Array, state: EnvState, action: Array, params: EnvParams):
     done = terminated | truncated
     stepped = EnvState(plant=plant, plant_params=state.plant_params, t=t, gains=gains)
     terminal_obs = observe(stepped, params, eq)
-    obs, new_state = auto_reset(done, k_reset, stepped, terminal_obs, params, eq)
+    reset_fn = auto_reset if RESET_ONLY_WHERE_DONE else _select_reset
+    obs, new_state = reset_fn(done, k_reset, stepped, terminal_obs, params, eq)
     info = {"terminal_obs": terminal_obs, "truncated": truncated, "terminated": terminated, "gains": gains,
             "terminal_rho": plant.rho}
     return obs, new_state, r, done, info
@@ -235,11 +244,12 @@ def auto_reset(done: Array, key: Array, state: EnvState, obs: Array, params: Env
                eq: tuple[Array, Array]) -> tuple[Array, EnvState]:
     """``step_env``'s automatic reset: (obs, state) with a fresh episode (drawn from ``key``) where ``done``.
 
-    The same values as a select of a fresh episode everywhere (``_select_reset``), but the episode is
-    only built when some environment of the batch finished: under ``vmap`` (any nesting, e.g. seeds x
-    environments) the environments of all batch levels are flattened into one batch and a ``lax.cond`` on
-    any-done skips the reset at the steps where none finished (most steps: episodes last ``horizon``).
-    With batched ``params`` (a ``vmap`` over scenarios) it falls back to the select."""
+    The same values, to float rounding (an ulp in the fresh observation), as a select of a fresh episode
+    everywhere (``_select_reset``), but the episode is only built when some environment of the batch
+    finished: under ``vmap`` (any nesting, e.g. seeds x environments) the environments of all batch levels
+    are flattened into one batch and a ``lax.cond`` on any-done skips the reset at the steps where none
+    finished (most steps: episodes last ``horizon``). With batched ``params`` (a ``vmap`` over scenarios)
+    it falls back to the select."""
     stripped, data = _split_buffer(state)
     p_leaves, p_def = jax.tree.flatten(params)
     # Python numbers stay Python numbers (static, part of the cache key): the reset's arithmetic on them

@@ -13,7 +13,8 @@ Two tables:
    + the checks (``sim.plant.closed_loop_step``: physicality, reward, CFL, freeze); the full public call.
 
 And the PPO environment's steps per second (``learn.env.step_env`` under ``vmap`` in a ``scan``,
-random actions) at ``--env-batches``.
+random actions) at ``--env-batches``: with the reset only where an episode ended and with main's select of a
+fresh episode everywhere (``learn.env.RESET_ONLY_WHERE_DONE``), interleaved in the same process.
 
 Each figure is the best of ``--repeats`` timed calls after one compiling call. One XLA device (the
 ratios compare like with like: numpy is single-threaded); ``--devices N`` splits the host.
@@ -190,7 +191,9 @@ def breakdown(p: TrafficParams, label: str) -> list[dict]:
 
 
 # ----------------------------------------------------------------------------- PPO environment
-def env_rate(batch: int) -> float:
+def env_rates(batch: int) -> dict:
+    """Env steps/s of ``step_env`` with the reset only where done and (if this checkout has the switch,
+    ``learn.env.RESET_ONLY_WHERE_DONE``) with the select of a fresh episode everywhere, timed interleaved."""
     from jaxtraffic.learn import env as learn_env
 
     ep = learn_env.make_env_params()
@@ -198,17 +201,33 @@ def env_rate(batch: int) -> float:
     _, state = jax.vmap(learn_env.reset_env, (0, None))(keys, ep)
     actions = jax.random.normal(jax.random.PRNGKey(2), (ARGS.env_steps, batch, 3))
 
-    @jax.jit
     def run(state, actions):
         def body(c, xs):
             st, k = c
             k, sub = jax.random.split(k)
             obs, st, r, done, _ = jax.vmap(learn_env.step_env, (0, 0, 0, None))(
                 jax.random.split(sub, batch), st, xs, ep)
-            return (st, k), r.sum()
+            return (st, k), r.sum() + obs.sum()  # (the observation is used, as in training)
         return jax.lax.scan(body, (state, jax.random.PRNGKey(3)), actions)
 
-    return batch * ARGS.env_steps / best_of(run, state, actions)
+    modes = {"default": None}
+    if hasattr(learn_env, "RESET_ONLY_WHERE_DONE"):
+        modes = {"reset where done": True, "select everywhere": False}
+    compiled = {}
+    for name, flag in modes.items():
+        if flag is not None:
+            learn_env.RESET_ONLY_WHERE_DONE = flag
+        # a new function object per mode: jit caches traces by function, and the switch is read at trace time
+        compiled[name] = jax.jit(lambda s, a: run(s, a)).lower(state, actions).compile()
+    if len(modes) > 1:
+        learn_env.RESET_ONLY_WHERE_DONE = True
+    times = {name: [] for name in modes}
+    for _ in range(ARGS.repeats):
+        for name, fn in compiled.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn(state, actions))
+            times[name].append(time.perf_counter() - t0)
+    return {name: batch * ARGS.env_steps / min(t) for name, t in times.items()}
 
 
 def main() -> None:
@@ -222,7 +241,7 @@ def main() -> None:
         out["breakdown"] = breakdown(paper(D), "paper")
         if ARGS.reference:
             out["breakdown"] += breakdown(reference(D), "reference")
-    out["env_steps_per_s"] = {b: env_rate(int(b)) for b in filter(None, ARGS.env_batches.split(","))}
+    out["env_steps_per_s"] = {b: env_rates(int(b)) for b in filter(None, ARGS.env_batches.split(","))}
     out["info"]["loadavg_end"] = os.getloadavg()
     if ARGS.json:
         print(json.dumps(out, indent=1))
@@ -240,8 +259,9 @@ def main() -> None:
         print("\n| plant | batch | " + " | ".join(keys) + " |\n|---|---:|" + "---:|" * len(keys))
         for r in out["breakdown"]:
             print(f"| {r['plant']} | {r['batch']} | " + " | ".join(f"{r[k]:.2f}" for k in keys) + " |")
-    for b, rate in out["env_steps_per_s"].items():
-        print(f"PPO environment, {b} envs: {rate:.3g} env steps/s")
+    for b, rates in out["env_steps_per_s"].items():
+        print(f"PPO environment, {b} envs: " + ", ".join(f"{k} {v:.3g}" for k, v in rates.items()) + " env steps/s"
+              + (f" (x{rates['reset where done'] / rates['select everywhere']:.2f})" if len(rates) > 1 else ""))
 
 
 if __name__ == "__main__":

@@ -19,7 +19,8 @@ controller's target and the environment's ``gains`` (the applied, filtered gains
 * Episodes last ``horizon`` steps and end by *truncation* (``info["truncated"]``: bootstrap the
   value of ``info["terminal_obs"]``). A plant that leaves the physical region *terminates* with
   reward ``-diverge_penalty``. ``step_env`` resets finished environments itself, reusing the delay
-  buffer's storage (``initial_state(..., sent=...)`` and ``select_state``: O(n), not O(capacity n)).
+  buffer's storage (``initial_state(..., sent=...)`` and ``select_state``: O(n), not O(capacity n)), and
+  only at the steps where an episode of the batch ended (``auto_reset``, ``RESET_ONLY_WHERE_DONE``).
 * Domain randomisation, drawn at each reset: initial amplitude (veh/m), integer wavenumber and
   phase of the cosine perturbation; plant delay (a multiple of dt) and plant alpha (uniform
   ranges); per-step alpha noise (``traffic.alpha_noise``). Metrics stay relative to the nominal
@@ -28,11 +29,14 @@ controller's target and the environment's ``gains`` (the applied, filtered gains
 
 from __future__ import annotations
 
+import functools
+
 import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+from jax.custom_batching import custom_vmap
 
 from jaxtraffic.control import gain_policy as gp
 from jaxtraffic.control.gain_law import FILTER_SIGMA, sigma_nodes
@@ -44,6 +48,13 @@ from jaxtraffic.sim.metrics import node_weight
 from jaxtraffic.sim.plant import PlantState, closed_loop_step, initial_state, plant_alpha, select_state
 
 Array = jax.Array
+
+# step_env's automatic reset: True builds a fresh episode only at the steps where some environment of the batch
+# finished (``auto_reset``, 1.7-2x the environment's steps/s); False builds one for every environment at every
+# step and selects it where done (``_select_reset``, the earlier way). The two agree to float rounding: the fresh
+# observation can differ by an ulp (XLA compiles it in another context), so a trained policy is not bit-identical
+# across the switch (BENCHMARKS.md, "One memory pass per step").
+RESET_ONLY_WHERE_DONE = True
 
 
 @struct.dataclass
@@ -196,18 +207,132 @@ def step_env(key: Array, state: EnvState, action: Array, params: EnvParams):
     done = terminated | truncated
     stepped = EnvState(plant=plant, plant_params=state.plant_params, t=t, gains=gains)
     terminal_obs = observe(stepped, params, eq)
-    fresh = _new_episode(k_reset, params, eq[0], sent=plant.sent)
-    obs = jnp.where(done, observe(fresh, params, eq), terminal_obs)
+    reset_fn = auto_reset if RESET_ONLY_WHERE_DONE else _select_reset
+    obs, new_state = reset_fn(done, k_reset, stepped, terminal_obs, params, eq)
+    info = {"terminal_obs": terminal_obs, "truncated": truncated, "terminated": terminated, "gains": gains,
+            "terminal_rho": plant.rho}
+    return obs, new_state, r, done, info
+
+
+def _select_reset(done: Array, key: Array, state: EnvState, obs: Array, params: EnvParams,
+                  eq: tuple[Array, Array]) -> tuple[Array, EnvState]:
+    """(obs, state) of one environment, replaced by a fresh episode drawn from ``key`` where ``done``
+    (a select: the fresh episode is built either way; its plant reuses the delay buffer's storage)."""
+    fresh = _new_episode(key, params, eq[0], sent=state.plant.sent)
+    obs = jnp.where(done, observe(fresh, params, eq), obs)
 
     def pick(a, b):
         return jax.tree.map(lambda x, y: jnp.where(done, x, y), a, b)
 
-    new_state = EnvState(plant=select_state(done, fresh.plant, plant),
-                         plant_params=pick(fresh.plant_params, stepped.plant_params),
-                         t=pick(fresh.t, t), gains=pick(fresh.gains, gains))
-    info = {"terminal_obs": terminal_obs, "truncated": truncated, "terminated": terminated, "gains": gains,
-            "terminal_rho": plant.rho}
-    return obs, new_state, r, done, info
+    return obs, EnvState(plant=select_state(done, fresh.plant, state.plant),
+                         plant_params=pick(fresh.plant_params, state.plant_params),
+                         t=pick(fresh.t, state.t), gains=pick(fresh.gains, state.gains))
+
+
+def _split_buffer(state: EnvState):
+    """(state without the delay buffer's storage, the storage): a reset never touches the storage
+    (``initial_state(..., sent=...)``), so it stays out of the branches of ``auto_reset``."""
+    sent = state.plant.sent
+    return state.replace(plant=state.plant.replace(sent=sent.replace(data=None))), sent.data
+
+
+def _with_buffer(state: EnvState, data: Array) -> EnvState:
+    return state.replace(plant=state.plant.replace(sent=state.plant.sent.replace(data=data)))
+
+
+def auto_reset(done: Array, key: Array, state: EnvState, obs: Array, params: EnvParams,
+               eq: tuple[Array, Array]) -> tuple[Array, EnvState]:
+    """``step_env``'s automatic reset: (obs, state) with a fresh episode (drawn from ``key``) where ``done``.
+
+    The same values, to float rounding (an ulp in the fresh observation), as a select of a fresh episode
+    everywhere (``_select_reset``), but the episode is only built when some environment of the batch
+    finished: under ``vmap`` (any nesting, e.g. seeds x environments) the environments of all batch levels
+    are flattened into one batch and a ``lax.cond`` on any-done skips the reset at the steps where none
+    finished (most steps: episodes last ``horizon``). With batched ``params`` (a ``vmap`` over scenarios)
+    it falls back to the select."""
+    stripped, data = _split_buffer(state)
+    p_leaves, p_def = jax.tree.flatten(params)
+    # Python numbers stay Python numbers (static, part of the cache key): the reset's arithmetic on them
+    # (e.g. delay_min / dt in double precision) must stay what it is in a plain call
+    static = tuple((i, x) for i, x in enumerate(p_leaves) if isinstance(x, (int, float, bool)))
+    p_def = (p_def, static)
+    p_leaves = tuple(x for x in p_leaves if not isinstance(x, (int, float, bool)))
+    s_leaves, s_def = jax.tree.flatten(stripped)  # (custom_vmap unflattens its flags into the argument trees:
+    # only plain containers may appear there, not dataclasses that check their fields, like TrafficParams)
+    obs, new = _resetters(p_def, s_def)(done, key, tuple(s_leaves), obs, p_leaves, eq)
+    return obs, _with_buffer(jax.tree.unflatten(s_def, new), data)
+
+
+def _params_of(p_def, p_leaves) -> EnvParams:
+    """``EnvParams`` from ``auto_reset``'s (treedef, static numbers) and its array leaves."""
+    treedef, static = p_def
+    leaves, arrays, fixed = [], iter(p_leaves), dict(static)
+    for i in range(treedef.num_leaves):
+        leaves.append(fixed[i] if i in fixed else next(arrays))
+    return jax.tree.unflatten(treedef, leaves)
+
+
+def _flat_select(p_def, s_def):
+    """``_select_reset`` on flattened state and parameter leaves (returns (obs, state leaves))."""
+    def sel(done, key, s_leaves, obs, p_leaves, eq):
+        obs, new = _select_reset(done, key, jax.tree.unflatten(s_def, s_leaves), obs, _params_of(p_def, p_leaves), eq)
+        return obs, tuple(jax.tree.leaves(new))
+    return sel
+
+
+def _cond_reset(done, key, s_leaves, obs, p_leaves, eq, p_def, s_def, batched: bool):
+    sel = _flat_select(p_def, s_def)
+    fn = jax.vmap(sel, (0, 0, 0, 0, None, None)) if batched else sel
+    return jax.lax.cond(jnp.any(done), lambda: fn(done, key, s_leaves, obs, p_leaves, eq),
+                        lambda: (obs, tuple(s_leaves)))
+
+
+def _broadcast(tree, batched, size: int):
+    return jax.tree.map(lambda x, b: x if b else jnp.broadcast_to(x, (size,) + jnp.shape(x)), tree, batched)
+
+
+def _all_batched(out):
+    return out, jax.tree.map(lambda _: True, out)
+
+
+def _any_batched(tree) -> bool:
+    return any(jax.tree.leaves(tree))
+
+
+@functools.cache
+def _resetters(p_def, s_def):
+    """The per-environment and the batched reset for the parameter tree ``p_def`` (custom_vmap rules)."""
+
+    @custom_vmap
+    def many(done, key, state, obs, p_leaves, eq):  # leading axis: the environments
+        return _cond_reset(done, key, state, obs, p_leaves, eq, p_def, s_def, batched=True)
+
+    @many.def_vmap
+    def many_rule(size, in_batched, done, key, state, obs, p_leaves, eq):
+        if _any_batched(in_batched[4:]):  # batched parameters: per environment, a select
+            axes = tuple(jax.tree.map(lambda b: 0 if b else None, x) for x in in_batched[4:])
+            sel = jax.vmap(jax.vmap(_flat_select(p_def, s_def), (0, 0, 0, 0, None, None)), (0, 0, 0, 0) + axes)
+            args = _broadcast((done, key, state, obs), tuple(in_batched[:4]), size)
+            return _all_batched(sel(*args, p_leaves, eq))
+        args = _broadcast((done, key, state, obs), tuple(in_batched[:4]), size)
+        flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), args)  # (size, B, ...) -> (size B, ...)
+        out = many(*flat, p_leaves, eq)
+        return _all_batched(jax.tree.map(lambda x: x.reshape((size, -1) + x.shape[1:]), out))
+
+    @custom_vmap
+    def one(done, key, state, obs, p_leaves, eq):
+        return _cond_reset(done, key, state, obs, p_leaves, eq, p_def, s_def, batched=False)
+
+    @one.def_vmap
+    def one_rule(size, in_batched, done, key, state, obs, p_leaves, eq):
+        args = _broadcast((done, key, state, obs), tuple(in_batched[:4]), size)
+        if _any_batched(in_batched[4:]):
+            axes = tuple(jax.tree.map(lambda b: 0 if b else None, x) for x in in_batched[4:])
+            sel = jax.vmap(_flat_select(p_def, s_def), (0, 0, 0, 0) + axes)
+            return _all_batched(sel(*args, p_leaves, eq))
+        return _all_batched(many(*args, p_leaves, eq))
+
+    return one
 
 
 reset = reset_env

@@ -1,0 +1,90 @@
+"""The environment's automatic reset only where an episode ended (issue 39): ``learn.env.auto_reset``
+gives what a select of a fresh episode everywhere gives, unbatched, under ``vmap`` and nested ``vmap``
+(seeds x environments), and with batched parameters (its fallback)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxtraffic.learn import env as E
+from jaxtraffic.model.params import TrafficParams, equilibrium
+
+EP = E.make_env_params(TrafficParams(n_points=21, delay=0.5, max_delay_steps=20), filter_sigma=0.0, horizon=5,
+                       amp_min=0.005, amp_max=0.02, delay_min=0.2, delay_max=0.5, alpha_min=0.1, alpha_max=0.3)
+EQ = equilibrium(EP.traffic)
+B = 4
+
+
+def _stepped_batch(seed: int = 0):
+    """A batch of B environments a few steps into their episodes, their observations and keys."""
+    keys = jax.random.split(jax.random.PRNGKey(seed), B)
+    _, state = jax.vmap(E.reset_env, (0, None))(keys, EP)
+    for i in range(3):
+        _, state, _, _, _ = jax.vmap(E.step_env, (0, 0, 0, None))(
+            jax.random.split(jax.random.PRNGKey(10 + i), B), state, jnp.full((B, 3), 0.3), EP)
+    obs = jax.vmap(E.observe, (0, None))(state, EP)
+    return state, obs, jax.random.split(jax.random.PRNGKey(seed + 100), B)
+
+
+def _assert_close(a, b):
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+        x, y = np.asarray(x), np.asarray(y)
+        if x.dtype.kind == "f":
+            np.testing.assert_allclose(x, y, rtol=2e-6, atol=1e-7)
+        else:
+            np.testing.assert_array_equal(x, y)
+
+
+def _select(done, keys, state, obs):
+    return jax.vmap(E._select_reset, (0, 0, 0, 0, None, None))(done, keys, state, obs, EP, EQ)
+
+
+@pytest.mark.parametrize("done", [(False, False, False, False), (True, False, True, False), (True,) * 4])
+def test_auto_reset_under_vmap_is_the_select(done):
+    state, obs, keys = _stepped_batch()
+    done = jnp.asarray(done)
+    got = jax.jit(jax.vmap(E.auto_reset, (0, 0, 0, 0, None, None)))(done, keys, state, obs, EP, EQ)
+    _assert_close(got, _select(done, keys, state, obs))
+    # environments that did not finish are untouched, bit for bit (buffer storage included)
+    keep = ~np.asarray(done)
+    for x, y in zip(jax.tree.leaves((obs, state)), jax.tree.leaves(got), strict=True):
+        np.testing.assert_array_equal(np.asarray(x)[keep], np.asarray(y)[keep])
+    # finished ones start a new episode
+    np.testing.assert_array_equal(np.asarray(got[1].t)[~keep], 0)
+
+
+def test_auto_reset_nested_vmap_and_single_environment():
+    state, obs, keys = _stepped_batch()
+    done = jnp.asarray([False, True, False, True])
+    expect = _select(done, keys, state, obs)
+    seeds = jax.tree.map(lambda x: jnp.stack([x, x]), (done, keys, state, obs))  # 2 seeds x B environments
+    nested = jax.jit(jax.vmap(jax.vmap(E.auto_reset, (0, 0, 0, 0, None, None)), (0, 0, 0, 0, None, None)))
+    got = nested(*seeds, EP, EQ)
+    _assert_close(jax.tree.map(lambda x: x[1], got), expect)
+    one = jax.tree.map(lambda x: x[1], (done, keys, state, obs))
+    single = jax.jit(E.auto_reset)(*one, EP, EQ)
+    _assert_close(single, jax.tree.map(lambda x: x[1], expect))
+
+
+def test_auto_reset_with_batched_parameters_falls_back_to_the_select():
+    state, obs, keys = _stepped_batch()
+    done = jnp.asarray([True, False, False, True])
+    eps = jax.tree.map(lambda x: jnp.stack([jnp.asarray(x)] * B), EP)
+    eps = eps.replace(amp_max=jnp.linspace(0.01, 0.03, B))
+    eqs = jax.vmap(lambda p: equilibrium(p.traffic))(eps)
+    got = jax.jit(jax.vmap(E.auto_reset))(done, keys, state, obs, eps, eqs)
+    expect = jax.vmap(E._select_reset)(done, keys, state, obs, eps, eqs)
+    _assert_close(got, expect)
+
+
+def test_step_env_resets_at_the_horizon_and_runs_on():
+    """Episodes of ``horizon`` steps end together; the step after starts new ones (t = 0) and goes on."""
+    keys = jax.random.split(jax.random.PRNGKey(3), B)
+    _, state = jax.vmap(E.reset_env, (0, None))(keys, EP)
+    step = jax.jit(jax.vmap(E.step_env, (0, 0, 0, None)))
+    for i in range(EP.horizon):
+        obs, state, r, done, info = step(jax.random.split(jax.random.PRNGKey(i), B), state, jnp.zeros((B, 3)), EP)
+    assert bool(np.all(np.asarray(done))) and bool(np.all(np.asarray(state.t) == 0))
+    assert np.all(np.isfinite(np.asarray(obs)))
+    assert not np.array_equal(np.asarray(obs), np.asarray(info["terminal_obs"]))

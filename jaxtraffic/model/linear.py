@@ -14,6 +14,8 @@ Jacobian of the nonlinear upwind step at the equilibrium, for lambda1 > 0 > lamb
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any
+
 import chex
 import jax
 import jax.numpy as jnp
@@ -32,6 +34,9 @@ class LinearModel:
     rho_bar veh/m, v_bar m/s, h_bar s, V_rho m^2/(s veh), V_h m/s^2, tau s, lam1/lam2 m/s,
     dx m, dt s.
     """
+
+    if TYPE_CHECKING:  # added by flax.struct.dataclass (dataclasses.replace), which its stub omits
+        def replace(self, **changes: Any) -> LinearModel: ...
 
     rho_bar: Array
     v_bar: Array

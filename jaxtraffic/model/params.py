@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import numbers
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
@@ -59,6 +60,9 @@ class TrafficParams:
         model: plant model, ``"arz"`` (nonlinear, the default) or ``"linear"`` (the
             linearisation of docs/model.md section 6 on the same grid, for tests and design) (static).
     """
+
+    if TYPE_CHECKING:  # added by flax.struct.dataclass (dataclasses.replace), which its stub omits
+        def replace(self, **changes: Any) -> TrafficParams: ...
 
     L: float = 1000.0
     l: float = 5.0

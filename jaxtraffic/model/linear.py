@@ -57,8 +57,8 @@ def linearize(p: TrafficParams) -> LinearModel:
     lam1, lam2 = fundamental.characteristic_speeds(rho_bar, v_bar, p.h_bar, p)
     as_arr = jnp.asarray
     return LinearModel(
-        rho_bar=rho_bar, v_bar=v_bar, h_bar=as_arr(p.h_bar), V_rho=V_rho,
-        V_h=fundamental.dV_dh(rho_bar, p.h_bar, p), tau=as_arr(fundamental.tau_mix(p)), lam1=as_arr(lam1),
+        rho_bar=rho_bar, v_bar=v_bar, h_bar=as_arr(p.h_bar), V_rho=as_arr(V_rho),
+        V_h=as_arr(fundamental.dV_dh(rho_bar, p.h_bar, p)), tau=as_arr(fundamental.tau_mix(p)), lam1=as_arr(lam1),
         lam2=as_arr(lam2), dx=as_arr(p.dx), dt=as_arr(p.dt),
     )
 

@@ -122,7 +122,7 @@ def characteristic_speeds(
     return v, v - 1.0 / (rho * h_mix(h, p, alpha))
 
 
-def in_physical_region(rho: Array, v: Array, l: Num) -> Array:
+def in_physical_region(rho: Array | np.ndarray, v: Array | np.ndarray, l: Num) -> Array | np.ndarray:
     """Elementwise: the node is finite and in the physical region 0 < rho < 1/l, 0 <= v < inf.
 
     A NaN fails every comparison, an infinite rho fails rho < 1/l. Only comparisons, so it works

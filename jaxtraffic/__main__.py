@@ -17,10 +17,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"python -m jaxtraffic: error: unknown command {argv[0]!r}", file=sys.stderr)
         return 2
     if argv[0] == "train":
-        from jaxtraffic.cli.train import main as run
+        from jaxtraffic.cli.train import main as train
+
+        train(argv[1:])
     else:
-        from jaxtraffic.cli.evaluate import main as run
-    run(argv[1:])
+        from jaxtraffic.cli.evaluate import main as evaluate
+
+        evaluate(argv[1:])
     return 0
 
 

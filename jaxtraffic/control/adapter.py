@@ -21,7 +21,7 @@ the controller, or a ratio that is not an integer, is a ``ValueError``.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
@@ -87,6 +87,9 @@ def ratios(grid: ControllerGrid, plant: TrafficParams) -> tuple[int, int]:
 class AdaptedState:
     """The adapted controller's state: the inner controller's, the field it sent last on its own
     nodes (s), its buffer of sent fields, the field the plant receives (s) and the plant step count."""
+
+    if TYPE_CHECKING:  # added by flax.struct.dataclass (dataclasses.replace), which its stub omits
+        def replace(self, **changes: Any) -> AdaptedState: ...
 
     inner: Any
     h_ctrl: Array

@@ -16,7 +16,7 @@ controllers. The closed loop (``sim.plant.closed_loop_step``) saturates every re
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import chex
 import jax
@@ -48,6 +48,9 @@ class Controller:
     act_fn(settings, cstate, obs, nominal, key) -> (h, cstate)
     init_fn(settings, obs, nominal) -> cstate
     """
+
+    if TYPE_CHECKING:  # added by flax.struct.dataclass (dataclasses.replace), which its stub omits
+        def replace(self, **changes: Any) -> Controller: ...
 
     settings: Any
     act_fn: Callable = struct.field(pytree_node=False)

@@ -30,7 +30,7 @@ equilibrium, ``gain_policy.equilibrium_gains``).
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, cast
 
 import jax
 import jax.numpy as jnp
@@ -189,14 +189,14 @@ def certify(gains: Array, p: TrafficParams, delay: float, sigma: float = 0.0, sy
             dx: float | None = None) -> Certificate:
     """``Certificate`` of the three-gain law (``growth_rates``) on the wavenumbers of ``wavenumbers(p.L)``
     (with ``symbol="upwind"``: those the grid resolves, wavelengths >= 2 dx)."""
-    gains = np.asarray(jax.device_get(gains), np.float64)  # on the host: a pure_callback runs on one device
+    gains_np = np.asarray(jax.device_get(gains), np.float64)  # on the host: a pure_callback runs on one device
     k = wavenumbers(float(p.L))
     if symbol == "upwind":
         k = k[k * float(p.dx if dx is None else dx) < np.pi]
-    g_dev = jnp.asarray(gains, jnp.result_type(float))
+    g_dev = jnp.asarray(gains_np, jnp.result_type(float))
     s = np.asarray(growth_rates(g_dev, p, delay, jnp.asarray(k), sigma, symbol, dx), np.float64)
     i = int(np.argmax(s))
-    g = tuple(float(x) for x in np.asarray(gains))
+    g = cast(tuple[float, float, float], tuple(float(x) for x in np.asarray(gains_np)))  # (the three gains)
     return Certificate(max_growth=float(s[i]), worst_wavelength=float(2 * np.pi / k[i]),
                        stable=bool(s[i] <= GROWTH_TOL), gains=g, delay=float(delay), alpha=float(p.alpha),
                        sigma=float(sigma), symbol=symbol)
@@ -219,8 +219,8 @@ def certify_controller(controller: Any, nominal: TrafficParams, delay: float, si
 def stable_region(p: TrafficParams, delay: float, eta1: float, eta2: np.ndarray, eta3: np.ndarray,
                   sigma: float = 0.0, symbol: str = "pde", k: np.ndarray | None = None) -> np.ndarray:
     """max_k sigma(k) (1/s) on the grid ``eta2`` x ``eta3`` at fixed ``eta1``, shape (len(eta2), len(eta3))."""
-    k = jnp.asarray(wavenumbers(float(p.L), n=96) if k is None else k)
+    k_dev = jnp.asarray(wavenumbers(float(p.L), n=96) if k is None else k)
     e2, e3 = np.meshgrid(np.asarray(eta2, float), np.asarray(eta3, float), indexing="ij")
     g = jnp.asarray(np.stack([np.full(e2.size, eta1), e2.ravel(), e3.ravel()], axis=1))
-    fn = jax.jit(jax.vmap(lambda gg: jnp.max(growth_rates(gg, p, delay, k, sigma, symbol))))
+    fn = jax.jit(jax.vmap(lambda gg: jnp.max(growth_rates(gg, p, delay, k_dev, sigma, symbol))))
     return np.asarray(jax.lax.map(fn, g.reshape(len(eta2), len(eta3), 3)))

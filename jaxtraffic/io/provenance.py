@@ -65,7 +65,7 @@ def _cpu_model() -> str:
 def provenance() -> dict[str, Any]:
     """Code version, package versions, Python, machine (CPU model, cores, JAX backend and devices), the
     persistent compilation cache directory in use (None: none; ``jaxtraffic.platform.compile_cache``), time."""
-    versions = {}
+    versions: dict[str, str | None] = {}
     for name in PACKAGES:
         try:
             versions[name] = importlib.metadata.version(name)
@@ -77,7 +77,7 @@ def provenance() -> dict[str, Any]:
         **code_version(), "versions": versions, "python": platform.python_version(),
         "machine": {"cpu": _cpu_model(), "cores": os.cpu_count(), "platform": platform.platform(),
                     "backend": jax.default_backend(), "devices": [str(d) for d in jax.devices()]},
-        "compilation_cache": jax.config.jax_compilation_cache_dir,
+        "compilation_cache": jax.config.jax_compilation_cache_dir,  # type: ignore[attr-defined]  # (flags: no stub)
         "utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
     }
 

@@ -26,7 +26,8 @@ Array = jax.Array
 class Inlet(Protocol):
     """What ``model.solver.rhs`` and ``solver_step`` ask of an inlet condition (see ``InflowDensity``)."""
 
-    name: str
+    @property
+    def name(self) -> str: ...  # read-only: the frozen dataclasses' field conforms
 
     def mass_flux(self, q: Array) -> Array: ...
 
@@ -38,7 +39,8 @@ class Inlet(Protocol):
 class Outlet(Protocol):
     """What ``model.solver.rhs`` asks of an outlet condition (see ``SpeedODE``)."""
 
-    name: str
+    @property
+    def name(self) -> str: ...  # read-only: the frozen dataclasses' field conforms
 
     def mass_flux(self, q: Array) -> Array: ...
 

@@ -10,6 +10,8 @@ the nominal time gap. ``restart`` empties the history in O(n_points) without tou
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any
+
 import chex
 import jax
 import jax.numpy as jnp
@@ -21,6 +23,9 @@ class DelayBuffer:
     """Sent time gaps, s: ``data`` has shape (max_delay_steps + 1, n_points); ``head`` indexes
     the newest entry; ``valid`` counts the entries pushed since the (re)start (saturating at
     the size); ``fill`` (shape (n_points,)) is read for anything older."""
+
+    if TYPE_CHECKING:  # added by flax.struct.dataclass (dataclasses.replace), which its stub omits
+        def replace(self, **changes: Any) -> DelayBuffer: ...
 
     data: jax.Array
     head: jax.Array

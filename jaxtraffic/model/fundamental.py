@@ -9,8 +9,11 @@ from __future__ import annotations
 from typing import Protocol
 
 import jax.numpy as jnp
+import numpy as np
 
 Array = jnp.ndarray
+# a value these functions take and return: an array (JAX or numpy) or, where every input is one, a Python float
+Num = Array | np.ndarray | float
 
 
 class MixtureConstants(Protocol):
@@ -21,28 +24,34 @@ class MixtureConstants(Protocol):
     h_m (manual time gap, s), l (effective vehicle length, m). Scalars or arrays that broadcast.
     """
 
-    alpha: Array | float
-    tau_acc: Array | float
-    tau_m: Array | float
-    h_m: Array | float
-    l: Array | float
+    # read-only properties: a class whose fields are floats (or arrays) alone conforms too
+    @property
+    def alpha(self) -> Num: ...
+    @property
+    def tau_acc(self) -> Num: ...
+    @property
+    def tau_m(self) -> Num: ...
+    @property
+    def h_m(self) -> Num: ...
+    @property
+    def l(self) -> Num: ...  # noqa: E743 (the vehicle length's name in the paper and TrafficParams)
 
 
-def tau_mix(p: MixtureConstants, alpha: Array | float | None = None) -> Array:
+def tau_mix(p: MixtureConstants, alpha: Num | None = None) -> Num:
     """Mixed relaxation time tau_mix = 1 / (alpha/tau_acc + (1-alpha)/tau_m), in s."""
     a = p.alpha if alpha is None else alpha
     return 1.0 / (a / p.tau_acc + (1.0 - a) / p.tau_m)
 
 
-def mix_coefficients(p: MixtureConstants, alpha: Array | float | None = None) -> tuple[Array, Array]:
+def mix_coefficients(p: MixtureConstants, alpha: Num | None = None) -> tuple[Num, Num]:
     """Coefficients (c, b) of h_mix(h) = c h / (alpha + b h): c = alpha + (1 - alpha) tau_acc/tau_m
     (dimensionless), b = (1 - alpha) tau_acc / (tau_m h_m) (1/s). h_mix saturates at c / b (s)."""
     a = p.alpha if alpha is None else alpha
     return mix_coefficients_of(a, p.tau_acc, p.tau_m, p.h_m)
 
 
-def mix_coefficients_of(alpha: Array | float, tau_acc: Array | float, tau_m: Array | float,
-                        h_m: Array | float) -> tuple[Array, Array]:
+def mix_coefficients_of(alpha: Num, tau_acc: Num, tau_m: Num,
+                        h_m: Num) -> tuple[Num, Num]:
     """``mix_coefficients`` from the constants themselves (numpy or JAX arrays, or floats, broadcast).
 
     Args:
@@ -56,14 +65,14 @@ def mix_coefficients_of(alpha: Array | float, tau_acc: Array | float, tau_m: Arr
     return c, b
 
 
-def h_mix(h: Array, p: MixtureConstants, alpha: Array | float | None = None) -> Array:
+def h_mix(h: Num, p: MixtureConstants, alpha: Num | None = None) -> Num:
     """Mixed time gap h_mix(h) = c h / (alpha + b h) in s, for an ACC time gap ``h`` in s."""
     a = p.alpha if alpha is None else alpha
     return h_mix_of(h, a, p.tau_acc, p.tau_m, p.h_m)
 
 
-def h_mix_of(h: Array, alpha: Array | float, tau_acc: Array | float, tau_m: Array | float,
-             h_m: Array | float) -> Array:
+def h_mix_of(h: Num, alpha: Num, tau_acc: Num, tau_m: Num,
+             h_m: Num) -> Num:
     """``h_mix`` from the constants themselves (numpy or JAX arrays, or floats, broadcast).
 
     Args:
@@ -76,44 +85,44 @@ def h_mix_of(h: Array, alpha: Array | float, tau_acc: Array | float, tau_m: Arra
     return c * h / (alpha + b * h)
 
 
-def h_mix_prime(h: Array, p: MixtureConstants, alpha: Array | float | None = None) -> Array:
+def h_mix_prime(h: Num, p: MixtureConstants, alpha: Num | None = None) -> Num:
     """Derivative dh_mix/dh = c alpha / (alpha + b h)^2 (dimensionless)."""
     a = p.alpha if alpha is None else alpha
     c, b = mix_coefficients(p, a)
     return c * a / (a + b * h) ** 2
 
 
-def h_mix_inv(hm: Array, p: MixtureConstants, alpha: Array | float | None = None) -> Array:
+def h_mix_inv(hm: Num, p: MixtureConstants, alpha: Num | None = None) -> Num:
     """Inverse of ``h_mix``: the ACC time gap (s) giving mixed gap ``hm`` (s); needs hm < c/b."""
     a = p.alpha if alpha is None else alpha
     c, b = mix_coefficients(p, a)
     return a * hm / (c - b * hm)
 
 
-def V(rho: Array, h: Array, p: MixtureConstants, alpha: Array | float | None = None) -> Array:
+def V(rho: Num, h: Num, p: MixtureConstants, alpha: Num | None = None) -> Num:
     """Equilibrium speed V(rho, h) = (1/rho - l) / h_mix(h), in m/s."""
     return (1.0 / rho - p.l) / h_mix(h, p, alpha)
 
 
-def dV_drho(rho: Array, h: Array, p: MixtureConstants, alpha: Array | float | None = None) -> Array:
+def dV_drho(rho: Num, h: Num, p: MixtureConstants, alpha: Num | None = None) -> Num:
     """dV/drho = -1 / (rho^2 h_mix(h)), in m^2/(s veh)."""
     return -1.0 / (rho**2 * h_mix(h, p, alpha))
 
 
-def dV_dh(rho: Array, h: Array, p: MixtureConstants, alpha: Array | float | None = None) -> Array:
+def dV_dh(rho: Num, h: Num, p: MixtureConstants, alpha: Num | None = None) -> Num:
     """dV/dh = -(1/rho - l) h_mix'(h) / h_mix(h)^2, in m/s^2."""
     hm = h_mix(h, p, alpha)
     return -(1.0 / rho - p.l) * h_mix_prime(h, p, alpha) / hm**2
 
 
 def characteristic_speeds(
-    rho: Array, v: Array, h: Array, p: MixtureConstants, alpha: Array | float | None = None
-) -> tuple[Array, Array]:
+    rho: Num, v: Num, h: Num, p: MixtureConstants, alpha: Num | None = None
+) -> tuple[Num, Num]:
     """Characteristic speeds (lambda1, lambda2) = (v, v - 1/(rho h_mix)), in m/s."""
     return v, v - 1.0 / (rho * h_mix(h, p, alpha))
 
 
-def in_physical_region(rho: Array, v: Array, l: Array | float) -> Array:
+def in_physical_region(rho: Array | np.ndarray, v: Array | np.ndarray, l: Num) -> Array | np.ndarray:
     """Elementwise: the node is finite and in the physical region 0 < rho < 1/l, 0 <= v < inf.
 
     A NaN fails every comparison, an infinite rho fails rho < 1/l. Only comparisons, so it works

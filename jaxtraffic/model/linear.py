@@ -14,6 +14,8 @@ Jacobian of the nonlinear upwind step at the equilibrium, for lambda1 > 0 > lamb
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any
+
 import chex
 import jax
 import jax.numpy as jnp
@@ -32,6 +34,9 @@ class LinearModel:
     rho_bar veh/m, v_bar m/s, h_bar s, V_rho m^2/(s veh), V_h m/s^2, tau s, lam1/lam2 m/s,
     dx m, dt s.
     """
+
+    if TYPE_CHECKING:  # added by flax.struct.dataclass (dataclasses.replace), which its stub omits
+        def replace(self, **changes: Any) -> LinearModel: ...
 
     rho_bar: Array
     v_bar: Array
@@ -52,8 +57,8 @@ def linearize(p: TrafficParams) -> LinearModel:
     lam1, lam2 = fundamental.characteristic_speeds(rho_bar, v_bar, p.h_bar, p)
     as_arr = jnp.asarray
     return LinearModel(
-        rho_bar=rho_bar, v_bar=v_bar, h_bar=as_arr(p.h_bar), V_rho=V_rho,
-        V_h=fundamental.dV_dh(rho_bar, p.h_bar, p), tau=as_arr(fundamental.tau_mix(p)), lam1=as_arr(lam1),
+        rho_bar=rho_bar, v_bar=v_bar, h_bar=as_arr(p.h_bar), V_rho=as_arr(V_rho),
+        V_h=as_arr(fundamental.dV_dh(rho_bar, p.h_bar, p)), tau=as_arr(fundamental.tau_mix(p)), lam1=as_arr(lam1),
         lam2=as_arr(lam2), dx=as_arr(p.dx), dt=as_arr(p.dt),
     )
 

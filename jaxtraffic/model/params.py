@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import numbers
+from typing import TYPE_CHECKING, Any, TypeGuard, cast
 
 import jax
 import jax.numpy as jnp
@@ -60,6 +61,9 @@ class TrafficParams:
             linearisation of docs/model.md section 6 on the same grid, for tests and design) (static).
     """
 
+    if TYPE_CHECKING:  # added by flax.struct.dataclass (dataclasses.replace), which its stub omits
+        def replace(self, **changes: Any) -> TrafficParams: ...
+
     L: float = 1000.0
     l: float = 5.0
     q_in: float = 1.0 / 3.0
@@ -87,7 +91,7 @@ class TrafficParams:
         check_params(self)
 
     @classmethod
-    def reference(cls, **changes: object) -> TrafficParams:
+    def reference(cls, **changes: Any) -> TrafficParams:
         """The reference plant: the paper's road on the discretisation at which the closed-loop results no
         longer depend on the grid (docs/model.md section 15): MUSCL, 801 points (dx = 1.25 m), dt = 0.1 s
         in 2 solver steps. ``changes``: other fields (delay, alpha, ...)."""
@@ -152,8 +156,9 @@ def check_params(p: TrafficParams, cfl_max: float = 1.0) -> None:
         value = getattr(p, name)
         if isinstance(value, (str, bytes)):
             raise ValueError(f"{name} must be a number, got {value!r}")
-    vals = {k: concrete(getattr(p, k), jax_arrays=False) for k in FLOAT_FIELDS}
-    if any(v is None for v in vals.values()):
+    found = {k: concrete(getattr(p, k), jax_arrays=False) for k in FLOAT_FIELDS}
+    vals = {k: v for k, v in found.items() if v is not None}
+    if len(vals) < len(found):
         return  # traced or placeholder leaves: nothing concrete to check
     for name, v in vals.items():
         if not np.all(np.isfinite(v)):
@@ -215,7 +220,7 @@ def check_nominal(plant: TrafficParams, nominal: TrafficParams | None) -> None:
 def check_steps(n_steps: object, record_every: object = 0) -> None:
     """Raise ``ValueError`` unless ``n_steps`` is an int in [1, 2**31) and ``record_every`` an int >= 0
     dividing it (numpy integers are accepted; floats are not)."""
-    def is_int(x: object) -> bool:
+    def is_int(x: object) -> TypeGuard[numbers.Integral]:
         return isinstance(x, numbers.Integral) and not isinstance(x, (bool, np.bool_))
 
     if not is_int(n_steps) or not 1 <= n_steps < 2**31:
@@ -228,7 +233,7 @@ def check_steps(n_steps: object, record_every: object = 0) -> None:
 
 def _h_mix_np(h: np.ndarray, vals: dict[str, np.ndarray]) -> np.ndarray:
     """``fundamental.h_mix`` at time gap ``h`` (s) on a dict of float64 arrays (the fields of ``FLOAT_FIELDS``)."""
-    return fundamental.h_mix_of(h, vals["alpha"], vals["tau_acc"], vals["tau_m"], vals["h_m"])
+    return cast(np.ndarray, fundamental.h_mix_of(h, vals["alpha"], vals["tau_acc"], vals["tau_m"], vals["h_m"]))
 
 
 def _equilibrium_np(vals: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:

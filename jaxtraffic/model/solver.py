@@ -38,7 +38,7 @@ Array = jax.Array
 __all__ = ["arz_step", "is_physical", "local_cfl", "max_cfl", "minmod", "rhs", "solver_step"]
 
 
-def _speeds_and_source(rho: Array, v: Array, h: Array, alpha: Array, p: TrafficParams):
+def _speeds_and_source(rho: Array, v: Array, h: Array, alpha: Array | float, p: TrafficParams):
     """(lambda2, (V(rho, h) - v) / tau_mix) at every node, with two divisions per node.
 
     Same quantities as ``fundamental.characteristic_speeds`` / ``fundamental.V`` (equal up to

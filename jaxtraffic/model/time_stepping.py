@@ -100,6 +100,7 @@ def rk_step(tableau: ShuOsherTableau, rhs: RHS, impose: Callable[[Any], Any], u:
             acc = _add(acc, stages[k])
         acc = jax.tree.map(lambda x, d: x + dt * d, acc, du)
         stages.append(impose(_scale(w, acc)))
+    assert f_in is not None and f_out is not None  # (a tableau has at least one stage)
     if tableau.flux_weight is not None:
         f_in, f_out = tableau.flux_weight * f_in, tableau.flux_weight * f_out
     return stages[-1], (f_in, f_out)

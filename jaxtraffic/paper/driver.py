@@ -149,6 +149,7 @@ def evaluate_plant(controllers: dict[str, Controller], eval_config: EvalConfig, 
     figures: list = []
     if writer:
         log("[3/4] figures")
+        assert early is not None  # (made where this process draws)
         figures = early.join(log)  # the scenario figures, drawn while the robustness map ran
         figures += make_figures(results, robust, eval_config, out_dir, lc, log, fig7_scenario=fig7,
                                 select=lambda name: name in FIG7 + ROBUSTNESS, oracle=oracle, table=table)

@@ -92,7 +92,7 @@ def plot_reward(png_path: str | Path | None, t: np.ndarray, series: Mapping[str,
         if "D = 0" in label or "D=0" in label:
             st["ls"] = "--"
         ax.plot(t, np.maximum(m, floor), lw=max(2.8 - 0.4 * i, 1.2), label=label, **st)
-        if lo is not None:
+        if lo is not None and hi is not None:  # (both or neither)
             ax.fill_between(t, np.maximum(lo, floor), np.maximum(hi, floor), color=st.get("color"), alpha=0.2)
         if markers and label in markers and markers[label] is not None:
             td = markers[label]
@@ -187,7 +187,7 @@ def _l2_axes(axes, t, series, styles_dash: Mapping[str, str] | None = None) -> N
         for ax, y, scale in ((axes[0], r, VEH_PER_KM), (axes[1], v, 1.0)):
             m, lo, hi = _mean_band(np.asarray(y, float) * scale)
             ax.plot(t, np.maximum(m, 1e-12), lw=max(2.8 - 0.4 * i, 1.2), label=label, **st)
-            if lo is not None:
+            if lo is not None and hi is not None:  # (both or neither)
                 ax.fill_between(t, np.maximum(lo, 1e-12), np.maximum(hi, 1e-12), color=st.get("color"),
                                 alpha=0.2)
     axes[0].set_ylabel("||rho - rho_bar||_L2 (veh/km)")

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import os
 import sys
+from collections.abc import MutableMapping
 
 FLAG = "--xla_force_host_platform_device_count"
 OPT_OUT = "JAXTRAFFIC_NO_DEVICE_SPLIT"
@@ -48,7 +49,7 @@ def _backends_initialised() -> bool:
     return bool(getattr(xb, "_backends", None)) if xb is not None else False
 
 
-def split_host_devices(env: dict | None = None) -> int | None:
+def split_host_devices(env: MutableMapping[str, str] | None = None) -> int | None:
     """Add the device-count flag to ``env`` (default ``os.environ``) where allowed (see the module
     docstring); return the device count set, or None when nothing was changed. Call it before the
     first JAX computation (importing jax first is fine)."""

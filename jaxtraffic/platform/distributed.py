@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import os
+from collections.abc import Mapping
 from typing import Any
 
 import jax
@@ -52,7 +53,7 @@ def add_flags(parser: argparse.ArgumentParser) -> None:
 
 
 def settings(coordinator_address: str | None = None, num_processes: int | None = None,
-             process_id: int | None = None, env: dict | None = None) -> dict | None:
+             process_id: int | None = None, env: Mapping[str, str] | None = None) -> dict | None:
     """The arguments of ``jax.distributed.initialize`` from the given values, else ``env`` (default
     ``os.environ``); None when nothing asks for several processes. ``ValueError`` when incomplete."""
     env = os.environ if env is None else env
@@ -64,8 +65,10 @@ def settings(coordinator_address: str | None = None, num_processes: int | None =
     if missing:
         raise ValueError(f"a multi-process run needs the coordinator address, process count and id; missing: "
                          f"{', '.join(missing)}")
+    num, pid = out["num_processes"], out["process_id"]
+    assert num is not None and pid is not None  # (none missing)
     try:
-        n, i = int(out["num_processes"]), int(out["process_id"])
+        n, i = int(num), int(pid)
     except ValueError:
         raise ValueError(f"num_processes and process_id must be integers, got {out['num_processes']!r}, "
                          f"{out['process_id']!r}") from None

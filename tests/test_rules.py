@@ -1,4 +1,4 @@
-"""One name per hyperparameter, from the flag to the code, and one range per name (``learn.rules``)."""
+"""One name per hyperparameter, from the flag to the code, and one range per field (``learn.fields``)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxtraffic.learn import rules
+from jaxtraffic.learn import fields
 from jaxtraffic.learn.env import make_env_params
 from jaxtraffic.learn.gradient.config import POLICY_DEFAULTS, GradientConfig
 from jaxtraffic.learn.gradient.objective import Weights, weights_of
@@ -48,9 +48,18 @@ def test_every_flag_reaches_the_algorithm_under_its_own_name():
     assert all(getattr(w, f.name) == np.float32(getattr(cfg, f.name)) for f in dataclasses.fields(Weights))
 
 
-def test_every_rule_names_a_config_field_and_rules_imports_no_jaxtraffic():
-    assert set(rules.RULES) <= TREE_FIELDS, set(rules.RULES) - TREE_FIELDS
-    tree = ast.parse(Path(rules.__file__).read_text())
+def test_every_range_lives_in_a_field_and_fields_imports_no_jaxtraffic():
+    """The tree's fields that configure a library field carry that field's range (one home), and the helper
+    module sits below everything it serves."""
+    from jaxtraffic.learn.env import EnvParams
+    from jaxtraffic.runs.config.tree import AlgoConfig, EnvConfig
+
+    for tree_cls, lib_cls in ((AlgoConfig, PPOConfig), (EnvConfig, EnvParams), (GradConfig, GradientConfig)):
+        for f in dataclasses.fields(tree_cls):
+            lib = fields.range_of(lib_cls, f.name) if f.name in {g.name for g in dataclasses.fields(lib_cls)} else None
+            if lib is not None:
+                assert f.metadata.get("range") == lib, (tree_cls.__name__, f.name)
+    tree = ast.parse(Path(fields.__file__).read_text())
     imported = [n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)] + \
         [a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names]
     assert not [m for m in imported if m and m.split(".")[0] == "jaxtraffic"], imported
@@ -72,9 +81,13 @@ def test_every_rule_names_a_config_field_and_rules_imports_no_jaxtraffic():
     ("cem_population", 1, lambda v: GradientConfig(cem_population=v)),
 ])
 def test_one_rule_checked_by_the_tree_and_by_the_struct(name, value, struct):
-    rule = rules.RULES[name]
-    assert not rules.in_range(value, rule)
-    message = re.escape(f"{name} = {value!r} ({rules.flag(name)}): {rules.range_text(rule)}")
+    lib = {"gamma": PPOConfig, "lr_final": PPOConfig, "gain_filter": GradientConfig}.get(name, GradientConfig)
+    from jaxtraffic.learn.env import EnvParams
+
+    lib = EnvParams if name in ("wave_weight", "gain_max") else lib
+    rule = fields.range_of(lib, name)
+    assert rule is not None and not fields.in_range(value, rule)
+    message = re.escape(f"{name} = {value!r}: {fields.range_text(rule)}")
     flat = {name: (1.0, value, 3.0) if name == "gain_max" else (2.0, value) if name == "train_delays"
             else (value,) if name == "train_alphas" else value}
     with pytest.raises(ValueError, match=message):
@@ -86,5 +99,5 @@ def test_one_rule_checked_by_the_tree_and_by_the_struct(name, value, struct):
 def test_the_plants_own_grid_is_not_a_grid_of_its_own():
     """GradientConfig's controller_points 0 (the tree's None: the plant's grid) passes; 1 or 2 points do not."""
     assert GradientConfig(controller_points=0).controller_points == 0
-    with pytest.raises(ValueError, match=r"controller_points = 2 \(--controller-points\): must be >= 3"):
+    with pytest.raises(ValueError, match=r"controller_points = 2: must be >= 3"):
         GradientConfig(controller_points=2)

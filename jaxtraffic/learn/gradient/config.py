@@ -11,7 +11,7 @@ from typing import Any
 
 from jaxtraffic.control.gain_law import FILTER_SIGMA
 from jaxtraffic.control.networks import SMALL_HIDDEN
-from jaxtraffic.learn.rules import check_fields
+from jaxtraffic.learn.fields import check_fields, hyper
 
 POLICIES = ("gains", "network", "schedule")
 METHODS = ("adam", "cem")  # Adam on the gradient of the objective; the cross-entropy method on the map's counts
@@ -25,7 +25,7 @@ class GradientConfig:
     Each field has the name of the config tree's field and flag it comes from (``learn.config.GradConfig``:
     ``grad_lr`` is ``--grad-lr``; ``gain_filter``, ``filter_sigma`` and ``controller_points`` come from the
     environment's section, ``hidden`` from ``--network``; ``max_grad_norm`` has no flag here) and is checked
-    against that name's range in ``learn.rules.RULES``.
+    against the range in its metadata (``learn.fields.hyper``).
 
     The training scenarios are the Cartesian product of ``train_delays`` (s, multiples of dt) x
     ``train_alphas`` x ``train_amplitudes`` (veh/m) x ``train_wavenumbers`` x ``train_phases`` (rad) of the
@@ -33,33 +33,33 @@ class GradientConfig:
     """
 
     policy: str = "gains"
-    train_delays: tuple[float, ...] = (3.0, 4.0, 5.0)
-    train_alphas: tuple[float, ...] = (0.15,)
+    train_delays: tuple[float, ...] = hyper((3.0, 4.0, 5.0), lo=0.0)  # s, multiples of dt
+    train_alphas: tuple[float, ...] = hyper((0.15,), lo=0.0, lo_open=True, hi=1.0)
     train_amplitudes: tuple[float, ...] = (0.010,)
     train_wavenumbers: tuple[int, ...] = (4,)
     train_phases: tuple[float, ...] = (0.0,)
-    train_horizon_s: float = 300.0
-    record_every: int = 10
-    steps_per_chunk: int = 5
+    train_horizon_s: float = hyper(300.0, lo=0.0, lo_open=True)  # s, rollout length of the objective
+    record_every: int = hyper(10, lo=1)  # steps between objective samples
+    steps_per_chunk: int = hyper(5, lo=1)  # Adam steps per compiled chunk
     hidden: tuple[int, ...] = SMALL_HIDDEN
-    grad_gain_max: float = 3.0
-    gain_filter: float = 0.2
-    grad_lr: float = 0.05
+    grad_gain_max: float = hyper(3.0, lo=0.0, lo_open=True)  # network policy: |eta_i| bound
+    gain_filter: float = hyper(0.2, lo=0.0, lo_open=True, hi=1.0)
+    grad_lr: float = hyper(0.05, lo=0.0, lo_open=True)  # Adam step size
     max_grad_norm: float = 1.0
-    reward_weight: float = 1.0
-    waves_weight: float = 0.0
-    comfort_weight: float = 1e-5
-    effort_weight: float = 0.0
+    reward_weight: float = hyper(1.0, lo=0.0)  # objective weight of -mean reward
+    waves_weight: float = hyper(0.0, lo=0.0)  # objective weight of the wave amplitude
+    comfort_weight: float = hyper(1e-5, lo=0.0)  # objective weight of J_comfort
+    effort_weight: float = hyper(0.0, lo=0.0)  # objective weight of mean (h - h_bar)^2, 1/s^2
     init_gains: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    grad_steps: int = 40  # Adam steps in all
-    scenario_clip: float = 0.0  # > 0: clip each scenario's gradient to this norm (``objective_and_grad``)
-    filter_sigma: float = FILTER_SIGMA  # m, the gain law's Gaussian filter (``control.gain_law``); 0: pointwise
-    controller_points: int = 0  # the controller's own grid (``control.adapter``); 0: the plant's
-    certificate_weight: float = 0.0  # objective += w * ``certificate_penalty`` (1/s)
+    grad_steps: int = hyper(40, lo=1)  # Adam steps (CEM: generations) in all
+    scenario_clip: float = hyper(0.0, lo=0.0)  # > 0: clip each scenario's gradient to this norm; 0: off
+    filter_sigma: float = hyper(FILTER_SIGMA, lo=0.0)  # m, the gain law's Gaussian filter; 0: pointwise
+    controller_points: int = hyper(0, lo=3)  # the controller's own grid (``control.adapter``); 0: the plant's
+    certificate_weight: float = hyper(0.0, lo=0.0)  # objective += w * ``certificate_penalty`` (1/s)
     schedule_knots: tuple[float, ...] = (0.0, 2.0, 4.0, 6.0, 8.0)  # s, the schedule policy's knot delays
     grad_method: str = "adam"  # "cem": ``learn.gradient.cem`` (derivative-free; grad_steps are its generations)
-    cem_population: int = 24  # CEM: parameter sets per generation
-    cem_sigma: float = 0.3  # CEM: initial standard deviation of the search distribution (dimensionless gains)
+    cem_population: int = hyper(24, lo=2)  # CEM: parameter sets per generation
+    cem_sigma: float = hyper(0.3, lo=0.0, lo_open=True)  # CEM: initial std of the search over the gains
 
     def __post_init__(self) -> None:
         if self.policy not in POLICIES:

@@ -184,21 +184,21 @@ def weights_of(grad_config: GradientConfig) -> Weights:
 
 
 def check_scenarios(grad_config: GradientConfig, base: TrafficParams) -> None:
-    """``ValueError`` naming the flag if a training scenario is one the plant cannot represent: a delay beyond
+    """``ValueError`` naming the field if a training scenario is one the plant cannot represent: a delay beyond
     the buffer, an initial state outside the physical region, a sampling interval longer than the horizon."""
     cap = base.max_delay_steps
     beyond = [d for d in grad_config.train_delays if round(d / float(base.dt)) > cap]
     if beyond:
-        raise ValueError(f"train_delays = {beyond} (--train-delays): beyond the delay buffer's "
-                         f"{cap * float(base.dt):g} s (--max-delay-steps {cap} x dt {float(base.dt):g} s); raise "
-                         "--max-delay-steps")
+        raise ValueError(f"train_delays = {beyond}: beyond the delay buffer's "
+                         f"{cap * float(base.dt):g} s (max_delay_steps {cap} x dt {float(base.dt):g} s); raise "
+                         "max_delay_steps")
     if grad_config.record_every * float(base.dt) > grad_config.train_horizon_s:
-        raise ValueError(f"record_every = {grad_config.record_every} (--record-every): must be <= the training horizon "
-                         f"(--train-horizon-s {grad_config.train_horizon_s:g} s = "
+        raise ValueError(f"record_every = {grad_config.record_every}: must be <= the training horizon "
+                         f"(train_horizon_s {grad_config.train_horizon_s:g} s = "
                          f"{round(grad_config.train_horizon_s / float(base.dt))} steps)")
     sc = training_scenarios(grad_config, base)
     if not bool(jnp.all(jax.vmap(is_physical)(sc.rho0, sc.v0, sc.params))):
-        raise ValueError(f"train_amplitudes = {list(grad_config.train_amplitudes)} (--train-amplitudes, veh/m): "
+        raise ValueError(f"train_amplitudes = {list(grad_config.train_amplitudes)} (veh/m): "
                          "an initial state leaves the physical region (0 < rho < 1/l, v >= 0); use smaller amplitudes")
 
 

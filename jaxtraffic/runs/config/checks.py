@@ -2,10 +2,11 @@
 
 ``check_config(config)`` runs when a ``TrainConfig`` is built (its ``__post_init__``), so a bad value
 fails before any directory is created or anything compiles, with a message naming the field, its
-flag, the value and the allowed range, e.g. ``lr = -1.0 (--lr): must be > 0``. It checks every
+the value and the allowed range, e.g. ``lr = -1.0: must be > 0``. It checks every
 leaf's type (from its annotation; numpy integers and floats are accepted and normalised to Python
-ones, strings and bools where a number is expected are not) and its range (``learn.rules.RULES``, the one
-table of ranges, which the structs the fields configure check too), then the constraints between fields.
+ones, strings and bools where a number is expected are not) and its range (the field's metadata,
+``learn.fields.hyper``: a library struct's field lends its range to the tree's field that sets it), then the
+constraints between fields.
 ``check_devices`` adds what depends on the process (the device count).
 The plant's physics (equilibrium, CFL, delay vs buffer) is checked by ``TrafficParams``.
 """
@@ -18,7 +19,7 @@ import numbers
 import os
 from typing import Any
 
-from jaxtraffic.learn.rules import RULES, check_range, fail
+from jaxtraffic.learn.fields import check_value, fail
 
 # Every float must be finite unless listed in ALLOW_INF.
 FLOAT32_MAX = 3.4028234663852886e38
@@ -110,10 +111,11 @@ def check_section(section: Any) -> None:
         choices = f.metadata.get("choices")
         if choices and typed is not None and typed not in choices:
             raise fail(f.name, typed, f"must be one of {tuple(choices)}")
-        if isinstance(typed, tuple) and f.name not in RULES:  # LO,HI pairs
+        rule = f.metadata.get("range")
+        if isinstance(typed, tuple) and rule is None:  # LO,HI pairs
             _check_pair(f.name, typed)
         else:  # a number, or each element of a tuple (gain_max, train_delays, train_alphas)
-            check_range(f.name, typed)
+            check_value(f.name, typed, rule)
 
 
 def check_config(config: Any) -> None:
@@ -198,7 +200,7 @@ def check_memory(config: Any, have: float | None = None) -> None:
     if need > 0.8 * have:
         al = config.algo
         raise fail("num_envs", al.num_envs, f"with num_steps = {al.num_steps} and {config.run.seeds} seed(s) "
-                    f"(--num-steps, --seeds) the rollouts alone need about {need / 2**30:.3g} GiB, more than this "
+                    f"(num_steps, seeds) the rollouts alone need about {need / 2**30:.3g} GiB, more than this "
                     f"machine's {have / 2**30:.3g} GiB; use fewer environments or steps")
 
 

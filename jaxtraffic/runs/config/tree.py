@@ -16,11 +16,13 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 from jaxtraffic.control.gain_law import FILTER_SIGMA
 from jaxtraffic.control.networks import PAPER_HIDDEN, SMALL_HIDDEN
 from jaxtraffic.learn.env import EnvParams, make_env_params
+from jaxtraffic.learn.fields import hyper, range_of
 from jaxtraffic.learn.gradient.config import METHODS, POLICIES, POLICY_DEFAULTS, GradientConfig
 from jaxtraffic.learn.ppo import PPOConfig
 from jaxtraffic.model.params import SCHEMES, TrafficParams
@@ -46,23 +48,34 @@ POPULATION = 2
 
 
 def _f(default: Any, help: str, **meta: Any) -> Any:
-    """A config field with its ``help`` (the flag's help text) and flag options in its metadata."""
-    return field(default=default, metadata={"help": help, **meta})
+    """A config field with its ``help`` (the flag's help text), its range (``lo``, ``hi``, ... as
+    ``learn.fields.hyper``; a field that sets a library field takes its range, ``_lend_ranges``) and flag
+    options in its metadata."""
+    return hyper(default, help=help, **meta) if {"lo", "hi"} & set(meta) else \
+        field(default=default, metadata={"help": help, **meta})
+
+
+def _lend_ranges(tree_cls: type, lib_cls: type) -> None:
+    """Each field of ``tree_cls`` named as a field of ``lib_cls`` that has a range takes that range (one home)."""
+    for f in dataclasses.fields(tree_cls):
+        rule = range_of(lib_cls, f.name) if f.name in {g.name for g in dataclasses.fields(lib_cls)} else None
+        if rule is not None:
+            f.metadata = MappingProxyType({**f.metadata, "range": rule})
 
 
 @dataclass(frozen=True)
 class PlantConfig:
     """The nominal training plant and grid."""
 
-    delay: float = _f(float(_EP["traffic"].delay), "plant input delay D, s (multiple of dt)")
-    alpha: float = _f(_TP["alpha"], "ACC penetration rate")
-    alpha_noise: float = _f(_TP["alpha_noise"], "per-step std of plant alpha noise")
-    n_points: int = _f(_TP["n_points"], "grid points of the training plant (dx = L/(n-1))")
+    delay: float = _f(float(_EP["traffic"].delay), "plant input delay D, s (multiple of dt)", lo=0.0)
+    alpha: float = _f(_TP["alpha"], "ACC penetration rate", lo=0.0, hi=1.0)
+    alpha_noise: float = _f(_TP["alpha_noise"], "per-step std of plant alpha noise", lo=0.0)
+    n_points: int = _f(_TP["n_points"], "grid points of the training plant (dx = L/(n-1))", lo=3)
     scheme: str = _f(_TP["scheme"], "the training plant's scheme (upwind: the paper's; muscl: second order)",
                      choices=SCHEMES)
-    substeps: int = _f(_TP["substeps"], "solver steps per time step dt (a finer plant, same control period)")
-    dt: float = _f(_TP["dt"], "time step, s (the control period)")
-    max_delay_steps: int = _f(_TP["max_delay_steps"], "delay buffer capacity, steps")
+    substeps: int = _f(_TP["substeps"], "solver steps per time step dt (a finer plant, same control period)", lo=1)
+    dt: float = _f(_TP["dt"], "time step, s (the control period)", lo=0.0, lo_open=True)
+    max_delay_steps: int = _f(_TP["max_delay_steps"], "delay buffer capacity, steps", lo=0, hi=10**6)
 
     def traffic(self) -> TrafficParams:
         return TrafficParams(delay=self.delay, alpha=self.alpha, alpha_noise=self.alpha_noise,
@@ -74,8 +87,10 @@ class PlantConfig:
 class EnvConfig:
     """Episodes, domain randomisation and reward shaping (``learn.env.EnvParams``)."""
 
-    horizon_s: float = _f(_EP["horizon"] * float(_EP["traffic"].dt), "episode length, s (truncation)")
-    delay_spread: float = _f(1.0, "train on plant delays ~ U(D - spread, D + spread) s (clipped at 0); 0 disables")
+    horizon_s: float = _f(_EP["horizon"] * float(_EP["traffic"].dt), "episode length, s (truncation)",
+                          lo=0.0, lo_open=True)
+    delay_spread: float = _f(1.0, "train on plant delays ~ U(D - spread, D + spread) s (clipped at 0); 0 disables",
+                              lo=0.0)
     delay_range: tuple[float, float] | None = _f(None, "plant delay range LO,HI s (overrides --delay-spread)")
     alpha_range: tuple[float, float] | None = _f(None, "plant alpha range LO,HI")
     amp_range: tuple[float, float] = _f((_EP["amp_min"], _EP["amp_max"]), "initial amplitude LO,HI veh/m")
@@ -207,11 +222,11 @@ class RunConfig:
                       "apply and are recorded, any other flag that would change the run is an error")
     overwrite: bool = _f(False, "a fresh run into an --out-dir holding another run's results (checkpoint, best "
                          "policy, summary, learning curve) clears them first; without it that is an error")
-    seed: int = _f(0, "PRNG seed")
+    seed: int = _f(0, "PRNG seed", lo=0, hi=2**32 - 1)
     seeds: int = _f(POPULATION, "population: members trained at once (their keys split from --seed); the run "
-                    "stops on the first that meets the stop rule and keeps the best member's policy")
-    total_steps: int = _f(10_000_000, "environment steps (all envs, per seed)")
-    max_wall_s: float = _f(math.inf, "stop after this many seconds")
+                    "stops on the first that meets the stop rule and keeps the best member's policy", lo=1)
+    total_steps: int = _f(10_000_000, "environment steps (all envs, per seed)", lo=1)
+    max_wall_s: float = _f(math.inf, "stop after this many seconds", lo=0.0, lo_open=True)
     keep_going: bool = _f(False, "ignore the stop rule")
     target_reward: float = _f(REWARD_TARGET, "stop rule: deterministic evaluation reward (end of the evaluation "
                               "rollout) >= this")
@@ -222,30 +237,35 @@ class RunConfig:
                                    "the gains the policy settles to at the equilibrium, at the training delay and "
                                    "alpha with its filter: largest growth rate over wavenumbers <= 1e-3/s")
     stop_patience: int = _f(1, "consecutive evaluations that must meet the stop rule (per population member) "
-                            "before stopping")
+                            "before stopping", lo=1)
     restart_steps: int = _f(1_500_000, "a member that has not met the stop rule within this many env steps of its "
                             "start is re-initialised from a new key (network, optimiser, environments, observation "
-                            "statistics; its best checkpoint is kept); 0: never (also with --keep-going)")
+                            "statistics; its best checkpoint is kept); 0: never (also with --keep-going)", lo=0)
     val_horizon_s: float = _f(600.0, "validation suite (learn.ppo.selection): every member's deterministic policy from "
                               "two initial conditions x the plant delays at the ends and the middle of the training "
                               "range, over this many seconds, scored against backstepping; the best-scoring "
                               "checkpoint of each member is kept (best.msgpack) and the best member is the run's "
-                              "policy; 0: no suite")
+                              "policy; 0: no suite", lo=0.0)
     val_plant: str = _f("reference", "the plant the validation suite runs on: reference (TrafficParams.reference: "
                         "MUSCL, 801 points, 2 solver steps; the policy acts on its training grid through "
                         "control.adapter) or training (the training plant)", choices=("reference", "training"))
     val_target: float = _f(1.0, "stop rule also requires a validation score <= this (1: at the nominal delay the "
                            "density L2 at half the suite horizon is below backstepping's and J_comfort within 20 %% "
                            "of its, and at every delay of the suite the plant does not diverge and is still "
-                           "converging); inf: no such condition")
-    eval_horizon_s: float = _f(300.0, "evaluation rollout length, s")
+                           "converging); inf: no such condition", lo=0.0, lo_open=True)
+    eval_horizon_s: float = _f(300.0, "evaluation rollout length, s", lo=0.0, lo_open=True)
     checkpoint_every: int = _f(10, "PPO: write checkpoint.msgpack every this many chunks, and after a session's first "
                                "chunk, at the end and on SIGINT/SIGTERM (1: after every chunk; SIGKILL loses at "
-                               "most this many chunks); best.msgpack is written whenever it improves")
+                               "most this many chunks); best.msgpack is written whenever it improves", lo=1)
     quiet: bool = _f(False, "no progress lines")
     tensorboard: str | None = _f(None, "also write the learning-curve rows as TensorBoard scalars to this directory "
                                  "(needs tensorboardX: pip install 'jaxtraffic[tb]')")
 
+
+_lend_ranges(EnvConfig, EnvParams)
+_lend_ranges(EnvConfig, GradientConfig)  # filter_sigma, controller_points
+_lend_ranges(AlgoConfig, PPOConfig)
+_lend_ranges(GradConfig, GradientConfig)
 
 RUN_CONTROL = ("out_dir", "total_steps", "max_wall_s", "keep_going", "resume", "overwrite", "quiet", "stop_patience",
                "target_reward", "min_wave_speed", "require_certificate", "tensorboard", "val_target",

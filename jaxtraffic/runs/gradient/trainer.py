@@ -188,8 +188,8 @@ def train_gradient(config: TrainConfig, callbacks: Sequence[Callable[[dict], Non
     grad_config, plant = gradient_setup(config)  # validates: fail before creating the run directory
     objective.check_scenarios(grad_config, plant)
     if grad_config.grad_steps % grad_config.steps_per_chunk:  # a chunk is one compiled program of steps_per_chunk steps
-        raise ValueError(f"grad_steps = {grad_config.grad_steps} (--grad-steps): must be a multiple of "
-                         f"--steps-per-chunk ({grad_config.steps_per_chunk}), the Adam steps of one compiled chunk")
+        raise ValueError(f"grad_steps = {grad_config.grad_steps}: must be a multiple of steps_per_chunk "
+                         f"({grad_config.steps_per_chunk}), the Adam steps of one compiled chunk")
     return run_training(config, run_dir, saved, lambda: GradientTraining(config, grad_config, plant),
                         lambda: config_json(config, jax_version=jax.__version__), callbacks,
                         "jaxtraffic.train_gradient")

@@ -77,7 +77,7 @@ def test_nominal_with_other_physics_is_accepted():
     (["--gamma", "5"], "gamma = 5.0: must lie in (0.0, 1.0]"),
     (["--clip-eps", "-1"], "clip_eps = -1.0: must be > 0"),
     (["--num-envs", "0"], "num_envs = 0: must be >= 1"),
-    (["--seeds", "0"], "seeds = 0: must be >= 1"),
+    (["--seeds", "0"], "num_seeds = 0: must be >= 1"),
     (["--num-steps", "-5"], "num_steps = -5: must be >= 1"),
     (["--num-minibatches", "0"], "num_minibatches = 0: must be >= 1"),
     (["--num-minibatches", "3"], "must divide the batch"),
@@ -101,7 +101,7 @@ def test_bad_training_flags_exit_2_before_anything_is_written(argv, match, tmp_p
 
 def test_config_accepts_numpy_scalars_and_normalises_them():
     cfg = TrainConfig.from_flat(n_points=np.int64(21), lr=np.float32(0.5), max_wall_s=float("inf"))
-    assert type(cfg.plant.n_points) is int and type(cfg.algo.lr) is float
+    assert type(cfg.plant.n_points) is int and type(cfg.ppo.lr) is float
     with pytest.raises(ValueError, match="must be an integer"):
         TrainConfig.from_flat(num_envs=4.0)
 
@@ -596,7 +596,7 @@ def test_resume_with_another_device_count_explains(ref_run, tmp_path):
 @pytest.mark.slow
 def test_resume_keeps_the_saved_run_control_and_refuses_other_changes(ref_run):
     saved = load_config(ref_run)
-    cfg = saved.replace(lr=0.5, seeds=3, total_steps=7 * CHUNK, out_dir=str(ref_run), resume=True)
+    cfg = saved.replace(lr=0.5, num_seeds=3, total_steps=7 * CHUNK, out_dir=str(ref_run), resume=True)
     with pytest.raises(ValueError, match=r"would change it: --lr 0.5 \(the run's value: 0.001\), --seeds 3"):
         train_cli.resumed_config(cfg, {"lr": 0.5, "seeds": 3, "total_steps": 7 * CHUNK, "n_points": 21})
     # an equal value is no change; a run-control flag applies; one not given keeps the run's saved value

@@ -38,7 +38,7 @@ def test_every_flag_reaches_the_algorithm_under_its_own_name():
                                  n_points=21)
     cfg = gradient_setup(tree)[0]
     assert (cfg.gain_filter, cfg.filter_sigma, cfg.controller_points, cfg.hidden) == (0.5, 10.0, 11,
-                                                                                      tree.algo.hidden())
+                                                                                      tuple(tree.ppo.hidden))
     extra = {f.name for f in dataclasses.fields(GradientConfig)} - set(GIVEN) - {"policy"}
     assert extra == {"hidden", "gain_filter", "filter_sigma", "controller_points", "max_grad_norm"}
     # the policies' defaults and the objective's weights use the same names
@@ -52,9 +52,9 @@ def test_every_range_lives_in_a_field_and_fields_imports_no_jaxtraffic():
     """The tree's fields that configure a library field carry that field's range (one home), and the helper
     module sits below everything it serves."""
     from jaxtraffic.learn.env import EnvParams
-    from jaxtraffic.runs.config.tree import AlgoConfig, EnvConfig
+    from jaxtraffic.runs.config.tree import EnvConfig
 
-    for tree_cls, lib_cls in ((AlgoConfig, PPOConfig), (EnvConfig, EnvParams), (GradConfig, GradientConfig)):
+    for tree_cls, lib_cls in ((EnvConfig, EnvParams), (GradConfig, GradientConfig)):
         for f in dataclasses.fields(tree_cls):
             lib = fields.range_of(lib_cls, f.name) if f.name in {g.name for g in dataclasses.fields(lib_cls)} else None
             if lib is not None:

@@ -255,7 +255,7 @@ def test_sizes_and_horizons_beyond_what_can_run_are_flag_errors(tmp_path, capsys
         code, err = _main([*args, "--out-dir", str(tmp_path / "r")], capsys)
         assert code == 2 and match in err and err.count("\n") == 1, err
     with pytest.raises(ValueError, match=r"num_envs = 1024: with num_steps = 100 and 4 seed"):
-        check_memory(TrainConfig.from_flat(num_envs=1024, num_steps=100, seeds=4), have=2.0**20)
+        check_memory(TrainConfig.from_flat(num_envs=1024, num_steps=100, num_seeds=4), have=2.0**20)
     check_memory(TrainConfig(), have=2.0**34)  # the defaults fit 16 GiB
 
 

@@ -66,10 +66,10 @@ def test_run_directory_contents(runs):
         assert (run / name).is_file(), name
     cfg = json.loads((run / "config.json").read_text())
     tree = cfg["config"]
-    assert tree["plant"]["n_points"] == 21 and tree["plant"]["delay"] == 0.5 and tree["algo"]["num_envs"] == 4
+    assert tree["plant"]["n_points"] == 21 and tree["plant"]["delay"] == 0.5 and tree["ppo"]["num_envs"] == 4
     assert cfg["jax_version"] == jax.__version__ and cfg["horizon_steps"] == 30 and cfg["version"] == 2
     loaded = load_config(run)  # the one loader (resume, load_policy, evaluation) reads the tree back
-    assert loaded.plant.n_points == 21 and loaded.algo.num_envs == 4 and loaded.run.max_wall_s == float("inf")
+    assert loaded.plant.n_points == 21 and loaded.ppo.num_envs == 4 and loaded.run.max_wall_s == float("inf")
     assert loaded.env == TrainConfig.from_flat(**{k: tuple(v) if isinstance(v, list) else v
                                                   for k, v in tree["env"].items()}).env
     rows = _rows(run)
@@ -251,7 +251,7 @@ def test_cli_help_documents_every_flag(capsys):
             continue
         assert action.help, f"{action.option_strings} has no help"
         assert action.option_strings[0] in text
-    for flag in ("--delay", "--alpha", "--alpha-noise", "--num-envs", "--total-steps", "--seeds", "--network",
+    for flag in ("--delay", "--alpha", "--alpha-noise", "--num-envs", "--total-steps", "--seeds", "--hidden",
                  "--lr", "--clip-eps", "--n-points", "--out-dir", "--resume", "--max-wall-s", "--delay-range"):
         assert flag in text
 
@@ -262,7 +262,7 @@ def test_cli_help_documents_every_flag(capsys):
     (["--alpha-range", "0.1,1.5"], "alpha_range"),
     (["--delay-range", "3,2"], "delay_range"),
     (["--n-points", "2"], "n_points"),
-    (["--network", "huge"], "invalid choice"),
+    (["--hidden", "a"], "comma-separated"),
     (["--delay-range", "1"], "LO,HI"),
     (["--lr-final", "2"], "lr_final"),
     (["--diverge-penalty", "-1"], "diverge_penalty"),
@@ -318,7 +318,7 @@ def test_population_run(tmp_path):
     evaluated, the best one is the run's policy, and the members are different policies."""
     from jaxtraffic.runs.config import POPULATION
 
-    assert TrainConfig().run.seeds == POPULATION == 2
+    assert TrainConfig().ppo.num_seeds == POPULATION == 2
     argv = list(TINY)
     argv[argv.index("--seeds") + 1] = "2"
     run = train_cli.main(argv + ["--out-dir", str(tmp_path / "pop"), "--keep-going", "--total-steps", str(2 * CHUNK),
@@ -331,4 +331,4 @@ def test_population_run(tmp_path):
     best = summary["best_seed"]
     assert best == int(np.argmin(summary["best_val_score"])) and best in (0, 1)
     _, cfg = load_policy(run)
-    assert cfg.run.seeds == 2
+    assert cfg.ppo.num_seeds == 2

@@ -55,28 +55,30 @@ def _gain_bounds(text: str):
     return parts[0] if len(parts) == 1 else tuple(parts)
 
 
-GROUPS = {"run": "run", "plant": "plant and grid", "env": "episodes and domain randomisation", "algo": "PPO",
+GROUPS = {"run": "run", "plant": "plant and grid", "env": "episodes and domain randomisation", "ppo": "PPO",
           "grad": "gradient-based training (--algo gradient)"}
 _PARSERS = {"int": int, "float": float, "str": str, "float | None": float, "int | None": int, "str | None": str,
             "tuple[float, float]": _pair(float), "tuple[float, float] | None": _pair(float),
             "tuple[int, int]": _pair(int), "tuple[float, ...]": _many(float), "tuple[float, ...] | None": _many(float),
-            "tuple[int, ...]": _many(int), "float | tuple[float, float, float]": _gain_bounds}
+            "tuple[int, ...]": _many(int), "tuple": _many(int), "float | tuple[float, float, float]": _gain_bounds}
 
 
 def build_parser() -> argparse.ArgumentParser:
     """One flag per leaf of ``TrainConfig`` (``--n-points`` for ``plant.n_points``), with the field's
     default and help: the flags cannot drift from the library's defaults."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    for section in ("run", "plant", "env", "algo", "grad"):
+    for section in ("run", "plant", "env", "ppo", "grad"):
         g = parser.add_argument_group(GROUPS[section])
+        defaults = getattr(TrainConfig(), section)
         for f in dataclasses.fields(SECTIONS[section]):
-            flag = "--" + f.name.replace("_", "-")
+            flag = ["--" + f.name.replace("_", "-"), *(["--seeds"] if f.name == "num_seeds" else [])]
+            default = getattr(defaults, f.name)
             if f.type == "bool":  # on by default: --no-FLAG turns it off
-                action = argparse.BooleanOptionalAction if f.default else "store_true"
-                g.add_argument(flag, action=action, default=f.default, help=f.metadata["help"])
+                action = argparse.BooleanOptionalAction if default else "store_true"
+                g.add_argument(*flag, action=action, default=default, help=f.metadata["help"])
                 continue
-            default = None if f.name == "out_dir" else f.default  # resolved from --algo below
-            g.add_argument(flag, type=_PARSERS[f.type], default=default, choices=f.metadata.get("choices"),
+            default = None if f.name == "out_dir" else default  # resolved from --algo below
+            g.add_argument(*flag, type=_PARSERS[f.type], default=default, choices=f.metadata.get("choices"),
                            help=f.metadata["help"])
     distributed.add_flags(parser)
     return parser

@@ -47,26 +47,26 @@ class PPOConfig:
     """PPO hyperparameters (defaults: the training defaults of ``train.py``). Static: sizes and counts.
     Traced: the floats."""
 
-    num_envs: int = hyper(256, lo=1, static=True)  # parallel environments (all seeds' batch per seed)
-    num_steps: int = hyper(100, lo=1, static=True)  # rollout steps per update (100 = 10 s)
-    update_epochs: int = hyper(4, lo=1, static=True)  # epochs per update
-    num_minibatches: int = hyper(4, lo=1, static=True)  # minibatches per epoch
-    updates_per_chunk: int = hyper(3, lo=1, static=True)  # updates per jit-compiled chunk
-    num_seeds: int = struct.field(pytree_node=False, default=1)
-    hidden: tuple = struct.field(pytree_node=False, default=SMALL_HIDDEN)
-    init_sigma: float = hyper(0.3, lo=0.0, lo_open=True, static=True)  # initial action std (pre-tanh)
-    lr: float = hyper(1e-3, lo=0.0, lo_open=True)  # Adam learning rate
-    gamma: float = hyper(0.995, lo=0.0, lo_open=True, hi=1.0)  # discount per step (dt)
-    gae_lambda: float = hyper(0.95, lo=0.0, hi=1.0)  # GAE lambda
-    clip_eps: float = hyper(0.2, lo=0.0, lo_open=True)  # PPO clip range of the probability ratio
-    ent_coef: float = hyper(0.0, lo=0.0)  # entropy bonus weight
-    vf_coef: float = hyper(0.5, lo=0.0)  # value loss weight
-    max_grad_norm: float = hyper(0.5, lo=0.0, lo_open=True)  # global gradient-norm clip
-    reward_scale: float = hyper(0.01, lo=0.0, lo_open=True)  # reward multiplier for learning
+    num_envs: int = hyper(256, lo=1, static=True, help="parallel environments per seed (population member)")
+    num_steps: int = hyper(100, lo=1, static=True, help="rollout steps per update (100 = 10 s)")
+    update_epochs: int = hyper(4, lo=1, static=True, help="epochs per update")
+    num_minibatches: int = hyper(4, lo=1, static=True, help="minibatches per epoch")
+    updates_per_chunk: int = hyper(3, lo=1, static=True, help="updates per jit-compiled chunk")
+    num_seeds: int = hyper(1, lo=1, static=True, help="independent seeds (population members) trained at once")
+    hidden: tuple = hyper(SMALL_HIDDEN, static=True, help="hidden layer sizes of the actor and the critic MLPs")
+    init_sigma: float = hyper(0.3, lo=0.0, lo_open=True, static=True, help="initial action std (pre-tanh)")
+    lr: float = hyper(1e-3, lo=0.0, lo_open=True, help="Adam learning rate")
+    gamma: float = hyper(0.995, lo=0.0, lo_open=True, hi=1.0, help="discount per step (dt)")
+    gae_lambda: float = hyper(0.95, lo=0.0, hi=1.0, help="GAE lambda")
+    clip_eps: float = hyper(0.2, lo=0.0, lo_open=True, help="PPO clip range of the probability ratio")
+    ent_coef: float = hyper(0.0, lo=0.0, help="entropy bonus weight")
+    vf_coef: float = hyper(0.5, lo=0.0, help="value loss weight")
+    max_grad_norm: float = hyper(0.5, lo=0.0, lo_open=True, help="global gradient-norm clip")
+    reward_scale: float = hyper(0.01, lo=0.0, lo_open=True, help="reward multiplier for learning")
     # env steps (per seed) over which lr falls linearly to lr * lr_final; 0: constant. Static: it sets the
     # schedule's length (optax.linear_schedule's transition_steps is a Python number)
-    lr_decay_steps: float = hyper(0.0, lo=0.0, static=True)
-    lr_final: float = hyper(0.1, lo=0.0, hi=1.0)  # final learning rate, a fraction of lr
+    lr_decay_steps: float = hyper(0.0, lo=0.0, static=True, help="env steps over which lr falls to lr * lr_final")
+    lr_final: float = hyper(0.1, lo=0.0, hi=1.0, help="final learning rate, a fraction of lr")
 
     def network(self, n_actions: int = 3) -> ActorCritic:
         return ActorCritic(hidden=tuple(self.hidden), init_sigma=self.init_sigma,

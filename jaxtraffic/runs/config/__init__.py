@@ -9,7 +9,6 @@ from jaxtraffic.runs.config.tree import (
     POPULATION,
     RUN_CONTROL,
     SECTIONS,
-    AlgoConfig,
     EnvConfig,
     GradConfig,
     PlantConfig,

@@ -122,7 +122,7 @@ def check_config(config: Any) -> None:
     """Check a whole ``TrainConfig``: each section, then the constraints between fields."""
     for f in dataclasses.fields(config):  # plant, env, algo, run and any other section
         check_section(getattr(config, f.name))
-    pl, en, al, run = config.plant, config.env, config.algo, config.run
+    pl, en, al, run = config.plant, config.env, config.ppo, config.run
     if not run.out_dir:
         raise fail("out_dir", run.out_dir, "must not be empty")
     batch = al.num_envs * al.num_steps
@@ -171,7 +171,7 @@ def _check_reference_validation(pl: Any) -> None:
 
 def check_devices(config: Any, n_devices: int) -> None:
     """The constraints that depend on the number of devices the environments are split over."""
-    al = config.algo
+    al = config.ppo
     if al.num_envs % n_devices:
         raise fail("num_envs", al.num_envs, f"must be divisible by the number of devices ({n_devices})")
     local = al.num_envs // n_devices * al.num_steps
@@ -183,10 +183,10 @@ def check_devices(config: Any, n_devices: int) -> None:
 def memory_estimate(config: Any) -> float:
     """A lower bound of the bytes PPO's programs hold (float32): every environment's state (fields, delay
     buffer) and one update's rollout (observations, actions, rewards, values... per step)."""
-    n, envs = config.plant.n_points, config.algo.num_envs * config.run.seeds
+    n, envs = config.plant.n_points, config.ppo.num_envs * config.ppo.num_seeds
     state = (config.plant.max_delay_steps + 6) * n
     transition = 2 * (3 * n + 3) + 12
-    return 4.0 * envs * (state + config.algo.num_steps * transition)
+    return 4.0 * envs * (state + config.ppo.num_steps * transition)
 
 
 def check_memory(config: Any, have: float | None = None) -> None:
@@ -198,8 +198,8 @@ def check_memory(config: Any, have: float | None = None) -> None:
             return
     need = memory_estimate(config)
     if need > 0.8 * have:
-        al = config.algo
-        raise fail("num_envs", al.num_envs, f"with num_steps = {al.num_steps} and {config.run.seeds} seed(s) "
+        al = config.ppo
+        raise fail("num_envs", al.num_envs, f"with num_steps = {al.num_steps} and {config.ppo.num_seeds} seed(s) "
                     f"(num_steps, seeds) the rollouts alone need about {need / 2**30:.3g} GiB, more than this "
                     f"machine's {have / 2**30:.3g} GiB; use fewer environments or steps")
 

@@ -20,7 +20,6 @@ from types import MappingProxyType
 from typing import Any
 
 from jaxtraffic.control.gain_law import FILTER_SIGMA
-from jaxtraffic.control.networks import PAPER_HIDDEN, SMALL_HIDDEN
 from jaxtraffic.learn.env import EnvParams, make_env_params
 from jaxtraffic.learn.fields import hyper, range_of
 from jaxtraffic.learn.gradient.config import METHODS, POLICIES, POLICY_DEFAULTS, GradientConfig
@@ -120,35 +119,6 @@ class EnvConfig:
                                        "plant's grid")
 
 
-@dataclass(frozen=True)
-class AlgoConfig:
-    """PPO (``learn.ppo.algorithm.PPOConfig``; ``network`` chooses its ``hidden`` layers)."""
-
-    num_envs: int = _f(_PPO["num_envs"] // POPULATION, "parallel environments per seed (population member)")
-    num_steps: int = _f(_PPO["num_steps"], "rollout steps per update (100 = 10 s)")
-    update_epochs: int = _f(_PPO["update_epochs"], "epochs per update")
-    num_minibatches: int = _f(_PPO["num_minibatches"], "minibatches per epoch")
-    updates_per_chunk: int = _f(_PPO["updates_per_chunk"],
-                                "updates per jit-compiled chunk (progress/checkpoint interval)")
-    network: str = _f("small", "small: 2x64 tanh MLPs; paper: 8 layers (1024, then 512 units)",
-                      choices=("small", "paper"))
-    lr: float = _f(_PPO["lr"], "Adam learning rate")
-    lr_decay_steps: float = _f(_PPO["lr_decay_steps"], "env steps (per seed) over which the learning rate falls "
-                               "linearly to lr * lr-final; 0: constant")
-    lr_final: float = _f(_PPO["lr_final"], "final learning rate, as a fraction of --lr")
-    gamma: float = _f(_PPO["gamma"], "discount")
-    gae_lambda: float = _f(_PPO["gae_lambda"], "GAE lambda")
-    clip_eps: float = _f(_PPO["clip_eps"], "PPO clip range")
-    ent_coef: float = _f(_PPO["ent_coef"], "entropy bonus")
-    vf_coef: float = _f(_PPO["vf_coef"], "value loss weight")
-    max_grad_norm: float = _f(_PPO["max_grad_norm"], "gradient clipping")
-    reward_scale: float = _f(_PPO["reward_scale"], "reward multiplier for learning")
-    init_sigma: float = _f(_PPO["init_sigma"], "initial action std (pre-tanh)")
-
-    def hidden(self) -> tuple[int, ...]:
-        return {"small": SMALL_HIDDEN, "paper": PAPER_HIDDEN}[self.network]
-
-
 def _by_policy(name: str) -> str:
     return ", ".join(f"{p}: {POLICY_DEFAULTS[p].get(name, _GRAD[name])}" for p in POLICIES)
 
@@ -223,8 +193,6 @@ class RunConfig:
     overwrite: bool = _f(False, "a fresh run into an --out-dir holding another run's results (checkpoint, best "
                          "policy, summary, learning curve) clears them first; without it that is an error")
     seed: int = _f(0, "PRNG seed", lo=0, hi=2**32 - 1)
-    seeds: int = _f(POPULATION, "population: members trained at once (their keys split from --seed); the run "
-                    "stops on the first that meets the stop rule and keeps the best member's policy", lo=1)
     total_steps: int = _f(10_000_000, "environment steps (all envs, per seed)", lo=1)
     max_wall_s: float = _f(math.inf, "stop after this many seconds", lo=0.0, lo_open=True)
     keep_going: bool = _f(False, "ignore the stop rule")
@@ -264,7 +232,6 @@ class RunConfig:
 
 _lend_ranges(EnvConfig, EnvParams)
 _lend_ranges(EnvConfig, GradientConfig)  # filter_sigma, controller_points
-_lend_ranges(AlgoConfig, PPOConfig)
 _lend_ranges(GradConfig, GradientConfig)
 
 RUN_CONTROL = ("out_dir", "total_steps", "max_wall_s", "keep_going", "resume", "overwrite", "quiet", "stop_patience",
@@ -278,12 +245,12 @@ BEFORE_FIELD = {"obs_segments": 0, "wave_weight": 0.0, "val_horizon_s": 0.0, "re
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """The whole training configuration: ``plant``, ``env``, ``algo`` (PPO), ``grad`` (gradient-based
-    training) and ``run``."""
+    """The whole training configuration: ``plant``, ``env``, ``ppo`` (the library's ``PPOConfig`` as it is:
+    ``num_seeds`` is the population, ``num_envs`` each member's), ``grad`` (gradient-based training) and ``run``."""
 
     plant: PlantConfig = PlantConfig()
     env: EnvConfig = EnvConfig()
-    algo: AlgoConfig = AlgoConfig()
+    ppo: PPOConfig = PPOConfig(num_envs=_PPO["num_envs"] // POPULATION, num_seeds=POPULATION)
     grad: GradConfig = GradConfig()
     run: RunConfig = RunConfig()
 
@@ -300,7 +267,7 @@ class TrainConfig:
             if name not in _OWNER:
                 raise TypeError(f"unknown config field {name!r}")
             parts[_OWNER[name]][name] = value
-        return cls(**{s: SECTIONS[s](**kw) for s, kw in parts.items()})
+        return cls(**{s: dataclasses.replace(_DEFAULT[s], **kw) for s, kw in parts.items()})
 
     def flat(self) -> dict[str, Any]:
         """Every leaf field by name."""
@@ -326,15 +293,16 @@ class TrainConfig:
             diverge_penalty=en.diverge_penalty, filter_sigma=en.filter_sigma)
 
 
-SECTIONS = {"plant": PlantConfig, "env": EnvConfig, "algo": AlgoConfig, "grad": GradConfig, "run": RunConfig}
+SECTIONS = {"plant": PlantConfig, "env": EnvConfig, "ppo": PPOConfig, "grad": GradConfig, "run": RunConfig}
+_DEFAULT = {f.name: f.default for f in dataclasses.fields(TrainConfig)}
 # the fields only one algorithm reads (the plant, and the run's place, seed, wall budget, evaluation horizon and
-# printing, are both's; the gradient trainer's network policy takes --network)
+# printing, are both's; the gradient trainer's network policy takes --hidden)
 _names = lambda cls: {f.name for f in dataclasses.fields(cls)}  # noqa: E731
 ONLY_FOR = {
     "gradient": _names(GradConfig) | {"controller_points"},
-    "ppo": (_names(AlgoConfig) - {"network"})
+    "ppo": (_names(PPOConfig) - {"hidden"})
     | (_names(EnvConfig) - {"gain_filter", "filter_sigma", "controller_points"})
-    | {"seeds", "total_steps", "keep_going", "target_reward", "min_wave_speed", "require_certificate",
+    | {"total_steps", "keep_going", "target_reward", "min_wave_speed", "require_certificate",
        "stop_patience", "restart_steps", "val_horizon_s", "val_plant", "val_target", "checkpoint_every"},
 }
 
@@ -371,7 +339,10 @@ def config_from_json(data: dict[str, Any], where: str = "config.json") -> TrainC
                          "not an object)")
     if "config" in data:
         tree = data["config"]
-        required = ("plant", "env", "algo", "run")  # (sections added later default when absent)
+        if isinstance(tree, dict) and "algo" in tree and "ppo" not in tree:
+            raise ValueError(f"{where} was written by an older jaxtraffic (an 'algo' section; PPO's settings are "
+                             "now the 'ppo' section, PPOConfig as it is): retrain the run with this version")
+        required = ("plant", "env", "ppo", "run")  # (sections added later default when absent)
         if not isinstance(tree, dict) or not all(isinstance(tree.get(s), dict) for s in required):
             have = sorted(tree) if isinstance(tree, dict) else type(tree).__name__
             missing = [s for s in required if not isinstance(tree, dict) or not isinstance(tree.get(s), dict)]

@@ -182,7 +182,7 @@ class GradientTraining:
 def train_gradient(config: TrainConfig, callbacks: Sequence[Callable[[dict], None]] = ()) -> Path:
     """Train (or resume) by gradient or CEM and return the run directory. Uses ``config.grad`` (with its own gain
     bound, ``grad_gain_max``), ``config.plant`` (the nominal plant), ``config.env.gain_filter``,
-    ``config.algo.network`` (network policy) and the run-control fields of ``config.run``; on resume, the saved
+    ``config.ppo.hidden`` (network policy) and the run-control fields of ``config.run``; on resume, the saved
     config with the new ``RUN_CONTROL`` fields and ``grad_steps``. ``callbacks``: each learning-curve row."""
     config, run_dir, saved = prepare(config, keep=("grad_steps",))
     grad_config, plant = gradient_setup(config)  # validates: fail before creating the run directory

@@ -16,21 +16,21 @@ from jaxtraffic.learn.gradient.config import POLICY_DEFAULTS, GradientConfig
 from jaxtraffic.learn.gradient.objective import Weights, weights_of
 from jaxtraffic.learn.ppo import PPOConfig, check_ppo_config
 from jaxtraffic.runs.config import TrainConfig
-from jaxtraffic.runs.config.tree import SECTIONS, GradConfig
+from jaxtraffic.runs.config.tree import SECTIONS, leaf_fields
 from jaxtraffic.runs.gradient.policy import gradient_setup
 
-# a value of each GradConfig field other than its default and every policy's default, valid for the gains policy
+# a value of each gradient field other than its default and every policy's default, valid for the gains policy
 GIVEN = {"grad_steps": 6, "grad_lr": 0.02, "train_delays": (1.0, 2.0), "train_alphas": (0.2, 0.3),
          "train_amplitudes": (0.005,), "train_wavenumbers": (2, 3), "train_phases": (0.5,), "train_horizon_s": 90.0,
          "record_every": 3, "steps_per_chunk": 2, "reward_weight": 0.5, "waves_weight": 0.25, "comfort_weight": 2e-5,
          "effort_weight": 0.125, "scenario_clip": 0.75, "certificate_weight": 0.5, "init_gains": (0.1, -0.2, 0.3),
          "schedule_knots": (0.0, 3.0), "grad_method": "cem", "cem_population": 5, "cem_sigma": 0.4,
          "grad_gain_max": 2.5}
-TREE_FIELDS = {f.name for c in SECTIONS.values() for f in dataclasses.fields(c)}
+TREE_FIELDS = {f.name for s in SECTIONS for f in leaf_fields(s)}
 
 
 def test_every_flag_reaches_the_algorithm_under_its_own_name():
-    assert set(GIVEN) == {f.name for f in dataclasses.fields(GradConfig)} - {"policy"}
+    assert set(GIVEN) == {f.name for f in leaf_fields("grad")} - {"policy"}
     cfg = gradient_setup(TrainConfig.from_flat(algo="gradient", **GIVEN))[0]
     assert {name: getattr(cfg, name) for name in GIVEN} == GIVEN
     # the fields the algorithm has beyond the flags of its section come from the environment and the network
@@ -54,7 +54,7 @@ def test_every_range_lives_in_a_field_and_fields_imports_no_jaxtraffic():
     from jaxtraffic.learn.env import EnvParams
     from jaxtraffic.runs.config.tree import EnvConfig
 
-    for tree_cls, lib_cls in ((EnvConfig, EnvParams), (GradConfig, GradientConfig)):
+    for tree_cls, lib_cls in ((EnvConfig, EnvParams),):
         for f in dataclasses.fields(tree_cls):
             lib = fields.range_of(lib_cls, f.name) if f.name in {g.name for g in dataclasses.fields(lib_cls)} else None
             if lib is not None:

@@ -13,14 +13,14 @@ The same command runs as N cooperating processes (PPO and ``--algo gradient``) w
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
 import os
 import sys
 from pathlib import Path
 
 from jaxtraffic.platform import compile_cache, distributed
-from jaxtraffic.runs.config import RUN_CONTROL, SECTIONS, RunConfig, TrainConfig, check_flags_apply, load_config
+from jaxtraffic.runs.config import RUN_CONTROL, RunConfig, TrainConfig, check_flags_apply, load_config
+from jaxtraffic.runs.config.tree import leaf_fields
 from jaxtraffic.runs.gradient.trainer import train_gradient
 from jaxtraffic.runs.ppo.trainer import train
 from jaxtraffic.runs.session import TrainingInterrupted, check_resumable
@@ -60,7 +60,8 @@ GROUPS = {"run": "run", "plant": "plant and grid", "env": "episodes and domain r
 _PARSERS = {"int": int, "float": float, "str": str, "float | None": float, "int | None": int, "str | None": str,
             "tuple[float, float]": _pair(float), "tuple[float, float] | None": _pair(float),
             "tuple[int, int]": _pair(int), "tuple[float, ...]": _many(float), "tuple[float, ...] | None": _many(float),
-            "tuple[int, ...]": _many(int), "tuple": _many(int), "float | tuple[float, float, float]": _gain_bounds}
+            "tuple[int, ...]": _many(int), "tuple": _many(int),
+            "tuple[float, float, float]": _many(float), "float | tuple[float, float, float]": _gain_bounds}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -70,9 +71,9 @@ def build_parser() -> argparse.ArgumentParser:
     for section in ("run", "plant", "env", "ppo", "grad"):
         g = parser.add_argument_group(GROUPS[section])
         defaults = getattr(TrainConfig(), section)
-        for f in dataclasses.fields(SECTIONS[section]):
+        for f in leaf_fields(section):
             flag = ["--" + f.name.replace("_", "-"), *(["--seeds"] if f.name == "num_seeds" else [])]
-            default = getattr(defaults, f.name)
+            default = None if section == "grad" else getattr(defaults, f.name)  # grad: the policy's default
             if f.type == "bool":  # on by default: --no-FLAG turns it off
                 action = argparse.BooleanOptionalAction if default else "store_true"
                 g.add_argument(*flag, action=action, default=default, help=f.metadata["help"])
@@ -96,7 +97,8 @@ def _config(args: argparse.Namespace) -> TrainConfig:
         args.min_wave_speed = None
     if args.out_dir is None:
         args.out_dir = f"runs/gradient-{args.policy}" if args.algo == "gradient" else RunConfig.out_dir
-    return TrainConfig.from_flat(**vars(args))
+    grad = {f.name for f in leaf_fields("grad")}
+    return TrainConfig.from_flat(**{k: v for k, v in vars(args).items() if k not in grad or v is not None})
 
 
 def explicit_flags(argv: list[str] | None = None) -> dict:

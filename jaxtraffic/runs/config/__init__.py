@@ -1,5 +1,6 @@
-"""The training configuration: the config tree (``tree``: plant, env, algo, grad, run; config.json and its
-loader) and the checks every field passes when a tree is built (``checks``)."""
+"""The training configuration: the config tree (``tree``: plant, env, ppo (``PPOConfig``), grad
+(``GradientConfig``), run; config.json and its loader) and the checks every field passes when a tree is built
+(``checks``)."""
 
 from jaxtraffic.runs.config.tree import (
     ALGOS,
@@ -10,7 +11,6 @@ from jaxtraffic.runs.config.tree import (
     RUN_CONTROL,
     SECTIONS,
     EnvConfig,
-    GradConfig,
     PlantConfig,
     RunConfig,
     TrainConfig,
@@ -20,6 +20,6 @@ from jaxtraffic.runs.config.tree import (
     load_config,
 )
 
-__all__ = ["ALGOS", "BEFORE_FIELD", "CONFIG_VERSION", "ONLY_FOR", "POPULATION", "RUN_CONTROL", "SECTIONS", "AlgoConfig",
-           "EnvConfig", "GradConfig", "PlantConfig", "RunConfig", "TrainConfig", "check_flags_apply",
+__all__ = ["ALGOS", "BEFORE_FIELD", "CONFIG_VERSION", "ONLY_FOR", "POPULATION", "RUN_CONTROL", "SECTIONS",
+           "EnvConfig", "PlantConfig", "RunConfig", "TrainConfig", "check_flags_apply",
            "config_from_json", "config_json", "load_config"]

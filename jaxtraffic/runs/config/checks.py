@@ -69,7 +69,8 @@ def _typed(name: str, annotation: str, value: Any) -> Any:
         if value is None:
             return None
         kind = kind[: -len("|None")]
-    if kind.startswith("float|tuple["):  # one value or a fixed-length tuple of them (gain_max)
+    one = kind.startswith("float|tuple[")  # one value or a fixed-length tuple of them (gain_max)
+    if one:
         kind = "float" if isinstance(value, numbers.Real) else kind[len("float|"):]
     if kind.startswith("tuple["):
         inner = kind[len("tuple["):-1].split(",")
@@ -81,7 +82,7 @@ def _typed(name: str, annotation: str, value: Any) -> Any:
             return tuple(_scalar(name, inner[0], v) for v in value)
         if len(value) != len(inner):
             raise fail(name, value, f"must be a pair LO,HI of {inner[0]}s" if len(inner) == 2
-                        else f"must be one value or {len(inner)} {inner[0]}s")
+                        else f"must be {'one value or ' if one else ''}{len(inner)} {inner[0]}s")
         return tuple(_scalar(name, k, v) for k, v in zip(inner, value, strict=True))
     if kind in ("int", "float", "bool", "str"):
         return _scalar(name, kind, value)
@@ -148,8 +149,6 @@ def check_config(config: Any) -> None:
                           ("train_horizon_s", config.grad)):
         if (getattr(section, name) or 0.0) / pl.dt > MAX_STEPS:
             raise fail(name, getattr(section, name), f"must be at most {MAX_STEPS:.0e} time steps of dt = {pl.dt} s")
-    if config.grad.init_gains is not None and len(config.grad.init_gains) != 3:
-        raise fail("init_gains", config.grad.init_gains, "must be three gains eta1,eta2,eta3")
 
 
 def _check_reference_validation(pl: Any) -> None:

@@ -22,7 +22,7 @@ from typing import Any
 from jaxtraffic.control.gain_law import FILTER_SIGMA
 from jaxtraffic.learn.env import EnvParams, make_env_params
 from jaxtraffic.learn.fields import hyper, range_of
-from jaxtraffic.learn.gradient.config import METHODS, POLICIES, POLICY_DEFAULTS, GradientConfig
+from jaxtraffic.learn.gradient.config import GradientConfig
 from jaxtraffic.learn.ppo import PPOConfig
 from jaxtraffic.model.params import SCHEMES, TrafficParams
 from jaxtraffic.sim.metrics import REWARD_TARGET
@@ -38,7 +38,6 @@ def _defaults(cls: type) -> dict[str, Any]:
 _TP = _defaults(TrafficParams)
 _EP = _defaults(EnvParams)
 _PPO = _defaults(PPOConfig)
-_GRAD = _defaults(GradientConfig)
 ALGOS = ("ppo", "gradient")
 # The default PPO recipe is a population (BENCHMARKS.md "A population by default"): POPULATION members
 # trained at once, each on PPOConfig's num_envs / POPULATION environments, so that a chunk steps as many
@@ -116,66 +115,7 @@ class EnvConfig:
                              "pointwise law")
     controller_points: int | None = _f(None, "gradient training: the controller's own grid (nodes over the road; "
                                        "the plant's n-points must refine it by an integer factor); default: the "
-                                       "plant's grid")
-
-
-def _by_policy(name: str) -> str:
-    return ", ".join(f"{p}: {POLICY_DEFAULTS[p].get(name, _GRAD[name])}" for p in POLICIES)
-
-
-@dataclass(frozen=True)
-class GradConfig:
-    """Gradient-based training (``--algo gradient``, ``learn.gradient.GradientConfig``): analytic gradients
-    of a rollout objective over a grid of training scenarios. ``None``: the policy's default."""
-
-    policy: str = _f(_GRAD["policy"], "gains: three constant gains; network: the actor network PPO trains "
-                     "(state-dependent gains); schedule: gains scheduled in the delay the controller is told "
-                     "(--schedule-knots), trained over the robustness map's delays and alphas", choices=POLICIES)
-    grad_steps: int | None = _f(None, f"Adam steps ({_by_policy('grad_steps')})")
-    grad_lr: float | None = _f(None, f"Adam step size ({_by_policy('grad_lr')})")
-    train_delays: tuple[float, ...] | None = _f(None, "plant delays of the training scenarios, s "
-                                                 f"({_by_policy('train_delays')})")
-    train_alphas: tuple[float, ...] | None = _f(None, "plant alphas of the training scenarios "
-                                                 f"({_by_policy('train_alphas')})")
-    train_amplitudes: tuple[float, ...] = _f(_GRAD["train_amplitudes"], "initial perturbation amplitudes, veh/m")
-    train_wavenumbers: tuple[int, ...] = _f(_GRAD["train_wavenumbers"], "initial perturbation wavenumbers")
-    train_phases: tuple[float, ...] = _f(_GRAD["train_phases"], "initial perturbation phases, rad")
-    train_horizon_s: float | None = _f(None, f"rollout length of the objective, s ({_by_policy('train_horizon_s')})")
-    record_every: int = _f(_GRAD["record_every"], "steps between objective samples (also the checkpointed chunk)")
-    steps_per_chunk: int = _f(_GRAD["steps_per_chunk"], "Adam steps per compiled chunk (progress/checkpoint interval)")
-    reward_weight: float | None = _f(None, "objective weight of -mean reward (dimensionless; "
-                                     f"{_by_policy('reward_weight')})")
-    waves_weight: float | None = _f(None, "objective weight of the mean of log(1 + var_x rho/100 + var_x v) "
-                                    "weighted by t/T (rho in veh/km, v in m/s): wave amplitude, blind to a uniform "
-                                    f"offset ({_by_policy('waves_weight')})")
-    comfort_weight: float | None = _f(None, f"objective weight of J_comfort ({_by_policy('comfort_weight')})")
-    effort_weight: float = _f(_GRAD["effort_weight"], "objective weight of mean (h - h_bar)^2, 1/s^2")
-    scenario_clip: float | None = _f(None, "> 0: clip each scenario's gradient to this norm before averaging; 0: "
-                                     f"off ({_by_policy('scenario_clip')})")
-    certificate_weight: float = _f(_GRAD["certificate_weight"], "objective weight of the certificate penalty: by how "
-                                   "much the law's largest growth rate (1/s, control.stability) exceeds 1e-3/s")
-    init_gains: tuple[float, ...] | None = _f(None, "initial gains eta1,eta2,eta3 (schedule: at every knot; "
-                                              f"{_by_policy('init_gains')})")
-    schedule_knots: tuple[float, ...] = _f(_GRAD["schedule_knots"],
-                                           "schedule policy: the knot delays of its gain table, s")
-    grad_method: str | None = _f(None, "adam: Adam on the objective's gradient; cem: the cross-entropy method on the "
-                                 "robustness map's counts (stabilised, diverged) over the training scenarios, "
-                                 f"derivative-free, --grad-steps generations ({_by_policy('grad_method')})",
-                                 choices=METHODS)
-    cem_population: int = _f(_GRAD["cem_population"], "cem: parameter sets rolled out per generation")
-    cem_sigma: float = _f(_GRAD["cem_sigma"], "cem: initial standard deviation of the search over the gains")
-    grad_gain_max: float | None = _f(None, f"network policy: |eta_i| bound (default {_GRAD['grad_gain_max']}; "
-                                     "PPO's is --gain-max)")
-
-    def gradient_config(self, env: EnvConfig, hidden: tuple[int, ...]) -> GradientConfig:
-        """The algorithm's ``GradientConfig``: every field given (not ``None``) under its own name, which is
-        ``GradientConfig``'s too, over the policy's defaults (``POLICY_DEFAULTS``); the gain filter, the law's
-        filter and the controller's grid from ``env``, the network from ``algo`` (``hidden``). The gain bound is
-        ``grad_gain_max``, not PPO's ``env.gain_max``: the gradient results were measured with 3."""
-        given = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        return GradientConfig.for_policy(
-            **{k: tuple(v) if isinstance(v, list) else v for k, v in given.items() if v is not None}, hidden=hidden,
-            gain_filter=env.gain_filter, filter_sigma=env.filter_sigma, controller_points=env.controller_points or 0)
+                                       "plant's grid", lo=3)
 
 
 @dataclass(frozen=True)
@@ -231,8 +171,7 @@ class RunConfig:
 
 
 _lend_ranges(EnvConfig, EnvParams)
-_lend_ranges(EnvConfig, GradientConfig)  # filter_sigma, controller_points
-_lend_ranges(GradConfig, GradientConfig)
+_lend_ranges(EnvConfig, GradientConfig)  # filter_sigma
 
 RUN_CONTROL = ("out_dir", "total_steps", "max_wall_s", "keep_going", "resume", "overwrite", "quiet", "stop_patience",
                "target_reward", "min_wave_speed", "require_certificate", "tensorboard", "val_target",
@@ -251,12 +190,16 @@ class TrainConfig:
     plant: PlantConfig = PlantConfig()
     env: EnvConfig = EnvConfig()
     ppo: PPOConfig = PPOConfig(num_envs=_PPO["num_envs"] // POPULATION, num_seeds=POPULATION)
-    grad: GradConfig = GradConfig()
+    grad: GradientConfig = GradientConfig()
     run: RunConfig = RunConfig()
 
     def __post_init__(self) -> None:
         from jaxtraffic.runs.config.checks import check_config  # every field's type and range (ValueError)
         check_config(self)
+        # the gradient trainer's filter, grid and network are the environment's and PPO's (one value each)
+        object.__setattr__(self, "grad", dataclasses.replace(
+            self.grad, hidden=tuple(self.ppo.hidden), gain_filter=self.env.gain_filter,
+            filter_sigma=self.env.filter_sigma, controller_points=self.env.controller_points or 0))
 
     @classmethod
     def from_flat(cls, **values: Any) -> TrainConfig:
@@ -267,11 +210,12 @@ class TrainConfig:
             if name not in _OWNER:
                 raise TypeError(f"unknown config field {name!r}")
             parts[_OWNER[name]][name] = value
-        return cls(**{s: dataclasses.replace(_DEFAULT[s], **kw) for s, kw in parts.items()})
+        grad = GradientConfig.for_policy(**parts.pop("grad"))  # the policy's defaults under the given fields
+        return cls(grad=grad, **{s: dataclasses.replace(_DEFAULT[s], **kw) for s, kw in parts.items()})
 
     def flat(self) -> dict[str, Any]:
         """Every leaf field by name."""
-        return {f.name: getattr(getattr(self, s), f.name) for s in SECTIONS for f in dataclasses.fields(SECTIONS[s])}
+        return {f.name: getattr(getattr(self, s), f.name) for s in SECTIONS for f in leaf_fields(s)}
 
     def replace(self, **values: Any) -> TrainConfig:
         """A copy with the given leaf fields changed."""
@@ -293,13 +237,23 @@ class TrainConfig:
             diverge_penalty=en.diverge_penalty, filter_sigma=en.filter_sigma)
 
 
-SECTIONS = {"plant": PlantConfig, "env": EnvConfig, "ppo": PPOConfig, "grad": GradConfig, "run": RunConfig}
+SECTIONS = {"plant": PlantConfig, "env": EnvConfig, "ppo": PPOConfig, "grad": GradientConfig, "run": RunConfig}
+# GradientConfig's fields that a run sets from other sections (``TrainConfig.__post_init__``), or not at all
+# (max_grad_norm: PPO's field of that name is the flag's)
+BORROWED = ("hidden", "gain_filter", "filter_sigma", "controller_points", "max_grad_norm")
+
+
+def leaf_fields(section: str) -> list[dataclasses.Field]:
+    """The fields of a section that are its own (a flag each): all but the gradient section's ``BORROWED``."""
+    return [f for f in dataclasses.fields(SECTIONS[section]) if section != "grad" or f.name not in BORROWED]
+
+
 _DEFAULT = {f.name: f.default for f in dataclasses.fields(TrainConfig)}
 # the fields only one algorithm reads (the plant, and the run's place, seed, wall budget, evaluation horizon and
 # printing, are both's; the gradient trainer's network policy takes --hidden)
 _names = lambda cls: {f.name for f in dataclasses.fields(cls)}  # noqa: E731
 ONLY_FOR = {
-    "gradient": _names(GradConfig) | {"controller_points"},
+    "gradient": {f.name for f in leaf_fields("grad")} | {"controller_points"},
     "ppo": (_names(PPOConfig) - {"hidden"})
     | (_names(EnvConfig) - {"gain_filter", "filter_sigma", "controller_points"})
     | {"total_steps", "keep_going", "target_reward", "min_wave_speed", "require_certificate",
@@ -317,8 +271,8 @@ def check_flags_apply(algo: str, given: dict | set) -> None:
                                                           and "total_steps" in wrong else ""))
 
 
-_OWNER = {f.name: s for s, c in SECTIONS.items() for f in dataclasses.fields(c)}
-_TYPES = {f.name: str(f.type) for c in SECTIONS.values() for f in dataclasses.fields(c)}
+_OWNER = {f.name: s for s in SECTIONS for f in leaf_fields(s)}
+_TYPES = {f.name: str(f.type) for s in SECTIONS for f in leaf_fields(s)}
 
 
 def _tuples(x: Any) -> Any:
@@ -348,7 +302,8 @@ def config_from_json(data: dict[str, Any], where: str = "config.json") -> TrainC
             missing = [s for s in required if not isinstance(tree, dict) or not isinstance(tree.get(s), dict)]
             raise ValueError(f"{where}: the config tree lacks the section(s) {missing} (has {have}); "
                              "not a complete config.json written by train.py")
-        flat = {k: v for section in tree.values() if isinstance(section, dict) for k, v in section.items()}
+        flat = {k: v for s, section in tree.items() if isinstance(section, dict) for k, v in section.items()
+                if s != "grad" or k not in BORROWED}
     elif "settings" in data:  # written before the config tree
         flat = data["settings"]
         if "gain_filter" not in flat:

@@ -23,7 +23,7 @@ from jaxtraffic.runs.gradient.policy import gradient_setup
 GIVEN = {"grad_steps": 6, "grad_lr": 0.02, "train_delays": (1.0, 2.0), "train_alphas": (0.2, 0.3),
          "train_amplitudes": (0.005,), "train_wavenumbers": (2, 3), "train_phases": (0.5,), "train_horizon_s": 90.0,
          "record_every": 3, "steps_per_chunk": 2, "reward_weight": 0.5, "waves_weight": 0.25, "comfort_weight": 2e-5,
-         "effort_weight": 0.125, "scenario_clip": 0.75, "certificate_weight": 0.5, "init_gains": (0.1, -0.2, 0.3),
+         "scenario_clip": 0.75, "init_gains": (0.1, -0.2, 0.3),
          "schedule_knots": (0.0, 3.0), "grad_method": "cem", "cem_population": 5, "cem_sigma": 0.4,
          "grad_gain_max": 2.5}
 TREE_FIELDS = {f.name for s in SECTIONS for f in leaf_fields(s)}
@@ -71,7 +71,7 @@ def test_every_range_lives_in_a_field_and_fields_imports_no_jaxtraffic():
     ("gain_filter", 0.0, lambda v: GradientConfig(gain_filter=v)),
     ("wave_weight", -1.0, lambda v: make_env_params(wave_weight=v)),
     ("gain_max", 0.0, lambda v: make_env_params(gain_max=(1.0, v, 3.0))),
-    ("lr_final", 1.5, lambda v: check_ppo_config(PPOConfig(lr_final=v))),
+    ("clip_eps", 0.0, lambda v: check_ppo_config(PPOConfig(clip_eps=v))),
     ("gamma", 0.0, lambda v: check_ppo_config(PPOConfig(gamma=v))),
     ("grad_lr", -1.0, lambda v: GradientConfig(grad_lr=v)),
     ("waves_weight", -0.5, lambda v: GradientConfig(waves_weight=v)),
@@ -81,7 +81,7 @@ def test_every_range_lives_in_a_field_and_fields_imports_no_jaxtraffic():
     ("cem_population", 1, lambda v: GradientConfig(cem_population=v)),
 ])
 def test_one_rule_checked_by_the_tree_and_by_the_struct(name, value, struct):
-    lib = {"gamma": PPOConfig, "lr_final": PPOConfig, "gain_filter": GradientConfig}.get(name, GradientConfig)
+    lib = {"gamma": PPOConfig, "clip_eps": PPOConfig, "gain_filter": GradientConfig}.get(name, GradientConfig)
     from jaxtraffic.learn.env import EnvParams
 
     lib = EnvParams if name in ("wave_weight", "gain_max") else lib

@@ -217,26 +217,19 @@ def test_validation_scores_the_candidates(runs):
 
 
 def test_load_policy_rejects_a_run_from_an_older_version(runs, tmp_path):
-    """A run whose config predates the gain filter (flat "settings", observation without the applied
-    gains) gives a clear error instead of a shape error deep inside the network; one written before
-    the config tree but after the gain filter loads."""
+    """A config.json of an older layout (flat "settings", an "algo" section, a field missing) is a clear error
+    that says to retrain, not a run loaded with guessed values."""
     old = tmp_path / "old"
     shutil.copytree(runs["A"], old)
-    tree = json.loads((old / "config.json").read_text())["config"]
+    data = json.loads((old / "config.json").read_text())
+    tree = data["config"]
     flat = {k: v for section in tree.values() for k, v in section.items()}
-    (old / "config.json").write_text(json.dumps({"settings": {**flat, "offset_range": [0, 0]}}))
-    assert load_policy(old)[1] == load_policy(runs["A"])[1]  # a pre-tree run loads (removed options ignored)
-    # a run written before the pooled observation / wave shaping / validation suite: loaded as it was trained
-    del tree["env"]["obs_segments"], tree["env"]["wave_weight"], tree["run"]["val_horizon_s"]
-    (old / "config.json").write_text(json.dumps({"config": tree}))
-    before = load_config(old)
-    assert (before.env.obs_segments, before.env.wave_weight, before.run.val_horizon_s) == (0, 0.0, 0.0)
-    with pytest.raises(ValueError, match="do not belong together"):  # its checkpoint has the pooled observation
-        load_policy(old)
-    del flat["gain_filter"]
-    (old / "config.json").write_text(json.dumps({"settings": flat}))
-    with pytest.raises(ValueError, match="older jaxtraffic"):
-        load_policy(old)
+    renamed = {"algo": tree["ppo"], **{k: v for k, v in tree.items() if k != "ppo"}}
+    for written in ({"settings": flat}, {"config": renamed},
+                    {"config": {**tree, "env": {k: v for k, v in tree["env"].items() if k != "wave_weight"}}}):
+        (old / "config.json").write_text(json.dumps({**data, **written}))
+        with pytest.raises(ValueError, match="older jaxtraffic.*retrain"):
+            load_policy(old)
     load_policy(runs["A"])  # the unmodified run loads
 
 
@@ -264,7 +257,7 @@ def test_cli_help_documents_every_flag(capsys):
     (["--n-points", "2"], "n_points"),
     (["--hidden", "a"], "comma-separated"),
     (["--delay-range", "1"], "LO,HI"),
-    (["--lr-final", "2"], "lr_final"),
+    (["--clip-eps", "0"], "clip_eps"),
     (["--diverge-penalty", "-1"], "diverge_penalty"),
 ])
 def test_cli_invalid_values_exit_2(argv, match, tmp_path, capsys):

@@ -3,7 +3,7 @@
 ``lr: float = hyper(1e-3, lo=0.0, lo_open=True)`` declares the field, its default and its range once, in the
 dataclass that uses it (``learn.env.EnvParams``, ``learn.ppo.PPOConfig``, ``learn.gradient.GradientConfig``);
 the run's config and the struct itself both check it against that metadata, with one message naming the field,
-e.g. ``grad_lr = -1.0: must be > 0.0``. This module imports nothing from jaxtraffic.
+e.g. ``gamma = 5.0: must lie in (0.0, 1.0]``. This module imports nothing from jaxtraffic.
 """
 
 from __future__ import annotations

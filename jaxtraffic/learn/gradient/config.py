@@ -49,13 +49,11 @@ class GradientConfig:
     reward_weight: float = hyper(1.0, lo=0.0, help="objective weight of -mean reward (dimensionless)")
     waves_weight: float = hyper(0.0, lo=0.0, help="objective weight of the wave amplitude (log variance)")
     comfort_weight: float = hyper(1e-5, lo=0.0, help="objective weight of J_comfort")
-    effort_weight: float = hyper(0.0, lo=0.0, help="objective weight of mean (h - h_bar)^2, 1/s^2")
     init_gains: tuple[float, float, float] = hyper((0.0, 0.0, 0.0), help="initial gains eta1,eta2,eta3")
     grad_steps: int = hyper(40, lo=1, help="Adam steps (cem: generations)")
     scenario_clip: float = hyper(0.0, lo=0.0, help="> 0: clip each scenario's gradient to this norm; 0: off")
     filter_sigma: float = hyper(FILTER_SIGMA, lo=0.0)  # m, the gain law's Gaussian filter; 0: pointwise
     controller_points: int = 0  # the controller's own grid (``control.adapter``); 0: the plant's
-    certificate_weight: float = hyper(0.0, lo=0.0, help="objective weight of the certificate penalty, 1/s")
     schedule_knots: tuple[float, ...] = hyper((0.0, 2.0, 4.0, 6.0, 8.0), help="schedule policy: its knot delays, s")
     grad_method: str = hyper("adam", help="adam: Adam on the objective; cem: the cross-entropy method on the map's "
                              "counts", choices=METHODS)

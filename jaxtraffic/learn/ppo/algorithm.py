@@ -63,10 +63,6 @@ class PPOConfig:
     vf_coef: float = hyper(0.5, lo=0.0, help="value loss weight")
     max_grad_norm: float = hyper(0.5, lo=0.0, lo_open=True, help="global gradient-norm clip")
     reward_scale: float = hyper(0.01, lo=0.0, lo_open=True, help="reward multiplier for learning")
-    # env steps (per seed) over which lr falls linearly to lr * lr_final; 0: constant. Static: it sets the
-    # schedule's length (optax.linear_schedule's transition_steps is a Python number)
-    lr_decay_steps: float = hyper(0.0, lo=0.0, static=True, help="env steps over which lr falls to lr * lr_final")
-    lr_final: float = hyper(0.1, lo=0.0, hi=1.0, help="final learning rate, a fraction of lr")
 
     def network(self, n_actions: int = 3) -> ActorCritic:
         return ActorCritic(hidden=tuple(self.hidden), init_sigma=self.init_sigma,
@@ -124,15 +120,9 @@ def check_ppo_config(ppo_config: PPOConfig) -> None:
 
 
 def lr_schedule(ppo_config: PPOConfig) -> optax.Schedule:
-    """The Adam step size as a function of the optimiser's step count (``optax.linear_schedule``):
-    ``lr``, falling linearly to ``lr * lr_final`` over ``lr_decay_steps`` env steps (constant when that
-    is 0). The count advances once per minibatch; the rate is held for a whole PPO update
-    (``update_epochs * num_minibatches`` optimiser steps), so it is a function of the update number,
-    and resuming from a checkpoint (which holds the count) continues it exactly."""
-    per_update = ppo_config.update_epochs * ppo_config.num_minibatches
-    by_update = optax.linear_schedule(init_value=ppo_config.lr, end_value=ppo_config.lr * ppo_config.lr_final,
-                                      transition_steps=ppo_config.lr_decay_steps / ppo_config.steps_per_update)
-    return lambda count: by_update(count // per_update)
+    """The Adam step size as a function of the optimiser's step count: the constant ``lr`` (a schedule, so
+    that the optimiser's state holds the step count, as the checkpoints always have)."""
+    return lambda count: ppo_config.lr
 
 
 def make_optimizer(ppo_config: PPOConfig) -> optax.GradientTransformation:

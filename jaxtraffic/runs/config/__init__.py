@@ -4,7 +4,6 @@
 
 from jaxtraffic.runs.config.tree import (
     ALGOS,
-    BEFORE_FIELD,
     CONFIG_VERSION,
     ONLY_FOR,
     POPULATION,
@@ -20,6 +19,6 @@ from jaxtraffic.runs.config.tree import (
     load_config,
 )
 
-__all__ = ["ALGOS", "BEFORE_FIELD", "CONFIG_VERSION", "ONLY_FOR", "POPULATION", "RUN_CONTROL", "SECTIONS",
+__all__ = ["ALGOS", "CONFIG_VERSION", "ONLY_FOR", "POPULATION", "RUN_CONTROL", "SECTIONS",
            "EnvConfig", "PlantConfig", "RunConfig", "TrainConfig", "check_flags_apply",
            "config_from_json", "config_json", "load_config"]

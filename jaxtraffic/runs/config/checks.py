@@ -115,7 +115,7 @@ def check_section(section: Any) -> None:
         rule = f.metadata.get("range")
         if isinstance(typed, tuple) and rule is None:  # LO,HI pairs
             _check_pair(f.name, typed)
-        else:  # a number, or each element of a tuple (gain_max, train_delays, train_alphas)
+        else:  # a number, or each element of a tuple (gain_max, the scenario grids)
             check_value(f.name, typed, rule)
 
 

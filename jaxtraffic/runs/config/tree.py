@@ -5,8 +5,8 @@ structs they configure (``TrafficParams``, ``EnvParams``, ``PPOConfig``), the ru
 ``train.py``'s flags are generated from the fields (``cli.train``, one flag per leaf field, named
 after it, with the ``help`` of its metadata). A run's config.json is ``config_json(config)``, and
 ``load_config(run_dir)`` reads it back: resume, ``load_policy`` and the evaluation all use it.
-Run directories written before the tree (flat "settings") load too; keys of removed options are
-ignored.
+A config.json of an older version (another layout, or without a field of today's) is an error that says
+so: such a run is retrained, not guessed at.
 """
 
 from __future__ import annotations
@@ -27,7 +27,8 @@ from jaxtraffic.learn.ppo import PPOConfig
 from jaxtraffic.model.params import SCHEMES, TrafficParams
 from jaxtraffic.sim.metrics import REWARD_TARGET
 
-CONFIG_VERSION = 2
+CONFIG_VERSION = 3
+OLD = "retrain the run with this version of train.py (its flags are in that config.json)"
 
 
 def _defaults(cls: type) -> dict[str, Any]:
@@ -176,12 +177,6 @@ _lend_ranges(EnvConfig, GradientConfig)  # filter_sigma
 RUN_CONTROL = ("out_dir", "total_steps", "max_wall_s", "keep_going", "resume", "overwrite", "quiet", "stop_patience",
                "target_reward", "min_wave_speed", "require_certificate", "tensorboard", "val_target",
                "checkpoint_every")
-# fields absent from a run's config.json because it was written before they existed: their value then
-# (the run is loaded and resumed as it was trained, not with today's defaults)
-BEFORE_FIELD = {"obs_segments": 0, "wave_weight": 0.0, "val_horizon_s": 0.0, "restart_steps": 0,
-                "filter_sigma": 0.0, "require_certificate": False, "val_plant": "training"}
-
-
 @dataclass(frozen=True)
 class TrainConfig:
     """The whole training configuration: ``plant``, ``env``, ``ppo`` (the library's ``PPOConfig`` as it is:
@@ -287,7 +282,7 @@ def config_json(config: TrainConfig, **extra: Any) -> dict[str, Any]:
 
 def config_from_json(data: dict[str, Any], where: str = "config.json") -> TrainConfig:
     """The ``TrainConfig`` of a config.json's content. Keys of options that no longer exist are ignored;
-    files written before the tree (flat ``settings``) are converted."""
+    a file of an older version (flat ``settings``, an ``algo`` section, a field missing) is an error."""
     if not isinstance(data, dict):
         raise ValueError(f"{where}: not a config.json written by train.py (a JSON {type(data).__name__}, "
                          "not an object)")
@@ -295,7 +290,7 @@ def config_from_json(data: dict[str, Any], where: str = "config.json") -> TrainC
         tree = data["config"]
         if isinstance(tree, dict) and "algo" in tree and "ppo" not in tree:
             raise ValueError(f"{where} was written by an older jaxtraffic (an 'algo' section; PPO's settings are "
-                             "now the 'ppo' section, PPOConfig as it is): retrain the run with this version")
+                             f"now the 'ppo' section, PPOConfig as it is): {OLD}")
         required = ("plant", "env", "ppo", "run")  # (sections added later default when absent)
         if not isinstance(tree, dict) or not all(isinstance(tree.get(s), dict) for s in required):
             have = sorted(tree) if isinstance(tree, dict) else type(tree).__name__
@@ -305,20 +300,18 @@ def config_from_json(data: dict[str, Any], where: str = "config.json") -> TrainC
         flat = {k: v for s, section in tree.items() if isinstance(section, dict) for k, v in section.items()
                 if s != "grad" or k not in BORROWED}
     elif "settings" in data:  # written before the config tree
-        flat = data["settings"]
-        if "gain_filter" not in flat:
-            raise ValueError(f"{where} was written by an older jaxtraffic (before the gain filter, with an "
-                             "observation without the applied gains): retrain it with train.py")
+        raise ValueError(f"{where} was written by an older jaxtraffic (flat settings): {OLD}")
     else:
         raise ValueError(f"{where}: neither a config tree nor settings; not written by train.py")
-    if not isinstance(flat, dict):
-        raise ValueError(f"{where}: \"settings\" is not an object; not written by train.py")
+    missing = sorted(set(_OWNER) - set(flat))
+    if missing:
+        raise ValueError(f"{where} was written by an older jaxtraffic (it lacks {', '.join(missing)}): {OLD}")
     # JSON has no inf: a null float that cannot be None stands for inf (max_wall_s, val_target), any other for the
     # default
     values = {k: math.inf if v is None and _TYPES[k] == "float" else _tuples(v) for k, v in flat.items()
               if k in _OWNER and (v is not None or "None" in _TYPES[k] or _TYPES[k] == "float")}
     try:
-        return TrainConfig.from_flat(**{**{k: v for k, v in BEFORE_FIELD.items() if k not in flat}, **values})
+        return TrainConfig.from_flat(**values)
     except (TypeError, ValueError) as err:
         raise ValueError(f"{where}: {err}") from None
 

@@ -20,6 +20,7 @@ from pathlib import Path
 
 from jaxtraffic.platform import compile_cache, distributed
 from jaxtraffic.runs.config import RUN_CONTROL, RunConfig, TrainConfig, check_flags_apply, load_config
+from jaxtraffic.runs.config.toml import read_flat
 from jaxtraffic.runs.config.tree import leaf_fields
 from jaxtraffic.runs.gradient.trainer import train_gradient
 from jaxtraffic.runs.ppo.trainer import train
@@ -55,6 +56,8 @@ def _gain_bounds(text: str):
     return parts[0] if len(parts) == 1 else tuple(parts)
 
 
+PROG = os.path.basename(sys.argv[0]) if sys.argv and sys.argv[0] not in ("", "-c", "-m") else "train.py"
+PROG = "train.py" if PROG == "__main__.py" else PROG  # (python -m ...)
 GROUPS = {"run": "run", "plant": "plant and grid", "env": "episodes and domain randomisation", "ppo": "PPO",
           "grad": "gradient-based training (--algo gradient)"}
 _PARSERS = {"int": int, "float": float, "str": str, "float | None": float, "int | None": int, "str | None": str,
@@ -67,7 +70,11 @@ _PARSERS = {"int": int, "float": float, "str": str, "float | None": float, "int 
 def build_parser() -> argparse.ArgumentParser:
     """One flag per leaf of ``TrainConfig`` (``--n-points`` for ``plant.n_points``), with the field's
     default and help: the flags cannot drift from the library's defaults."""
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser = argparse.ArgumentParser(prog=PROG, description=__doc__, allow_abbrev=False,
+                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
+    parser.add_argument("--config", default=None, metavar="FILE.toml",
+                        help="start from this config file (a run's config.toml); flags given override it")
     for section in ("run", "plant", "env", "ppo", "grad"):
         g = parser.add_argument_group(GROUPS[section])
         defaults = getattr(TrainConfig(), section)
@@ -85,14 +92,28 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("jaxtraffic")
+    except PackageNotFoundError:
+        return "unknown"
+
+
 def config_from_args(argv: list[str] | None = None) -> TrainConfig:
     """The training configuration the flags ``argv`` (default: the command line's) describe."""
-    return _config(build_parser().parse_args(argv))
+    return _config(build_parser().parse_args(argv), argv)
 
 
-def _config(args: argparse.Namespace) -> TrainConfig:
-    """The training configuration of parsed flags: the cluster flags dropped, --out-dir's default resolved."""
-    args = argparse.Namespace(**{k: v for k, v in vars(args).items() if k not in distributed.FLAGS})
+def _config(args: argparse.Namespace, argv: list[str] | None) -> TrainConfig:
+    """The training configuration of parsed flags: the cluster flags dropped, --out-dir's default resolved;
+    with --config, that file's fields under the flags given."""
+    if args.config is not None:
+        given = explicit_flags(argv)
+        base = {"out_dir": None, **read_flat(args.config)}
+        args = argparse.Namespace(**{**vars(args), **{k: v for k, v in base.items() if k not in given}})
+    args = argparse.Namespace(**{k: v for k, v in vars(args).items() if k not in (*distributed.FLAGS, "config")})
     if args.min_wave_speed == -math.inf:  # the paper's rule alone (stored as null in the JSON outputs)
         args.min_wave_speed = None
     if args.out_dir is None:
@@ -131,11 +152,11 @@ def main(argv: list[str] | None = None) -> Path:
     run directory, 130 / 143 after SIGINT / SIGTERM (see ``learn.ppo.trainer``)."""
     try:
         args = build_parser().parse_args(argv)
-        config = _config(args)
+        config = _config(args, argv)
         cluster = [getattr(args, k) for k in distributed.FLAGS]
         distributed.initialize(*cluster)
         compile_cache.enable()  # before the first compilation (jaxtraffic.platform.compile_cache)
-        given = explicit_flags(argv)
+        given = {k: v for k, v in explicit_flags(argv).items() if k != "config"}
         if config.run.resume:
             check_resumable(Path(config.run.out_dir))
             config = resumed_config(config, given)
@@ -145,10 +166,10 @@ def main(argv: list[str] | None = None) -> Path:
         raise SystemExit(exc.exit_code) from None
     except BrokenPipeError:  # stdout closed early (train.py | head): say so once, without a traceback
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-        print("train.py: error: standard output was closed (broken pipe); stopped", file=sys.stderr)
+        print(f"{PROG}: error: standard output was closed (broken pipe); stopped", file=sys.stderr)
         raise SystemExit(2) from None
     except (ValueError, OSError) as err:  # invalid parameters / run directory, a full disk, no permission...
-        print(f"train.py: error: {err}", file=sys.stderr)
+        print(f"{PROG}: error: {err}", file=sys.stderr)
         raise SystemExit(2) from err
 
 

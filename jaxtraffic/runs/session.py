@@ -31,7 +31,8 @@ __all__ = ["NonFiniteTraining", "RunLock", "StopSignals", "TrainingInterrupted",
 
 LOCK = ".lock"  # held (flock) by the training that writes the directory
 # what a run writes: a fresh run in a directory holding any of them would mix two runs
-RUN_FILES = (ckpt.CONFIG, ckpt.CHECKPOINT, ckpt.BEST, ckpt.SUMMARY, "learning_curve.csv", "learning_curve.png")
+RUN_FILES = (ckpt.CONFIG, "config.toml",
+             ckpt.CHECKPOINT, ckpt.BEST, ckpt.SUMMARY, "learning_curve.csv", "learning_curve.png")
 RESULTS = (ckpt.CHECKPOINT, ckpt.BEST, ckpt.SUMMARY)  # what a fresh run would mix with
 
 

@@ -43,3 +43,16 @@ def test_a_run_from_its_config_toml_is_the_same_run(argv, tmp_path):
     assert _trained(again) == _trained(first)  # every saved array, byte for byte (the meta holds wall times)
     with pytest.raises(SystemExit):  # a flag given with --config overrides the file (here: a bad value)
         train_cli.main(["--config", str(first / "config.toml"), "--out-dir", str(tmp_path / "c"), "--seed", "-1"])
+
+
+def test_removed_flags_name_their_replacement_and_version(capsys):
+    with pytest.raises(SystemExit) as exc:
+        train_cli.main(["--network", "paper"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and "--network was removed; use --hidden" in err and err.count("\n") == 1
+    with pytest.raises(SystemExit) as exc:
+        train_cli.main(["--version"])
+    assert exc.value.code == 0 and capsys.readouterr().out.split()[0] == train_cli.PROG
+    with pytest.raises(SystemExit):  # no abbreviations: --clip is not --clip-eps
+        train_cli.main(["--clip", "0.1"])
+    assert "unrecognized arguments: --clip" in capsys.readouterr().err

@@ -58,6 +58,10 @@ def _gain_bounds(text: str):
 
 PROG = os.path.basename(sys.argv[0]) if sys.argv and sys.argv[0] not in ("", "-c", "-m") else "train.py"
 PROG = "train.py" if PROG == "__main__.py" else PROG  # (python -m ...)
+# flags of the last release that are gone: what to give instead
+REMOVED = {"--network": "--hidden (layer sizes, e.g. 64,64)", "--lr-decay-steps": "--lr (the rate is constant)",
+           "--lr-final": "--lr (the rate is constant)", "--certificate-weight": "nothing (the penalty is gone)",
+           "--effort-weight": "nothing (the term is gone)"}
 GROUPS = {"run": "run", "plant": "plant and grid", "env": "episodes and domain randomisation", "ppo": "PPO",
           "grad": "gradient-based training (--algo gradient)"}
 _PARSERS = {"int": int, "float": float, "str": str, "float | None": float, "int | None": int, "str | None": str,
@@ -151,6 +155,9 @@ def main(argv: list[str] | None = None) -> Path:
     runs on a device), train, return the run directory. Exit status 2 for invalid flags or a broken
     run directory, 130 / 143 after SIGINT / SIGTERM (see ``learn.ppo.trainer``)."""
     try:
+        gone = [a.split("=")[0] for a in (sys.argv[1:] if argv is None else argv) if a.split("=")[0] in REMOVED]
+        if gone:
+            raise ValueError(f"{gone[0]} was removed; use {REMOVED[gone[0]]}")
         args = build_parser().parse_args(argv)
         config = _config(args, argv)
         cluster = [getattr(args, k) for k in distributed.FLAGS]

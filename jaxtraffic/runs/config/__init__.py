@@ -2,6 +2,7 @@
 (``GradientConfig``), run; config.json and its loader) and the checks every field passes when a tree is built
 (``checks``)."""
 
+from jaxtraffic.runs.config.toml import read_config, write_config
 from jaxtraffic.runs.config.tree import (
     ALGOS,
     CONFIG_VERSION,
@@ -21,4 +22,4 @@ from jaxtraffic.runs.config.tree import (
 
 __all__ = ["ALGOS", "CONFIG_VERSION", "ONLY_FOR", "POPULATION", "RUN_CONTROL", "SECTIONS",
            "EnvConfig", "PlantConfig", "RunConfig", "TrainConfig", "check_flags_apply",
-           "config_from_json", "config_json", "load_config"]
+           "config_from_json", "config_json", "load_config", "read_config", "write_config"]

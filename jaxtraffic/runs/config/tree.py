@@ -198,7 +198,7 @@ class TrainConfig:
 
     @classmethod
     def from_flat(cls, **values: Any) -> TrainConfig:
-        """A config from leaf-field names (``TrainConfig.from_flat(n_points=21, lr=1e-3)``); an unknown
+        """A config from leaf-field names (``TrainConfig.from_flat(n_points=21, num_envs=64)``); an unknown
         name is a ``TypeError``."""
         parts: dict[str, dict[str, Any]] = {s: {} for s in SECTIONS}
         for name, value in values.items():

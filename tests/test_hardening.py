@@ -73,18 +73,18 @@ def test_nominal_with_other_physics_is_accepted():
 
 # ----------------------------------------------------------------------------- PPO hyperparameters
 @pytest.mark.parametrize("argv, match", [
-    (["--lr", "-1"], "lr = -1.0 (--lr): must be > 0"),
-    (["--gamma", "5"], "gamma = 5.0 (--gamma): must lie in (0.0, 1.0]"),
-    (["--clip-eps", "-1"], "clip_eps = -1.0 (--clip-eps): must be > 0"),
-    (["--num-envs", "0"], "num_envs = 0 (--num-envs): must be >= 1"),
-    (["--seeds", "0"], "seeds = 0 (--seeds): must be >= 1"),
-    (["--num-steps", "-5"], "num_steps = -5 (--num-steps): must be >= 1"),
-    (["--num-minibatches", "0"], "num_minibatches = 0 (--num-minibatches): must be >= 1"),
+    (["--lr", "-1"], "lr = -1.0: must be > 0"),
+    (["--gamma", "5"], "gamma = 5.0: must lie in (0.0, 1.0]"),
+    (["--clip-eps", "-1"], "clip_eps = -1.0: must be > 0"),
+    (["--num-envs", "0"], "num_envs = 0: must be >= 1"),
+    (["--seeds", "0"], "num_seeds = 0: must be >= 1"),
+    (["--num-steps", "-5"], "num_steps = -5: must be >= 1"),
+    (["--num-minibatches", "0"], "num_minibatches = 0: must be >= 1"),
     (["--num-minibatches", "3"], "must divide the batch"),
-    (["--updates-per-chunk", "0"], "updates_per_chunk = 0 (--updates-per-chunk): must be >= 1"),
-    (["--stop-patience", "0"], "stop_patience = 0 (--stop-patience): must be >= 1"),
-    (["--total-steps", "-1"], "total_steps = -1 (--total-steps): must be >= 1"),
-    (["--lr", "nan"], "lr = nan (--lr): must be finite"),
+    (["--updates-per-chunk", "0"], "updates_per_chunk = 0: must be >= 1"),
+    (["--stop-patience", "0"], "stop_patience = 0: must be >= 1"),
+    (["--total-steps", "-1"], "total_steps = -1: must be >= 1"),
+    (["--lr", "nan"], "lr = nan: must be finite"),
     (["--gain-filter", "5"], "gain_filter = 5.0"),
     (["--max-wall-s", "0"], "max_wall_s = 0.0"),
     (["--eval-horizon-s", "0.01"], "must be >= one time step"),
@@ -101,7 +101,7 @@ def test_bad_training_flags_exit_2_before_anything_is_written(argv, match, tmp_p
 
 def test_config_accepts_numpy_scalars_and_normalises_them():
     cfg = TrainConfig.from_flat(n_points=np.int64(21), lr=np.float32(0.5), max_wall_s=float("inf"))
-    assert type(cfg.plant.n_points) is int and type(cfg.algo.lr) is float
+    assert type(cfg.plant.n_points) is int and type(cfg.ppo.lr) is float
     with pytest.raises(ValueError, match="must be an integer"):
         TrainConfig.from_flat(num_envs=4.0)
 
@@ -109,7 +109,7 @@ def test_config_accepts_numpy_scalars_and_normalises_them():
 def test_device_count_constraints():
     cfg = TrainConfig.from_flat(num_envs=4, num_steps=8, num_minibatches=2)
     check_devices(cfg, 2)
-    with pytest.raises(ValueError, match=r"num_envs = 4 \(--num-envs\): must be divisible by the number of devices"):
+    with pytest.raises(ValueError, match=r"num_envs = 4: must be divisible by the number of devices"):
         check_devices(cfg, 3)
     with pytest.raises(ValueError, match="batch of each device"):
         check_devices(TrainConfig.from_flat(num_envs=4, num_steps=1, num_minibatches=4), 2)
@@ -436,7 +436,7 @@ def test_sigterm_saves_a_checkpoint_and_exits_143(procs):
     procs["term"].send_signal(signal.SIGTERM)
     rc, _, err = _finish(procs["term"])
     assert rc == 143, (rc, err[-2000:])
-    assert "SIGTERM" in err and "continue with --resume" in err
+    assert "SIGTERM" in err and "continue with resume" in err
     _, meta = ckpt.load_checkpoint(term)
     summary = json.loads((term / ckpt.SUMMARY).read_text())
     assert summary["interrupted"] is True and summary["env_steps"] == meta["env_steps"] >= CHUNK
@@ -543,10 +543,10 @@ BROKEN = {
     "foreign": (lambda run: (run / ckpt.CONFIG).write_text('{"name": "something else"}'),
                 "config.json: neither a config tree nor settings"),
     "not_json": (lambda run: (run / ckpt.CONFIG).write_text('{"config": '), "config.json: unreadable or not valid"),
-    "wrong_type": (_set("plant", "n_points", "21"), "config.json: n_points = '21' (--n-points): must be an integer"),
+    "wrong_type": (_set("plant", "n_points", "21"), "config.json: n_points = '21': must be an integer"),
     "grid": (_set("plant", "n_points", 41), "do not belong together"),  # 40 divides 800: passes the config checks
     "gain_filter": (_set("env", "gain_filter", 5), "config.json: gain_filter = 5.0"),
-    "gain_max_nan": (_set("env", "gain_max", float("nan")), "config.json: gain_max = nan (--gain-max): must be finite"),
+    "gain_max_nan": (_set("env", "gain_max", float("nan")), "config.json: gain_max = nan: must be finite"),
     # config.json edited after training (bound to the checkpoint), or made pathological
     "edited": (_set("env", "gain_max", 0.123), "gain_max = 0.123, but"),
     "algo": (_set("run", "algo", "gradient"), "do not belong together"),
@@ -599,7 +599,7 @@ def test_resume_with_another_device_count_explains(ref_run, tmp_path):
 @pytest.mark.slow
 def test_resume_keeps_the_saved_run_control_and_refuses_other_changes(ref_run):
     saved = load_config(ref_run)
-    cfg = saved.replace(lr=0.5, seeds=3, total_steps=7 * CHUNK, out_dir=str(ref_run), resume=True)
+    cfg = saved.replace(lr=0.5, num_seeds=3, total_steps=7 * CHUNK, out_dir=str(ref_run), resume=True)
     with pytest.raises(ValueError, match=r"would change it: --lr 0.5 \(the run's value: 0.001\), --seeds 3"):
         train_cli.resumed_config(cfg, {"lr": 0.5, "seeds": 3, "total_steps": 7 * CHUNK, "n_points": 21})
     # an equal value is no change; a run-control flag applies; one not given keeps the run's saved value

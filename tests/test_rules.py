@@ -1,4 +1,4 @@
-"""One name per hyperparameter, from the flag to the code, and one range per name (``learn.rules``)."""
+"""One name per hyperparameter, from the flag to the code, and one range per field (``learn.fields``)."""
 
 from __future__ import annotations
 
@@ -10,27 +10,27 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxtraffic.learn import rules
+from jaxtraffic.learn import fields
 from jaxtraffic.learn.env import make_env_params
 from jaxtraffic.learn.gradient.config import POLICY_DEFAULTS, GradientConfig
 from jaxtraffic.learn.gradient.objective import Weights, weights_of
 from jaxtraffic.learn.ppo import PPOConfig, check_ppo_config
 from jaxtraffic.runs.config import TrainConfig
-from jaxtraffic.runs.config.tree import SECTIONS, GradConfig
+from jaxtraffic.runs.config.tree import SECTIONS, leaf_fields
 from jaxtraffic.runs.gradient.policy import gradient_setup
 
-# a value of each GradConfig field other than its default and every policy's default, valid for the gains policy
+# a value of each gradient field other than its default and every policy's default, valid for the gains policy
 GIVEN = {"grad_steps": 6, "grad_lr": 0.02, "train_delays": (1.0, 2.0), "train_alphas": (0.2, 0.3),
          "train_amplitudes": (0.005,), "train_wavenumbers": (2, 3), "train_phases": (0.5,), "train_horizon_s": 90.0,
          "record_every": 3, "steps_per_chunk": 2, "reward_weight": 0.5, "waves_weight": 0.25, "comfort_weight": 2e-5,
-         "effort_weight": 0.125, "scenario_clip": 0.75, "certificate_weight": 0.5, "init_gains": (0.1, -0.2, 0.3),
+         "scenario_clip": 0.75, "init_gains": (0.1, -0.2, 0.3),
          "schedule_knots": (0.0, 3.0), "grad_method": "cem", "cem_population": 5, "cem_sigma": 0.4,
          "grad_gain_max": 2.5}
-TREE_FIELDS = {f.name for c in SECTIONS.values() for f in dataclasses.fields(c)}
+TREE_FIELDS = {f.name for s in SECTIONS for f in leaf_fields(s)}
 
 
 def test_every_flag_reaches_the_algorithm_under_its_own_name():
-    assert set(GIVEN) == {f.name for f in dataclasses.fields(GradConfig)} - {"policy"}
+    assert set(GIVEN) == {f.name for f in leaf_fields("grad")} - {"policy"}
     cfg = gradient_setup(TrainConfig.from_flat(algo="gradient", **GIVEN))[0]
     assert {name: getattr(cfg, name) for name in GIVEN} == GIVEN
     # the fields the algorithm has beyond the flags of its section come from the environment and the network
@@ -38,7 +38,7 @@ def test_every_flag_reaches_the_algorithm_under_its_own_name():
                                  n_points=21)
     cfg = gradient_setup(tree)[0]
     assert (cfg.gain_filter, cfg.filter_sigma, cfg.controller_points, cfg.hidden) == (0.5, 10.0, 11,
-                                                                                      tree.algo.hidden())
+                                                                                      tuple(tree.ppo.hidden))
     extra = {f.name for f in dataclasses.fields(GradientConfig)} - set(GIVEN) - {"policy"}
     assert extra == {"hidden", "gain_filter", "filter_sigma", "controller_points", "max_grad_norm"}
     # the policies' defaults and the objective's weights use the same names
@@ -48,9 +48,18 @@ def test_every_flag_reaches_the_algorithm_under_its_own_name():
     assert all(getattr(w, f.name) == np.float32(getattr(cfg, f.name)) for f in dataclasses.fields(Weights))
 
 
-def test_every_rule_names_a_config_field_and_rules_imports_no_jaxtraffic():
-    assert set(rules.RULES) <= TREE_FIELDS, set(rules.RULES) - TREE_FIELDS
-    tree = ast.parse(Path(rules.__file__).read_text())
+def test_every_range_lives_in_a_field_and_fields_imports_no_jaxtraffic():
+    """The tree's fields that configure a library field carry that field's range (one home), and the helper
+    module sits below everything it serves."""
+    from jaxtraffic.learn.env import EnvParams
+    from jaxtraffic.runs.config.tree import EnvConfig
+
+    for tree_cls, lib_cls in ((EnvConfig, EnvParams),):
+        for f in dataclasses.fields(tree_cls):
+            lib = fields.range_of(lib_cls, f.name) if f.name in {g.name for g in dataclasses.fields(lib_cls)} else None
+            if lib is not None:
+                assert f.metadata.get("range") == lib, (tree_cls.__name__, f.name)
+    tree = ast.parse(Path(fields.__file__).read_text())
     imported = [n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)] + \
         [a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names]
     assert not [m for m in imported if m and m.split(".")[0] == "jaxtraffic"], imported
@@ -62,7 +71,7 @@ def test_every_rule_names_a_config_field_and_rules_imports_no_jaxtraffic():
     ("gain_filter", 0.0, lambda v: GradientConfig(gain_filter=v)),
     ("wave_weight", -1.0, lambda v: make_env_params(wave_weight=v)),
     ("gain_max", 0.0, lambda v: make_env_params(gain_max=(1.0, v, 3.0))),
-    ("lr_final", 1.5, lambda v: check_ppo_config(PPOConfig(lr_final=v))),
+    ("clip_eps", 0.0, lambda v: check_ppo_config(PPOConfig(clip_eps=v))),
     ("gamma", 0.0, lambda v: check_ppo_config(PPOConfig(gamma=v))),
     ("grad_lr", -1.0, lambda v: GradientConfig(grad_lr=v)),
     ("waves_weight", -0.5, lambda v: GradientConfig(waves_weight=v)),
@@ -72,9 +81,13 @@ def test_every_rule_names_a_config_field_and_rules_imports_no_jaxtraffic():
     ("cem_population", 1, lambda v: GradientConfig(cem_population=v)),
 ])
 def test_one_rule_checked_by_the_tree_and_by_the_struct(name, value, struct):
-    rule = rules.RULES[name]
-    assert not rules.in_range(value, rule)
-    message = re.escape(f"{name} = {value!r} ({rules.flag(name)}): {rules.range_text(rule)}")
+    lib = {"gamma": PPOConfig, "clip_eps": PPOConfig, "gain_filter": GradientConfig}.get(name, GradientConfig)
+    from jaxtraffic.learn.env import EnvParams
+
+    lib = EnvParams if name in ("wave_weight", "gain_max") else lib
+    rule = fields.range_of(lib, name)
+    assert rule is not None and not fields.in_range(value, rule)
+    message = re.escape(f"{name} = {value!r}: {fields.range_text(rule)}")
     flat = {name: (1.0, value, 3.0) if name == "gain_max" else (2.0, value) if name == "train_delays"
             else (value,) if name == "train_alphas" else value}
     with pytest.raises(ValueError, match=message):
@@ -86,5 +99,5 @@ def test_one_rule_checked_by_the_tree_and_by_the_struct(name, value, struct):
 def test_the_plants_own_grid_is_not_a_grid_of_its_own():
     """GradientConfig's controller_points 0 (the tree's None: the plant's grid) passes; 1 or 2 points do not."""
     assert GradientConfig(controller_points=0).controller_points == 0
-    with pytest.raises(ValueError, match=r"controller_points = 2 \(--controller-points\): must be >= 3"):
+    with pytest.raises(ValueError, match=r"controller_points = 2: must be >= 3"):
         GradientConfig(controller_points=2)

@@ -29,7 +29,7 @@ def test_a_fresh_run_refuses_another_runs_directory_unless_told_to_clear_it(tmp_
         (run / name).write_text("x")
     (run / "notes.txt").write_text("mine")
     with pytest.raises(ValueError, match=r"holds a run already \(config.json, checkpoint.msgpack, best.msgpack, "
-                                         r"learning_curve.csv\); continue it with --resume, or give --overwrite"):
+                                         r"learning_curve.csv\); continue it with resume, or set overwrite"):
         claim_run_dir(run, resume=False, overwrite=False)
     claim_run_dir(run, resume=True, overwrite=False)  # resuming is what the directory is for
     claim_run_dir(run, resume=False, overwrite=True)  # allowed, nothing removed yet
@@ -222,9 +222,9 @@ def test_evaluate_writes_whole_or_nothing(outcome, tmp_path, monkeypatch, capsys
 
 
 @pytest.mark.parametrize("argv, match", [
-    (["--train-delays", "50"], r"train_delays = \[50.0\] \(--train-delays\): beyond the delay buffer's 10 s"),
-    (["--record-every", "1000000"], r"record_every = 1000000 \(--record-every\): must be <= the training horizon"),
-    (["--train-amplitudes", "-1"], r"--train-amplitudes, veh/m\): an initial state leaves the physical region"),
+    (["--train-delays", "50"], r"train_delays = \[50.0\]: beyond the delay buffer's 10 s"),
+    (["--record-every", "1000000"], r"record_every = 1000000: must be <= the training horizon"),
+    (["--train-amplitudes", "-1"], r"\(veh/m\): an initial state leaves the physical region"),
     (["--num-envs", "7", "--tensorboard", "tb"], r"error: --num-envs: used by --algo ppo only"),
     (["--total-steps", "7"], r"--total-steps: used by --algo ppo only, and this run is --algo gradient \(its length"),
 ])
@@ -243,22 +243,24 @@ def test_ppo_rules_do_not_block_a_gradient_run_and_gradient_flags_do_not_pass_fo
     code, err = _main([*TINY, "--out-dir", str(tmp_path / "p"), "--grad-steps", "3"], capsys)
     assert code == 2 and "--grad-steps: used by --algo gradient only, and this run is --algo ppo" in err
     code, err = _main([*TINY, "--out-dir", str(tmp_path / "p"), "--amp-range", "1,1"], capsys)
-    assert code == 2 and "amp_range = (1.0, 1.0) (--amp-range): an initial state of amplitude 1 veh/m" in err
+    assert code == 2 and "amp_range = (1.0, 1.0): an initial state of amplitude 1 veh/m" in err
 
 
 def test_sizes_and_horizons_beyond_what_can_run_are_flag_errors(tmp_path, capsys):
     from jaxtraffic.runs.config import TrainConfig
     from jaxtraffic.runs.config.checks import check_memory
 
-    for flags, match in ((["--horizon-s", "1e30"], "horizon_s = 1e+30 (--horizon-s): must be at most 1e+08 time steps"),
-                         (["--max-delay-steps", "2147483648"], "(--max-delay-steps): must lie in [0, 1000000]"),
+    for flags, match in ((["--horizon-s", "1e30"], "horizon_s = 1e+30: must be at most 1e+08 time steps"),
+                         (["--max-delay-steps", "2147483648"],
+                          "max_delay_steps = 2147483648: must lie in [0, 1000000]"),
                          (["--num-envs", "2147483648"], "the rollouts alone need about"),
-                         (["--algo", "gradient", "--init-gains", "1,2"], "(--init-gains): must be three gains")):
+                         (["--algo", "gradient", "--init-gains", "1,2"],
+                          "init_gains = (1.0, 2.0): must be 3 floats")):
         args = [*TINY, *flags] if flags[0] != "--algo" else [*GRAD, *flags[2:]]
         code, err = _main([*args, "--out-dir", str(tmp_path / "r")], capsys)
         assert code == 2 and match in err and err.count("\n") == 1, err
-    with pytest.raises(ValueError, match=r"num_envs = 1024 \(--num-envs\): with num_steps = 100 and 4 seed"):
-        check_memory(TrainConfig.from_flat(num_envs=1024, num_steps=100, seeds=4), have=2.0**20)
+    with pytest.raises(ValueError, match=r"num_envs = 1024: with num_steps = 100 and 4 seed"):
+        check_memory(TrainConfig.from_flat(num_envs=1024, num_steps=100, num_seeds=4), have=2.0**20)
     check_memory(TrainConfig(), have=2.0**34)  # the defaults fit 16 GiB
 
 
@@ -270,5 +272,5 @@ def test_module_entry_points_and_the_gradient_chunk_rule(tmp_path, capsys):
         assert entry.main([ask]) == 0 and "python -m jaxtraffic {train,evaluate}" in capsys.readouterr().out
     assert entry.main(["bogus"]) == 2 and "unknown command 'bogus'" in capsys.readouterr().err
     code, err = _main([*GRAD, "--grad-steps", "6", "--steps-per-chunk", "5", "--out-dir", str(tmp_path / "r")], capsys)
-    assert code == 2 and "grad_steps = 6 (--grad-steps): must be a multiple of --steps-per-chunk (5)" in err
+    assert code == 2 and "grad_steps = 6: must be a multiple of steps_per_chunk (5)" in err
     assert not (tmp_path / "r").exists()

@@ -128,7 +128,7 @@ def test_certificate_penalty_is_zero_when_certified_and_pushes_towards_it():
     from jaxtraffic.learn.gradient import objective
 
     base = jt.TrafficParams(delay=4.0)
-    cfg = objective.GradientConfig(filter_sigma=0.0, certificate_weight=1.0)
+    cfg = objective.GradientConfig(filter_sigma=0.0)
     pen, g = objective.penalty_and_grad(jnp.asarray(POINTWISE), cfg, base, (40,))
     assert float(pen) > 0.03
     pen2, _ = objective.penalty_and_grad(jnp.asarray(POINTWISE) - 0.5 * g / jnp.linalg.norm(g), cfg, base, (40,))

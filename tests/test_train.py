@@ -62,14 +62,14 @@ def runs(tiny_runs_root):
 
 def test_run_directory_contents(runs):
     run = runs["A"]
-    for name in ("config.json", "checkpoint.msgpack", "learning_curve.csv", "summary.json"):
+    for name in ("config.json", "config.toml", "checkpoint.msgpack", "learning_curve.csv", "summary.json"):
         assert (run / name).is_file(), name
     cfg = json.loads((run / "config.json").read_text())
     tree = cfg["config"]
-    assert tree["plant"]["n_points"] == 21 and tree["plant"]["delay"] == 0.5 and tree["algo"]["num_envs"] == 4
-    assert cfg["jax_version"] == jax.__version__ and cfg["horizon_steps"] == 30 and cfg["version"] == 2
+    assert tree["plant"]["n_points"] == 21 and tree["plant"]["delay"] == 0.5 and tree["ppo"]["num_envs"] == 4
+    assert cfg["jax_version"] == jax.__version__ and cfg["horizon_steps"] == 30 and cfg["version"] == 3
     loaded = load_config(run)  # the one loader (resume, load_policy, evaluation) reads the tree back
-    assert loaded.plant.n_points == 21 and loaded.algo.num_envs == 4 and loaded.run.max_wall_s == float("inf")
+    assert loaded.plant.n_points == 21 and loaded.ppo.num_envs == 4 and loaded.run.max_wall_s == float("inf")
     assert loaded.env == TrainConfig.from_flat(**{k: tuple(v) if isinstance(v, list) else v
                                                   for k, v in tree["env"].items()}).env
     rows = _rows(run)
@@ -217,26 +217,19 @@ def test_validation_scores_the_candidates(runs):
 
 
 def test_load_policy_rejects_a_run_from_an_older_version(runs, tmp_path):
-    """A run whose config predates the gain filter (flat "settings", observation without the applied
-    gains) gives a clear error instead of a shape error deep inside the network; one written before
-    the config tree but after the gain filter loads."""
+    """A config.json of an older layout (flat "settings", an "algo" section, a field missing) is a clear error
+    that says to retrain, not a run loaded with guessed values."""
     old = tmp_path / "old"
     shutil.copytree(runs["A"], old)
-    tree = json.loads((old / "config.json").read_text())["config"]
+    data = json.loads((old / "config.json").read_text())
+    tree = data["config"]
     flat = {k: v for section in tree.values() for k, v in section.items()}
-    (old / "config.json").write_text(json.dumps({"settings": {**flat, "offset_range": [0, 0]}}))
-    assert load_policy(old)[1] == load_policy(runs["A"])[1]  # a pre-tree run loads (removed options ignored)
-    # a run written before the pooled observation / wave shaping / validation suite: loaded as it was trained
-    del tree["env"]["obs_segments"], tree["env"]["wave_weight"], tree["run"]["val_horizon_s"]
-    (old / "config.json").write_text(json.dumps({"config": tree}))
-    before = load_config(old)
-    assert (before.env.obs_segments, before.env.wave_weight, before.run.val_horizon_s) == (0, 0.0, 0.0)
-    with pytest.raises(ValueError, match="do not belong together"):  # its checkpoint has the pooled observation
-        load_policy(old)
-    del flat["gain_filter"]
-    (old / "config.json").write_text(json.dumps({"settings": flat}))
-    with pytest.raises(ValueError, match="older jaxtraffic"):
-        load_policy(old)
+    renamed = {"algo": tree["ppo"], **{k: v for k, v in tree.items() if k != "ppo"}}
+    for written in ({"settings": flat}, {"config": renamed},
+                    {"config": {**tree, "env": {k: v for k, v in tree["env"].items() if k != "wave_weight"}}}):
+        (old / "config.json").write_text(json.dumps({**{k: v for k, v in data.items() if k != "config"}, **written}))
+        with pytest.raises(ValueError, match="older jaxtraffic.*retrain"):
+            load_policy(old)
     load_policy(runs["A"])  # the unmodified run loads
 
 
@@ -251,7 +244,7 @@ def test_cli_help_documents_every_flag(capsys):
             continue
         assert action.help, f"{action.option_strings} has no help"
         assert action.option_strings[0] in text
-    for flag in ("--delay", "--alpha", "--alpha-noise", "--num-envs", "--total-steps", "--seeds", "--network",
+    for flag in ("--delay", "--alpha", "--alpha-noise", "--num-envs", "--total-steps", "--seeds", "--hidden",
                  "--lr", "--clip-eps", "--n-points", "--out-dir", "--resume", "--max-wall-s", "--delay-range"):
         assert flag in text
 
@@ -262,9 +255,9 @@ def test_cli_help_documents_every_flag(capsys):
     (["--alpha-range", "0.1,1.5"], "alpha_range"),
     (["--delay-range", "3,2"], "delay_range"),
     (["--n-points", "2"], "n_points"),
-    (["--network", "huge"], "invalid choice"),
+    (["--hidden", "a"], "comma-separated"),
     (["--delay-range", "1"], "LO,HI"),
-    (["--lr-final", "2"], "lr_final"),
+    (["--clip-eps", "0"], "clip_eps"),
     (["--diverge-penalty", "-1"], "diverge_penalty"),
 ])
 def test_cli_invalid_values_exit_2(argv, match, tmp_path, capsys):
@@ -318,7 +311,7 @@ def test_population_run(tmp_path):
     evaluated, the best one is the run's policy, and the members are different policies."""
     from jaxtraffic.runs.config import POPULATION
 
-    assert TrainConfig().run.seeds == POPULATION == 2
+    assert TrainConfig().ppo.num_seeds == POPULATION == 2
     argv = list(TINY)
     argv[argv.index("--seeds") + 1] = "2"
     run = train_cli.main(argv + ["--out-dir", str(tmp_path / "pop"), "--keep-going", "--total-steps", str(2 * CHUNK),
@@ -331,4 +324,4 @@ def test_population_run(tmp_path):
     best = summary["best_seed"]
     assert best == int(np.argmin(summary["best_val_score"])) and best in (0, 1)
     _, cfg = load_policy(run)
-    assert cfg.run.seeds == 2
+    assert cfg.ppo.num_seeds == 2

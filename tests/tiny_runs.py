@@ -138,7 +138,7 @@ def _round_trip(run: Path, runner) -> dict:
     rep = jax.tree.map(lambda x: x[0, 0], runner)  # device 0, seed 0
     env_params = build(config)[1]
     mem = policy_controller(rep.params, rep.stats.mean, rep.stats.var, config.env.gain_max,
-                            hidden=config.algo.hidden(), init_sigma=config.algo.init_sigma,
+                            hidden=tuple(config.ppo.hidden), init_sigma=config.ppo.init_sigma,
                             gain_filter=config.env.gain_filter, obs_segments=config.env.obs_segments,
                             sigma_nodes=env_params.filter_nodes)
     tp = env_params.traffic  # the run's nominal plant

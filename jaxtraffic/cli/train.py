@@ -13,13 +13,16 @@ The same command runs as N cooperating processes (PPO and ``--algo gradient``) w
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
+import sys
 from pathlib import Path
 
 from jaxtraffic.cli import errors
+from jaxtraffic.cli.options import program
 from jaxtraffic.platform import compile_cache, distributed
-from jaxtraffic.runs.config import RUN_CONTROL, SECTIONS, RunConfig, TrainConfig, check_flags_apply, load_config
+from jaxtraffic.runs.config import RUN_CONTROL, RunConfig, TrainConfig, check_flags_apply, load_config
+from jaxtraffic.runs.config.toml import read_flat
+from jaxtraffic.runs.config.tree import leaf_fields
 from jaxtraffic.runs.gradient.trainer import train_gradient
 from jaxtraffic.runs.ppo.trainer import train
 from jaxtraffic.runs.session import TrainingInterrupted, check_resumable
@@ -54,46 +57,73 @@ def _gain_bounds(text: str):
     return parts[0] if len(parts) == 1 else tuple(parts)
 
 
-GROUPS = {"run": "run", "plant": "plant and grid", "env": "episodes and domain randomisation", "algo": "PPO",
+PROG = program("train.py")  # in messages: the program the user typed
+# flags of the last release that are gone: what to give instead
+REMOVED = {"--network": "--hidden (layer sizes, e.g. 64,64)", "--lr-decay-steps": "--lr (the rate is constant)",
+           "--lr-final": "--lr (the rate is constant)", "--certificate-weight": "nothing (the penalty is gone)",
+           "--effort-weight": "nothing (the term is gone)"}
+GROUPS = {"run": "run", "plant": "plant and grid", "env": "episodes and domain randomisation", "ppo": "PPO",
           "grad": "gradient-based training (--algo gradient)"}
 _PARSERS = {"int": int, "float": float, "str": str, "float | None": float, "int | None": int, "str | None": str,
             "tuple[float, float]": _pair(float), "tuple[float, float] | None": _pair(float),
             "tuple[int, int]": _pair(int), "tuple[float, ...]": _many(float), "tuple[float, ...] | None": _many(float),
-            "tuple[int, ...]": _many(int), "float | tuple[float, float, float]": _gain_bounds}
+            "tuple[int, ...]": _many(int), "tuple": _many(int),
+            "tuple[float, float, float]": _many(float), "float | tuple[float, float, float]": _gain_bounds}
 
 
 def build_parser() -> argparse.ArgumentParser:
     """One flag per leaf of ``TrainConfig`` (``--n-points`` for ``plant.n_points``), with the field's
     default and help: the flags cannot drift from the library's defaults."""
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    for section in ("run", "plant", "env", "algo", "grad"):
+    parser = argparse.ArgumentParser(prog=PROG, description=__doc__, allow_abbrev=False,
+                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
+    parser.add_argument("--config", default=None, metavar="FILE.toml",
+                        help="start from this config file (a run's config.toml); flags given override it")
+    for section in ("run", "plant", "env", "ppo", "grad"):
         g = parser.add_argument_group(GROUPS[section])
-        for f in dataclasses.fields(SECTIONS[section]):
-            flag = "--" + f.name.replace("_", "-")
+        defaults = getattr(TrainConfig(), section)
+        for f in leaf_fields(section):
+            flag = ["--" + f.name.replace("_", "-"), *(["--seeds"] if f.name == "num_seeds" else [])]
+            default = None if section == "grad" else getattr(defaults, f.name)  # grad: the policy's default
             if f.type == "bool":  # on by default: --no-FLAG turns it off
-                action = argparse.BooleanOptionalAction if f.default else "store_true"
-                g.add_argument(flag, action=action, default=f.default, help=f.metadata["help"])
+                action = argparse.BooleanOptionalAction if default else "store_true"
+                g.add_argument(*flag, action=action, default=default, help=f.metadata["help"])
                 continue
-            default = None if f.name == "out_dir" else f.default  # resolved from --algo below
-            g.add_argument(flag, type=_PARSERS[f.type], default=default, choices=f.metadata.get("choices"),
+            default = None if f.name == "out_dir" else default  # resolved from --algo below
+            g.add_argument(*flag, type=_PARSERS[f.type], default=default, choices=f.metadata.get("choices"),
                            help=f.metadata["help"])
     distributed.add_flags(parser)
     return parser
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("jaxtraffic")
+    except PackageNotFoundError:
+        return "unknown"
+
+
 def config_from_args(argv: list[str] | None = None) -> TrainConfig:
     """The training configuration the flags ``argv`` (default: the command line's) describe."""
-    return _config(build_parser().parse_args(argv))
+    return _config(build_parser().parse_args(argv), argv)
 
 
-def _config(args: argparse.Namespace) -> TrainConfig:
-    """The training configuration of parsed flags: the cluster flags dropped, --out-dir's default resolved."""
-    args = argparse.Namespace(**{k: v for k, v in vars(args).items() if k not in distributed.FLAGS})
+def _config(args: argparse.Namespace, argv: list[str] | None) -> TrainConfig:
+    """The training configuration of parsed flags: the cluster flags dropped, --out-dir's default resolved;
+    with --config, that file's fields under the flags given."""
+    if args.config is not None:
+        given = explicit_flags(argv)
+        base = {"out_dir": None, **read_flat(args.config)}
+        args = argparse.Namespace(**{**vars(args), **{k: v for k, v in base.items() if k not in given}})
+    args = argparse.Namespace(**{k: v for k, v in vars(args).items() if k not in (*distributed.FLAGS, "config")})
     if args.min_wave_speed == -math.inf:  # the paper's rule alone (stored as null in the JSON outputs)
         args.min_wave_speed = None
     if args.out_dir is None:
         args.out_dir = f"runs/gradient-{args.policy}" if args.algo == "gradient" else RunConfig.out_dir
-    return TrainConfig.from_flat(**vars(args))
+    grad = {f.name for f in leaf_fields("grad")}
+    return TrainConfig.from_flat(**{k: v for k, v in vars(args).items() if k not in grad or v is not None})
 
 
 def explicit_flags(argv: list[str] | None = None) -> dict:
@@ -125,12 +155,15 @@ def main(argv: list[str] | None = None) -> Path:
     runs on a device), train, return the run directory. Exit status 2 for invalid flags or a broken
     run directory, 74 for an OS error (``cli.errors``), 130 / 143 after SIGINT / SIGTERM (``runs.ppo.trainer``)."""
     try:
+        gone = [a.split("=")[0] for a in (sys.argv[1:] if argv is None else argv) if a.split("=")[0] in REMOVED]
+        if gone:
+            raise ValueError(f"{gone[0]} was removed; use {REMOVED[gone[0]]}")
         args = build_parser().parse_args(argv)
-        config = _config(args)
+        config = _config(args, argv)
         cluster = [getattr(args, k) for k in distributed.FLAGS]
         distributed.initialize(*cluster)
         compile_cache.enable()  # before the first compilation (jaxtraffic.platform.compile_cache)
-        given = explicit_flags(argv)
+        given = {k: v for k, v in explicit_flags(argv).items() if k != "config"}
         if config.run.resume:
             check_resumable(Path(config.run.out_dir))
             config = resumed_config(config, given)
@@ -139,7 +172,7 @@ def main(argv: list[str] | None = None) -> Path:
     except TrainingInterrupted as exc:  # the trainer has said what is saved
         raise SystemExit(exc.exit_code) from None
     except (ValueError, OSError) as err:  # one line and status 2 / 74 (cli.errors)
-        raise SystemExit(errors.report("train.py", err)) from None
+        raise SystemExit(errors.report(PROG, err)) from None
 
 
 if __name__ == "__main__":  # python -m jaxtraffic.cli.train

@@ -5,8 +5,8 @@ pre-squash actions; its scale is a learned, state-independent parameter of the n
 (sigma = softplus(s) + ``sigma_offset``, the paper's 1e-6 offset). The paper's network outputs a
 state-dependent scale too; in our runs a state-dependent scale collapsed within a few dozen
 updates, so the standard PPO choice is used. The critic is a separate MLP.
-Default: two hidden layers of 64 units; ``PAPER_HIDDEN`` is the paper's 8-layer network
-(input layer, then 1024, then 512-unit layers).
+Default: two hidden layers of 64 units (the paper's 8-layer network is ``hidden=(1024, 512, 512, 512, 512,
+512, 512)``).
 """
 
 from __future__ import annotations
@@ -18,7 +18,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-PAPER_HIDDEN = (1024, 512, 512, 512, 512, 512, 512)
 SMALL_HIDDEN = (64, 64)
 
 

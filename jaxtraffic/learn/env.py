@@ -40,7 +40,7 @@ from jax.custom_batching import custom_vmap
 
 from jaxtraffic.control import gain_policy as gp
 from jaxtraffic.control.gain_law import FILTER_SIGMA, sigma_nodes
-from jaxtraffic.learn.rules import check_fields, fail
+from jaxtraffic.learn.fields import check_fields, fail, hyper
 from jaxtraffic.model.linear import LinearModel, gain_law_is_regular, gain_law_wave_speed, linearize
 from jaxtraffic.model.params import TrafficParams, equilibrium
 from jaxtraffic.sim.initial import paper_initial_condition
@@ -67,23 +67,24 @@ class EnvParams:
     traffic: TrafficParams = TrafficParams(delay=4.0)
     horizon: int = 1000  # steps per episode (100 s)
     # |eta_i| <= gain_max_i (dimensionless): one bound for all gains or one per gain (a 3-tuple)
-    gain_max: float | tuple[float, float, float] = (1.0, 3.0, 3.0)
+    gain_max: float | tuple[float, float, float] = hyper((1.0, 3.0, 3.0), lo=0.0, lo_open=True)
     amp_min: float = 0.010  # veh/m
     amp_max: float = 0.010
     wavenumber_min: int = 4
     wavenumber_max: int = 4
-    phase_max: float = 0.0  # rad; phase ~ U(0, phase_max)
+    phase_max: float = hyper(0.0, lo=0.0)  # rad; phase ~ U(0, phase_max)
     delay_min: float = 4.0  # s
     delay_max: float = 4.0
     alpha_min: float = 0.15
     alpha_max: float = 0.15
-    diverge_penalty: float = 100.0
-    gain_filter: float = 0.2  # in (0, 1]; 1: the policy's gains are applied directly (the paper)
-    h_rate_weight: float = 0.2  # dimensionless; 0: the paper's reward
-    wave_weight: float = 0.5  # dimensionless, times backward_wave_cost; 0: the paper's reward
+    diverge_penalty: float = hyper(100.0, lo=0.0)  # dimensionless, the reward of the diverging step, subtracted
+    # applied gains move this fraction of the way to the policy's each step; 1: applied directly (the paper)
+    gain_filter: float = hyper(0.2, lo=0.0, lo_open=True, hi=1.0)
+    h_rate_weight: float = hyper(0.2, lo=0.0)  # dimensionless; 0: the paper's reward
+    wave_weight: float = hyper(0.5, lo=0.0)  # dimensionless, times backward_wave_cost; 0: the paper's reward
     wave_speed_min: float = 1.0  # m/s, backward_wave_cost's threshold
     # observation: 0: the full normalised fields (3 n values); K > 0: each field averaged over K equal segments
-    obs_segments: int = struct.field(pytree_node=False, default=16)
+    obs_segments: int = hyper(16, lo=0, static=True)
     # the gain law's Gaussian filter of the observed rho~, v~, in node spacings of ``traffic``'s grid
     # (``control.gain_law``; make_env_params sets it from a width in m); 0: the paper's pointwise law
     filter_nodes: float = struct.field(pytree_node=False, default=0.0)
@@ -117,7 +118,7 @@ def make_env_params(traffic: TrafficParams | None = None, filter_sigma: float = 
         raise ValueError(f"delay_max={ep.delay_max} s exceeds the buffer ({traffic.max_delay_steps} steps)")
     if not (0.0 <= ep.alpha_min and ep.alpha_max <= 1.0):
         raise ValueError("alpha range must lie in [0, 1]")
-    check_fields(ep)  # each field's range (learn.rules: gain_max, gain_filter, the reward weights, ...)
+    check_fields(ep)  # each field's range (learn.fields: gain_max, gain_filter, the reward weights, ...)
     if ep.obs_segments > traffic.n_points:
         raise fail("obs_segments", ep.obs_segments, f"must lie in [0, n_points = {traffic.n_points}]")
     if ep.horizon < 1:

@@ -224,7 +224,7 @@ def _loop(config: TrainConfig, run_dir: Path, saved, make_algorithm, config_file
         say(f"resumed {run_dir} at {prog.count} {algo.unit} ({prog.wall_s:.1f} s)")
     if writer:  # (on resume: the run-control values this session was given, recorded)
         write_json(run_dir / ckpt.CONFIG, config_file())
-        write_config(config, run_dir / CONFIG_TOML)  # the same tree as TOML: train.py --config reads it
+        write_config(config, run_dir / CONFIG_TOML)  # python train.py --config run_dir/config.toml: this run again
         write_curve(run_dir / CURVE, prog.rows, algo.curve_fields)  # header (+ the saved rows) once
     say(opening)
     clock = Clock(float(prog.wall_s))

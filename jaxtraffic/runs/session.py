@@ -115,14 +115,14 @@ def agree_stop(stopped: bool, over_budget: bool, stop: StopSignals) -> tuple[boo
 def check_out_dir(run_dir: Path) -> None:
     """``ValueError`` unless ``run_dir`` is (or can be created as) a writable directory."""
     if run_dir.exists() and not run_dir.is_dir():
-        raise ValueError(f"--out-dir {run_dir}: exists and is not a directory")
+        raise ValueError(f"out_dir {run_dir}: exists and is not a directory")
     parent = run_dir
     while not parent.exists():
         parent = parent.parent
     if not parent.is_dir():
-        raise ValueError(f"--out-dir {run_dir}: {parent} is a file, not a directory")
+        raise ValueError(f"out_dir {run_dir}: {parent} is a file, not a directory")
     if not os.access(parent, os.W_OK | os.X_OK):
-        raise ValueError(f"--out-dir {run_dir}: {parent} is not writable")
+        raise ValueError(f"out_dir {run_dir}: {parent} is not writable")
 
 
 def fmt_time(sec: float) -> str:
@@ -137,9 +137,9 @@ def check_resumable(run_dir: Path) -> None:
     if not (run_dir / ckpt.CHECKPOINT).exists():
         why = ("it has a config.json but no checkpoint: the run was stopped before its first chunk completed"
                if (run_dir / ckpt.CONFIG).exists() else "it is not a run directory (no config.json, no checkpoint)")
-        raise ValueError(f"--resume: nothing to resume in {run_dir}: {why}; run without --resume to start afresh")
+        raise ValueError(f"resume: nothing to resume in {run_dir}: {why}; run without resume to start afresh")
     if not (run_dir / ckpt.CONFIG).exists():
-        raise ValueError(f"--resume: {run_dir / ckpt.CONFIG} is missing (the checkpoint alone does not say how it "
+        raise ValueError(f"resume: {run_dir / ckpt.CONFIG} is missing (the checkpoint alone does not say how it "
                          "was trained)")
 
 
@@ -158,13 +158,13 @@ def report_interruption(signum: int, run_dir: Path, any_chunk: bool, new_chunk: 
     name = signal.Signals(signum).name
     if not any_chunk:
         msg = (f"interrupted ({name}) before the first chunk completed: no checkpoint exists yet (only config.json "
-               f"in {run_dir}); run again without --resume")
+               f"in {run_dir}); run again without resume")
     elif not new_chunk:
         msg = (f"interrupted ({name}) before a new chunk completed: the checkpoint at {progress} in {run_dir} is "
-               "unchanged; continue with --resume")
+               "unchanged; continue with resume")
     else:
         msg = (f"interrupted ({name}): the checkpoint of the last completed chunk ({progress}) is saved in "
-               f"{run_dir}; continue with --resume")
+               f"{run_dir}; continue with resume")
     print_or_drop(msg, file=sys.stderr)
     if not any_chunk or not new_chunk:
         raise TrainingInterrupted(signum, msg)
@@ -176,7 +176,7 @@ def open_run_dir(run_dir: Path) -> None:
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
     except OSError as err:
-        raise ValueError(f"--out-dir {run_dir}: cannot create it ({err.strerror})") from None
+        raise ValueError(f"out_dir {run_dir}: cannot create it ({err.strerror})") from None
 
 
 @contextlib.contextmanager
@@ -221,8 +221,8 @@ def claim_run_dir(run_dir: Path, resume: bool, overwrite: bool, clear: bool = Fa
         return
     present = [n for n in RUN_FILES if (run_dir / n).exists() or (run_dir / n).is_symlink()]
     if any(n in RESULTS for n in present) and not overwrite:
-        raise ValueError(f"--out-dir {run_dir}: holds a run already ({', '.join(present)}); continue it with "
-                         "--resume, or give --overwrite to clear it and start afresh")
+        raise ValueError(f"out_dir {run_dir}: holds a run already ({', '.join(present)}); continue it with "
+                         "resume, or set overwrite to clear it and start afresh")
     if clear:
         for name in present:
             (run_dir / name).unlink()
@@ -243,8 +243,8 @@ class RunLock:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             os.close(fd)
-            raise ValueError(f"--out-dir {self.path.parent}: another training is writing to it (it holds "
-                             f"{self.path.name}); wait for it to end or choose another --out-dir") from None
+            raise ValueError(f"out_dir {self.path.parent}: another training is writing to it (it holds "
+                             f"{self.path.name}); wait for it to end or choose another out_dir") from None
         self.fd = fd
         return self
 

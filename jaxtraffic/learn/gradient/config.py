@@ -1,7 +1,7 @@
 """The gradient trainer's settings (``GradientConfig``) and each policy's defaults (``POLICY_DEFAULTS``).
 
 ``learn.gradient.objective`` (the objective, Adam) and ``learn.gradient.cem`` (the cross-entropy method) read it;
-``learn.config`` builds it from the command line's flags.
+a run's config (``runs.config.TrainConfig.grad``) nests it as it is.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from typing import Any
 
 from jaxtraffic.control.gain_law import FILTER_SIGMA
 from jaxtraffic.control.networks import SMALL_HIDDEN
-from jaxtraffic.learn.rules import check_fields
+from jaxtraffic.learn.fields import check_fields, fail, hyper
 
 POLICIES = ("gains", "network", "schedule")
 METHODS = ("adam", "cem")  # Adam on the gradient of the objective; the cross-entropy method on the map's counts
@@ -22,44 +22,43 @@ class GradientConfig:
     """Gradient-training settings. Shape-setting fields (scenario grid, horizon, policy, network)
     are static; the objective weights and Adam's settings are traced (``Weights``, ``grad_lr``...).
 
-    Each field has the name of the config tree's field and flag it comes from (``learn.config.GradConfig``:
-    ``grad_lr`` is ``--grad-lr``; ``gain_filter``, ``filter_sigma`` and ``controller_points`` come from the
-    environment's section, ``hidden`` from ``--network``; ``max_grad_norm`` has no flag here) and is checked
-    against that name's range in ``learn.rules.RULES``.
+    A run's config nests it as it is (``runs.config.TrainConfig.grad``; ``gain_filter``, ``filter_sigma`` and
+    ``controller_points`` are set from the environment's section, ``hidden`` from PPO's); each field is checked
+    against the range in its metadata (``learn.fields.hyper``).
 
     The training scenarios are the Cartesian product of ``train_delays`` (s, multiples of dt) x
     ``train_alphas`` x ``train_amplitudes`` (veh/m) x ``train_wavenumbers`` x ``train_phases`` (rad) of the
     initial cosine perturbation (``sim.initial.paper_initial_condition``).
     """
 
-    policy: str = "gains"
-    train_delays: tuple[float, ...] = (3.0, 4.0, 5.0)
-    train_alphas: tuple[float, ...] = (0.15,)
-    train_amplitudes: tuple[float, ...] = (0.010,)
-    train_wavenumbers: tuple[int, ...] = (4,)
-    train_phases: tuple[float, ...] = (0.0,)
-    train_horizon_s: float = 300.0
-    record_every: int = 10
-    steps_per_chunk: int = 5
-    hidden: tuple[int, ...] = SMALL_HIDDEN
-    grad_gain_max: float = 3.0
-    gain_filter: float = 0.2
-    grad_lr: float = 0.05
-    max_grad_norm: float = 1.0
-    reward_weight: float = 1.0
-    waves_weight: float = 0.0
-    comfort_weight: float = 1e-5
-    effort_weight: float = 0.0
-    init_gains: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    grad_steps: int = 40  # Adam steps in all
-    scenario_clip: float = 0.0  # > 0: clip each scenario's gradient to this norm (``objective_and_grad``)
-    filter_sigma: float = FILTER_SIGMA  # m, the gain law's Gaussian filter (``control.gain_law``); 0: pointwise
+    policy: str = hyper("gains", help="gains: three constant gains; network: the actor network PPO trains; "
+                        "schedule: gains scheduled in the delay the controller is told", choices=POLICIES)
+    train_delays: tuple[float, ...] = hyper((3.0, 4.0, 5.0), lo=0.0, help="plant delays of the scenarios, s")
+    train_alphas: tuple[float, ...] = hyper((0.15,), lo=0.0, lo_open=True, hi=1.0, help="plant alphas of the scenarios")
+    train_amplitudes: tuple[float, ...] = hyper((0.010,), help="initial perturbation amplitudes, veh/m")
+    train_wavenumbers: tuple[int, ...] = hyper((4,), help="initial perturbation wavenumbers")
+    train_phases: tuple[float, ...] = hyper((0.0,), help="initial perturbation phases, rad")
+    train_horizon_s: float = hyper(300.0, lo=0.0, lo_open=True, help="rollout length of the objective, s")
+    record_every: int = hyper(10, lo=1, help="steps between objective samples")
+    steps_per_chunk: int = hyper(5, lo=1, help="Adam steps per compiled chunk (progress/checkpoint interval)")
+    hidden: tuple[int, ...] = SMALL_HIDDEN  # the network policy's hidden layers (a run: PPOConfig.hidden)
+    grad_gain_max: float = hyper(3.0, lo=0.0, lo_open=True, help="network policy: |eta_i| bound")
+    gain_filter: float = hyper(0.2, lo=0.0, lo_open=True, hi=1.0)  # (a run: EnvParams.gain_filter)
+    grad_lr: float = hyper(0.05, lo=0.0, lo_open=True, help="Adam step size")
+    max_grad_norm: float = 1.0  # Adam's global gradient-norm clip
+    reward_weight: float = hyper(1.0, lo=0.0, help="objective weight of -mean reward (dimensionless)")
+    waves_weight: float = hyper(0.0, lo=0.0, help="objective weight of the wave amplitude (log variance)")
+    comfort_weight: float = hyper(1e-5, lo=0.0, help="objective weight of J_comfort")
+    init_gains: tuple[float, float, float] = hyper((0.0, 0.0, 0.0), help="initial gains eta1,eta2,eta3")
+    grad_steps: int = hyper(40, lo=1, help="Adam steps (cem: generations)")
+    scenario_clip: float = hyper(0.0, lo=0.0, help="> 0: clip each scenario's gradient to this norm; 0: off")
+    filter_sigma: float = hyper(FILTER_SIGMA, lo=0.0)  # m, the gain law's Gaussian filter; 0: pointwise
     controller_points: int = 0  # the controller's own grid (``control.adapter``); 0: the plant's
-    certificate_weight: float = 0.0  # objective += w * ``certificate_penalty`` (1/s)
-    schedule_knots: tuple[float, ...] = (0.0, 2.0, 4.0, 6.0, 8.0)  # s, the schedule policy's knot delays
-    grad_method: str = "adam"  # "cem": ``learn.gradient.cem`` (derivative-free; grad_steps are its generations)
-    cem_population: int = 24  # CEM: parameter sets per generation
-    cem_sigma: float = 0.3  # CEM: initial standard deviation of the search distribution (dimensionless gains)
+    schedule_knots: tuple[float, ...] = hyper((0.0, 2.0, 4.0, 6.0, 8.0), help="schedule policy: its knot delays, s")
+    grad_method: str = hyper("adam", help="adam: Adam on the objective; cem: the cross-entropy method on the map's "
+                             "counts", choices=METHODS)
+    cem_population: int = hyper(24, lo=2, help="cem: parameter sets per generation")
+    cem_sigma: float = hyper(0.3, lo=0.0, lo_open=True, help="cem: initial std of the search over the gains")
 
     def __post_init__(self) -> None:
         if self.policy not in POLICIES:
@@ -67,8 +66,9 @@ class GradientConfig:
         for name in ("train_delays", "train_alphas", "train_amplitudes", "train_wavenumbers", "train_phases"):
             if len(getattr(self, name)) < 1:
                 raise ValueError(f"{name} needs at least one value")
-        # every field's range (0: the plant's grid is the controller's, outside the rule of a grid of its own)
-        check_fields(self, skip=("controller_points",) if self.controller_points == 0 else ())
+        check_fields(self)  # every field's range
+        if self.controller_points != 0 and self.controller_points < 3:  # 0: the plant's grid
+            raise fail("controller_points", self.controller_points, "must be >= 3 (0: the plant's grid)")
         if self.grad_method not in METHODS or (self.grad_method == "cem" and self.policy == "network"):
             raise ValueError(f"grad_method must be one of {METHODS} (cem: gains or schedule policy), got "
                              f"{self.grad_method!r} for policy {self.policy!r}")

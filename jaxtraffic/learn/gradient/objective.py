@@ -17,16 +17,15 @@ Two policies are trained this way:
 Objective (minimised, dimensionless), averaged over the training scenarios s:
 
     J = mean_s [ -w_r mean_k r_s(t_k)  +  w_w mean_k log(1 + var_x rho_s(t_k) / 100 + var_x v_s(t_k))
-                 +  w_c J_comfort_s  +  w_e effort_s^2 ]
+                 +  w_c J_comfort_s ]
 
 with r the paper's reward (dimensionless) sampled every ``record_every`` steps t_k, var_x the
 spatial variance of density (veh/km)^2 and speed (m/s)^2 (the "waves" term: zero for any uniform
 state, so it does not penalise the steady offset a plant with another alpha settles to; its mean over k
 is weighted by t_k / T, so that late waves, which the robustness map judges, count most),
-J_comfort in the units of ``metrics`` (rho in veh/km, a in m/s^2) and effort the RMS of h - h_bar
-in s (both sampled every ``record_every`` steps; the square is used directly, since the gradient of
-an RMS is not finite at zero). The weights w_r, w_w, w_c, w_e are ``reward_weight``, ``waves_weight``,
-``comfort_weight``, ``effort_weight`` (``Weights``; defaults 1, 0, 1e-5, 0).
+J_comfort in the units of ``metrics`` (rho in veh/km, a in m/s^2), sampled every ``record_every`` steps.
+The weights w_r, w_w, w_c are ``reward_weight``, ``waves_weight``, ``comfort_weight`` (``Weights``; defaults
+1, 0, 1e-5).
 
 Memory: the rollout checkpoints every recording chunk (``simulate(memory=Memory(remat=True))``), so the
 backward pass stores the carry once per chunk and recomputes one chunk at a time.
@@ -80,7 +79,6 @@ class Weights:
     reward_weight: Array
     waves_weight: Array
     comfort_weight: Array
-    effort_weight: Array
 
 
 @struct.dataclass
@@ -196,23 +194,23 @@ def check_road(base: TrafficParams) -> None:
 
 
 def check_scenarios(grad_config: GradientConfig, base: TrafficParams) -> None:
-    """``ValueError`` naming the flag if a training scenario is one the plant cannot represent: a delay beyond
+    """``ValueError`` naming the field if a training scenario is one the plant cannot represent: a delay beyond
     the buffer, an initial state outside the physical region, a sampling interval longer than the horizon, a
     road of another length (``check_road``)."""
     check_road(base)
     cap = base.max_delay_steps
     beyond = [d for d in grad_config.train_delays if round(d / float(base.dt)) > cap]
     if beyond:
-        raise ValueError(f"train_delays = {beyond} (--train-delays): beyond the delay buffer's "
-                         f"{cap * float(base.dt):g} s (--max-delay-steps {cap} x dt {float(base.dt):g} s); raise "
-                         "--max-delay-steps")
+        raise ValueError(f"train_delays = {beyond}: beyond the delay buffer's "
+                         f"{cap * float(base.dt):g} s (max_delay_steps {cap} x dt {float(base.dt):g} s); raise "
+                         "max_delay_steps")
     if grad_config.record_every * float(base.dt) > grad_config.train_horizon_s:
-        raise ValueError(f"record_every = {grad_config.record_every} (--record-every): must be <= the training horizon "
-                         f"(--train-horizon-s {grad_config.train_horizon_s:g} s = "
+        raise ValueError(f"record_every = {grad_config.record_every}: must be <= the training horizon "
+                         f"(train_horizon_s {grad_config.train_horizon_s:g} s = "
                          f"{round(grad_config.train_horizon_s / float(base.dt))} steps)")
     sc = training_scenarios(grad_config, base)
     if not bool(jnp.all(jax.vmap(is_physical)(sc.rho0, sc.v0, sc.params))):
-        raise ValueError(f"train_amplitudes = {list(grad_config.train_amplitudes)} (--train-amplitudes, veh/m): "
+        raise ValueError(f"train_amplitudes = {list(grad_config.train_amplitudes)} (veh/m): "
                          "an initial state leaves the physical region (0 < rho < 1/l, v >= 0); use smaller amplitudes")
 
 
@@ -232,7 +230,7 @@ def scenario_objective(theta: Any, params: TrafficParams, rho0: Array, v0: Array
     waves = jnp.log1p(jnp.var(tr.rho * 1000.0, axis=-1) / 100.0 + jnp.var(tr.v, axis=-1))
     late = jnp.arange(1, waves.shape[0] + 1, dtype=waves.dtype)  # t_k / T up to a factor
     j = (-w.reward_weight * jnp.mean(tr.reward) + w.waves_weight * jnp.sum(late * waves) / jnp.sum(late)
-         + w.comfort_weight * m["J_comfort"] + w.effort_weight * jnp.mean((tr.h - base.h_bar) ** 2))
+         + w.comfort_weight * m["J_comfort"])
     return j, m
 
 
@@ -295,22 +293,18 @@ def make_optimizer(grad_config: GradientConfig) -> optax.GradientTransformation:
 
 
 def _one_step(state: GradState, scen: Scenarios, w: Weights, grad_config: GradientConfig, base: TrafficParams,
-              n_steps: int, mesh: Mesh | None, penalty: tuple[Array, Any] | None) -> tuple[GradState, dict]:
+              n_steps: int, mesh: Mesh | None) -> tuple[GradState, dict]:
     loss, g, aux = objective_and_grad(state.theta, scen, w, grad_config, base, n_steps, mesh)
-    if penalty is not None:  # (value, gradient) of the certificate penalty at the chunk's start
-        loss = loss + grad_config.certificate_weight * penalty[0]
-        g = jax.tree.map(lambda a, b: a + grad_config.certificate_weight * b, g, penalty[1])
-        aux = {**aux, "certificate_penalty": penalty[0]}
     updates, opt_state = make_optimizer(grad_config).update(g, state.opt_state, state.theta)
     new = GradState(theta=optax.apply_updates(state.theta, updates), opt_state=opt_state, update=state.update + 1)
     return new, {"objective": loss, "grad_norm": optax.tree.norm(g), **aux}
 
 
 @functools.partial(jax.jit, static_argnames=("grad_config", "n_steps", "mesh"))
-def _train_chunk(state: GradState, base: TrafficParams, grad_config: GradientConfig, n_steps: int, mesh: Mesh,
-                 penalty: tuple[Array, Any] | None) -> tuple[GradState, dict]:
+def _train_chunk(state: GradState, base: TrafficParams, grad_config: GradientConfig, n_steps: int,
+                 mesh: Mesh) -> tuple[GradState, dict]:
     scen, w = training_scenarios(grad_config, base), weights_of(grad_config)
-    out = jax.lax.scan(lambda s, _: _one_step(s, scen, w, grad_config, base, n_steps, mesh, penalty), state, None,
+    out = jax.lax.scan(lambda s, _: _one_step(s, scen, w, grad_config, base, n_steps, mesh), state, None,
                        length=grad_config.steps_per_chunk)
     return gathered(out, mesh)  # the per-scenario metrics whole on every process
 
@@ -323,8 +317,7 @@ def _init(key: Array, base: TrafficParams, grad_config: GradientConfig) -> GradS
 
 def make_train(grad_config: GradientConfig, base: TrafficParams, devices: list | None = None):
     """``(init, train_chunk)``: ``init(key) -> GradState``; ``train_chunk(state) -> (state,
-    metrics)`` runs ``steps_per_chunk`` Adam steps in one jit-compiled ``lax.scan`` (with a certificate penalty,
-    its value and gradient are taken once per chunk, at its start, on one device); metrics are
+    metrics)`` runs ``steps_per_chunk`` Adam steps in one jit-compiled ``lax.scan``; metrics are
     per step: objective, gradient norm and the per-scenario metrics of the rollout.
 
     The scenarios of every step are split over ``devices`` (default: every device of every process,
@@ -337,8 +330,6 @@ def make_train(grad_config: GradientConfig, base: TrafficParams, devices: list |
     programs); ``base`` (the nominal plant and grid) is traced.
     """
     n_steps = horizon_steps(grad_config, base.dt)
-    # the certificate's delays
-    periods = tuple(sorted({int(round(d / float(base.dt))) for d in grad_config.train_delays}))
     mesh = batch_mesh(list(jax.devices()) if devices is None else list(devices))
     across = spans_processes(mesh)
 
@@ -347,10 +338,7 @@ def make_train(grad_config: GradientConfig, base: TrafficParams, devices: list |
 
     def train_chunk(state: GradState) -> tuple[GradState, dict]:
         # placed whole on every device, as the chunk returns it: one compiled program for every chunk
-        penalty = None
-        if grad_config.certificate_weight > 0:  # on one device, once per chunk (``certificate_penalty`` says why)
-            penalty = replicate(penalty_and_grad(jax.device_get(state.theta), grad_config, base, periods), mesh)
-        out = _train_chunk(replicate(state, mesh), base, grad_config, n_steps, mesh, penalty)
+        out = _train_chunk(replicate(state, mesh), base, grad_config, n_steps, mesh)
         return local_copy(out) if across else out
 
     return init, train_chunk

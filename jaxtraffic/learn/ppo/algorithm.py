@@ -34,8 +34,8 @@ from jax.sharding import PartitionSpec as P
 
 from jaxtraffic.control.gain_policy import normalize_obs
 from jaxtraffic.control.networks import SMALL_HIDDEN, ActorCritic
+from jaxtraffic.learn.fields import check_fields, hyper
 from jaxtraffic.learn.ppo.losses import Batch, compute_gae, gaussian_log_prob, ppo_loss
-from jaxtraffic.learn.rules import check_fields
 from jaxtraffic.sim.sharding import local_copy
 
 Array = jax.Array
@@ -47,26 +47,22 @@ class PPOConfig:
     """PPO hyperparameters (defaults: the training defaults of ``train.py``). Static: sizes and counts.
     Traced: the floats."""
 
-    num_envs: int = struct.field(pytree_node=False, default=256)
-    num_steps: int = struct.field(pytree_node=False, default=100)  # update window: 10 s
-    update_epochs: int = struct.field(pytree_node=False, default=4)
-    num_minibatches: int = struct.field(pytree_node=False, default=4)
-    updates_per_chunk: int = struct.field(pytree_node=False, default=3)
-    num_seeds: int = struct.field(pytree_node=False, default=1)
-    hidden: tuple = struct.field(pytree_node=False, default=SMALL_HIDDEN)
-    init_sigma: float = struct.field(pytree_node=False, default=0.3)
-    lr: float = 1e-3
-    gamma: float = 0.995
-    gae_lambda: float = 0.95
-    clip_eps: float = 0.2
-    ent_coef: float = 0.0
-    vf_coef: float = 0.5
-    max_grad_norm: float = 0.5
-    reward_scale: float = 0.01
-    # env steps (per seed) over which lr falls linearly to lr * lr_final; 0: constant. Static: it sets the
-    # schedule's length (optax.linear_schedule's transition_steps is a Python number)
-    lr_decay_steps: float = struct.field(pytree_node=False, default=0.0)
-    lr_final: float = 0.1
+    num_envs: int = hyper(256, lo=1, static=True, help="parallel environments per seed (population member)")
+    num_steps: int = hyper(100, lo=1, static=True, help="rollout steps per update (100 = 10 s)")
+    update_epochs: int = hyper(4, lo=1, static=True, help="epochs per update")
+    num_minibatches: int = hyper(4, lo=1, static=True, help="minibatches per epoch")
+    updates_per_chunk: int = hyper(3, lo=1, static=True, help="updates per jit-compiled chunk")
+    num_seeds: int = hyper(1, lo=1, static=True, help="independent seeds (population members) trained at once")
+    hidden: tuple = hyper(SMALL_HIDDEN, static=True, help="hidden layer sizes of the actor and the critic MLPs")
+    init_sigma: float = hyper(0.3, lo=0.0, lo_open=True, static=True, help="initial action std (pre-tanh)")
+    lr: float = hyper(1e-3, lo=0.0, lo_open=True, help="Adam learning rate")
+    gamma: float = hyper(0.995, lo=0.0, lo_open=True, hi=1.0, help="discount per step (dt)")
+    gae_lambda: float = hyper(0.95, lo=0.0, hi=1.0, help="GAE lambda")
+    clip_eps: float = hyper(0.2, lo=0.0, lo_open=True, help="PPO clip range of the probability ratio")
+    ent_coef: float = hyper(0.0, lo=0.0, help="entropy bonus weight")
+    vf_coef: float = hyper(0.5, lo=0.0, help="value loss weight")
+    max_grad_norm: float = hyper(0.5, lo=0.0, lo_open=True, help="global gradient-norm clip")
+    reward_scale: float = hyper(0.01, lo=0.0, lo_open=True, help="reward multiplier for learning")
 
     def network(self, n_actions: int = 3) -> ActorCritic:
         return ActorCritic(hidden=tuple(self.hidden), init_sigma=self.init_sigma,
@@ -118,21 +114,15 @@ class Runner:
 
 # --------------------------------------------------------------------------- pure PPO maths
 def check_ppo_config(ppo_config: PPOConfig) -> None:
-    """Reject hyperparameters that make no sense (ValueError): each field against its range in ``learn.rules``
-    (the config tree's field and flag of the same name)."""
+    """Reject hyperparameters that make no sense (ValueError): each field against the range in its
+    metadata (``learn.fields.hyper``)."""
     check_fields(ppo_config)
 
 
 def lr_schedule(ppo_config: PPOConfig) -> optax.Schedule:
-    """The Adam step size as a function of the optimiser's step count (``optax.linear_schedule``):
-    ``lr``, falling linearly to ``lr * lr_final`` over ``lr_decay_steps`` env steps (constant when that
-    is 0). The count advances once per minibatch; the rate is held for a whole PPO update
-    (``update_epochs * num_minibatches`` optimiser steps), so it is a function of the update number,
-    and resuming from a checkpoint (which holds the count) continues it exactly."""
-    per_update = ppo_config.update_epochs * ppo_config.num_minibatches
-    by_update = optax.linear_schedule(init_value=ppo_config.lr, end_value=ppo_config.lr * ppo_config.lr_final,
-                                      transition_steps=ppo_config.lr_decay_steps / ppo_config.steps_per_update)
-    return lambda count: by_update(count // per_update)
+    """The Adam step size as a function of the optimiser's step count: the constant ``lr`` (a schedule, so
+    that the optimiser's state holds the step count, as the checkpoints always have)."""
+    return lambda count: ppo_config.lr
 
 
 def make_optimizer(ppo_config: PPOConfig) -> optax.GradientTransformation:

@@ -13,8 +13,10 @@ from __future__ import annotations
 
 from importlib import resources
 
+import tomllib
+
 from jaxtraffic.runs.config import TrainConfig
-from jaxtraffic.runs.config.toml import config_from_toml
+from jaxtraffic.runs.config.toml import flat_of_toml
 
 NAMES = ("ppo", "gradient-gains", "gradient-network", "gradient-robust")
 
@@ -23,8 +25,9 @@ def recipe(name: str) -> TrainConfig:
     """The configuration of the main job's run ``name`` (one of ``NAMES``)."""
     if name not in NAMES:
         raise ValueError(f"no recipe {name!r}; the recipes are {NAMES}")
+    where = f"jaxtraffic/paper/recipes/{name}.toml"
     text = resources.files(__package__).joinpath(f"{name}.toml").read_text()
-    return config_from_toml(text, f"jaxtraffic/paper/recipes/{name}.toml")
+    return TrainConfig.from_flat(**flat_of_toml(tomllib.loads(text), where))
 
 
 def training_plant(kind: str, controller_points: int, reference: tuple[int, int]) -> dict:

@@ -1,17 +1,16 @@
-"""The training configuration: the config tree (``tree``: plant, env, algo, grad, run; config.json and its
-loader) and the checks every field passes when a tree is built (``checks``)."""
+"""The training configuration: the config tree (``tree``: plant, env, ppo (``PPOConfig``), grad
+(``GradientConfig``), run; config.json and its loader) and the checks every field passes when a tree is built
+(``checks``)."""
 
+from jaxtraffic.runs.config.toml import read_config, write_config
 from jaxtraffic.runs.config.tree import (
     ALGOS,
-    BEFORE_FIELD,
     CONFIG_VERSION,
     ONLY_FOR,
     POPULATION,
     RUN_CONTROL,
     SECTIONS,
-    AlgoConfig,
     EnvConfig,
-    GradConfig,
     PlantConfig,
     RunConfig,
     TrainConfig,
@@ -21,6 +20,6 @@ from jaxtraffic.runs.config.tree import (
     load_config,
 )
 
-__all__ = ["ALGOS", "BEFORE_FIELD", "CONFIG_VERSION", "ONLY_FOR", "POPULATION", "RUN_CONTROL", "SECTIONS", "AlgoConfig",
-           "EnvConfig", "GradConfig", "PlantConfig", "RunConfig", "TrainConfig", "check_flags_apply",
-           "config_from_json", "config_json", "load_config"]
+__all__ = ["ALGOS", "CONFIG_VERSION", "ONLY_FOR", "POPULATION", "RUN_CONTROL", "SECTIONS",
+           "EnvConfig", "PlantConfig", "RunConfig", "TrainConfig", "check_flags_apply",
+           "config_from_json", "config_json", "load_config", "read_config", "write_config"]

@@ -2,10 +2,11 @@
 
 ``check_config(config)`` runs when a ``TrainConfig`` is built (its ``__post_init__``), so a bad value
 fails before any directory is created or anything compiles, with a message naming the field, its
-flag, the value and the allowed range, e.g. ``lr = -1.0 (--lr): must be > 0``. It checks every
+the value and the allowed range, e.g. ``lr = -1.0: must be > 0``. It checks every
 leaf's type (from its annotation; numpy integers and floats are accepted and normalised to Python
-ones, strings and bools where a number is expected are not) and its range (``learn.rules.RULES``, the one
-table of ranges, which the structs the fields configure check too), then the constraints between fields.
+ones, strings and bools where a number is expected are not) and its range (the field's metadata,
+``learn.fields.hyper``: a library struct's field lends its range to the tree's field that sets it), then the
+constraints between fields.
 ``check_devices`` adds what depends on the process (the device count).
 The plant's physics (equilibrium, CFL, delay vs buffer) is checked by ``TrafficParams``.
 """
@@ -18,7 +19,7 @@ import numbers
 import os
 from typing import Any
 
-from jaxtraffic.learn.rules import RULES, check_range, fail
+from jaxtraffic.learn.fields import check_value, fail
 
 # Every float must be finite unless listed in ALLOW_INF.
 FLOAT32_MAX = 3.4028234663852886e38
@@ -68,7 +69,8 @@ def _typed(name: str, annotation: str, value: Any) -> Any:
         if value is None:
             return None
         kind = kind[: -len("|None")]
-    if kind.startswith("float|tuple["):  # one value or a fixed-length tuple of them (gain_max)
+    one = kind.startswith("float|tuple[")  # one value or a fixed-length tuple of them (gain_max)
+    if one:
         kind = "float" if isinstance(value, numbers.Real) else kind[len("float|"):]
     if kind.startswith("tuple["):
         inner = kind[len("tuple["):-1].split(",")
@@ -80,7 +82,7 @@ def _typed(name: str, annotation: str, value: Any) -> Any:
             return tuple(_scalar(name, inner[0], v) for v in value)
         if len(value) != len(inner):
             raise fail(name, value, f"must be a pair LO,HI of {inner[0]}s" if len(inner) == 2
-                        else f"must be one value or {len(inner)} {inner[0]}s")
+                        else f"must be {'one value or ' if one else ''}{len(inner)} {inner[0]}s")
         return tuple(_scalar(name, k, v) for k, v in zip(inner, value, strict=True))
     if kind in ("int", "float", "bool", "str"):
         return _scalar(name, kind, value)
@@ -110,17 +112,18 @@ def check_section(section: Any) -> None:
         choices = f.metadata.get("choices")
         if choices and typed is not None and typed not in choices:
             raise fail(f.name, typed, f"must be one of {tuple(choices)}")
-        if isinstance(typed, tuple) and f.name not in RULES:  # LO,HI pairs
+        rule = f.metadata.get("range")
+        if isinstance(typed, tuple) and rule is None:  # LO,HI pairs
             _check_pair(f.name, typed)
-        else:  # a number, or each element of a tuple (gain_max, train_delays, train_alphas)
-            check_range(f.name, typed)
+        else:  # a number, or each element of a tuple (gain_max, the scenario grids)
+            check_value(f.name, typed, rule)
 
 
 def check_config(config: Any) -> None:
     """Check a whole ``TrainConfig``: each section, then the constraints between fields."""
     for f in dataclasses.fields(config):  # plant, env, algo, run and any other section
         check_section(getattr(config, f.name))
-    pl, en, al, run = config.plant, config.env, config.algo, config.run
+    pl, en, al, run = config.plant, config.env, config.ppo, config.run
     if not run.out_dir:
         raise fail("out_dir", run.out_dir, "must not be empty")
     batch = al.num_envs * al.num_steps
@@ -146,8 +149,6 @@ def check_config(config: Any) -> None:
                           ("train_horizon_s", config.grad)):
         if (getattr(section, name) or 0.0) / pl.dt > MAX_STEPS:
             raise fail(name, getattr(section, name), f"must be at most {MAX_STEPS:.0e} time steps of dt = {pl.dt} s")
-    if config.grad.init_gains is not None and len(config.grad.init_gains) != 3:
-        raise fail("init_gains", config.grad.init_gains, "must be three gains eta1,eta2,eta3")
 
 
 def _check_reference_validation(pl: Any) -> None:
@@ -169,7 +170,7 @@ def _check_reference_validation(pl: Any) -> None:
 
 def check_devices(config: Any, n_devices: int) -> None:
     """The constraints that depend on the number of devices the environments are split over."""
-    al = config.algo
+    al = config.ppo
     if al.num_envs % n_devices:
         raise fail("num_envs", al.num_envs, f"must be divisible by the number of devices ({n_devices})")
     local = al.num_envs // n_devices * al.num_steps
@@ -181,10 +182,10 @@ def check_devices(config: Any, n_devices: int) -> None:
 def memory_estimate(config: Any) -> float:
     """A lower bound of the bytes PPO's programs hold (float32): every environment's state (fields, delay
     buffer) and one update's rollout (observations, actions, rewards, values... per step)."""
-    n, envs = config.plant.n_points, config.algo.num_envs * config.run.seeds
+    n, envs = config.plant.n_points, config.ppo.num_envs * config.ppo.num_seeds
     state = (config.plant.max_delay_steps + 6) * n
     transition = 2 * (3 * n + 3) + 12
-    return 4.0 * envs * (state + config.algo.num_steps * transition)
+    return 4.0 * envs * (state + config.ppo.num_steps * transition)
 
 
 def check_memory(config: Any, have: float | None = None) -> None:
@@ -196,9 +197,9 @@ def check_memory(config: Any, have: float | None = None) -> None:
             return
     need = memory_estimate(config)
     if need > 0.8 * have:
-        al = config.algo
-        raise fail("num_envs", al.num_envs, f"with num_steps = {al.num_steps} and {config.run.seeds} seed(s) "
-                    f"(--num-steps, --seeds) the rollouts alone need about {need / 2**30:.3g} GiB, more than this "
+        al = config.ppo
+        raise fail("num_envs", al.num_envs, f"with num_steps = {al.num_steps} and {config.ppo.num_seeds} seed(s) "
+                    f"(num_steps, seeds) the rollouts alone need about {need / 2**30:.3g} GiB, more than this "
                     f"machine's {have / 2**30:.3g} GiB; use fewer environments or steps")
 
 

@@ -1,108 +1,78 @@
-"""A run's configuration as a TOML file: ``config.toml`` in every run directory, the paper's recipes
-(``jaxtraffic/paper/recipes/``) and ``train.py --config FILE``.
+"""A run's config as TOML: ``write_config(config, path)`` (every run's config.toml) and ``read_config(path)``.
 
-The file holds the tree, one table per section (``[plant]``, ``[env]``, ``[algo]``, ``[grad]``, ``[run]``), every
-field by its name but those only the other algorithm reads (``ONLY_FOR``; they keep their defaults). TOML has no
-null: a field left unset (``None``) is left out, and ``min_wave_speed``'s "no wave-speed condition" is written
-``-inf``. ``read_config`` rejects unknown sections and fields, and every value passes the tree's checks
-(``runs.config.checks``) as if given on the command line.
+One table per section (``[plant]``, ``[env]``, ``[ppo]``, ``[grad]``, ``[run]``), one key per field, named as
+the field. TOML has no null: a field that is ``None`` is left out (it reads back as its default, ``None``),
+but ``min_wave_speed``, whose ``None`` is written ``-inf`` as on the command line. A file may give any subset of
+the fields (the rest take their defaults; ``grad``'s the policy's; ``resume`` and ``overwrite`` are not
+written); ``read_config(p)`` of a file that
+``write_config`` wrote is the config it was written from.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import math
 from pathlib import Path
 from typing import Any
 
+import tomli_w
 import tomllib
 
 from jaxtraffic.io.files import atomic_write_text
-from jaxtraffic.runs.config.tree import CONFIG_VERSION, ONLY_FOR, SECTIONS, TrainConfig
+from jaxtraffic.runs.config.tree import SECTIONS, TrainConfig, leaf_fields
 
 CONFIG_TOML = "config.toml"
-_NONE_AS_MINUS_INF = {"min_wave_speed"}  # None means "off"; TOML writes it as -inf
-
-
-def _value(x: Any) -> str:
-    if isinstance(x, bool):
-        return "true" if x else "false"
-    if isinstance(x, int):
-        return str(x)
-    if isinstance(x, float):
-        return ("inf" if x > 0 else "-inf") if math.isinf(x) else "nan" if math.isnan(x) else repr(x)
-    if isinstance(x, str):
-        return json.dumps(x)  # a TOML basic string uses JSON's escapes
-    if isinstance(x, (tuple, list)):
-        return "[" + ", ".join(_value(v) for v in x) + "]"
-    raise TypeError(f"cannot write {x!r} ({type(x).__name__}) to TOML")
+ACTIONS = ("resume", "overwrite")  # what a command does to its run directory, not what the run is: not written
 
 
 def config_toml(config: TrainConfig) -> str:
-    """The TOML text of ``config`` (``read_config`` reads it back to an equal config)."""
-    lines = ["# jaxtraffic training configuration: python train.py --config THIS_FILE [flags overriding it]",
-             f"version = {CONFIG_VERSION}", ""]
-    other = ONLY_FOR["ppo" if config.run.algo == "gradient" else "gradient"]
-    for name in SECTIONS:
-        table = []
-        for f in dataclasses.fields(SECTIONS[name]):
-            value = getattr(getattr(config, name), f.name)
-            if value is None and f.name in _NONE_AS_MINUS_INF:
+    """The TOML text of ``config``."""
+    tables: dict[str, dict[str, Any]] = {}
+    for s in SECTIONS:
+        section = getattr(config, s)
+        table = {}
+        for f in leaf_fields(s):
+            if f.name in ACTIONS:
+                continue
+            value = getattr(section, f.name)
+            if value is None and f.name == "min_wave_speed":
                 value = -math.inf
-            if value is not None and f.name not in other:
-                table.append(f"{f.name} = {_value(value)}")
-        lines += [f"[{name}]", *table, ""] if table else []
-    return "\n".join(lines)
-
-
-def config_from_toml(text: str, where: str = "config.toml") -> TrainConfig:
-    """The ``TrainConfig`` of a TOML text; ``ValueError`` naming ``where`` for anything else."""
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as err:
-        raise ValueError(f"{where}: not valid TOML ({err})") from None
-    version = data.pop("version", None)
-    if version != CONFIG_VERSION:
-        raise ValueError(f"{where}: configuration version {version!r}, this jaxtraffic reads version "
-                         f"{CONFIG_VERSION} (a file written by train.py, or one of jaxtraffic/paper/recipes/)")
-    unknown = sorted(set(data) - set(SECTIONS))
-    if unknown:
-        raise ValueError(f"{where}: unknown section(s) {unknown}; the sections are {list(SECTIONS)}")
-    sections = {}
-    for name, cls in SECTIONS.items():
-        table = data.get(name, {})
-        if not isinstance(table, dict):
-            raise ValueError(f"{where}: [{name}] must be a table")
-        known = {f.name for f in dataclasses.fields(cls)}
-        if set(table) - known:
-            raise ValueError(f"{where}: unknown field(s) {sorted(set(table) - known)} in [{name}]")
-        values = {k: tuple(v) if isinstance(v, list) else v for k, v in table.items()}
-        values = {k: None if k in _NONE_AS_MINUS_INF and v == -math.inf else v for k, v in values.items()}
-        try:
-            sections[name] = cls(**values)
-        except (TypeError, ValueError) as err:
-            raise ValueError(f"{where}: [{name}]: {err}") from None
-    try:
-        return TrainConfig(**sections)
-    except (TypeError, ValueError) as err:
-        raise ValueError(f"{where}: {err}") from None
-
-
-def read_config(path: str | Path) -> TrainConfig:
-    """The ``TrainConfig`` of a TOML file, or of a run directory (its config.toml)."""
-    path = Path(path)
-    if path.is_dir():
-        path = path / CONFIG_TOML
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise FileNotFoundError(f"{path}: no such configuration file") from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise ValueError(f"{path}: unreadable ({type(err).__name__}: {err})") from None
-    return config_from_toml(text, str(path))
+            if value is not None:
+                table[f.name] = list(value) if isinstance(value, tuple) else value
+        tables[s] = table
+    return tomli_w.dumps(tables)
 
 
 def write_config(config: TrainConfig, path: str | Path) -> None:
     """Write ``config`` as TOML to ``path`` (atomically)."""
-    atomic_write_text(Path(path), config_toml(config))
+    atomic_write_text(path, config_toml(config))
+
+
+def flat_of_toml(data: dict[str, Any], where: str) -> dict[str, Any]:
+    """The fields a TOML document gives (``{field: value}``); ``ValueError`` for an unknown table or key."""
+    flat: dict[str, Any] = {}
+    for s, table in data.items():
+        if s not in SECTIONS or not isinstance(table, dict):
+            raise ValueError(f"{where}: unknown table [{s}] (the tables are {', '.join(SECTIONS)})")
+        names = {f.name for f in leaf_fields(s)}
+        for k, v in table.items():
+            if k not in names:
+                raise ValueError(f"{where}: [{s}] has no field {k!r}")
+            flat[k] = None if k == "min_wave_speed" and v == -math.inf else tuple(v) if isinstance(v, list) else v
+    return flat
+
+
+def read_flat(path: str | Path) -> dict[str, Any]:
+    """The fields a TOML config file gives."""
+    try:
+        data = tomllib.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as err:
+        raise ValueError(f"{path}: unreadable or not valid TOML ({type(err).__name__}: {err})") from None
+    return flat_of_toml(data, str(path))
+
+
+def read_config(path: str | Path) -> TrainConfig:
+    """The ``TrainConfig`` of a TOML config file (fields it does not give: their defaults)."""
+    try:
+        return TrainConfig.from_flat(**read_flat(path))
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{path}: {err}") from None

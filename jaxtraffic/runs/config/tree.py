@@ -5,8 +5,8 @@ structs they configure (``TrafficParams``, ``EnvParams``, ``PPOConfig``), the ru
 ``train.py``'s flags are generated from the fields (``cli.train``, one flag per leaf field, named
 after it, with the ``help`` of its metadata). A run's config.json is ``config_json(config)``, and
 ``load_config(run_dir)`` reads it back: resume, ``load_policy`` and the evaluation all use it.
-Run directories written before the tree (flat "settings") load too; keys of removed options are
-ignored.
+A config.json of an older version (another layout, or without a field of today's) is an error that says
+so: such a run is retrained, not guessed at.
 """
 
 from __future__ import annotations
@@ -16,17 +16,19 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 from jaxtraffic.control.gain_law import FILTER_SIGMA
-from jaxtraffic.control.networks import PAPER_HIDDEN, SMALL_HIDDEN
 from jaxtraffic.learn.env import EnvParams, make_env_params
-from jaxtraffic.learn.gradient.config import METHODS, POLICIES, POLICY_DEFAULTS, GradientConfig
+from jaxtraffic.learn.fields import hyper, range_of
+from jaxtraffic.learn.gradient.config import GradientConfig
 from jaxtraffic.learn.ppo import PPOConfig
 from jaxtraffic.model.params import SCHEMES, TrafficParams
 from jaxtraffic.sim.metrics import REWARD_TARGET
 
-CONFIG_VERSION = 2
+CONFIG_VERSION = 3
+OLD = "retrain the run with this version of train.py (its flags are in that config.json)"
 
 
 def _defaults(cls: type) -> dict[str, Any]:
@@ -37,7 +39,6 @@ def _defaults(cls: type) -> dict[str, Any]:
 _TP = _defaults(TrafficParams)
 _EP = _defaults(EnvParams)
 _PPO = _defaults(PPOConfig)
-_GRAD = _defaults(GradientConfig)
 ALGOS = ("ppo", "gradient")
 # The default PPO recipe is a population (docs/model.md section 13.8, "Why a population"): POPULATION members
 # trained at once, each on PPOConfig's num_envs / POPULATION environments, so that a chunk steps as many
@@ -46,23 +47,34 @@ POPULATION = 2
 
 
 def _f(default: Any, help: str, **meta: Any) -> Any:
-    """A config field with its ``help`` (the flag's help text) and flag options in its metadata."""
-    return field(default=default, metadata={"help": help, **meta})
+    """A config field with its ``help`` (the flag's help text), its range (``lo``, ``hi``, ... as
+    ``learn.fields.hyper``; a field that sets a library field takes its range, ``_lend_ranges``) and flag
+    options in its metadata."""
+    return hyper(default, help=help, **meta) if {"lo", "hi"} & set(meta) else \
+        field(default=default, metadata={"help": help, **meta})
+
+
+def _lend_ranges(tree_cls: type, lib_cls: type) -> None:
+    """Each field of ``tree_cls`` named as a field of ``lib_cls`` that has a range takes that range (one home)."""
+    for f in dataclasses.fields(tree_cls):
+        rule = range_of(lib_cls, f.name) if f.name in {g.name for g in dataclasses.fields(lib_cls)} else None
+        if rule is not None:
+            f.metadata = MappingProxyType({**f.metadata, "range": rule})
 
 
 @dataclass(frozen=True)
 class PlantConfig:
     """The nominal training plant and grid."""
 
-    delay: float = _f(float(_EP["traffic"].delay), "plant input delay D, s (multiple of dt)")
-    alpha: float = _f(_TP["alpha"], "ACC penetration rate")
-    alpha_noise: float = _f(_TP["alpha_noise"], "per-step std of plant alpha noise")
-    n_points: int = _f(_TP["n_points"], "grid points of the training plant (dx = L/(n-1))")
+    delay: float = _f(float(_EP["traffic"].delay), "plant input delay D, s (multiple of dt)", lo=0.0)
+    alpha: float = _f(_TP["alpha"], "ACC penetration rate", lo=0.0, hi=1.0)
+    alpha_noise: float = _f(_TP["alpha_noise"], "per-step std of plant alpha noise", lo=0.0)
+    n_points: int = _f(_TP["n_points"], "grid points of the training plant (dx = L/(n-1))", lo=3)
     scheme: str = _f(_TP["scheme"], "the training plant's scheme (upwind: the paper's; muscl: second order)",
                      choices=SCHEMES)
-    substeps: int = _f(_TP["substeps"], "solver steps per time step dt (a finer plant, same control period)")
-    dt: float = _f(_TP["dt"], "time step, s (the control period)")
-    max_delay_steps: int = _f(_TP["max_delay_steps"], "delay buffer capacity, steps")
+    substeps: int = _f(_TP["substeps"], "solver steps per time step dt (a finer plant, same control period)", lo=1)
+    dt: float = _f(_TP["dt"], "time step, s (the control period)", lo=0.0, lo_open=True)
+    max_delay_steps: int = _f(_TP["max_delay_steps"], "delay buffer capacity, steps", lo=0, hi=10**6)
 
     def traffic(self) -> TrafficParams:
         return TrafficParams(delay=self.delay, alpha=self.alpha, alpha_noise=self.alpha_noise,
@@ -74,8 +86,10 @@ class PlantConfig:
 class EnvConfig:
     """Episodes, domain randomisation and reward shaping (``learn.env.EnvParams``)."""
 
-    horizon_s: float = _f(_EP["horizon"] * float(_EP["traffic"].dt), "episode length, s (truncation)")
-    delay_spread: float = _f(1.0, "train on plant delays ~ U(D - spread, D + spread) s (clipped at 0); 0 disables")
+    horizon_s: float = _f(_EP["horizon"] * float(_EP["traffic"].dt), "episode length, s (truncation)",
+                          lo=0.0, lo_open=True)
+    delay_spread: float = _f(1.0, "train on plant delays ~ U(D - spread, D + spread) s (clipped at 0); 0 disables",
+                              lo=0.0)
     delay_range: tuple[float, float] | None = _f(None, "plant delay range LO,HI s (overrides --delay-spread)")
     alpha_range: tuple[float, float] | None = _f(None, "plant alpha range LO,HI")
     amp_range: tuple[float, float] = _f((_EP["amp_min"], _EP["amp_max"]), "initial amplitude LO,HI veh/m")
@@ -102,95 +116,7 @@ class EnvConfig:
                              "pointwise law")
     controller_points: int | None = _f(None, "gradient training: the controller's own grid (nodes over the road; "
                                        "the plant's n-points must refine it by an integer factor); default: the "
-                                       "plant's grid")
-
-
-@dataclass(frozen=True)
-class AlgoConfig:
-    """PPO (``learn.ppo.algorithm.PPOConfig``; ``network`` chooses its ``hidden`` layers)."""
-
-    num_envs: int = _f(_PPO["num_envs"] // POPULATION, "parallel environments per seed (population member)")
-    num_steps: int = _f(_PPO["num_steps"], "rollout steps per update (100 = 10 s)")
-    update_epochs: int = _f(_PPO["update_epochs"], "epochs per update")
-    num_minibatches: int = _f(_PPO["num_minibatches"], "minibatches per epoch")
-    updates_per_chunk: int = _f(_PPO["updates_per_chunk"],
-                                "updates per jit-compiled chunk (progress/checkpoint interval)")
-    network: str = _f("small", "small: 2x64 tanh MLPs; paper: 8 layers (1024, then 512 units)",
-                      choices=("small", "paper"))
-    lr: float = _f(_PPO["lr"], "Adam learning rate")
-    lr_decay_steps: float = _f(_PPO["lr_decay_steps"], "env steps (per seed) over which the learning rate falls "
-                               "linearly to lr * lr-final; 0: constant")
-    lr_final: float = _f(_PPO["lr_final"], "final learning rate, as a fraction of --lr")
-    gamma: float = _f(_PPO["gamma"], "discount")
-    gae_lambda: float = _f(_PPO["gae_lambda"], "GAE lambda")
-    clip_eps: float = _f(_PPO["clip_eps"], "PPO clip range")
-    ent_coef: float = _f(_PPO["ent_coef"], "entropy bonus")
-    vf_coef: float = _f(_PPO["vf_coef"], "value loss weight")
-    max_grad_norm: float = _f(_PPO["max_grad_norm"], "gradient clipping")
-    reward_scale: float = _f(_PPO["reward_scale"], "reward multiplier for learning")
-    init_sigma: float = _f(_PPO["init_sigma"], "initial action std (pre-tanh)")
-
-    def hidden(self) -> tuple[int, ...]:
-        return {"small": SMALL_HIDDEN, "paper": PAPER_HIDDEN}[self.network]
-
-
-def _by_policy(name: str) -> str:
-    return ", ".join(f"{p}: {POLICY_DEFAULTS[p].get(name, _GRAD[name])}" for p in POLICIES)
-
-
-@dataclass(frozen=True)
-class GradConfig:
-    """Gradient-based training (``--algo gradient``, ``learn.gradient.GradientConfig``): analytic gradients
-    of a rollout objective over a grid of training scenarios. ``None``: the policy's default."""
-
-    policy: str = _f(_GRAD["policy"], "gains: three constant gains; network: the actor network PPO trains "
-                     "(state-dependent gains); schedule: gains scheduled in the delay the controller is told "
-                     "(--schedule-knots), trained over the robustness map's delays and alphas", choices=POLICIES)
-    grad_steps: int | None = _f(None, f"Adam steps ({_by_policy('grad_steps')})")
-    grad_lr: float | None = _f(None, f"Adam step size ({_by_policy('grad_lr')})")
-    train_delays: tuple[float, ...] | None = _f(None, "plant delays of the training scenarios, s "
-                                                 f"({_by_policy('train_delays')})")
-    train_alphas: tuple[float, ...] | None = _f(None, "plant alphas of the training scenarios "
-                                                 f"({_by_policy('train_alphas')})")
-    train_amplitudes: tuple[float, ...] = _f(_GRAD["train_amplitudes"], "initial perturbation amplitudes, veh/m")
-    train_wavenumbers: tuple[int, ...] = _f(_GRAD["train_wavenumbers"], "initial perturbation wavenumbers")
-    train_phases: tuple[float, ...] = _f(_GRAD["train_phases"], "initial perturbation phases, rad")
-    train_horizon_s: float | None = _f(None, f"rollout length of the objective, s ({_by_policy('train_horizon_s')})")
-    record_every: int = _f(_GRAD["record_every"], "steps between objective samples (also the checkpointed chunk)")
-    steps_per_chunk: int = _f(_GRAD["steps_per_chunk"], "Adam steps per compiled chunk (progress/checkpoint interval)")
-    reward_weight: float | None = _f(None, "objective weight of -mean reward (dimensionless; "
-                                     f"{_by_policy('reward_weight')})")
-    waves_weight: float | None = _f(None, "objective weight of the mean of log(1 + var_x rho/100 + var_x v) "
-                                    "weighted by t/T (rho in veh/km, v in m/s): wave amplitude, blind to a uniform "
-                                    f"offset ({_by_policy('waves_weight')})")
-    comfort_weight: float | None = _f(None, f"objective weight of J_comfort ({_by_policy('comfort_weight')})")
-    effort_weight: float = _f(_GRAD["effort_weight"], "objective weight of mean (h - h_bar)^2, 1/s^2")
-    scenario_clip: float | None = _f(None, "> 0: clip each scenario's gradient to this norm before averaging; 0: "
-                                     f"off ({_by_policy('scenario_clip')})")
-    certificate_weight: float = _f(_GRAD["certificate_weight"], "objective weight of the certificate penalty: by how "
-                                   "much the law's largest growth rate (1/s, control.stability) exceeds 1e-3/s")
-    init_gains: tuple[float, ...] | None = _f(None, "initial gains eta1,eta2,eta3 (schedule: at every knot; "
-                                              f"{_by_policy('init_gains')})")
-    schedule_knots: tuple[float, ...] = _f(_GRAD["schedule_knots"],
-                                           "schedule policy: the knot delays of its gain table, s")
-    grad_method: str | None = _f(None, "adam: Adam on the objective's gradient; cem: the cross-entropy method on the "
-                                 "robustness map's counts (stabilised, diverged) over the training scenarios, "
-                                 f"derivative-free, --grad-steps generations ({_by_policy('grad_method')})",
-                                 choices=METHODS)
-    cem_population: int = _f(_GRAD["cem_population"], "cem: parameter sets rolled out per generation")
-    cem_sigma: float = _f(_GRAD["cem_sigma"], "cem: initial standard deviation of the search over the gains")
-    grad_gain_max: float | None = _f(None, f"network policy: |eta_i| bound (default {_GRAD['grad_gain_max']}; "
-                                     "PPO's is --gain-max)")
-
-    def gradient_config(self, env: EnvConfig, hidden: tuple[int, ...]) -> GradientConfig:
-        """The algorithm's ``GradientConfig``: every field given (not ``None``) under its own name, which is
-        ``GradientConfig``'s too, over the policy's defaults (``POLICY_DEFAULTS``); the gain filter, the law's
-        filter and the controller's grid from ``env``, the network from ``algo`` (``hidden``). The gain bound is
-        ``grad_gain_max``, not PPO's ``env.gain_max``: the gradient results were measured with 3."""
-        given = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        return GradientConfig.for_policy(
-            **{k: tuple(v) if isinstance(v, list) else v for k, v in given.items() if v is not None}, hidden=hidden,
-            gain_filter=env.gain_filter, filter_sigma=env.filter_sigma, controller_points=env.controller_points or 0)
+                                       "plant's grid", lo=3)
 
 
 @dataclass(frozen=True)
@@ -207,11 +133,9 @@ class RunConfig:
                       "apply and are recorded, any other flag that would change the run is an error")
     overwrite: bool = _f(False, "a fresh run into an --out-dir holding another run's results (checkpoint, best "
                          "policy, summary, learning curve) clears them first; without it that is an error")
-    seed: int = _f(0, "PRNG seed")
-    seeds: int = _f(POPULATION, "population: members trained at once (their keys split from --seed); the run "
-                    "stops on the first that meets the stop rule and keeps the best member's policy")
-    total_steps: int = _f(10_000_000, "environment steps (all envs, per seed)")
-    max_wall_s: float = _f(math.inf, "stop after this many seconds")
+    seed: int = _f(0, "PRNG seed", lo=0, hi=2**32 - 1)
+    total_steps: int = _f(10_000_000, "environment steps (all envs, per seed)", lo=1)
+    max_wall_s: float = _f(math.inf, "stop after this many seconds", lo=0.0, lo_open=True)
     keep_going: bool = _f(False, "ignore the stop rule")
     target_reward: float = _f(REWARD_TARGET, "stop rule: deterministic evaluation reward (end of the evaluation "
                               "rollout) >= this")
@@ -222,69 +146,71 @@ class RunConfig:
                                    "the gains the policy settles to at the equilibrium, at the training delay and "
                                    "alpha with its filter: largest growth rate over wavenumbers <= 1e-3/s")
     stop_patience: int = _f(1, "consecutive evaluations that must meet the stop rule (per population member) "
-                            "before stopping")
+                            "before stopping", lo=1)
     restart_steps: int = _f(1_500_000, "a member that has not met the stop rule within this many env steps of its "
                             "start is re-initialised from a new key (network, optimiser, environments, observation "
-                            "statistics; its best checkpoint is kept); 0: never (also with --keep-going)")
+                            "statistics; its best checkpoint is kept); 0: never (also with --keep-going)", lo=0)
     val_horizon_s: float = _f(600.0, "validation suite (learn.ppo.selection): every member's deterministic policy from "
                               "two initial conditions x the plant delays at the ends and the middle of the training "
                               "range, over this many seconds, scored against backstepping; the best-scoring "
                               "checkpoint of each member is kept (best.msgpack) and the best member is the run's "
-                              "policy; 0: no suite")
+                              "policy; 0: no suite", lo=0.0)
     val_plant: str = _f("reference", "the plant the validation suite runs on: reference (TrafficParams.reference: "
                         "MUSCL, 801 points, 2 solver steps; the policy acts on its training grid through "
                         "control.adapter) or training (the training plant)", choices=("reference", "training"))
     val_target: float = _f(1.0, "stop rule also requires a validation score <= this (1: at the nominal delay the "
                            "density L2 at half the suite horizon is below backstepping's and J_comfort within 20 %% "
                            "of its, and at every delay of the suite the plant does not diverge and is still "
-                           "converging); inf: no such condition")
-    eval_horizon_s: float = _f(300.0, "evaluation rollout length, s")
+                           "converging); inf: no such condition", lo=0.0, lo_open=True)
+    eval_horizon_s: float = _f(300.0, "evaluation rollout length, s", lo=0.0, lo_open=True)
     checkpoint_every: int = _f(10, "PPO: write checkpoint.msgpack every this many chunks, and after a session's first "
                                "chunk, at the end and on SIGINT/SIGTERM (1: after every chunk; SIGKILL loses at "
-                               "most this many chunks); best.msgpack is written whenever it improves")
+                               "most this many chunks); best.msgpack is written whenever it improves", lo=1)
     quiet: bool = _f(False, "no progress lines")
     tensorboard: str | None = _f(None, "also write the learning-curve rows as TensorBoard scalars to this directory "
                                  "(needs tensorboardX: pip install 'jaxtraffic[tb]')")
 
 
+_lend_ranges(EnvConfig, EnvParams)
+_lend_ranges(EnvConfig, GradientConfig)  # filter_sigma
+
 RUN_CONTROL = ("out_dir", "total_steps", "max_wall_s", "keep_going", "resume", "overwrite", "quiet", "stop_patience",
                "target_reward", "min_wave_speed", "require_certificate", "tensorboard", "val_target",
                "checkpoint_every")
-# fields absent from a run's config.json because it was written before they existed: their value then
-# (the run is loaded and resumed as it was trained, not with today's defaults)
-BEFORE_FIELD = {"obs_segments": 0, "wave_weight": 0.0, "val_horizon_s": 0.0, "restart_steps": 0,
-                "filter_sigma": 0.0, "require_certificate": False, "val_plant": "training"}
-
-
 @dataclass(frozen=True)
 class TrainConfig:
-    """The whole training configuration: ``plant``, ``env``, ``algo`` (PPO), ``grad`` (gradient-based
-    training) and ``run``."""
+    """The whole training configuration: ``plant``, ``env``, ``ppo`` (the library's ``PPOConfig`` as it is:
+    ``num_seeds`` is the population, ``num_envs`` each member's), ``grad`` (gradient-based training) and ``run``."""
 
     plant: PlantConfig = PlantConfig()
     env: EnvConfig = EnvConfig()
-    algo: AlgoConfig = AlgoConfig()
-    grad: GradConfig = GradConfig()
+    ppo: PPOConfig = PPOConfig(num_envs=_PPO["num_envs"] // POPULATION, num_seeds=POPULATION)
+    grad: GradientConfig = GradientConfig()
     run: RunConfig = RunConfig()
 
     def __post_init__(self) -> None:
         from jaxtraffic.runs.config.checks import check_config  # every field's type and range (ValueError)
         check_config(self)
+        # the gradient trainer's filter, grid and network are the environment's and PPO's (one value each)
+        object.__setattr__(self, "grad", dataclasses.replace(
+            self.grad, hidden=tuple(self.ppo.hidden), gain_filter=self.env.gain_filter,
+            filter_sigma=self.env.filter_sigma, controller_points=self.env.controller_points or 0))
 
     @classmethod
     def from_flat(cls, **values: Any) -> TrainConfig:
-        """A config from leaf-field names (``TrainConfig.from_flat(n_points=21, lr=1e-3)``); an unknown
+        """A config from leaf-field names (``TrainConfig.from_flat(n_points=21, num_envs=64)``); an unknown
         name is a ``TypeError``."""
         parts: dict[str, dict[str, Any]] = {s: {} for s in SECTIONS}
         for name, value in values.items():
             if name not in _OWNER:
                 raise TypeError(f"unknown config field {name!r}")
             parts[_OWNER[name]][name] = value
-        return cls(**{s: SECTIONS[s](**kw) for s, kw in parts.items()})
+        grad = GradientConfig.for_policy(**parts.pop("grad"))  # the policy's defaults under the given fields
+        return cls(grad=grad, **{s: dataclasses.replace(_DEFAULT[s], **kw) for s, kw in parts.items()})
 
     def flat(self) -> dict[str, Any]:
         """Every leaf field by name."""
-        return {f.name: getattr(getattr(self, s), f.name) for s in SECTIONS for f in dataclasses.fields(SECTIONS[s])}
+        return {f.name: getattr(getattr(self, s), f.name) for s in SECTIONS for f in leaf_fields(s)}
 
     def replace(self, **values: Any) -> TrainConfig:
         """A copy with the given leaf fields changed."""
@@ -306,15 +232,26 @@ class TrainConfig:
             diverge_penalty=en.diverge_penalty, filter_sigma=en.filter_sigma)
 
 
-SECTIONS = {"plant": PlantConfig, "env": EnvConfig, "algo": AlgoConfig, "grad": GradConfig, "run": RunConfig}
+SECTIONS = {"plant": PlantConfig, "env": EnvConfig, "ppo": PPOConfig, "grad": GradientConfig, "run": RunConfig}
+# GradientConfig's fields that a run sets from other sections (``TrainConfig.__post_init__``), or not at all
+# (max_grad_norm: PPO's field of that name is the flag's)
+BORROWED = ("hidden", "gain_filter", "filter_sigma", "controller_points", "max_grad_norm")
+
+
+def leaf_fields(section: str) -> list[dataclasses.Field]:
+    """The fields of a section that are its own (a flag each): all but the gradient section's ``BORROWED``."""
+    return [f for f in dataclasses.fields(SECTIONS[section]) if section != "grad" or f.name not in BORROWED]
+
+
+_DEFAULT = {f.name: f.default for f in dataclasses.fields(TrainConfig)}
 # the fields only one algorithm reads (the plant, and the run's place, seed, wall budget, evaluation horizon and
-# printing, are both's; the gradient trainer's network policy takes --network)
+# printing, are both's; the gradient trainer's network policy takes --hidden)
 _names = lambda cls: {f.name for f in dataclasses.fields(cls)}  # noqa: E731
 ONLY_FOR = {
-    "gradient": _names(GradConfig) | {"controller_points"},
-    "ppo": (_names(AlgoConfig) - {"network"})
+    "gradient": {f.name for f in leaf_fields("grad")} | {"controller_points"},
+    "ppo": (_names(PPOConfig) - {"hidden"})
     | (_names(EnvConfig) - {"gain_filter", "filter_sigma", "controller_points"})
-    | {"seeds", "total_steps", "keep_going", "target_reward", "min_wave_speed", "require_certificate",
+    | {"total_steps", "keep_going", "target_reward", "min_wave_speed", "require_certificate",
        "stop_patience", "restart_steps", "val_horizon_s", "val_plant", "val_target", "checkpoint_every"},
 }
 
@@ -329,8 +266,8 @@ def check_flags_apply(algo: str, given: dict | set) -> None:
                                                           and "total_steps" in wrong else ""))
 
 
-_OWNER = {f.name: s for s, c in SECTIONS.items() for f in dataclasses.fields(c)}
-_TYPES = {f.name: str(f.type) for c in SECTIONS.values() for f in dataclasses.fields(c)}
+_OWNER = {f.name: s for s in SECTIONS for f in leaf_fields(s)}
+_TYPES = {f.name: str(f.type) for s in SECTIONS for f in leaf_fields(s)}
 
 
 def _tuples(x: Any) -> Any:
@@ -345,34 +282,36 @@ def config_json(config: TrainConfig, **extra: Any) -> dict[str, Any]:
 
 def config_from_json(data: dict[str, Any], where: str = "config.json") -> TrainConfig:
     """The ``TrainConfig`` of a config.json's content. Keys of options that no longer exist are ignored;
-    files written before the tree (flat ``settings``) are converted."""
+    a file of an older version (flat ``settings``, an ``algo`` section, a field missing) is an error."""
     if not isinstance(data, dict):
         raise ValueError(f"{where}: not a config.json written by train.py (a JSON {type(data).__name__}, "
                          "not an object)")
     if "config" in data:
         tree = data["config"]
-        required = ("plant", "env", "algo", "run")  # (sections added later default when absent)
+        if isinstance(tree, dict) and "algo" in tree and "ppo" not in tree:
+            raise ValueError(f"{where} was written by an older jaxtraffic (an 'algo' section; PPO's settings are "
+                             f"now the 'ppo' section, PPOConfig as it is): {OLD}")
+        required = ("plant", "env", "ppo", "run")  # (sections added later default when absent)
         if not isinstance(tree, dict) or not all(isinstance(tree.get(s), dict) for s in required):
             have = sorted(tree) if isinstance(tree, dict) else type(tree).__name__
             missing = [s for s in required if not isinstance(tree, dict) or not isinstance(tree.get(s), dict)]
             raise ValueError(f"{where}: the config tree lacks the section(s) {missing} (has {have}); "
                              "not a complete config.json written by train.py")
-        flat = {k: v for section in tree.values() if isinstance(section, dict) for k, v in section.items()}
+        flat = {k: v for s, section in tree.items() if isinstance(section, dict) for k, v in section.items()
+                if s != "grad" or k not in BORROWED}
     elif "settings" in data:  # written before the config tree
-        flat = data["settings"]
-        if "gain_filter" not in flat:
-            raise ValueError(f"{where} was written by an older jaxtraffic (before the gain filter, with an "
-                             "observation without the applied gains): retrain it with train.py")
+        raise ValueError(f"{where} was written by an older jaxtraffic (flat settings): {OLD}")
     else:
         raise ValueError(f"{where}: neither a config tree nor settings; not written by train.py")
-    if not isinstance(flat, dict):
-        raise ValueError(f"{where}: \"settings\" is not an object; not written by train.py")
+    missing = sorted(set(_OWNER) - set(flat))
+    if missing:
+        raise ValueError(f"{where} was written by an older jaxtraffic (it lacks {', '.join(missing)}): {OLD}")
     # JSON has no inf: a null float that cannot be None stands for inf (max_wall_s, val_target), any other for the
     # default
     values = {k: math.inf if v is None and _TYPES[k] == "float" else _tuples(v) for k, v in flat.items()
               if k in _OWNER and (v is not None or "None" in _TYPES[k] or _TYPES[k] == "float")}
     try:
-        return TrainConfig.from_flat(**{**{k: v for k, v in BEFORE_FIELD.items() if k not in flat}, **values})
+        return TrainConfig.from_flat(**values)
     except (TypeError, ValueError) as err:
         raise ValueError(f"{where}: {err}") from None
 

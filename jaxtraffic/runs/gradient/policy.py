@@ -23,7 +23,7 @@ def gradient_setup(config: TrainConfig) -> tuple[GradientConfig, TrafficParams]:
     """The algorithm's settings and the nominal plant (no alpha noise) of a ``TrainConfig`` with
     ``run.algo = "gradient"``."""
     nominal = config.plant.traffic().replace(alpha_noise=0.0)
-    return config.grad.gradient_config(config.env, config.algo.hidden()), nominal
+    return config.grad, nominal
 
 
 def own_grid_controller(theta, grad_config: GradientConfig, plant: TrafficParams, delay) -> Controller:

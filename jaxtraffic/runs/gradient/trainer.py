@@ -211,17 +211,17 @@ def check_memory(grad_config: GradientConfig, plant: TrafficParams, have: float 
 def train_gradient(config: TrainConfig, callbacks: Sequence[Callable[[dict], None]] = ()) -> Path:
     """Train (or resume) by gradient or CEM and return the run directory. Uses ``config.grad`` (with its own gain
     bound, ``grad_gain_max``), ``config.plant`` (the nominal plant), ``config.env.gain_filter``,
-    ``config.algo.network`` (network policy) and the run-control fields of ``config.run``; on resume, the saved
+    ``config.ppo.hidden`` (network policy) and the run-control fields of ``config.run``; on resume, the saved
     config with the new ``RUN_CONTROL`` fields and ``grad_steps``. ``callbacks``: each learning-curve row."""
     config, run_dir, saved = prepare(config, keep=("grad_steps",))
     grad_config, plant = gradient_setup(config)  # validates: fail before creating the run directory
     objective.check_scenarios(grad_config, plant)
     if grad_config.grad_steps % grad_config.steps_per_chunk:  # a chunk is one compiled program of steps_per_chunk steps
-        raise ValueError(f"grad_steps = {grad_config.grad_steps} (--grad-steps): must be a multiple of "
-                         f"--steps-per-chunk ({grad_config.steps_per_chunk}), the Adam steps of one compiled chunk")
+        raise ValueError(f"grad_steps = {grad_config.grad_steps}: must be a multiple of steps_per_chunk "
+                         f"({grad_config.steps_per_chunk}), the Adam steps of one compiled chunk")
     check_memory(grad_config, plant)
     if saved is not None:
-        check_total(saved[1], "updates", grad_config.grad_steps, "--grad-steps", run_dir / ckpt.CHECKPOINT)
+        check_total(saved[1], "updates", grad_config.grad_steps, "grad_steps", run_dir / ckpt.CHECKPOINT)
     return run_training(config, run_dir, saved, lambda: GradientTraining(config, grad_config, plant),
                         lambda: config_json(config, jax_version=jax.__version__), callbacks,
                         "jaxtraffic.train_gradient")

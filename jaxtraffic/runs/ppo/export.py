@@ -33,7 +33,7 @@ def load_predict(run_dir: str | Path, seed: int | None = None, checkpoint: str =
         raise ValueError(f"{run_dir}: a gradient-trained run ({config.grad.policy}) has no predict(obs) of the "
                          "environment's observation; load_policy gives its controller")
     s = controller.settings
-    network = ActorCritic(hidden=config.algo.hidden(), init_sigma=config.algo.init_sigma)
+    network = ActorCritic(hidden=tuple(config.ppo.hidden), init_sigma=config.ppo.init_sigma)
     size = s.obs_mean.shape[-1]
 
     @jax.jit

@@ -94,6 +94,6 @@ def load_ppo_policy(run_dir: Path, config: TrainConfig, seed: int | None = None,
     dx = float(TrafficParams().L) / (config.plant.n_points - 1)  # the training road (learn.config has no length)
     return policy_controller(
         jax.tree.map(lambda x: jnp.asarray(x[seed]), saved.params), saved.obs_mean[seed], saved.obs_var[seed],
-        config.env.gain_max, hidden=config.algo.hidden(), init_sigma=config.algo.init_sigma,
+        config.env.gain_max, hidden=tuple(config.ppo.hidden), init_sigma=config.ppo.init_sigma,
         gain_filter=config.env.gain_filter, obs_segments=segments,
         sigma_nodes=sigma_nodes(config.env.filter_sigma, dx))

@@ -30,7 +30,6 @@ status).
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import math
 from collections.abc import Callable, Sequence
@@ -71,10 +70,7 @@ MILESTONES = ("stop_rule", "paper_rule")
 def build(config: TrainConfig) -> tuple[algorithm.PPOConfig, learn_env.EnvParams]:
     """PPO's settings and the environment's parameters of a ``TrainConfig``, checked against this machine
     (devices, memory) and the plant (initial amplitudes)."""
-    algo = dataclasses.asdict(config.algo)
-    ppo_config = algorithm.PPOConfig(num_seeds=config.run.seeds, hidden=config.algo.hidden(),
-                                     **{f.name: algo[f.name] for f in dataclasses.fields(algorithm.PPOConfig)
-                                        if f.name in algo})
+    ppo_config = config.ppo
     algorithm.check_ppo_config(ppo_config)
     env_params = config.env_params()
     check_devices(config, len(jax.devices()))
@@ -207,7 +203,7 @@ class PPOTraining:
         self.best_saved = self.best
         c, run = self.ppo_config, self.config.run
         return (f"training PPO: {c.num_envs} envs x {c.num_steps} steps/update, {c.updates_per_chunk} updates/chunk,"
-                f" {run.seeds} seed(s), {len(jax.devices())} device(s), plant D = {self.config.plant.delay:g} s, "
+                f" {c.num_seeds} seed(s), {len(jax.devices())} device(s), plant D = {self.config.plant.delay:g} s, "
                 f"target eval reward >= {run.target_reward}")
 
     def _judge(self, ev: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -1,4 +1,4 @@
-"""``train_run(config)``: train (or resume) the run a ``TrainConfig`` describes, whatever its algorithm."""
+"""``train_run(config)``: train the run a ``TrainConfig`` describes, with its algorithm (``config.run.algo``)."""
 
 from __future__ import annotations
 
@@ -9,9 +9,8 @@ from jaxtraffic.runs.config import TrainConfig
 
 
 def train_run(config: TrainConfig, callbacks: Sequence[Callable[[dict], None]] = ()) -> Path:
-    """Train ``config`` (``config.run.algo``: PPO, or gradient / CEM training) into ``config.run.out_dir`` and
-    return the run directory; ``callbacks`` receive each learning-curve row. Raises ``TrainingInterrupted`` after
-    SIGINT / SIGTERM (the last checkpoint is on disk; ``config.replace(resume=True)`` continues it)."""
+    """Train ``config`` (PPO or the gradient trainer, by ``config.run.algo``) and return its run directory;
+    ``callbacks``: each learning-curve row."""
     if config.run.algo == "gradient":
         from jaxtraffic.runs.gradient.trainer import train_gradient
 

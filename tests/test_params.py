@@ -162,7 +162,7 @@ def test_stack_params_validates_every_environment():
         stack_params(delay=[0.0, 0.4, 0.45])
     with pytest.raises(ValueError, match=r"alpha must lie in \[0, 1\]"):
         stack_params(alpha=[0.1, 1.5])
-    with pytest.raises(ValueError, match="same length"):
+    with pytest.raises(ValueError, match="different lengths"):
         stack_params(alpha=[0.1, 0.2], delay=[0.0])
     p = stack_params(alpha=[0.1, 0.2, 0.3], n_points=21)
     assert p.n_points == 21

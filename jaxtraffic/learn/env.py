@@ -53,7 +53,7 @@ Array = jax.Array
 # finished (``auto_reset``, 1.7-2x the environment's steps/s); False builds one for every environment at every
 # step and selects it where done (``_select_reset``, the earlier way). The two agree to float rounding: the fresh
 # observation can differ by an ulp (XLA compiles it in another context), so a trained policy is not bit-identical
-# across the switch (BENCHMARKS.md, "One memory pass per step").
+# across the switch (docs/model.md section 19.5).
 RESET_ONLY_WHERE_DONE = True
 
 

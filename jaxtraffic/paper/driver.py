@@ -99,9 +99,8 @@ def evaluate_plant(controllers: dict[str, Controller], eval_config: EvalConfig, 
     ``ppo_delay0``: a separate policy for scenario delay0 (else the D = 4 s one is used).
     ``learned_runs``: controller name -> {"summary", "curve", "run_dir"} of the runs behind the
     learned controllers, for REPORT.md's comparison section (``paper.learned``).
-    ``grids``: the grid each learned controller acts on (``learn.runs.checkpoint.policy_grid``; "ppo" also
-    for ``ppo_delay0``); every controller is adapted from its grid to the evaluation plant (baselines:
-    ``adapter.baseline_grid``; ``numerics.deploy``). With ``eval_config.numerics_check`` Table 2's scenario is
+    ``grids``: the grid each learned controller acts on (``runs.policy.policy_grid``; "ppo" also for
+    ``ppo_delay0``); every controller is adapted from its grid to the evaluation plant (``numerics.deploy``). With ``eval_config.numerics_check`` Table 2's scenario is
     rerun on a refined plant and with the other scheme. ``oracle``: the oracle rows of this map
     (``paper.oracle.load_oracle``), drawn beside the controllers' waves and tabulated in REPORT.md.
 

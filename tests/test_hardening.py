@@ -600,8 +600,8 @@ def test_resume_with_another_device_count_explains(ref_run, tmp_path):
 def test_resume_keeps_the_saved_run_control_and_refuses_other_changes(ref_run):
     saved = load_config(ref_run)
     cfg = saved.replace(lr=0.5, num_seeds=3, total_steps=7 * CHUNK, out_dir=str(ref_run), resume=True)
-    with pytest.raises(ValueError, match=r"would change it: --lr 0.5 \(the run's value: 0.001\), --seeds 3"):
-        train_cli.resumed_config(cfg, {"lr": 0.5, "seeds": 3, "total_steps": 7 * CHUNK, "n_points": 21})
+    with pytest.raises(ValueError, match=r"would change it: --lr 0.5 \(the run's value: 0.001\), --num-seeds 3"):
+        train_cli.resumed_config(cfg, {"lr": 0.5, "num_seeds": 3, "total_steps": 7 * CHUNK, "n_points": 21})
     # an equal value is no change; a run-control flag applies; one not given keeps the run's saved value
     default = TrainConfig().replace(out_dir=str(ref_run), resume=True, total_steps=7 * CHUNK, n_points=21)
     merged = train_cli.resumed_config(default, {"total_steps": 7 * CHUNK, "n_points": 21, "resume": True})
@@ -686,7 +686,7 @@ def test_ctrl_c_under_a_closed_pipe_saves_summarises_and_exits_130(tmp_path):
     rc = proc.wait(timeout=300)
     assert rc == 130, (rc, "".join(lines), err[-3000:])
     assert "SIGINT received" in err and "standard output was closed (broken pipe)" in err
-    assert "Traceback" not in err and "continue with --resume" in err, err[-2000:]
+    assert "Traceback" not in err and "continue with resume" in err, err[-2000:]
     _, meta = ckpt.load_checkpoint(run)
     summary = json.loads((run / ckpt.SUMMARY).read_text())
     assert summary["interrupted"] is True and summary["env_steps"] == meta["env_steps"] >= 2 * CHUNK

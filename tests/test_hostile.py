@@ -445,7 +445,7 @@ def test_gradient_resume_with_grad_steps_below_the_done_count_is_refused(tiny_ru
     with pytest.raises(SystemExit) as exc:
         train_cli.main(["--out-dir", str(run), "--resume", "--grad-steps", "2", "--quiet"])
     err = capsys.readouterr().err
-    assert exc.value.code == 2 and "has already done 4 updates; --grad-steps 2 is below that" in err, err
+    assert exc.value.code == 2 and "has already done 4 updates; grad_steps 2 is below that" in err, err
     assert checksum(run) == before
 
 

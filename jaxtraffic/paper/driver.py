@@ -100,9 +100,9 @@ def evaluate_plant(controllers: dict[str, Controller], eval_config: EvalConfig, 
     ``learned_runs``: controller name -> {"summary", "curve", "run_dir"} of the runs behind the
     learned controllers, for REPORT.md's comparison section (``paper.learned``).
     ``grids``: the grid each learned controller acts on (``runs.policy.policy_grid``; "ppo" also for
-    ``ppo_delay0``); every controller is adapted from its grid to the evaluation plant (``numerics.deploy``). With ``eval_config.numerics_check`` Table 2's scenario is
-    rerun on a refined plant and with the other scheme. ``oracle``: the oracle rows of this map
-    (``paper.oracle.load_oracle``), drawn beside the controllers' waves and tabulated in REPORT.md.
+    ``ppo_delay0``); every controller is adapted from its grid to the evaluation plant (``numerics.deploy``).
+    With ``eval_config.numerics_check`` Table 2's scenario is rerun on a refined plant and with the other scheme.
+    ``oracle``: the map's oracle rows (``paper.oracle.load_oracle``), drawn and tabulated beside the controllers.
 
     In a multi-process run (``jaxtraffic.platform.distributed``) every process must call it with the same
     arguments: the batched rollouts are split over every process's devices, every process gets

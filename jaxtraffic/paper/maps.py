@@ -58,7 +58,7 @@ def map_table(robust: dict[str, dict[str, np.ndarray]], told: dict[str, str], ev
               ) -> dict[str, Any]:
     """The map's counts (JSON-able): "rows" = controller -> {"told", "role", "stabilised", "diverged" (over
     the controllable cells), "stabilised_all", "diverged_all" (over every cell)}; "cells", "controllable",
-    "excluded" (a list of {"delay_s", "alpha", "open_loop_diverged_at_s"}), "excluded_mask" ([delay][alpha]
+    "excluded" (a list of {"delay_s", "alpha", "open_loop_diverged_at_s"}), "excluded_mask" (``[delay][alpha]``
     bools) and "rule". Stabilised: not
     diverged and final std_x(rho) < ``STABLE_STD``. ``told``: controller -> what it is told."""
     ex = excluded_cells(robust, eval_config)

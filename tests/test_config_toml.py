@@ -9,6 +9,7 @@ import pytest
 from flax import serialization
 from tiny_runs import TINY
 
+import jaxtraffic
 from jaxtraffic.cli import train as train_cli
 from jaxtraffic.runs import checkpoint as ckpt
 from jaxtraffic.runs.config import TrainConfig, load_config
@@ -52,7 +53,8 @@ def test_removed_flags_name_their_replacement_and_version(capsys):
     assert exc.value.code == 2 and "--network was removed; use --hidden" in err and err.count("\n") == 1
     with pytest.raises(SystemExit) as exc:
         train_cli.main(["--version"])
-    assert exc.value.code == 0 and capsys.readouterr().out.split()[0] == train_cli.PROG
+    out = capsys.readouterr().out.split()
+    assert exc.value.code == 0 and out == [train_cli.PROG, jaxtraffic.__version__]  # the one place it is written
     with pytest.raises(SystemExit):  # no abbreviations: --clip is not --clip-eps
         train_cli.main(["--clip", "0.1"])
     assert "unrecognized arguments: --clip" in capsys.readouterr().err

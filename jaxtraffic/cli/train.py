@@ -97,12 +97,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _version() -> str:
-    from importlib.metadata import PackageNotFoundError, version
+    """The package's version as written in ``jaxtraffic._version`` (an editable install's metadata can be stale)."""
+    from jaxtraffic._version import __version__
 
-    try:
-        return version("jaxtraffic")
-    except PackageNotFoundError:
-        return "unknown"
+    return __version__
 
 
 def config_from_args(argv: list[str] | None = None) -> TrainConfig:

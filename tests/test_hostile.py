@@ -151,6 +151,27 @@ def test_controller_help_says_it_runs_the_users_code(capsys):
     assert "RUNS the file's (or module's) code with your permissions" in text
 
 
+def test_an_entry_placed_during_the_run_in_an_unmarked_folder_is_never_replaced(tmp_path):
+    """``check_out`` judged an empty folder fit when the job started; a file of the report's name placed there while
+    the job ran (the folder holds no report of ours) is neither replaced nor removed: publishing is refused."""
+    out = tmp_path / "res"
+    out.mkdir()
+    stage = staging.Staging(out)
+    (stage.work / "REPORT.md").write_text("new report")
+    (out / "REPORT.md").write_text("the user's own notes")
+    before = checksum(out)
+    with pytest.raises(ValueError, match="REPORT.md appeared there during the run"):
+        stage.publish()
+    stage.discard()
+    assert checksum(out) == before and (out / "REPORT.md").read_text() == "the user's own notes"
+    # the same name in a folder holding a report of ours is that report's entry: replaced
+    (out / staging.MARKER).write_text("")
+    stage = staging.Staging(out)
+    (stage.work / "REPORT.md").write_text("new report")
+    stage.publish()
+    assert (out / "REPORT.md").read_text() == "new report"
+
+
 # ----------------------------------------------------------------------------- 2. the staging folder
 def test_planted_staging_symlinks_are_never_followed(tmp_path, no_work):
     """Another user's symlinks at every name the staging folder used to take (``.res.partial-PID``) and at the new

@@ -176,12 +176,18 @@ def _deferred_signals() -> Iterator[list[int]]:
 
 
 def _swap(work: Path, out: Path) -> None:
-    """Replace ``out``'s entries by ``work``'s of the same names, all or none; removes ``work``."""
+    """Replace ``out``'s entries by ``work``'s of the same names, all or none; removes ``work``. An entry of the
+    same name is replaced only in a folder that holds a report of ours (its ``MARKER``): ``check_out`` judged
+    ``out`` when the job started, and this judges it again, since the job ran for minutes meanwhile."""
     created = not out.exists()
     if created:
         out.mkdir()
-    backup = Path(tempfile.mkdtemp(prefix=".jaxtraffic-old-", dir=out))
     names = sorted(p.name for p in work.iterdir())
+    clash = [n for n in names if n != MARKER and os.path.lexists(out / n)]
+    if clash and not _is_ours(out, MARKER):  # placed there during the run, in a folder that holds no report of ours
+        raise ValueError(f"--out {out}: {', '.join(clash)} appeared there during the run, in a folder that holds no "
+                         f"report of evaluate.py's (no {MARKER}); nothing was replaced or removed")
+    backup = Path(tempfile.mkdtemp(prefix=".jaxtraffic-old-", dir=out))
     moved_old, moved_new = [], []
     try:
         for name in names:

@@ -211,7 +211,7 @@ def _told_figure(canvas: _Canvas, robust: dict[str, dict[str, np.ndarray]], eval
         return
     delays, alphas = np.asarray(eval_config.robust_delays), np.asarray(eval_config.robust_alphas)
     horizon = replace(eval_config, horizon_s=eval_config.robust_horizon_s).n_steps * eval_config.dt
-    maps = {f"{MAP_LABELS.get(c, c)}, told {table['rows'][c]['told']}":
+    maps = {f"{MAP_LABELS.get(c, c)},\ntold {table['rows'][c]['told']}":
             (robust[c]["final_rho_spatial_std"], robust[c]["diverged"]) for c in rows}
     canvas.draw(ROBUSTNESS[2], plot_robustness_map, delays, alphas, maps,
                 f"Remaining density waves after {horizon:g} s by what each controller is told "

@@ -1,99 +1,51 @@
-"""Train a gain policy: PPO (the paper's) or by gradient through the simulator (``--algo gradient``).
+"""Train a gain policy: ``python train.py ppo [flags]`` (the paper's PPO) or ``train.py gradient [flags]``
+(gradients through the simulator). ``train.py ALGO --help`` lists the flags of ALGO.
 
-``python train.py [flags]`` (``--help`` lists them).
+The flags are derived by tyro from the config tree (``runs.config.TrainConfig``): one per leaf field the algorithm
+reads (``tree.fields_for``), named after it (``--n-points`` sets ``plant.n_points``), with its default and the
+one-line ``help`` of its metadata. A field marked ``cli=False`` is set in a config file only. ``--config
+FILE.toml`` starts from a config file (a run's config.toml reproduces the run); the flags given override it.
 
-A default run trains the D = 4 s policy and writes, in ``--out-dir`` (default runs/default):
-config.json, checkpoint.msgpack, learning_curve.csv/.png and summary.json. Ctrl-C or SIGTERM stops
-after the current chunk with its checkpoint saved (exit 130 / 143); ``--resume`` continues from it.
-The same command runs as N cooperating processes (PPO and ``--algo gradient``) with
+Without a subcommand, ``ppo`` is inserted (``python train.py --delay 4`` is the PPO run it always was), unless
+``--config FILE`` names a gradient run's config, or ``--resume`` a gradient run's directory: then ``gradient``.
+A default run writes, in ``--out-dir``: config.json, config.toml, checkpoint.msgpack, learning_curve.csv/.png and
+summary.json. Ctrl-C or SIGTERM stops after the current chunk with its checkpoint saved (exit 130 / 143);
+``--resume`` continues from it. The same command runs as N cooperating processes with
 ``--coordinator-address HOST:PORT --num-processes N --process-id I`` or the ``JAX_*`` variables
 (``jaxtraffic.platform.distributed``; docs/tutorials/cluster.md).
 """
 
 from __future__ import annotations
 
-import argparse
+import dataclasses
 import math
 import sys
+import typing
 from pathlib import Path
+from typing import Annotated, Any, Literal, Union
+
+import tyro
+from tyro import _errors as tyro_errors
 
 from jaxtraffic.cli import errors
-from jaxtraffic.cli.options import program
+from jaxtraffic.cli.options import Cluster, program
 from jaxtraffic.platform import compile_cache, distributed
-from jaxtraffic.runs.config import RUN_CONTROL, RunConfig, TrainConfig, check_flags_apply, load_config
+from jaxtraffic.runs.config import ALGOS, RUN_CONTROL, SECTIONS, RunConfig, TrainConfig, load_config
 from jaxtraffic.runs.config.toml import read_flat
-from jaxtraffic.runs.config.tree import leaf_fields
+from jaxtraffic.runs.config.tree import fields_for
 from jaxtraffic.runs.gradient.trainer import train_gradient
 from jaxtraffic.runs.ppo.trainer import train
 from jaxtraffic.runs.session import TrainingInterrupted, check_resumable
 
-
-def _pair(kind):
-    def parse(text: str):
-        parts = text.split(",")
-        if len(parts) != 2:
-            raise argparse.ArgumentTypeError(f"expected LO,HI, got {text!r}")
-        return tuple(kind(p) for p in parts)
-    return parse
-
-
-def _many(kind):
-    def parse(text: str):
-        try:
-            return tuple(kind(p) for p in text.split(","))
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected comma-separated values, got {text!r}") from None
-    return parse
-
-
-def _gain_bounds(text: str):
-    """One bound for every gain, or one per gain: ETA1,ETA2,ETA3."""
-    try:
-        parts = [float(p) for p in text.split(",")]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number or ETA1,ETA2,ETA3, got {text!r}") from None
-    if len(parts) not in (1, 3):
-        raise argparse.ArgumentTypeError(f"expected one bound or three (ETA1,ETA2,ETA3), got {text!r}")
-    return parts[0] if len(parts) == 1 else tuple(parts)
-
-
 PROG = program("train.py")  # in messages: the program the user typed
 # flags of the last release that are gone: what to give instead
-REMOVED = {"--network": "--hidden (layer sizes, e.g. 64,64)", "--lr-decay-steps": "--lr (the rate is constant)",
-           "--lr-final": "--lr (the rate is constant)", "--certificate-weight": "nothing (the penalty is gone)",
-           "--effort-weight": "nothing (the term is gone)"}
-GROUPS = {"run": "run", "plant": "plant and grid", "env": "episodes and domain randomisation", "ppo": "PPO",
-          "grad": "gradient-based training (--algo gradient)"}
-_PARSERS = {"int": int, "float": float, "str": str, "float | None": float, "int | None": int, "str | None": str,
-            "tuple[float, float]": _pair(float), "tuple[float, float] | None": _pair(float),
-            "tuple[int, int]": _pair(int), "tuple[float, ...]": _many(float), "tuple[float, ...] | None": _many(float),
-            "tuple[int, ...]": _many(int), "tuple": _many(int),
-            "tuple[float, float, float]": _many(float), "float | tuple[float, float, float]": _gain_bounds}
-
-
-def build_parser() -> argparse.ArgumentParser:
-    """One flag per leaf of ``TrainConfig`` (``--n-points`` for ``plant.n_points``), with the field's
-    default and help: the flags cannot drift from the library's defaults."""
-    parser = argparse.ArgumentParser(prog=PROG, description=__doc__, allow_abbrev=False,
-                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
-    parser.add_argument("--config", default=None, metavar="FILE.toml",
-                        help="start from this config file (a run's config.toml); flags given override it")
-    for section in ("run", "plant", "env", "ppo", "grad"):
-        g = parser.add_argument_group(GROUPS[section])
-        defaults = getattr(TrainConfig(), section)
-        for f in leaf_fields(section):
-            flag = ["--" + f.name.replace("_", "-"), *(["--seeds"] if f.name == "num_seeds" else [])]
-            default = None if section == "grad" else getattr(defaults, f.name)  # grad: the policy's default
-            if f.type == "bool":  # on by default: --no-FLAG turns it off
-                action = argparse.BooleanOptionalAction if default else "store_true"
-                g.add_argument(*flag, action=action, default=default, help=f.metadata["help"])
-                continue
-            default = None if f.name == "out_dir" else default  # resolved from --algo below
-            g.add_argument(*flag, type=_PARSERS[f.type], default=default, choices=f.metadata.get("choices"),
-                           help=f.metadata["help"])
-    distributed.add_flags(parser)
-    return parser
+REMOVED = {"--algo": "`train.py gradient` (or `train.py ppo`): the algorithm is the subcommand",
+           "--seeds": "--num-seeds", "--network": "--hidden (layer sizes, e.g. 64 64)",
+           "--lr-decay-steps": "--lr (the rate is constant)", "--lr-final": "--lr (the rate is constant)",
+           "--certificate-weight": "nothing (the penalty is gone)", "--effort-weight": "nothing (the term is gone)"}
+ABOUT = {"ppo": "Train the paper's PPO gain policy (the default subcommand).",
+         "gradient": "Train a policy (gains, network or delay schedule) by gradients through the simulator."}
+HELP = ("-h", "--help", "-H", "--help-verbose")
 
 
 def _version() -> str:
@@ -103,40 +55,140 @@ def _version() -> str:
     return __version__
 
 
+def _cli_type(f: dataclasses.Field, hint: Any) -> Any:
+    """The type tyro parses a field as: its annotation; its ``choices`` (metadata) as a ``Literal``."""
+    choices = f.metadata.get("choices")
+    return Literal[tuple(choices)] if choices else hint
+
+
+def flags_class(algo: str, base: TrainConfig) -> type:
+    """The dataclass tyro derives ``train.py ALGO``'s flags from: the leaf fields ``algo`` reads
+    (``tree.fields_for``) with ``base``'s values as defaults and their metadata's help, --config and the
+    cluster's flags."""
+    hints = {k: v for cls in reversed(SECTIONS.values()) for k, v in typing.get_type_hints(cls).items()}
+    flat = base.flat()
+    leaves = [(f.name, _cli_type(f, hints[f.name]), dataclasses.field(default=flat[f.name], metadata={
+        "help": f.metadata.get("help")})) for f in fields_for(algo)]
+    cls = dataclasses.make_dataclass(algo, [*leaves, (
+        "config", Union[Path, None], dataclasses.field(default=None, metadata={  # noqa: UP007 (a runtime type)
+            "help": "start from this config file (a run's config.toml); the flags given override it"})), (
+        "cluster", Annotated[Cluster, tyro.conf.OmitArgPrefixes], dataclasses.field(default_factory=Cluster))],
+        frozen=True)
+    cls.__doc__ = ABOUT[algo]
+    return cls
+
+
+def _value_of(argv: list[str], flag: str) -> str | None:
+    """The value of ``flag`` in ``argv`` (``--flag VALUE`` or ``--flag=VALUE``; the last one), else None."""
+    value = None
+    for i, arg in enumerate(argv):
+        if arg == flag and i + 1 < len(argv):
+            value = argv[i + 1]
+        elif arg.startswith(flag + "="):
+            value = arg.split("=", 1)[1]
+    return value
+
+
+def _default_algo(argv: list[str], from_file: dict[str, Any]) -> str:
+    """The subcommand of a command line without one: the --config file's algorithm, or the resumed run's, or PPO."""
+    if "algo" in from_file:
+        return from_file["algo"]
+    run_dir = Path(_value_of(argv, "--out-dir") or RunConfig.out_dir)
+    if "--resume" in argv and (run_dir / "config.json").exists():
+        return load_config(run_dir).run.algo
+    return "ppo"
+
+
+def _given(argv: list[str], names: set[str]) -> set[str]:
+    """The fields set by flags of ``argv`` (``--n-points``, ``--no-require-certificate``), by name."""
+    given = set()
+    for arg in argv:
+        name = arg[2:].split("=", 1)[0].replace("-", "_") if arg.startswith("--") else ""
+        name = name[3:] if name.startswith("no_") and name not in names else name
+        if name in names:
+            given.add(name)
+    return given
+
+
+def _split_commas(argv: list[str], tuple_flags: set[str]) -> list[str]:
+    """``--hidden 64,64`` as ``--hidden 64 64`` (the comma form of the last release, still accepted)."""
+    out: list[str] = []
+    for arg in argv:
+        flag, eq, value = arg.partition("=")
+        if eq and flag in tuple_flags:
+            out += [flag, *value.split(",")]
+        elif out and out[-1] in tuple_flags and "," in arg:
+            out += arg.split(",")
+        else:
+            out.append(arg)
+    return out
+
+
+def _refuse_removed(argv: list[str]) -> None:
+    """``ValueError`` naming the new form of a flag of the last release that is gone (``REMOVED``)."""
+    gone = [a.split("=")[0] for a in argv if a.split("=")[0] in REMOVED]
+    if gone:
+        raise ValueError(f"{gone[0]} was removed; use {REMOVED[gone[0]]}")
+
+
+def _one_line(event: Any) -> None:
+    """tyro's parse errors as one ``ValueError`` line (``cli.errors``: status 2) instead of its box."""
+    if isinstance(event, tyro_errors.UnrecognizedArgs):
+        raise ValueError(f"unrecognized arguments: {' '.join(event.tokens)} (see {event.prog} --help)")
+    if isinstance(event, tyro_errors.InvalidChoice):
+        raise ValueError(f"{event.argument.display_name()}: invalid choice {event.value!r} "
+                         f"(choose from {', '.join(event.choices)})")
+    if isinstance(event, tyro_errors.BadValue):
+        raise ValueError(f"{event.argument.display_name()}: missing or bad value")
+    if isinstance(event, tyro_errors.InstantiationFailure):
+        raise ValueError(" ".join(event.message.split()))
+
+
+def parse(argv: list[str] | None = None) -> tuple[TrainConfig, Cluster, set[str]]:
+    """The training configuration of the command line ``argv`` (default ``sys.argv[1:]``), its cluster flags,
+    and the fields its flags set."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    _refuse_removed(argv)
+    if "--version" in argv:
+        print(f"{PROG} {_version()}")
+        raise SystemExit(0)
+    from_file = read_flat(_value_of(argv, "--config")) if _value_of(argv, "--config") else {}
+    if not argv or argv[0] not in (*ALGOS, *HELP):
+        argv.insert(0, _default_algo(argv, from_file))
+    bases = {a: TrainConfig.from_flat(**{**from_file, "algo": a}) for a in ALGOS}
+    classes = {a: flags_class(a, bases[a]) for a in ALGOS}
+    algo = argv[0] if argv[0] in ALGOS else "ppo"
+    names = {f.name for f in dataclasses.fields(classes[algo])} - {"config", "cluster"}
+    tuples = {"--" + f.name.replace("_", "-") for f in dataclasses.fields(classes[algo]) if "tuple" in str(f.type)}
+    argv = _split_commas(argv, tuples)
+    commands = Union[tuple(Annotated[classes[a], tyro.conf.subcommand(a, description=ABOUT[a])]  # noqa: UP007
+                           for a in ALGOS)]
+    with tyro_errors.on_parse_error(_one_line):
+        flags = tyro.cli(commands, args=argv, prog=PROG, config=(tyro.conf.FlagCreatePairsOff,), compact_help=True,
+                         description=f"{__doc__.splitlines()[0]} (--version: the version)")
+    given = _given(argv[1:], names)
+    values = {**from_file, **{k: getattr(flags, k) for k in given}, "algo": algo}
+    if values.get("min_wave_speed") == -math.inf:  # the paper's rule alone (stored as null in the JSON outputs)
+        values["min_wave_speed"] = None
+    if "out_dir" not in values:
+        values["out_dir"] = f"runs/gradient-{values.get('policy', 'gains')}" if algo == "gradient" \
+            else RunConfig.out_dir
+    return TrainConfig.from_flat(**values), flags.cluster, given
+
+
 def config_from_args(argv: list[str] | None = None) -> TrainConfig:
-    """The training configuration the flags ``argv`` (default: the command line's) describe."""
-    return _config(build_parser().parse_args(argv), argv)
+    """The training configuration the command line ``argv`` (default: the process's) describes."""
+    return parse(argv)[0]
 
 
-def _config(args: argparse.Namespace, argv: list[str] | None) -> TrainConfig:
-    """The training configuration of parsed flags: the cluster flags dropped, --out-dir's default resolved;
-    with --config, that file's fields under the flags given."""
-    if args.config is not None:
-        given = explicit_flags(argv)
-        base = {"out_dir": None, **read_flat(args.config)}
-        args = argparse.Namespace(**{**vars(args), **{k: v for k, v in base.items() if k not in given}})
-    args = argparse.Namespace(**{k: v for k, v in vars(args).items() if k not in (*distributed.FLAGS, "config")})
-    if args.min_wave_speed == -math.inf:  # the paper's rule alone (stored as null in the JSON outputs)
-        args.min_wave_speed = None
-    if args.out_dir is None:
-        args.out_dir = f"runs/gradient-{args.policy}" if args.algo == "gradient" else RunConfig.out_dir
-    grad = {f.name for f in leaf_fields("grad")}
-    return TrainConfig.from_flat(**{k: v for k, v in vars(args).items() if k not in grad or v is not None})
-
-
-def explicit_flags(argv: list[str] | None = None) -> dict:
-    """The flags given on the command line (not their defaults), by field name."""
-    p = build_parser()
-    for action in p._actions:
-        action.default = argparse.SUPPRESS
-    return vars(p.parse_args(argv))
-
-
-def resumed_config(config: TrainConfig, given: dict) -> TrainConfig:
+def resumed_config(config: TrainConfig, given: set[str] | dict) -> TrainConfig:
     """On --resume: the run's saved configuration, with the run-control flags given on the command line
     (``config.RUN_CONTROL``; for the gradient trainer also --grad-steps) applied, and recorded in the
     run's config.json; a flag that would change the trained problem is an error."""
     saved = load_config(config.run.out_dir)
+    if saved.run.algo != config.run.algo:
+        raise ValueError(f"{config.run.out_dir} holds a {saved.run.algo} run: resume it with "
+                         f"`{PROG} {saved.run.algo} --resume`")
     control = (*RUN_CONTROL, "grad_steps") if saved.run.algo == "gradient" else RUN_CONTROL
     flat, old = config.flat(), saved.flat()
     changed = [f"--{k.replace('_', '-')} {flat[k]!r} (the run's value: {old[k]!r})" for k in given
@@ -153,19 +205,12 @@ def main(argv: list[str] | None = None) -> Path:
     runs on a device), train, return the run directory. Exit status 2 for invalid flags or a broken
     run directory, 74 for an OS error (``cli.errors``), 130 / 143 after SIGINT / SIGTERM (``runs.ppo.trainer``)."""
     try:
-        gone = [a.split("=")[0] for a in (sys.argv[1:] if argv is None else argv) if a.split("=")[0] in REMOVED]
-        if gone:
-            raise ValueError(f"{gone[0]} was removed; use {REMOVED[gone[0]]}")
-        args = build_parser().parse_args(argv)
-        config = _config(args, argv)
-        cluster = [getattr(args, k) for k in distributed.FLAGS]
-        distributed.initialize(*cluster)
+        config, cluster, given = parse(argv)
+        distributed.initialize(*cluster.values())
         compile_cache.enable()  # before the first compilation (jaxtraffic.platform.compile_cache)
-        given = {k: v for k, v in explicit_flags(argv).items() if k != "config"}
         if config.run.resume:
             check_resumable(Path(config.run.out_dir))
             config = resumed_config(config, given)
-        check_flags_apply(config.run.algo, given)  # (on resume: the run's algorithm)
         return train_gradient(config) if config.run.algo == "gradient" else train(config)
     except TrainingInterrupted as exc:  # the trainer has said what is saved
         raise SystemExit(exc.exit_code) from None

@@ -53,7 +53,7 @@ class PPOConfig:
     num_minibatches: int = hyper(4, lo=1, static=True, help="minibatches per epoch")
     updates_per_chunk: int = hyper(3, lo=1, static=True, help="updates per jit-compiled chunk")
     num_seeds: int = hyper(1, lo=1, static=True, help="independent seeds (population members) trained at once")
-    hidden: tuple = hyper(SMALL_HIDDEN, static=True, help="hidden layer sizes of the actor and the critic MLPs")
+    hidden: tuple[int, ...] = hyper(SMALL_HIDDEN, static=True, algo="both", help="hidden layer sizes of the actor and critic")
     init_sigma: float = hyper(0.3, lo=0.0, lo_open=True, static=True, help="initial action std (pre-tanh)")
     lr: float = hyper(1e-3, lo=0.0, lo_open=True, help="Adam learning rate")
     gamma: float = hyper(0.995, lo=0.0, lo_open=True, hi=1.0, help="discount per step (dt)")

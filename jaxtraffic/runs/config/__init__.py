@@ -6,7 +6,6 @@ from jaxtraffic.runs.config.toml import read_config, write_config
 from jaxtraffic.runs.config.tree import (
     ALGOS,
     CONFIG_VERSION,
-    ONLY_FOR,
     POPULATION,
     RUN_CONTROL,
     SECTIONS,
@@ -14,12 +13,11 @@ from jaxtraffic.runs.config.tree import (
     PlantConfig,
     RunConfig,
     TrainConfig,
-    check_flags_apply,
     config_from_json,
     config_json,
     load_config,
 )
 
-__all__ = ["ALGOS", "CONFIG_VERSION", "ONLY_FOR", "POPULATION", "RUN_CONTROL", "SECTIONS",
-           "EnvConfig", "PlantConfig", "RunConfig", "TrainConfig", "check_flags_apply",
+__all__ = ["ALGOS", "CONFIG_VERSION", "POPULATION", "RUN_CONTROL", "SECTIONS",
+           "EnvConfig", "PlantConfig", "RunConfig", "TrainConfig", 
            "config_from_json", "config_json", "load_config", "read_config", "write_config"]

@@ -87,36 +87,36 @@ class EnvConfig:
     """Episodes, domain randomisation and reward shaping (``learn.env.EnvParams``)."""
 
     horizon_s: float = _f(_EP["horizon"] * float(_EP["traffic"].dt), "episode length, s (truncation)",
-                          lo=0.0, lo_open=True)
+                          lo=0.0, lo_open=True, algo="ppo")
     delay_spread: float = _f(1.0, "train on plant delays ~ U(D - spread, D + spread) s (clipped at 0); 0 disables",
-                              lo=0.0)
-    delay_range: tuple[float, float] | None = _f(None, "plant delay range LO,HI s (overrides --delay-spread)")
-    alpha_range: tuple[float, float] | None = _f(None, "plant alpha range LO,HI")
-    amp_range: tuple[float, float] = _f((_EP["amp_min"], _EP["amp_max"]), "initial amplitude LO,HI veh/m")
+                              lo=0.0, algo="ppo")
+    delay_range: tuple[float, float] | None = _f(None, "plant delay range LO,HI s (overrides --delay-spread)", algo="ppo")
+    alpha_range: tuple[float, float] | None = _f(None, "plant alpha range LO,HI", algo="ppo")
+    amp_range: tuple[float, float] = _f((_EP["amp_min"], _EP["amp_max"]), "initial amplitude LO,HI veh/m", algo="ppo")
     wavenumber_range: tuple[int, int] = _f((_EP["wavenumber_min"], _EP["wavenumber_max"]),
-                                           "initial wavenumber LO,HI (integers)")
-    phase_max: float = _f(_EP["phase_max"], "initial phase ~ U(0, phase_max) rad")
+                                           "initial wavenumber LO,HI (integers)", algo="ppo")
+    phase_max: float = _f(_EP["phase_max"], "initial phase ~ U(0, phase_max) rad", algo="ppo")
     gain_max: float | tuple[float, float, float] = _f(
         _EP["gain_max"], "|eta_i| bound of PPO's gains (normalised): one value, or ETA1,ETA2,ETA3 (gradient "
-        "training: --grad-gain-max)")
+        "training: --grad-gain-max)", algo="ppo")
     gain_filter: float = _f(_EP["gain_filter"], "applied gains move this fraction of the way to the policy's gains "
                             "each step (first-order filter, time constant ~ dt/k); 1: applied directly (the paper)")
     h_rate_weight: float = _f(_EP["h_rate_weight"], "training reward -= w * sum_i ((h_i - h_prev_i)/h_bar)^2, the "
-                              "squared step change of the commanded time gap (dimensionless); 0: the paper's reward")
+                              "squared step change of the commanded time gap (dimensionless); 0: the paper's reward", algo="ppo")
     wave_weight: float = _f(_EP["wave_weight"], "training reward -= w * learn.env.backward_wave_cost(applied gains): "
                             "0 when their closed-loop wave speed (linear.gain_law_wave_speed) is >= --wave-speed-min, "
-                            "rising to 1 at 5 m/s below it; 0: the paper's reward")
-    wave_speed_min: float = _f(_EP["wave_speed_min"], "m/s, see --wave-weight")
+                            "rising to 1 at 5 m/s below it; 0: the paper's reward", algo="ppo")
+    wave_speed_min: float = _f(_EP["wave_speed_min"], "m/s, see --wave-weight", algo="ppo")
     diverge_penalty: float = _f(_EP["diverge_penalty"], "reward of the step on which the plant leaves the physical "
-                                "region (the episode then ends), dimensionless, subtracted")
+                                "region (the episode then ends), dimensionless, subtracted", algo="ppo")
     obs_segments: int = _f(_EP["obs_segments"], "observation: each normalised field (rho, v, h_prev) averaged over "
-                           "this many equal road segments; 0: the full fields (3 x n-points values)")
+                           "this many equal road segments; 0: the full fields (3 x n-points values)", algo="ppo")
     filter_sigma: float = _f(FILTER_SIGMA, "width (m) of the Gaussian filter the learned gain law applies to the "
                              "observed rho~, v~ (its own spatial scale, docs/model.md section 16); 0: the paper's "
                              "pointwise law")
     controller_points: int | None = _f(None, "gradient training: the controller's own grid (nodes over the road; "
                                        "the plant's n-points must refine it by an integer factor); default: the "
-                                       "plant's grid", lo=3)
+                                       "plant's grid", lo=3, algo="gradient")
 
 
 @dataclass(frozen=True)
@@ -124,7 +124,7 @@ class RunConfig:
     """Run control: where, how long, the stop rule. ``RUN_CONTROL`` fields may change on resume."""
 
     algo: str = _f("ppo", "ppo: the paper's PPO; gradient: analytic gradients through the simulator "
-                   "(flags of the 'gradient-based training' group)", choices=ALGOS)
+                   "(flags of the 'gradient-based training' group)", choices=ALGOS, cli=False)
     out_dir: str = _f("runs/default", "run directory (default runs/default; with --algo gradient: "
                       "runs/gradient-POLICY)")
     resume: bool = _f(False, "continue from the run directory's checkpoint with its saved config, run control "
@@ -134,38 +134,38 @@ class RunConfig:
     overwrite: bool = _f(False, "a fresh run into an --out-dir holding another run's results (checkpoint, best "
                          "policy, summary, learning curve) clears them first; without it that is an error")
     seed: int = _f(0, "PRNG seed", lo=0, hi=2**32 - 1)
-    total_steps: int = _f(10_000_000, "environment steps (all envs, per seed)", lo=1)
+    total_steps: int = _f(10_000_000, "environment steps (all envs, per seed)", lo=1, algo="ppo")
     max_wall_s: float = _f(math.inf, "stop after this many seconds", lo=0.0, lo_open=True)
-    keep_going: bool = _f(False, "ignore the stop rule")
+    keep_going: bool = _f(False, "ignore the stop rule", algo="ppo")
     target_reward: float = _f(REWARD_TARGET, "stop rule: deterministic evaluation reward (end of the evaluation "
-                              "rollout) >= this")
+                              "rollout) >= this", algo="ppo")
     min_wave_speed: float | None = _f(0.5, "stop rule also requires the closed loop's kinematic wave speed at the "
                                       "policy's equilibrium gains (linear.gain_law_wave_speed, m/s) >= this; -inf: the "
-                                      "paper's rule alone")
+                                      "paper's rule alone", algo="ppo")
     require_certificate: bool = _f(True, "stop rule also requires the stability certificate (control.stability) of "
                                    "the gains the policy settles to at the equilibrium, at the training delay and "
-                                   "alpha with its filter: largest growth rate over wavenumbers <= 1e-3/s")
+                                   "alpha with its filter: largest growth rate over wavenumbers <= 1e-3/s", algo="ppo")
     stop_patience: int = _f(1, "consecutive evaluations that must meet the stop rule (per population member) "
-                            "before stopping", lo=1)
+                            "before stopping", lo=1, algo="ppo")
     restart_steps: int = _f(1_500_000, "a member that has not met the stop rule within this many env steps of its "
                             "start is re-initialised from a new key (network, optimiser, environments, observation "
-                            "statistics; its best checkpoint is kept); 0: never (also with --keep-going)", lo=0)
+                            "statistics; its best checkpoint is kept); 0: never (also with --keep-going)", lo=0, algo="ppo")
     val_horizon_s: float = _f(600.0, "validation suite (learn.ppo.selection): every member's deterministic policy from "
                               "two initial conditions x the plant delays at the ends and the middle of the training "
                               "range, over this many seconds, scored against backstepping; the best-scoring "
                               "checkpoint of each member is kept (best.msgpack) and the best member is the run's "
-                              "policy; 0: no suite", lo=0.0)
+                              "policy; 0: no suite", lo=0.0, algo="ppo")
     val_plant: str = _f("reference", "the plant the validation suite runs on: reference (TrafficParams.reference: "
                         "MUSCL, 801 points, 2 solver steps; the policy acts on its training grid through "
-                        "control.adapter) or training (the training plant)", choices=("reference", "training"))
+                        "control.adapter) or training (the training plant)", choices=("reference", "training"), algo="ppo")
     val_target: float = _f(1.0, "stop rule also requires a validation score <= this (1: at the nominal delay the "
                            "density L2 at half the suite horizon is below backstepping's and J_comfort within 20 %% "
                            "of its, and at every delay of the suite the plant does not diverge and is still "
-                           "converging); inf: no such condition", lo=0.0, lo_open=True)
+                           "converging); inf: no such condition", lo=0.0, lo_open=True, algo="ppo")
     eval_horizon_s: float = _f(300.0, "evaluation rollout length, s", lo=0.0, lo_open=True)
     checkpoint_every: int = _f(10, "PPO: write checkpoint.msgpack every this many chunks, and after a session's first "
                                "chunk, at the end and on SIGINT/SIGTERM (1: after every chunk; SIGKILL loses at "
-                               "most this many chunks); best.msgpack is written whenever it improves", lo=1)
+                               "most this many chunks); best.msgpack is written whenever it improves", lo=1, algo="ppo")
     quiet: bool = _f(False, "no progress lines")
     tensorboard: str | None = _f(None, "also write the learning-curve rows as TensorBoard scalars to this directory "
                                  "(needs tensorboardX: pip install 'jaxtraffic[tb]')")
@@ -244,26 +244,14 @@ def leaf_fields(section: str) -> list[dataclasses.Field]:
 
 
 _DEFAULT = {f.name: f.default for f in dataclasses.fields(TrainConfig)}
-# the fields only one algorithm reads (the plant, and the run's place, seed, wall budget, evaluation horizon and
-# printing, are both's; the gradient trainer's network policy takes --hidden)
-_names = lambda cls: {f.name for f in dataclasses.fields(cls)}  # noqa: E731
-ONLY_FOR = {
-    "gradient": {f.name for f in leaf_fields("grad")} | {"controller_points"},
-    "ppo": (_names(PPOConfig) - {"hidden"})
-    | (_names(EnvConfig) - {"gain_filter", "filter_sigma", "controller_points"})
-    | {"total_steps", "keep_going", "target_reward", "min_wave_speed", "require_certificate",
-       "stop_patience", "restart_steps", "val_horizon_s", "val_plant", "val_target", "checkpoint_every"},
-}
+SECTION_ALGO = {"ppo": "ppo", "grad": "gradient"}  # the sections one algorithm reads
 
 
-def check_flags_apply(algo: str, given: dict | set) -> None:
-    """``ValueError`` if flags given on the command line (field names) belong to the other algorithm only."""
-    other = "ppo" if algo == "gradient" else "gradient"
-    wrong = sorted(k for k in given if k in ONLY_FOR[other])
-    if wrong:
-        raise ValueError(f"{', '.join('--' + k.replace('_', '-') for k in wrong)}: used by --algo {other} only, and "
-                         f"this run is --algo {algo}" + (" (its length is --grad-steps)" if algo == "gradient"
-                                                          and "total_steps" in wrong else ""))
+def fields_for(algo: str) -> list[dataclasses.Field]:
+    """The leaf fields the algorithm ``algo`` reads that are set on the command line (``cli.train``): a field's
+    metadata ``algo`` ("ppo", "gradient", "both"; default: its section's) and ``cli`` (False: a config file's only)."""
+    return [f for s in SECTIONS for f in leaf_fields(s) if f.metadata.get("cli", True)
+            and f.metadata.get("algo", SECTION_ALGO.get(s, "both")) in ("both", algo)]
 
 
 _OWNER = {f.name: s for s in SECTIONS for f in leaf_fields(s)}

@@ -4,7 +4,7 @@
     python benchmarks/bench_learning.py [--json] [--repeats 2] [--skip-memory]
 
 Parts (each in a fresh subprocess, so compile times are included and peak memory is per part):
-  1. constant gains (``train.py --algo gradient --policy gains``, defaults), ``--repeats`` times:
+  1. constant gains (``train.py gradient --policy gains``, defaults), ``--repeats`` times:
      wall time (compilation included) until the evaluation first beats ``backstepping(4)`` at
      D = 4 s on both final density L2 and J_comfort, and whether the repeats end bit-identical;
   2. the neural policy (``--policy network``): the same, and the final policy on plant delays
@@ -60,7 +60,7 @@ print(json.dumps(out))
 
 
 def train(policy: str, out: Path) -> dict:
-    subprocess.run([sys.executable, str(ROOT / "train.py"), "--algo", "gradient", "--policy", policy,
+    subprocess.run([sys.executable, str(ROOT / "train.py"), "gradient", "--policy", policy,
                     "--out-dir", str(out), "--quiet"], check=True, cwd=ROOT)
     summary = json.loads((out / "summary.json").read_text())
     summary["checkpoint_bytes"] = (out / "checkpoint.msgpack").read_bytes()

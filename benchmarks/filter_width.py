@@ -1,7 +1,7 @@
 """The learned gain law's spatial filter: which width, measured (BENCHMARKS.md "The learned law's spatial filter").
 
 For each filter width sigma (m), trains the three constant gains by gradient on the reference plant
-(``train.py --algo gradient --policy gains`` with the reference discretisation and the controller on the
+(``train.py gradient --policy gains`` with the reference discretisation and the controller on the
 paper's grid), then reports: the certificate of the trained gains (max growth rate over wavenumbers, 1/s),
 the closed loop at D = 4 s on the reference plant and on the plant refined twice (density L2 at 300 s in
 veh/km, J_comfort) next to backstepping, and the training time. ``--sigmas 0`` is the paper's pointwise law.
@@ -46,7 +46,7 @@ def main() -> None:
         run = args.root / f"sigma-{sigma:g}"
         t0 = time.perf_counter()
         if not (run / "summary.json").exists():
-            train_cli.main(["--algo", "gradient", "--policy", "gains", "--filter-sigma", str(sigma), *plant_flags,
+            train_cli.main(["gradient", "--policy", "gains", "--filter-sigma", str(sigma), *plant_flags,
                             "--out-dir", str(run), "--quiet", *[f for f in args.extra.split(",") if f]])
         wall = time.perf_counter() - t0
         ctrl, config = load_policy(run)

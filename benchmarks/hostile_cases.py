@@ -24,7 +24,7 @@ REPO = Path(__file__).resolve().parents[1]
 TINY = ["--n-points", "21", "--num-envs", "4", "--num-steps", "8", "--updates-per-chunk", "2", "--num-minibatches",
         "2", "--horizon-s", "3", "--eval-horizon-s", "2", "--val-horizon-s", "2", "--delay", "0.5",
         "--max-delay-steps", "20", "--keep-going", "--quiet"]
-GRAD = ["--algo", "gradient", "--policy", "gains", "--n-points", "21", "--train-delays", "1", "--train-horizon-s",
+GRAD = ["gradient", "--policy", "gains", "--n-points", "21", "--train-delays", "1", "--train-horizon-s",
         "2", "--steps-per-chunk", "1", "--eval-horizon-s", "2", "--quiet"]
 LOAD = ("import sys; from jaxtraffic.runs import load_policy\ntry:\n    load_policy('{run}')\n"
         "except ValueError as e:\n    sys.exit(f'load_policy: {{e}}')")  # a library error: one line, exit 1
@@ -120,7 +120,7 @@ def cases(tmp: Path) -> list[tuple[str, str, list, dict, int, str]]:
         ("4", "PPO --amp-range 1,1", [T + ["--amp-range", "1,1"] + r("s4")], {}, 2, "leaves the physical region"),
         ("4", "gradient with PPO's --num-envs 7 --tensorboard D", [[str(REPO / "train.py"), *GRAD, "--num-envs", "7",
                                                                    "--tensorboard", "D"] + r("s5")], {}, 2,
-         "used by --algo ppo only"),
+         "a flag of `train.py ppo`"),
         ("4", "gradient with PPO's batch rule broken (--num-minibatches 7 in config)",
          [["-c", "from jaxtraffic.runs.config import TrainConfig; TrainConfig.from_flat(algo='gradient', "
                  "num_minibatches=7); print('accepted')"]], {}, 0, "accepted"),

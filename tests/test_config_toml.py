@@ -15,7 +15,7 @@ from jaxtraffic.runs import checkpoint as ckpt
 from jaxtraffic.runs.config import TrainConfig, load_config
 from jaxtraffic.runs.config.toml import read_config, write_config
 
-GRAD = ["--algo", "gradient", "--policy", "schedule", "--n-points", "21", "--train-delays", "1", "--train-alphas",
+GRAD = ["gradient", "--policy", "schedule", "--n-points", "21", "--train-delays", "1", "--train-alphas",
         "0.15", "--train-horizon-s", "2", "--steps-per-chunk", "1", "--grad-steps", "2", "--eval-horizon-s", "2",
         "--quiet"]
 

@@ -79,7 +79,7 @@ def test_example_purejaxrl_style_ppo_trains():
     """The example as a user runs it (a subprocess, with the test XLA flags: cheaper compilation)."""
     proc = subprocess.run([sys.executable, str(REPO / "examples" / "gymnax_ppo.py"), "--n-points", str(N),
                            "--horizon-s", "1", "--num-envs", "8", "--num-steps", "16", "--num-updates", "3",
-                           "--update-epochs", "2", "--num-minibatches", "2", "--seeds", "2"],
+                           "--update-epochs", "2", "--num-minibatches", "2", "--num-seeds", "2"],
                           cwd=REPO, capture_output=True, text=True, timeout=1200,
                           env=xla_env(PYTHONPATH=os.pathsep.join(filter(None, [str(REPO),
                                                                                os.environ.get("PYTHONPATH")]))))

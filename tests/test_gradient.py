@@ -101,12 +101,12 @@ def test_network_run_lowers_objective_round_trips_and_resumes_exactly(tmp_path):
 
 
 def test_train_cli_gradient_defaults_come_from_the_library():
-    config = config_from_args(["--algo", "gradient", "--policy", "network"])
+    config = config_from_args(["gradient", "--policy", "network"])
     cfg, _ = gradient_setup(config)
     assert config.run.out_dir == "runs/gradient-network"
     assert cfg == objective.GradientConfig.for_policy("network")
-    assert gradient_setup(config_from_args(["--algo", "gradient"]))[0] == objective.GradientConfig()
-    # the gain bound is the gradient trainer's own (PPO's --gain-max, per gain, does not apply)
-    per_gain = config_from_args(["--algo", "gradient", "--gain-max", "1,2,2"])
+    assert gradient_setup(config_from_args(["gradient"]))[0] == objective.GradientConfig()
+    # the gain bound is the gradient trainer's own (PPO's gain_max, per gain, does not apply; nor is it its flag)
+    per_gain = TrainConfig.from_flat(algo="gradient", gain_max=(1.0, 2.0, 2.0))
     assert gradient_setup(per_gain)[0] == objective.GradientConfig()
-    assert gradient_setup(config_from_args(["--algo", "gradient", "--grad-gain-max", "2"]))[0].grad_gain_max == 2.0
+    assert gradient_setup(config_from_args(["gradient", "--grad-gain-max", "2"]))[0].grad_gain_max == 2.0

@@ -43,7 +43,7 @@ from jaxtraffic.sim.outcome import Divergence
 REPO = Path(__file__).resolve().parents[1]
 # one member (the default is a population of 2): these runs are counted per member below;
 # the population itself: test_train.test_population_run
-TINY = ["--seeds", "1", "--n-points", "21", "--delay", "0.5", "--max-delay-steps", "20", "--num-envs", "4",
+TINY = ["--num-seeds", "1", "--n-points", "21", "--delay", "0.5", "--max-delay-steps", "20", "--num-envs", "4",
         "--num-steps", "8",
         "--updates-per-chunk", "2", "--update-epochs", "2", "--num-minibatches", "2", "--horizon-s", "3",
         "--eval-horizon-s", "2", "--keep-going", "--quiet", "--obs-segments", "0", "--val-horizon-s", "2"]
@@ -77,7 +77,7 @@ def test_nominal_with_other_physics_is_accepted():
     (["--gamma", "5"], "gamma = 5.0: must lie in (0.0, 1.0]"),
     (["--clip-eps", "-1"], "clip_eps = -1.0: must be > 0"),
     (["--num-envs", "0"], "num_envs = 0: must be >= 1"),
-    (["--seeds", "0"], "num_seeds = 0: must be >= 1"),
+    (["--num-seeds", "0"], "num_seeds = 0: must be >= 1"),
     (["--num-steps", "-5"], "num_steps = -5: must be >= 1"),
     (["--num-minibatches", "0"], "num_minibatches = 0: must be >= 1"),
     (["--num-minibatches", "3"], "must divide the batch"),
@@ -649,7 +649,7 @@ def test_evaluate_interrupted_exits_cleanly_and_leaves_its_output_as_it_was(ref_
 
 @pytest.mark.slow
 def test_closed_stdout_and_ctrl_c_at_import_give_no_traceback(tmp_path):
-    grad = ["--algo", "gradient", "--policy", "gains", "--n-points", "21", "--train-delays", "1",
+    grad = ["gradient", "--policy", "gains", "--n-points", "21", "--train-delays", "1",
             "--train-horizon-s", "2", "--steps-per-chunk", "1", "--eval-horizon-s", "2", "--grad-steps", "3"]
     proc = subprocess.Popen([sys.executable, str(REPO / "train.py"), *grad, "--out-dir", str(tmp_path / "g")],
                             cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

@@ -1,7 +1,7 @@
 """Multi-process gradient training and evaluation (``jaxtraffic.platform.distributed``): 2 processes on
 localhost (CPU, gloo, one device each) against one process with 2 devices, on a tiny problem.
 
-Each child runs ``train.py --algo gradient`` (a network policy, 3 scenarios: an odd count, so the
+Each child runs ``train.py gradient`` (a network policy, 3 scenarios: an odd count, so the
 split over 2 devices pads), then ``--resume`` to twice the Adam steps, then ``evaluate.py`` on that
 run. In each pair process 1 is given its own output directories for the fresh run and the
 evaluation: they must not be created (only process 0 writes); the resume reads process 0's run
@@ -31,7 +31,7 @@ import json, sys
 sys.path.insert(0, ".")
 import evaluate, train
 cluster, first, run, out = json.loads(sys.argv[1]), sys.argv[2], sys.argv[3], sys.argv[4]
-grad = ["--algo", "gradient", "--policy", "network", "--n-points", "21", "--train-delays", "1,2,3",
+grad = ["gradient", "--policy", "network", "--n-points", "21", "--train-delays", "1,2,3",
         "--train-horizon-s", "4", "--steps-per-chunk", "1", "--eval-horizon-s", "4", "--quiet"]
 train.main(grad + cluster + ["--out-dir", first, "--grad-steps", "2"])
 train.main(grad + cluster + ["--out-dir", run, "--grad-steps", "4", "--resume"])

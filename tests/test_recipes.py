@@ -10,9 +10,9 @@ from jaxtraffic.paper.recipes import NAMES, recipe, training_plant
 # the command lines the main job ran before its runs were data: each recipe must describe the same run
 COMMAND_LINES = {
     "ppo": ["--out-dir", "runs/default", "--max-wall-s", "600"],
-    "gradient-gains": ["--algo", "gradient", "--policy", "gains", "--out-dir", "runs/gradient-gains"],
-    "gradient-network": ["--algo", "gradient", "--policy", "network", "--out-dir", "runs/gradient-network"],
-    "gradient-robust": ["--algo", "gradient", "--policy", "schedule", "--out-dir", "runs/gradient-robust"],
+    "gradient-gains": ["gradient", "--policy", "gains", "--out-dir", "runs/gradient-gains"],
+    "gradient-network": ["gradient", "--policy", "network", "--out-dir", "runs/gradient-network"],
+    "gradient-robust": ["gradient", "--policy", "schedule", "--out-dir", "runs/gradient-robust"],
 }
 PLANT_FLAGS = {"reference": ["--n-points", "801", "--scheme", "muscl", "--substeps", "2", "--controller-points", "201"],
                "half": ["--n-points", "401", "--scheme", "muscl", "--controller-points", "201"]}

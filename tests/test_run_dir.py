@@ -15,7 +15,7 @@ from jaxtraffic.runs import checkpoint as ckpt
 from jaxtraffic.runs.config import load_config
 from jaxtraffic.runs.session import NonFiniteTraining, RunLock, check_finite, claim_run_dir
 
-GRAD = ["--algo", "gradient", "--policy", "gains", "--n-points", "21", "--train-delays", "1",
+GRAD = ["gradient", "--policy", "gains", "--n-points", "21", "--train-delays", "1",
         "--train-horizon-s", "2", "--steps-per-chunk", "1", "--eval-horizon-s", "2", "--quiet"]
 
 
@@ -225,8 +225,8 @@ def test_evaluate_writes_whole_or_nothing(outcome, tmp_path, monkeypatch, capsys
     (["--train-delays", "50"], r"train_delays = \[50.0\]: beyond the delay buffer's 10 s"),
     (["--record-every", "1000000"], r"record_every = 1000000: must be <= the training horizon"),
     (["--train-amplitudes", "-1"], r"\(veh/m\): an initial state leaves the physical region"),
-    (["--num-envs", "7", "--tensorboard", "tb"], r"error: --num-envs: used by --algo ppo only"),
-    (["--total-steps", "7"], r"--total-steps: used by --algo ppo only, and this run is --algo gradient \(its length"),
+    (["--num-envs", "7", "--tensorboard", "tb"], r"error: --num-envs: a flag of `train.py ppo`, not of `train.py gradient`"),
+    (["--total-steps", "7"], r"--total-steps: a flag of `train.py ppo`, not of `train.py gradient` \(its length"),
 ])
 def test_gradient_scenarios_the_plant_cannot_represent_and_flags_of_the_other_algorithm(argv, match, tmp_path,
                                                                                         capsys):
@@ -241,7 +241,7 @@ def test_ppo_rules_do_not_block_a_gradient_run_and_gradient_flags_do_not_pass_fo
 
     TrainConfig.from_flat(algo="gradient", num_minibatches=7)  # PPO's batch rule does not apply
     code, err = _main([*TINY, "--out-dir", str(tmp_path / "p"), "--grad-steps", "3"], capsys)
-    assert code == 2 and "--grad-steps: used by --algo gradient only, and this run is --algo ppo" in err
+    assert code == 2 and "--grad-steps: a flag of `train.py gradient`, not of `train.py ppo`" in err
     code, err = _main([*TINY, "--out-dir", str(tmp_path / "p"), "--amp-range", "1,1"], capsys)
     assert code == 2 and "amp_range = (1.0, 1.0): an initial state of amplitude 1 veh/m" in err
 
@@ -254,9 +254,9 @@ def test_sizes_and_horizons_beyond_what_can_run_are_flag_errors(tmp_path, capsys
                          (["--max-delay-steps", "2147483648"],
                           "max_delay_steps = 2147483648: must lie in [0, 1000000]"),
                          (["--num-envs", "2147483648"], "the rollouts alone need about"),
-                         (["--algo", "gradient", "--init-gains", "1,2"],
+                         (["gradient", "--init-gains", "1,2"],
                           "init_gains = (1.0, 2.0): must be 3 floats")):
-        args = [*TINY, *flags] if flags[0] != "--algo" else [*GRAD, *flags[2:]]
+        args = [*TINY, *flags] if flags[0] != "gradient" else [*GRAD, *flags[1:]]
         code, err = _main([*args, "--out-dir", str(tmp_path / "r")], capsys)
         assert code == 2 and match in err and err.count("\n") == 1, err
     with pytest.raises(ValueError, match=r"num_envs = 1024: with num_steps = 100 and 4 seed"):

@@ -103,7 +103,7 @@ def test_schedule_gradient_matches_central_differences_and_stays_on_its_knots(x6
 
 
 def test_default_training_plants_are_held_out_from_both_maps():
-    config = config_from_args(["--algo", "gradient", "--policy", "schedule"])
+    config = config_from_args(["gradient", "--policy", "schedule"])
     cfg, _ = gradient_setup(config)
     assert cfg == objective.GradientConfig.for_policy("schedule") and config.run.out_dir == "runs/gradient-schedule"
     dt = float(TrafficParams().dt)
@@ -121,7 +121,7 @@ def test_a_schedule_run_trains_saves_and_loads(tmp_path):
     from jaxtraffic.runs import load_policy
 
     out = tmp_path / "s"
-    config = config_from_args(["--algo", "gradient", "--policy", "schedule", "--out-dir", str(out), "--quiet",
+    config = config_from_args(["gradient", "--policy", "schedule", "--out-dir", str(out), "--quiet",
                              "--n-points", "21", "--train-delays", "2,6", "--train-alphas", "0.15",
                              "--train-horizon-s", "10", "--grad-steps", "5", "--eval-horizon-s", "10",
                              *(["--tensorboard", str(tmp_path / "tb")] if available("tensorboardX") else [])])

@@ -233,20 +233,67 @@ def test_load_policy_rejects_a_run_from_an_older_version(runs, tmp_path):
     load_policy(runs["A"])  # the unmodified run loads
 
 
-def test_cli_help_documents_every_flag(capsys):
+@pytest.mark.parametrize("algo", ["ppo", "gradient"])
+def test_cli_help_documents_every_flag(algo, capsys):
+    """Each subcommand's help lists the flags of the fields its algorithm reads (``-H``: with their help), and
+    no flag of the other's."""
+    from jaxtraffic.runs.config.tree import fields_for
+
     with pytest.raises(SystemExit) as exc:
-        train_cli.main(["--help"])
+        train_cli.main([algo, "-H"])
     assert exc.value.code == 0
     text = capsys.readouterr().out
-    parser = train_cli.build_parser()
-    for action in parser._actions:
-        if action.dest == "help":
-            continue
-        assert action.help, f"{action.option_strings} has no help"
-        assert action.option_strings[0] in text
-    for flag in ("--delay", "--alpha", "--alpha-noise", "--num-envs", "--total-steps", "--seeds", "--hidden",
-                 "--lr", "--clip-eps", "--n-points", "--out-dir", "--resume", "--max-wall-s", "--delay-range"):
+    other = "gradient" if algo == "ppo" else "ppo"
+    mine = {f.name for f in fields_for(algo)}
+    for f in fields_for(algo):
+        assert f.metadata.get("help"), f"{f.name} has no help"
+        flag = ("--no-" if f.default is True else "--") + f.name.replace("_", "-")
         assert flag in text
+    for f in fields_for(other):
+        if f.name not in mine:
+            assert f"--{f.name.replace('_', '-')} " not in text
+    for flag in ("--delay", "--n-points", "--out-dir", "--resume", "--max-wall-s", "--config", "--hidden",
+                 *(("--num-envs", "--total-steps", "--num-seeds", "--lr", "--delay-range") if algo == "ppo"
+                   else ("--policy", "--grad-steps", "--train-delays", "--grad-lr"))):
+        assert flag in text
+
+
+def test_cli_help_is_short_and_the_subcommand_optional(capsys):
+    for argv in ([], ["ppo"], ["gradient"]):
+        with pytest.raises(SystemExit):
+            train_cli.main([*argv, "--help"])
+        assert len(capsys.readouterr().out.splitlines()) <= 80
+    assert train_cli.config_from_args(["--delay", "3"]) == train_cli.config_from_args(["ppo", "--delay", "3"])
+    with pytest.raises(SystemExit) as exc:
+        train_cli.main(["--version"])
+    assert exc.value.code == 0 and capsys.readouterr().out.startswith("train.py ")
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["--algo", "gradient"], "--algo was removed; use `train.py gradient`"),
+    (["--seeds", "2"], "--seeds was removed; use --num-seeds"),
+    (["--num-seed", "2"], "unrecognized arguments: --num-seed"),  # no abbreviations
+    (["--n-point", "21"], "unrecognized arguments: --n-point"),
+    (["--grad-steps", "2"], "--grad-steps: a flag of `train.py gradient`, not of `train.py ppo`"),
+    (["gradient", "--lr", "0.1"], "--lr: a flag of `train.py ppo`, not of `train.py gradient`"),
+    (["--scheme", "weno"], "--scheme: invalid choice 'weno'"),
+])
+def test_cli_refuses_in_one_line(argv, match, capsys):
+    with pytest.raises(SystemExit) as exc:
+        train_cli.main(argv)
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and match in err and err.count("\n") == 1, err
+
+
+def test_cli_values_and_their_defaults():
+    c = train_cli.config_from_args
+    assert c([]) == TrainConfig()
+    assert c(["--hidden", "32,16"]).ppo.hidden == c(["--hidden", "32", "16"]).ppo.hidden == (32, 16)
+    assert c(["--min-wave-speed", "-inf"]).run.min_wave_speed is None
+    assert c(["--no-require-certificate"]).run.require_certificate is False
+    g = c(["gradient", "--policy", "schedule", "--train-delays", "1", "2"])
+    assert g.run.out_dir == "runs/gradient-schedule" and g.grad.train_delays == (1.0, 2.0)
+    assert g.grad.grad_method == "cem"  # the policy's defaults under the flags given
 
 
 @pytest.mark.parametrize("argv, match", [
@@ -255,8 +302,8 @@ def test_cli_help_documents_every_flag(capsys):
     (["--alpha-range", "0.1,1.5"], "alpha_range"),
     (["--delay-range", "3,2"], "delay_range"),
     (["--n-points", "2"], "n_points"),
-    (["--hidden", "a"], "comma-separated"),
-    (["--delay-range", "1"], "LO,HI"),
+    (["--hidden", "a"], "--hidden"),
+    (["--delay-range", "1"], "--delay-range"),
     (["--clip-eps", "0"], "clip_eps"),
     (["--diverge-penalty", "-1"], "diverge_penalty"),
 ])
@@ -313,7 +360,7 @@ def test_population_run(tmp_path):
 
     assert TrainConfig().ppo.num_seeds == POPULATION == 2
     argv = list(TINY)
-    argv[argv.index("--seeds") + 1] = "2"
+    argv[argv.index("--num-seeds") + 1] = "2"
     run = train_cli.main(argv + ["--out-dir", str(tmp_path / "pop"), "--keep-going", "--total-steps", str(2 * CHUNK),
                                  "--val-horizon-s", "0"])
     summary = json.loads((run / "summary.json").read_text())

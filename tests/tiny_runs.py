@@ -40,7 +40,7 @@ from jaxtraffic.sim import initial_state, paper_initial_condition
 REPO = Path(__file__).resolve().parents[1]
 # one member (the default is a population of 2): these runs are counted per member below;
 # the population itself: test_train.test_population_run
-TINY = ["--seeds", "1", "--n-points", "21", "--delay", "0.5", "--max-delay-steps", "20", "--num-envs", "4",
+TINY = ["--num-seeds", "1", "--n-points", "21", "--delay", "0.5", "--max-delay-steps", "20", "--num-envs", "4",
         "--num-steps", "8",
         "--updates-per-chunk", "2", "--update-epochs", "2", "--num-minibatches", "2", "--horizon-s", "3",
         "--eval-horizon-s", "2", "--val-horizon-s", "2", "--quiet"]

@@ -99,6 +99,11 @@ def _default_algo(argv: list[str], from_file: dict[str, Any]) -> str:
     return "ppo"
 
 
+def _out_dir(algo: str, values: dict[str, Any]) -> str:
+    """The default run directory: runs/default (PPO), runs/gradient-POLICY."""
+    return f"runs/gradient-{values.get('policy', 'gains')}" if algo == "gradient" else RunConfig.out_dir
+
+
 def _given(argv: list[str], names: set[str]) -> set[str]:
     """The fields set by flags of ``argv`` (``--n-points``, ``--no-require-certificate``), by name."""
     given = set()
@@ -131,9 +136,15 @@ def _refuse_removed(argv: list[str]) -> None:
         raise ValueError(f"{gone[0]} was removed; use {REMOVED[gone[0]]}")
 
 
-def _one_line(event: Any) -> None:
-    """tyro's parse errors as one ``ValueError`` line (``cli.errors``: status 2) instead of its box."""
+def _one_line(event: Any, algo: str, owner: dict[str, str]) -> None:
+    """tyro's parse errors as one ``ValueError`` line (``cli.errors``: status 2) instead of its box; ``owner``:
+    the subcommand of each flag."""
     if isinstance(event, tyro_errors.UnrecognizedArgs):
+        other = [t for t in event.tokens if owner.get(t.split("=")[0], algo) != algo]
+        if other:
+            flag = other[0].split("=")[0]
+            raise ValueError(f"{flag}: a flag of `{PROG} {owner[flag]}`, not of `{PROG} {algo}`"
+                             + (" (its length is --grad-steps)" if flag == "--total-steps" else ""))
         raise ValueError(f"unrecognized arguments: {' '.join(event.tokens)} (see {event.prog} --help)")
     if isinstance(event, tyro_errors.InvalidChoice):
         raise ValueError(f"{event.argument.display_name()}: invalid choice {event.value!r} "
@@ -141,7 +152,8 @@ def _one_line(event: Any) -> None:
     if isinstance(event, tyro_errors.BadValue):
         raise ValueError(f"{event.argument.display_name()}: missing or bad value")
     if isinstance(event, tyro_errors.InstantiationFailure):
-        raise ValueError(" ".join(event.message.split()))
+        where = f"{event.argument.display_name()}: " if event.argument is not None else ""
+        raise ValueError(where + " ".join(event.message.split()))
 
 
 def parse(argv: list[str] | None = None) -> tuple[TrainConfig, Cluster, set[str]]:
@@ -155,7 +167,7 @@ def parse(argv: list[str] | None = None) -> tuple[TrainConfig, Cluster, set[str]
     from_file = read_flat(_value_of(argv, "--config")) if _value_of(argv, "--config") else {}
     if not argv or argv[0] not in (*ALGOS, *HELP):
         argv.insert(0, _default_algo(argv, from_file))
-    bases = {a: TrainConfig.from_flat(**{**from_file, "algo": a}) for a in ALGOS}
+    bases = {a: TrainConfig.from_flat(**{"out_dir": _out_dir(a, from_file), **from_file, "algo": a}) for a in ALGOS}
     classes = {a: flags_class(a, bases[a]) for a in ALGOS}
     algo = argv[0] if argv[0] in ALGOS else "ppo"
     names = {f.name for f in dataclasses.fields(classes[algo])} - {"config", "cluster"}
@@ -163,16 +175,15 @@ def parse(argv: list[str] | None = None) -> tuple[TrainConfig, Cluster, set[str]
     argv = _split_commas(argv, tuples)
     commands = Union[tuple(Annotated[classes[a], tyro.conf.subcommand(a, description=ABOUT[a])]  # noqa: UP007
                            for a in ALGOS)]
-    with tyro_errors.on_parse_error(_one_line):
+    owner = {"--" + f.name.replace("_", "-"): a for a in reversed(ALGOS) for f in dataclasses.fields(classes[a])}
+    with tyro_errors.on_parse_error(lambda event: _one_line(event, algo, owner)):
         flags = tyro.cli(commands, args=argv, prog=PROG, config=(tyro.conf.FlagCreatePairsOff,), compact_help=True,
                          description=f"{__doc__.splitlines()[0]} (--version: the version)")
     given = _given(argv[1:], names)
     values = {**from_file, **{k: getattr(flags, k) for k in given}, "algo": algo}
     if values.get("min_wave_speed") == -math.inf:  # the paper's rule alone (stored as null in the JSON outputs)
         values["min_wave_speed"] = None
-    if "out_dir" not in values:
-        values["out_dir"] = f"runs/gradient-{values.get('policy', 'gains')}" if algo == "gradient" \
-            else RunConfig.out_dir
+    values.setdefault("out_dir", _out_dir(algo, values))
     return TrainConfig.from_flat(**values), flags.cluster, given
 
 

@@ -42,7 +42,12 @@ def test_a_run_from_its_config_toml_is_the_same_run(argv, tmp_path):
     again = train_cli.main(["--config", str(first / "config.toml"), "--out-dir", str(tmp_path / "b")])
     assert load_config(again).replace(out_dir="x") == load_config(first).replace(out_dir="x")
     assert _trained(again) == _trained(first)  # every saved array, byte for byte (the meta holds wall times)
-    with pytest.raises(SystemExit):  # a flag given with --config overrides the file (here: a bad value)
+    # the file's algorithm selects the subcommand; a flag given with --config overrides the file
+    over = train_cli.config_from_args(["--config", str(first / "config.toml"), "--seed", "5"])
+    assert over.run.seed == 5 and over.replace(seed=0) == load_config(first).replace(seed=0)
+    algo = load_config(first).run.algo
+    assert train_cli.config_from_args([algo, "--config", str(first / "config.toml")]) == load_config(first)
+    with pytest.raises(SystemExit):  # (here: a bad value)
         train_cli.main(["--config", str(first / "config.toml"), "--out-dir", str(tmp_path / "c"), "--seed", "-1"])
 
 

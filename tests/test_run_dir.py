@@ -255,7 +255,7 @@ def test_sizes_and_horizons_beyond_what_can_run_are_flag_errors(tmp_path, capsys
                           "max_delay_steps = 2147483648: must lie in [0, 1000000]"),
                          (["--num-envs", "2147483648"], "the rollouts alone need about"),
                          (["gradient", "--init-gains", "1,2"],
-                          "init_gains = (1.0, 2.0): must be 3 floats")):
+                          "--init-gains: too few values")):
         args = [*TINY, *flags] if flags[0] != "gradient" else [*GRAD, *flags[1:]]
         code, err = _main([*args, "--out-dir", str(tmp_path / "r")], capsys)
         assert code == 2 and match in err and err.count("\n") == 1, err

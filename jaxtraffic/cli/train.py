@@ -150,10 +150,11 @@ def _one_line(event: Any, algo: str, owner: dict[str, str]) -> None:
         raise ValueError(f"{event.argument.display_name()}: invalid choice {event.value!r} "
                          f"(choose from {', '.join(event.choices)})")
     if isinstance(event, tyro_errors.BadValue):
-        raise ValueError(f"{event.argument.display_name()}: missing or bad value")
+        why = "too few values" if event.reason == "too_few_values" else f"cannot take {event.offending_value!r}"
+        raise ValueError(f"{event.argument.display_name()}: {why}")
     if isinstance(event, tyro_errors.InstantiationFailure):
         where = f"{event.argument.display_name()}: " if event.argument is not None else ""
-        raise ValueError(where + " ".join(event.message.split()))
+        raise ValueError(where + " ".join(event.message.split(" Got errors:")[0].split()))
 
 
 def parse(argv: list[str] | None = None) -> tuple[TrainConfig, Cluster, set[str]]:

@@ -78,6 +78,8 @@ def test_cli_run_directory_ownership_and_resume_keeps_the_saved_run_control(tmp_
     assert json.loads((run / ckpt.SUMMARY).read_text())["updates"] == 2
     code, err = _main(["--resume", "--out-dir", str(run), "--n-points", "41"], capsys)
     assert code == 2 and "--n-points 41 (the run's value: 21)" in err
+    code, err = _main(["ppo", "--resume", "--out-dir", str(run)], capsys)  # (without a subcommand: the run's)
+    assert code == 2 and "holds a gradient run: resume it with `train.py gradient --resume`" in err
     # a run-control flag applies, and is recorded
     train_cli.main(["--resume", "--out-dir", str(run), "--grad-steps", "3", "--quiet"])
     assert json.loads((run / ckpt.SUMMARY).read_text())["updates"] == 3 and load_config(run).grad.grad_steps == 3

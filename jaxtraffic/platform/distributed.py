@@ -24,7 +24,6 @@ oversubscribe the cores.
 
 from __future__ import annotations
 
-import argparse
 import os
 from collections.abc import Mapping
 from typing import Any
@@ -35,21 +34,9 @@ from jax.experimental import multihost_utils
 
 ENV = {"coordinator_address": "JAX_COORDINATOR_ADDRESS", "num_processes": "JAX_NUM_PROCESSES",
        "process_id": "JAX_PROCESS_ID"}
-FLAGS = tuple(ENV)
 
-__all__ = ["ENV", "FLAGS", "add_flags", "agree", "barrier", "initialize", "is_writer", "put_like", "settings",
+__all__ = ["ENV", "agree", "barrier", "initialize", "is_writer", "put_like", "settings",
            "to_host"]
-
-
-def add_flags(parser: argparse.ArgumentParser) -> None:
-    """The three ``jax.distributed`` flags (default: the environment variables of ``ENV``)."""
-    g = parser.add_argument_group("multi-process runs (jax.distributed; default: the JAX_* environment variables)")
-    g.add_argument("--coordinator-address", default=None, metavar="HOST:PORT",
-                   help=f"address of process 0's coordinator service (${ENV['coordinator_address']})")
-    g.add_argument("--num-processes", type=int, default=None, metavar="N",
-                   help=f"number of processes (${ENV['num_processes']})")
-    g.add_argument("--process-id", type=int, default=None, metavar="I",
-                   help=f"this process's id, 0 .. N-1 (${ENV['process_id']})")
 
 
 def settings(coordinator_address: str | None = None, num_processes: int | None = None,

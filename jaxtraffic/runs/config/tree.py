@@ -2,8 +2,9 @@
 
 Each default is defined once: the plant's, the environment's and PPO's come from the library
 structs they configure (``TrafficParams``, ``EnvParams``, ``PPOConfig``), the run's are here.
-``train.py``'s flags are generated from the fields (``cli.train``, one flag per leaf field, named
-after it, with the ``help`` of its metadata). A run's config.json is ``config_json(config)``, and
+``train.py``'s flags are derived from the fields by tyro (``cli.train``: one flag per leaf field that the
+algorithm reads, ``fields_for``, named after it, with the one-line ``help`` of its metadata; a longer explanation
+is the comment above the field). A run's config.json is ``config_json(config)``, and
 ``load_config(run_dir)`` reads it back: resume, ``load_policy`` and the evaluation all use it.
 A config.json of an older version (another layout, or without a field of today's) is an error that says
 so: such a run is retrained, not guessed at.
@@ -69,10 +70,11 @@ class PlantConfig:
     delay: float = _f(float(_EP["traffic"].delay), "plant input delay D, s (multiple of dt)", lo=0.0)
     alpha: float = _f(_TP["alpha"], "ACC penetration rate", lo=0.0, hi=1.0)
     alpha_noise: float = _f(_TP["alpha_noise"], "per-step std of plant alpha noise", lo=0.0)
-    n_points: int = _f(_TP["n_points"], "grid points of the training plant (dx = L/(n-1))", lo=3)
-    scheme: str = _f(_TP["scheme"], "the training plant's scheme (upwind: the paper's; muscl: second order)",
-                     choices=SCHEMES)
-    substeps: int = _f(_TP["substeps"], "solver steps per time step dt (a finer plant, same control period)", lo=1)
+    n_points: int = _f(_TP["n_points"], "grid points (dx = L/(n-1))", lo=3)
+    # upwind: the paper's; muscl: second order
+    scheme: str = _f(_TP["scheme"], "the plant's numerical scheme", choices=SCHEMES)
+    # a finer plant with the same control period
+    substeps: int = _f(_TP["substeps"], "solver steps per time step dt", lo=1)
     dt: float = _f(_TP["dt"], "time step, s (the control period)", lo=0.0, lo_open=True)
     max_delay_steps: int = _f(_TP["max_delay_steps"], "delay buffer capacity, steps", lo=0, hi=10**6)
 
@@ -86,89 +88,95 @@ class PlantConfig:
 class EnvConfig:
     """Episodes, domain randomisation and reward shaping (``learn.env.EnvParams``)."""
 
-    horizon_s: float = _f(_EP["horizon"] * float(_EP["traffic"].dt), "episode length, s (truncation)",
-                          lo=0.0, lo_open=True, algo="ppo")
-    delay_spread: float = _f(1.0, "train on plant delays ~ U(D - spread, D + spread) s (clipped at 0); 0 disables",
-                              lo=0.0, algo="ppo")
-    delay_range: tuple[float, float] | None = _f(None, "plant delay range LO,HI s (overrides --delay-spread)", algo="ppo")
-    alpha_range: tuple[float, float] | None = _f(None, "plant alpha range LO,HI", algo="ppo")
-    amp_range: tuple[float, float] = _f((_EP["amp_min"], _EP["amp_max"]), "initial amplitude LO,HI veh/m", algo="ppo")
+    horizon_s: float = _f(_EP["horizon"] * float(_EP["traffic"].dt), "episode length, s", lo=0.0, lo_open=True,
+                          algo="ppo")
+    # training plant delays ~ U(D - spread, D + spread) s, clipped at 0; 0 disables
+    delay_spread: float = _f(1.0, "plant delays D +- this, s (0: D alone)", lo=0.0, algo="ppo")
+    delay_range: tuple[float, float] | None = _f(None, "plant delays LO HI, s (over --delay-spread)", algo="ppo")
+    alpha_range: tuple[float, float] | None = _f(None, "plant alphas LO HI", algo="ppo")
+    amp_range: tuple[float, float] = _f((_EP["amp_min"], _EP["amp_max"]), "initial amplitude LO HI, veh/m",
+                                        algo="ppo")
     wavenumber_range: tuple[int, int] = _f((_EP["wavenumber_min"], _EP["wavenumber_max"]),
-                                           "initial wavenumber LO,HI (integers)", algo="ppo")
-    phase_max: float = _f(_EP["phase_max"], "initial phase ~ U(0, phase_max) rad", algo="ppo")
-    gain_max: float | tuple[float, float, float] = _f(
-        _EP["gain_max"], "|eta_i| bound of PPO's gains (normalised): one value, or ETA1,ETA2,ETA3 (gradient "
-        "training: --grad-gain-max)", algo="ppo")
-    gain_filter: float = _f(_EP["gain_filter"], "applied gains move this fraction of the way to the policy's gains "
-                            "each step (first-order filter, time constant ~ dt/k); 1: applied directly (the paper)")
-    h_rate_weight: float = _f(_EP["h_rate_weight"], "training reward -= w * sum_i ((h_i - h_prev_i)/h_bar)^2, the "
-                              "squared step change of the commanded time gap (dimensionless); 0: the paper's reward", algo="ppo")
-    wave_weight: float = _f(_EP["wave_weight"], "training reward -= w * learn.env.backward_wave_cost(applied gains): "
-                            "0 when their closed-loop wave speed (linear.gain_law_wave_speed) is >= --wave-speed-min, "
-                            "rising to 1 at 5 m/s below it; 0: the paper's reward", algo="ppo")
-    wave_speed_min: float = _f(_EP["wave_speed_min"], "m/s, see --wave-weight", algo="ppo")
-    diverge_penalty: float = _f(_EP["diverge_penalty"], "reward of the step on which the plant leaves the physical "
-                                "region (the episode then ends), dimensionless, subtracted", algo="ppo")
-    obs_segments: int = _f(_EP["obs_segments"], "observation: each normalised field (rho, v, h_prev) averaged over "
-                           "this many equal road segments; 0: the full fields (3 x n-points values)", algo="ppo")
-    filter_sigma: float = _f(FILTER_SIGMA, "width (m) of the Gaussian filter the learned gain law applies to the "
-                             "observed rho~, v~ (its own spatial scale, docs/model.md section 16); 0: the paper's "
-                             "pointwise law")
-    controller_points: int | None = _f(None, "gradient training: the controller's own grid (nodes over the road; "
-                                       "the plant's n-points must refine it by an integer factor); default: the "
-                                       "plant's grid", lo=3, algo="gradient")
+                                           "initial wavenumber LO HI", algo="ppo")
+    phase_max: float = _f(_EP["phase_max"], "initial phase ~ U(0, this), rad", algo="ppo")
+    # |eta_i| bound of PPO's (normalised) gains: one value, or one per gain (the gradient trainer's: grad_gain_max)
+    gain_max: float | tuple[float, float, float] = _f(_EP["gain_max"], "|eta_i| bound: one, or ETA1 ETA2 ETA3",
+                                                      algo="ppo")
+    # the applied gains move this fraction of the way to the policy's each step (a first-order filter, time
+    # constant ~ dt/k); 1: applied directly (the paper)
+    gain_filter: float = _f(_EP["gain_filter"], "gain filter fraction per step (1: none)")
+    # training reward -= w * sum_i ((h_i - h_prev_i)/h_bar)^2, the squared step change of the commanded time gap
+    # (dimensionless); 0: the paper's reward
+    h_rate_weight: float = _f(_EP["h_rate_weight"], "reward weight of the time-gap rate", algo="ppo")
+    # training reward -= w * learn.env.backward_wave_cost(applied gains): 0 when their closed-loop wave speed
+    # (linear.gain_law_wave_speed) is >= wave_speed_min, rising to 1 at 5 m/s below it; 0: the paper's reward
+    wave_weight: float = _f(_EP["wave_weight"], "reward weight of backward waves", algo="ppo")
+    wave_speed_min: float = _f(_EP["wave_speed_min"], "wave speed the wave cost allows, m/s", algo="ppo")
+    # the reward of the step on which the plant leaves the physical region (the episode then ends), subtracted
+    diverge_penalty: float = _f(_EP["diverge_penalty"], "penalty of a diverging step", algo="ppo")
+    # observation: each normalised field (rho, v, h_prev) averaged over this many equal road segments; 0: the
+    # full fields (3 x n_points values)
+    obs_segments: int = _f(_EP["obs_segments"], "observed road segments (0: every point)", algo="ppo")
+    # width of the Gaussian filter the learned gain law applies to the observed rho~, v~ (its own spatial scale,
+    # docs/model.md section 16); 0: the paper's pointwise law
+    filter_sigma: float = _f(FILTER_SIGMA, "gain law's spatial filter width, m (0: none)")
+    # the gradient-trained controller's own grid (nodes over the road; the plant's n_points must refine it by an
+    # integer factor); None: the plant's grid
+    controller_points: int | None = _f(None, "controller's grid points (default: the plant's)", lo=3,
+                                       algo="gradient")
 
 
 @dataclass(frozen=True)
 class RunConfig:
     """Run control: where, how long, the stop rule. ``RUN_CONTROL`` fields may change on resume."""
 
-    algo: str = _f("ppo", "ppo: the paper's PPO; gradient: analytic gradients through the simulator "
-                   "(flags of the 'gradient-based training' group)", choices=ALGOS, cli=False)
-    out_dir: str = _f("runs/default", "run directory (default runs/default; with --algo gradient: "
-                      "runs/gradient-POLICY)")
-    resume: bool = _f(False, "continue from the run directory's checkpoint with its saved config, run control "
-                      "included; run-control flags given with it (--total-steps, --max-wall-s, --keep-going, "
-                      "--stop-patience, --target-reward, --min-wave-speed, --val-target, ...; gradient: --grad-steps) "
-                      "apply and are recorded, any other flag that would change the run is an error")
-    overwrite: bool = _f(False, "a fresh run into an --out-dir holding another run's results (checkpoint, best "
-                         "policy, summary, learning curve) clears them first; without it that is an error")
+    algo: str = _f("ppo", "ppo or gradient (train.py's subcommand)", choices=ALGOS, cli=False)
+    out_dir: str = _f("runs/default", "run directory (gradient: runs/gradient-POLICY)")
+    # continue from the run directory's checkpoint with its saved config, run control included; the RUN_CONTROL
+    # flags given with it (gradient: also grad_steps) apply and are recorded, any other change is an error
+    resume: bool = _f(False, "continue the run in --out-dir")
+    # a fresh run into an out_dir holding another run's results (checkpoint, best policy, summary, learning
+    # curve) clears them first; without it that is an error
+    overwrite: bool = _f(False, "clear the run in --out-dir first")
     seed: int = _f(0, "PRNG seed", lo=0, hi=2**32 - 1)
-    total_steps: int = _f(10_000_000, "environment steps (all envs, per seed)", lo=1, algo="ppo")
+    total_steps: int = _f(10_000_000, "environment steps per member", lo=1, algo="ppo")
     max_wall_s: float = _f(math.inf, "stop after this many seconds", lo=0.0, lo_open=True)
     keep_going: bool = _f(False, "ignore the stop rule", algo="ppo")
-    target_reward: float = _f(REWARD_TARGET, "stop rule: deterministic evaluation reward (end of the evaluation "
-                              "rollout) >= this", algo="ppo")
-    min_wave_speed: float | None = _f(0.5, "stop rule also requires the closed loop's kinematic wave speed at the "
-                                      "policy's equilibrium gains (linear.gain_law_wave_speed, m/s) >= this; -inf: the "
-                                      "paper's rule alone", algo="ppo")
-    require_certificate: bool = _f(True, "stop rule also requires the stability certificate (control.stability) of "
-                                   "the gains the policy settles to at the equilibrium, at the training delay and "
-                                   "alpha with its filter: largest growth rate over wavenumbers <= 1e-3/s", algo="ppo")
-    stop_patience: int = _f(1, "consecutive evaluations that must meet the stop rule (per population member) "
-                            "before stopping", lo=1, algo="ppo")
-    restart_steps: int = _f(1_500_000, "a member that has not met the stop rule within this many env steps of its "
-                            "start is re-initialised from a new key (network, optimiser, environments, observation "
-                            "statistics; its best checkpoint is kept); 0: never (also with --keep-going)", lo=0, algo="ppo")
-    val_horizon_s: float = _f(600.0, "validation suite (learn.ppo.selection): every member's deterministic policy from "
-                              "two initial conditions x the plant delays at the ends and the middle of the training "
-                              "range, over this many seconds, scored against backstepping; the best-scoring "
-                              "checkpoint of each member is kept (best.msgpack) and the best member is the run's "
-                              "policy; 0: no suite", lo=0.0, algo="ppo")
-    val_plant: str = _f("reference", "the plant the validation suite runs on: reference (TrafficParams.reference: "
-                        "MUSCL, 801 points, 2 solver steps; the policy acts on its training grid through "
-                        "control.adapter) or training (the training plant)", choices=("reference", "training"), algo="ppo")
-    val_target: float = _f(1.0, "stop rule also requires a validation score <= this (1: at the nominal delay the "
-                           "density L2 at half the suite horizon is below backstepping's and J_comfort within 20 %% "
-                           "of its, and at every delay of the suite the plant does not diverge and is still "
-                           "converging); inf: no such condition", lo=0.0, lo_open=True, algo="ppo")
+    # stop rule: the deterministic evaluation reward (end of the evaluation rollout) >= this
+    target_reward: float = _f(REWARD_TARGET, "stop rule: evaluation reward >= this", algo="ppo")
+    # the stop rule also requires the closed loop's kinematic wave speed at the policy's equilibrium gains
+    # (linear.gain_law_wave_speed) >= this; None (-inf on the command line): the paper's rule alone
+    min_wave_speed: float | None = _f(0.5, "stop rule: wave speed >= this, m/s (-inf: off)", algo="ppo")
+    # the stop rule also requires the stability certificate (control.stability) of the gains the policy settles
+    # to at the equilibrium, at the training delay and alpha with its filter: largest growth rate over
+    # wavenumbers <= 1e-3/s
+    require_certificate: bool = _f(True, "stop rule: the stability certificate", algo="ppo")
+    # consecutive evaluations that must meet the stop rule (per population member) before stopping
+    stop_patience: int = _f(1, "stop rule: consecutive evaluations", lo=1, algo="ppo")
+    # a member that has not met the stop rule within this many env steps of its start is re-initialised from a
+    # new key (network, optimiser, environments, observation statistics; its best checkpoint is kept); 0: never
+    # (also with keep_going)
+    restart_steps: int = _f(1_500_000, "restart a member after these steps (0: never)", lo=0, algo="ppo")
+    # validation suite (learn.ppo.selection): every member's deterministic policy from two initial conditions x
+    # the plant delays at the ends and the middle of the training range, over this many seconds, scored against
+    # backstepping; the best-scoring checkpoint of each member is kept (best.msgpack) and the best member is the
+    # run's policy; 0: no suite
+    val_horizon_s: float = _f(600.0, "validation suite length, s (0: none)", lo=0.0, algo="ppo")
+    # the plant the validation suite runs on: reference (TrafficParams.reference: MUSCL, 801 points, 2 solver
+    # steps; the policy acts on its training grid through control.adapter) or training (the training plant)
+    val_plant: str = _f("reference", "validation suite's plant", choices=("reference", "training"), algo="ppo")
+    # the stop rule also requires a validation score <= this (1: at the nominal delay the density L2 at half
+    # the suite horizon is below backstepping's and J_comfort within 20 % of its, and at every delay of the suite
+    # the plant does not diverge and is still converging); inf: no such condition
+    val_target: float = _f(1.0, "stop rule: validation score <= this", lo=0.0, lo_open=True, algo="ppo")
     eval_horizon_s: float = _f(300.0, "evaluation rollout length, s", lo=0.0, lo_open=True)
-    checkpoint_every: int = _f(10, "PPO: write checkpoint.msgpack every this many chunks, and after a session's first "
-                               "chunk, at the end and on SIGINT/SIGTERM (1: after every chunk; SIGKILL loses at "
-                               "most this many chunks); best.msgpack is written whenever it improves", lo=1, algo="ppo")
+    # PPO writes checkpoint.msgpack every this many chunks, and after a session's first chunk, at the end and on
+    # SIGINT/SIGTERM (1: after every chunk; SIGKILL loses at most this many chunks); best.msgpack is written
+    # whenever it improves
+    checkpoint_every: int = _f(10, "chunks between checkpoints", lo=1, algo="ppo")
     quiet: bool = _f(False, "no progress lines")
-    tensorboard: str | None = _f(None, "also write the learning-curve rows as TensorBoard scalars to this directory "
-                                 "(needs tensorboardX: pip install 'jaxtraffic[tb]')")
+    # also write the learning-curve rows as TensorBoard scalars (needs tensorboardX: pip install 'jaxtraffic[tb]')
+    tensorboard: str | None = _f(None, "TensorBoard log directory")
 
 
 _lend_ranges(EnvConfig, EnvParams)

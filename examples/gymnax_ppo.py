@@ -138,23 +138,23 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--update-epochs", type=int, default=4)
     ap.add_argument("--num-minibatches", type=int, default=4)
     ap.add_argument("--lr", type=float, default=1e-3)
-    ap.add_argument("--seeds", type=int, default=2, help="independent seeds, one jit(lax.map(train))")
+    ap.add_argument("--num-seeds", type=int, default=2, help="independent seeds, one jit(lax.map(train))")
     args = ap.parse_args(argv)
     cfg = {"num_envs": args.num_envs, "num_steps": args.num_steps, "num_updates": args.num_updates,
            "update_epochs": args.update_epochs, "num_minibatches": args.num_minibatches, "lr": args.lr,
            "gamma": 0.995, "gae_lambda": 0.95, "clip_eps": 0.2, "reward_scale": 0.01}
     env = GainGymnaxEnv(n_points=args.n_points, horizon_s=args.horizon_s)
     train = jax.jit(lambda keys: jax.lax.map(make_train(cfg, env, env.default_params), keys))
-    keys = jax.random.split(jax.random.PRNGKey(0), args.seeds)
+    keys = jax.random.split(jax.random.PRNGKey(0), args.num_seeds)
     t0 = time.perf_counter()
     compiled = train.lower(keys).compile()
     t1 = time.perf_counter()
     _, metrics = jax.block_until_ready(compiled(keys))
     t2 = time.perf_counter()
     metrics = jax.tree.map(np.asarray, metrics)
-    steps = args.seeds * args.num_updates * args.num_envs * args.num_steps
+    steps = args.num_seeds * args.num_updates * args.num_envs * args.num_steps
     ret = metrics["episode_return"]
-    print(f"{env.name}: {args.seeds} seed(s) x {args.num_updates} updates x {args.num_envs} envs x "
+    print(f"{env.name}: {args.num_seeds} seed(s) x {args.num_updates} updates x {args.num_envs} envs x "
           f"{args.num_steps} steps; compile {t1 - t0:.1f} s, train {t2 - t1:.1f} s "
           f"({steps / (t2 - t1):,.0f} env steps/s)")
     for name, col in (("first", 0), ("last", -1)):

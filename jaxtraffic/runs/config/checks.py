@@ -137,8 +137,8 @@ def check_config(config: Any) -> None:
         raise fail("controller_points", cp, f"the plant's grid (n-points {pl.n_points}) must refine it by an integer "
                     f"factor: (n_points - 1) a multiple of (controller_points - 1)")
     if cp is not None and cp != pl.n_points and run.algo != "gradient":
-        raise fail("controller_points", cp, "PPO's controller acts on the training plant's grid; only --algo "
-                    "gradient trains a controller on a grid of its own")
+        raise fail("controller_points", cp, "PPO's controller acts on the training plant's grid; only `train.py "
+                    "gradient` trains a controller on a grid of its own")
     if run.val_plant == "reference" and run.val_horizon_s > 0 and run.algo == "ppo":
         _check_reference_validation(pl)
     for name in ("horizon_s", "eval_horizon_s"):

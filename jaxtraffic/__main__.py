@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import sys
 
-USAGE = "usage: python -m jaxtraffic {train,evaluate} [flags]   (python -m jaxtraffic train --help lists them)"
+USAGE = ("usage: python -m jaxtraffic {train,evaluate} [flags]   (python -m jaxtraffic train [ppo|gradient] --help "
+         "lists them)")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -19,5 +19,5 @@ from jaxtraffic.runs.config.tree import (
 )
 
 __all__ = ["ALGOS", "CONFIG_VERSION", "POPULATION", "RUN_CONTROL", "SECTIONS",
-           "EnvConfig", "PlantConfig", "RunConfig", "TrainConfig", 
+           "EnvConfig", "PlantConfig", "RunConfig", "TrainConfig",
            "config_from_json", "config_json", "load_config", "read_config", "write_config"]

@@ -95,7 +95,10 @@ def _default_algo(argv: list[str], from_file: dict[str, Any]) -> str:
         return from_file["algo"]
     run_dir = Path(_value_of(argv, "--out-dir") or RunConfig.out_dir)
     if "--resume" in argv and (run_dir / "config.json").exists():
-        return load_config(run_dir).run.algo
+        try:
+            return load_config(run_dir).run.algo
+        except ValueError:  # (the resume's checks say what is wrong with the directory)
+            pass
     return "ppo"
 
 

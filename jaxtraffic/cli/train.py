@@ -1,20 +1,14 @@
-"""Train a gain policy: ``python train.py ppo [flags]`` (the paper's PPO) or ``train.py gradient [flags]``
-(gradients through the simulator). ``train.py ALGO --help`` lists the flags of ALGO.
+"""Train a gain policy: ``train.py ppo [flags]`` (the paper's PPO; also ``train.py [flags]``) or ``train.py
+gradient [flags]`` (gradients through the simulator); ``train.py ALGO --help`` lists ALGO's flags.
 
-The flags are derived by tyro from the config tree (``runs.config.TrainConfig``): one per leaf field the algorithm
-reads (``tree.fields_for``), named after it (``--n-points`` sets ``plant.n_points``), with its default and the
-one-line ``help`` of its metadata. A field marked ``cli=False`` is set in a config file only. ``--config
-FILE.toml`` starts from a config file (a run's config.toml reproduces the run); the flags given override it.
-
-Without a subcommand, ``ppo`` is inserted (``python train.py --delay 4`` is the PPO run it always was), unless
-``--config FILE`` names a gradient run's config, or ``--resume`` a gradient run's directory: then ``gradient``.
-A default run writes, in ``--out-dir``: config.json, config.toml, checkpoint.msgpack, learning_curve.csv/.png and
-summary.json. Ctrl-C or SIGTERM stops after the current chunk with its checkpoint saved (exit 130 / 143);
-``--resume`` continues from it. The same command runs as N cooperating processes with
-``--coordinator-address HOST:PORT --num-processes N --process-id I`` or the ``JAX_*`` variables
-(``jaxtraffic.platform.distributed``; docs/tutorials/cluster.md).
+tyro derives the flags from the config tree: one per leaf field the algorithm reads (``tree.fields_for``), named
+after it (``--n-points`` sets ``plant.n_points``), with its default and its metadata's one-line ``help``.
+``--config FILE.toml`` starts from a config file (a run's config.toml reproduces it); flags override it.
+Without a subcommand, ``ppo`` is inserted, unless ``--config`` names a gradient run's config or ``--resume``
+a gradient run's directory. Ctrl-C or SIGTERM stops after the current chunk with its checkpoint saved (exit
+130 / 143); ``--resume`` continues from it. ``--coordinator-address HOST:PORT --num-processes N --process-id
+I`` (or the ``JAX_*`` variables) run N cooperating processes (docs/tutorials/cluster.md).
 """
-
 from __future__ import annotations
 
 import dataclasses
@@ -55,20 +49,15 @@ def _version() -> str:
     return __version__
 
 
-def _cli_type(f: dataclasses.Field, hint: Any) -> Any:
-    """The type tyro parses a field as: its annotation; its ``choices`` (metadata) as a ``Literal``."""
-    choices = f.metadata.get("choices")
-    return Literal[tuple(choices)] if choices else hint
-
-
 def flags_class(algo: str, base: TrainConfig) -> type:
     """The dataclass tyro derives ``train.py ALGO``'s flags from: the leaf fields ``algo`` reads
     (``tree.fields_for``) with ``base``'s values as defaults and their metadata's help, --config and the
     cluster's flags."""
     hints = {k: v for cls in reversed(SECTIONS.values()) for k, v in typing.get_type_hints(cls).items()}
     flat = base.flat()
-    leaves = [(f.name, _cli_type(f, hints[f.name]), dataclasses.field(default=flat[f.name], metadata={
-        "help": f.metadata.get("help")})) for f in fields_for(algo)]
+    leaves = [(f.name, Literal[tuple(f.metadata["choices"])] if "choices" in f.metadata else hints[f.name],
+               dataclasses.field(default=flat[f.name], metadata={"help": f.metadata.get("help")}))
+              for f in fields_for(algo)]
     cls = dataclasses.make_dataclass(algo, [*leaves, (
         "config", Union[Path, None], dataclasses.field(default=None, metadata={  # noqa: UP007 (a runtime type)
             "help": "start from this config file (a run's config.toml); the flags given override it"})), (

@@ -147,32 +147,25 @@ class RunConfig:
     # the stop rule also requires the closed loop's kinematic wave speed at the policy's equilibrium gains
     # (linear.gain_law_wave_speed) >= this; None (-inf on the command line): the paper's rule alone
     min_wave_speed: float | None = _f(0.5, "stop rule: wave speed >= this, m/s (-inf: off)", algo="ppo")
-    # the stop rule also requires the stability certificate (control.stability) of the gains the policy settles
-    # to at the equilibrium, at the training delay and alpha with its filter: largest growth rate over
-    # wavenumbers <= 1e-3/s
+    # the stop rule also requires the stability certificate (control.stability) of the policy's equilibrium
+    # gains at the training delay and alpha: largest growth rate over wavenumbers <= 1e-3/s
     require_certificate: bool = _f(True, "stop rule: the stability certificate", algo="ppo")
     # consecutive evaluations that must meet the stop rule (per population member) before stopping
     stop_patience: int = _f(1, "stop rule: consecutive evaluations", lo=1, algo="ppo")
-    # a member that has not met the stop rule within this many env steps of its start is re-initialised from a
-    # new key (network, optimiser, environments, observation statistics; its best checkpoint is kept); 0: never
-    # (also with keep_going)
+    # a member that has not met the stop rule this many env steps after its start is re-initialised from a new
+    # key (its best checkpoint is kept); 0: never (also with keep_going)
     restart_steps: int = _f(1_500_000, "restart a member after these steps (0: never)", lo=0, algo="ppo")
-    # validation suite (learn.ppo.selection): every member's deterministic policy from two initial conditions x
-    # the plant delays at the ends and the middle of the training range, over this many seconds, scored against
-    # backstepping; the best-scoring checkpoint of each member is kept (best.msgpack) and the best member is the
-    # run's policy; 0: no suite
+    # validation suite (learn.ppo.selection): each member's policy on 2 initial states x 3 training delays, scored
+    # against backstepping; each member's best checkpoint is kept (best.msgpack), the best member is the policy
     val_horizon_s: float = _f(600.0, "validation suite length, s (0: none)", lo=0.0, algo="ppo")
     # the plant the validation suite runs on: reference (TrafficParams.reference: MUSCL, 801 points, 2 solver
     # steps; the policy acts on its training grid through control.adapter) or training (the training plant)
     val_plant: str = _f("reference", "validation suite's plant", choices=("reference", "training"), algo="ppo")
-    # the stop rule also requires a validation score <= this (1: at the nominal delay the density L2 at half
-    # the suite horizon is below backstepping's and J_comfort within 20 % of its, and at every delay of the suite
-    # the plant does not diverge and is still converging); inf: no such condition
+    # 1: at the nominal delay the density L2 at half the suite horizon below backstepping's, J_comfort within
+    # 20 % of its, and no delay of the suite diverging or still growing; inf: no such condition
     val_target: float = _f(1.0, "stop rule: validation score <= this", lo=0.0, lo_open=True, algo="ppo")
     eval_horizon_s: float = _f(300.0, "evaluation rollout length, s", lo=0.0, lo_open=True)
-    # PPO writes checkpoint.msgpack every this many chunks, and after a session's first chunk, at the end and on
-    # SIGINT/SIGTERM (1: after every chunk; SIGKILL loses at most this many chunks); best.msgpack is written
-    # whenever it improves
+    # also after a session's first chunk, at the end and on SIGINT/SIGTERM; SIGKILL loses at most this many chunks
     checkpoint_every: int = _f(10, "chunks between checkpoints", lo=1, algo="ppo")
     quiet: bool = _f(False, "no progress lines")
     # also write the learning-curve rows as TensorBoard scalars (needs tensorboardX: pip install 'jaxtraffic[tb]')

@@ -40,6 +40,8 @@ REMOVED = {"--algo": "`train.py gradient` (or `train.py ppo`): the algorithm is 
 ABOUT = {"ppo": "Train the paper's PPO gain policy (the default subcommand).",
          "gradient": "Train a policy (gains, network or delay schedule) by gradients through the simulator."}
 HELP = ("-h", "--help", "-H", "--help-verbose")
+DESCRIPTION = ("Train a gain policy: train.py ppo [flags] (also train.py [flags]) or train.py gradient [flags]; "
+               "train.py ALGO --help lists ALGO's flags (-H: with their help); --version: the version.")
 
 
 def _version() -> str:
@@ -171,7 +173,7 @@ def parse(argv: list[str] | None = None) -> tuple[TrainConfig, Cluster, set[str]
     owner = {"--" + f.name.replace("_", "-"): a for a in reversed(ALGOS) for f in dataclasses.fields(classes[a])}
     with tyro_errors.on_parse_error(lambda event: _one_line(event, algo, owner)):
         flags = tyro.cli(commands, args=argv, prog=PROG, config=(tyro.conf.FlagCreatePairsOff,), compact_help=True,
-                         description=f"{__doc__.splitlines()[0]} (--version: the version)")
+                         default=classes["ppo"](), description=DESCRIPTION)
     given = _given(argv[1:], names)
     values = {**from_file, **{k: getattr(flags, k) for k in given}, "algo": algo}
     if values.get("min_wave_speed") == -math.inf:  # the paper's rule alone (stored as null in the JSON outputs)

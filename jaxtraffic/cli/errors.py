@@ -10,7 +10,7 @@ standard output closed (``PROG | head -1``)              74      ``PROG: error: 
 a signal (SIGINT, SIGTERM, SIGHUP)                       128+N   said by the job (what is kept)
 ======================================================  ======  =============================================
 
-A ``SystemExit`` raised inside (argparse's usage errors: 2) passes through unchanged. What the job writes is
+A ``SystemExit`` raised inside (tyro's usage errors: 2) passes through unchanged. What the job writes is
 written atomically (``jaxtraffic.io.files``) or staged (``cli.staging``), so a failure leaves nothing half-written.
 """
 

@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from jaxtraffic import paper
-from jaxtraffic.cli import errors, external, staging
+from jaxtraffic.cli import errors, external, judge, staging
 from jaxtraffic.cli.options import EvaluateOptions, parse_evaluate, program
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.paper.oracle import load_oracle
@@ -174,6 +174,8 @@ def check_args(args: EvaluateOptions) -> tuple[int, int]:
         external.parse(args.controller)
     except ValueError as err:
         raise _fail(str(err)) from None
+    if args.judge and not args.controller:
+        raise _fail("--judge judges your own policy: give it with --controller NAME=SOURCE:FUNCTION[:ARG]")
     plants = [p.strip() for p in args.plants.split(",") if p.strip()]
     if not plants or any(p not in PLANTS for p in plants) or len(set(plants)) != len(plants):
         raise _fail(f"--plants must name one or both of {PLANTS}, separated by a comma, got {args.plants!r}")
@@ -266,7 +268,23 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         raise staging.leave(code) from None
 
 
+def _judge(args: EvaluateOptions, argv: list[str] | None, t0: float) -> dict[str, Any]:
+    """``--judge``: the --controller policies against the baselines on each plant, no training (``cli.judge``)."""
+    own, grids = external.load(args.controller)
+    common = {"dt": float(TrafficParams().dt), "horizon_s": args.horizon, "seeds": tuple(range(args.noise_seeds)),
+              "robust_delays": (), "robust_alphas": (), "numerics_check": False}
+    ref_n, ref_s = parse_grid(args.reference_grid, "--reference-grid")
+    configs = {"paper": paper.EvalConfig(n_points=args.n_points or paper.EvalConfig.n_points, **common),
+               "reference": paper.EvalConfig(n_points=ref_n, scheme="muscl", substeps=ref_s, **common)}
+    meta = {"argv": list(sys.argv[1:] if argv is None else argv)}
+    result = judge.judge_plants(own, grids, {p: configs[p] for p in args.plants}, args.out, meta, log=_log)
+    _log(f"total {time.perf_counter() - t0:.1f} s")
+    return result
+
+
 def _main(args: EvaluateOptions, argv: list[str] | None, t0: float, nd: int, na: int) -> dict[str, Any]:
+    if args.judge:
+        return _judge(args, argv, t0)
     run_dir = find_or_train_run(args.run, args.n_points)
     ppo, config = load_policy(run_dir)
     for flag, value in (("--horizon", args.horizon), ("--robust-horizon", args.robust_horizon)):

@@ -7,3 +7,14 @@ from jaxtraffic.control import lyapunov
 
 def soft_lyapunov():
     return lyapunov(0.5)
+
+
+SEEN = []
+
+
+def normalised_model(path: str):
+    """A bridge of a model file ``path``: records the statistics ``evaluate.py --controller-normalization`` set."""
+    from jaxtraffic.ecosystem.normalization import active
+
+    SEEN.append(active())
+    return lyapunov(0.5)

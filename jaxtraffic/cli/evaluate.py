@@ -217,6 +217,17 @@ def check_paths(args: EvaluateOptions, argv: list[str] | None) -> None:
         source = str(spec["source"])
         if source.endswith(".py") and not Path(source).is_file():
             raise _fail(f"--controller {spec['name']}: no file {source}")
+    try:
+        norm = external.parse_normalization(args.controller_normalization,
+                                            [str(s["name"]) for s in external.parse(args.controller)])
+    except ValueError as err:
+        raise _fail(str(err)) from None
+    for name, path in norm.items():
+        if not path.is_file():
+            raise _fail(f"--controller-normalization {name}: no file {path}")
+    why = external.unnormalised(args.controller, norm)
+    if why:
+        raise _fail(why)
     for flag, path in (("--runs-root", args.runs_root), ("--oracle-dir", args.oracle_dir)):
         if path.exists() and not path.is_dir():
             raise _fail(f"{flag} {path}: exists and is not a directory")
@@ -268,9 +279,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         raise staging.leave(code) from None
 
 
+def _normalization(args: EvaluateOptions) -> dict[str, Path]:
+    return external.parse_normalization(args.controller_normalization,
+                                        [str(s["name"]) for s in external.parse(args.controller)])
+
+
 def _judge(args: EvaluateOptions, argv: list[str] | None, t0: float) -> dict[str, Any]:
     """``--judge``: the --controller policies against the baselines on each plant, no training (``cli.judge``)."""
-    own, grids = external.load(args.controller)
+    own, grids = external.load(args.controller, _normalization(args))
     common = {"dt": float(TrafficParams().dt), "horizon_s": args.horizon, "seeds": tuple(range(args.noise_seeds)),
               "robust_delays": (), "robust_alphas": (), "numerics_check": False}
     ref_n, ref_s = parse_grid(args.reference_grid, "--reference-grid")
@@ -309,7 +325,8 @@ def _main(args: EvaluateOptions, argv: list[str] | None, t0: float, nd: int, na:
     ref_n, ref_s = parse_grid(args.reference_grid, "--reference-grid")
     grad, grad_grids, grad_runs = gradient_controllers(args.gradient, args.runs_root, n_points, (ref_n, ref_s))
     grids.update(grad_grids)
-    own, own_grids = external.load(args.controller)  # --controller: the user's own, judged wherever PPO is
+    # --controller: the user's own, judged wherever PPO is
+    own, own_grids = external.load(args.controller, _normalization(args))
     grids.update(own_grids)
     lc = run_dir / "learning_curve.csv"
     learned_runs = {"ppo": {"run_dir": str(run_dir), "curve": _curve(lc),

@@ -11,7 +11,8 @@ next to its .zip), so a loader can refuse instead of judging it silently on unno
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -20,8 +21,8 @@ import numpy as np
 
 from jaxtraffic.io.files import atomic_write_text
 
-__all__ = ["ObsNormalization", "export_obs_normalization", "load_obs_normalization", "normalization_evidence",
-           "normalized_policy"]
+__all__ = ["ObsNormalization", "active", "applying", "export_obs_normalization", "load_obs_normalization",
+           "normalization_evidence", "normalized_policy"]
 FORMAT = "jaxtraffic.obs_normalization/1"
 
 
@@ -72,6 +73,9 @@ def load_obs_normalization(path: str | Path) -> ObsNormalization | None:
     return ObsNormalization(mean, var, clip, eps) if doc.get("norm_obs", True) else None
 
 
+_ACTIVE: list[ObsNormalization] = []  # set by ``applying`` while evaluate.py builds a --controller
+
+
 def normalized_policy(fn: Callable[[Any], Any], stats: ObsNormalization | None) -> Callable[[Any], Any]:
     """``fn`` fed the normalised observation (``fn`` itself when ``stats`` is None)."""
     if stats is None:
@@ -86,3 +90,22 @@ def normalization_evidence(model_path: str | Path) -> Path | None:
     found = sorted(p for p in folder.glob("*") if p.is_file() and p.suffix.lower() == ".pkl"
                    and p.name.lower().startswith("vecnormalize")) if folder.is_dir() else []
     return found[0] if found else None
+
+
+@contextmanager
+def applying(stats: ObsNormalization | None) -> Iterator[None]:
+    """While it lasts, ``ecosystem.policy_as_controller`` feeds its policy ``stats``-normalised observations
+    (``evaluate.py --controller-normalization``: the statistics reach the user's bridge code unchanged)."""
+    if stats is None:
+        yield
+        return
+    _ACTIVE.append(stats)
+    try:
+        yield
+    finally:
+        _ACTIVE.pop()
+
+
+def active() -> ObsNormalization | None:
+    """The statistics ``applying`` set, else None."""
+    return _ACTIVE[-1] if _ACTIVE else None

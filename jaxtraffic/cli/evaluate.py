@@ -18,6 +18,8 @@ The same command runs as N cooperating processes with ``--coordinator-address HO
 --num-processes N --process-id I`` or the ``JAX_*`` variables (``jaxtraffic.platform.distributed``;
 docs/tutorials/cluster.md): the batched rollouts (and any training the job starts) are split over
 every process's devices, and only process 0 prints and writes.
+``--judge --controller ...`` judges only the user's policies against the baselines, training nothing
+(``cli.judge``; ``main`` then returns judge.json's dict).
 The logic lives in ``jaxtraffic.paper``; ``main(argv)`` returns the metrics dict.
 """
 

@@ -18,6 +18,8 @@ The same command runs as N cooperating processes with ``--coordinator-address HO
 --num-processes N --process-id I`` or the ``JAX_*`` variables (``jaxtraffic.platform.distributed``;
 docs/tutorials/cluster.md): the batched rollouts (and any training the job starts) are split over
 every process's devices, and only process 0 prints and writes.
+``--judge --controller ...`` judges only the user's policies against the baselines, training nothing
+(``cli.judge``; ``main`` then returns judge.json's dict).
 The logic lives in ``jaxtraffic.paper``; ``main(argv)`` returns the metrics dict.
 """
 
@@ -32,7 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from jaxtraffic import paper
-from jaxtraffic.cli import errors, external, staging
+from jaxtraffic.cli import errors, external, judge, staging
 from jaxtraffic.cli.options import EvaluateOptions, parse_evaluate, program
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.paper.oracle import load_oracle
@@ -174,6 +176,8 @@ def check_args(args: EvaluateOptions) -> tuple[int, int]:
         external.parse(args.controller)
     except ValueError as err:
         raise _fail(str(err)) from None
+    if args.judge and not args.controller:
+        raise _fail("--judge judges your own policy: give it with --controller NAME=SOURCE:FUNCTION[:ARG]")
     plants = [p.strip() for p in args.plants.split(",") if p.strip()]
     if not plants or any(p not in PLANTS for p in plants) or len(set(plants)) != len(plants):
         raise _fail(f"--plants must name one or both of {PLANTS}, separated by a comma, got {args.plants!r}")
@@ -215,6 +219,17 @@ def check_paths(args: EvaluateOptions, argv: list[str] | None) -> None:
         source = str(spec["source"])
         if source.endswith(".py") and not Path(source).is_file():
             raise _fail(f"--controller {spec['name']}: no file {source}")
+    try:
+        norm = external.parse_normalization(args.controller_normalization,
+                                            [str(s["name"]) for s in external.parse(args.controller)])
+    except ValueError as err:
+        raise _fail(str(err)) from None
+    for name, path in norm.items():
+        if not path.is_file():
+            raise _fail(f"--controller-normalization {name}: no file {path}")
+    why = external.unnormalised(args.controller, norm)
+    if why:
+        raise _fail(why)
     for flag, path in (("--runs-root", args.runs_root), ("--oracle-dir", args.oracle_dir)):
         if path.exists() and not path.is_dir():
             raise _fail(f"{flag} {path}: exists and is not a directory")
@@ -266,7 +281,28 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         raise staging.leave(code) from None
 
 
+def _normalization(args: EvaluateOptions) -> dict[str, Path]:
+    return external.parse_normalization(args.controller_normalization,
+                                        [str(s["name"]) for s in external.parse(args.controller)])
+
+
+def _judge(args: EvaluateOptions, argv: list[str] | None, t0: float) -> dict[str, Any]:
+    """``--judge``: the --controller policies against the baselines on each plant, no training (``cli.judge``)."""
+    own, grids = external.load(args.controller, _normalization(args))
+    common = {"dt": float(TrafficParams().dt), "horizon_s": args.horizon, "seeds": tuple(range(args.noise_seeds)),
+              "robust_delays": (), "robust_alphas": (), "numerics_check": False}
+    ref_n, ref_s = parse_grid(args.reference_grid, "--reference-grid")
+    configs = {"paper": paper.EvalConfig(n_points=args.n_points or paper.EvalConfig.n_points, **common),
+               "reference": paper.EvalConfig(n_points=ref_n, scheme="muscl", substeps=ref_s, **common)}
+    meta = {"argv": list(sys.argv[1:] if argv is None else argv)}
+    result = judge.judge_plants(own, grids, {p: configs[p] for p in args.plants}, args.out, meta, log=_log)
+    _log(f"total {time.perf_counter() - t0:.1f} s")
+    return result
+
+
 def _main(args: EvaluateOptions, argv: list[str] | None, t0: float, nd: int, na: int) -> dict[str, Any]:
+    if args.judge:
+        return _judge(args, argv, t0)
     run_dir = find_or_train_run(args.run, args.n_points)
     ppo, config = load_policy(run_dir)
     for flag, value in (("--horizon", args.horizon), ("--robust-horizon", args.robust_horizon)):
@@ -291,7 +327,8 @@ def _main(args: EvaluateOptions, argv: list[str] | None, t0: float, nd: int, na:
     ref_n, ref_s = parse_grid(args.reference_grid, "--reference-grid")
     grad, grad_grids, grad_runs = gradient_controllers(args.gradient, args.runs_root, n_points, (ref_n, ref_s))
     grids.update(grad_grids)
-    own, own_grids = external.load(args.controller)  # --controller: the user's own, judged wherever PPO is
+    # --controller: the user's own, judged wherever PPO is
+    own, own_grids = external.load(args.controller, _normalization(args))
     grids.update(own_grids)
     lc = run_dir / "learning_curve.csv"
     learned_runs = {"ppo": {"run_dir": str(run_dir), "curve": _curve(lc),

@@ -18,6 +18,7 @@ from typing import Any
 
 from jaxtraffic.control.adapter import ControllerGrid
 from jaxtraffic.control.base import Controller
+from jaxtraffic.ecosystem.normalization import applying, load_obs_normalization, normalization_evidence
 from jaxtraffic.paper.scenarios import BASELINES, EXTRA_LEARNED
 
 RESERVED = {*BASELINES, "ppo", *EXTRA_LEARNED}
@@ -53,14 +54,43 @@ def _module(source: str) -> ModuleType:
     return importlib.import_module(source)
 
 
-def load(specs: list[str]) -> tuple[dict[str, Controller], dict[str, ControllerGrid]]:
-    """(name -> controller, name -> its grid when given) of the ``--controller`` values."""
+def parse_normalization(specs: list[str], controllers: list[str]) -> dict[str, Path]:
+    """``--controller-normalization NAME=FILE`` values as name -> file; ``ValueError`` for a malformed one, or
+    one naming no ``--controller``."""
+    out = {}
+    for spec in specs:
+        name, sep, file = spec.partition("=")
+        if not sep or not file or name not in controllers or name in out:
+            raise ValueError(f"--controller-normalization {spec!r}: expected NAME=FILE, NAME a --controller given "
+                             "once (the file of jaxtraffic.ecosystem.normalization.export_obs_normalization)")
+        out[name] = Path(file)
+    return out
+
+
+def unnormalised(specs: list[str], normalization: dict[str, Path]) -> str | None:
+    """Why a ``--controller`` must be refused: its ARGUMENT is a model file with a ``vecnormalize*.pkl`` beside it
+    (trained under SB3's VecNormalize) and no ``--controller-normalization`` for it; None when none is."""
+    for s in parse(specs):
+        found = normalization_evidence(s["arg"]) if s["arg"] and Path(s["arg"]).is_file() else None
+        if found is not None and s["name"] not in normalization:
+            return (f"--controller {s['name']}: {found} says it was trained under VecNormalize; export its statistics "
+                    "(jaxtraffic.ecosystem.normalization.export_obs_normalization) and give "
+                    f"--controller-normalization {s['name']}=FILE")
+    return None
+
+
+def load(specs: list[str], normalization: dict[str, Path] | None = None
+         ) -> tuple[dict[str, Controller], dict[str, ControllerGrid]]:
+    """(name -> controller, name -> its grid when given) of the ``--controller`` values; ``normalization``: name
+    -> the VecNormalize statistics its policy is fed through (``ecosystem.normalization.applying``)."""
     controllers, grids = {}, {}
     for s in parse(specs):
         function = getattr(_module(s["source"]), s["function"], None)
         if not callable(function):
             raise ValueError(f"--controller {s['name']}: {s['source']} has no function {s['function']}")
-        made: Any = function(s["arg"]) if s["arg"] is not None else function()
+        stats = load_obs_normalization(normalization[s["name"]]) if s["name"] in (normalization or {}) else None
+        with applying(stats):
+            made: Any = function(s["arg"]) if s["arg"] is not None else function()
         controller, grid = made if isinstance(made, tuple) else (made, None)
         if not isinstance(controller, Controller) or not (grid is None or isinstance(grid, ControllerGrid)):
             raise ValueError(f"--controller {s['name']}: {s['function']} returned {type(made).__name__}, not a "

@@ -41,6 +41,7 @@ from jaxtraffic._registration import ENV_ID, register_gymnasium
 from jaxtraffic.control.adapter import ControllerGrid
 from jaxtraffic.control.base import Controller
 from jaxtraffic.control.gain_policy import ACTION_EPS, function_controller, normalised_to_action
+from jaxtraffic.ecosystem.normalization import active, normalized_policy
 from jaxtraffic.learn import env as learn_env
 from jaxtraffic.runs.config import TrainConfig
 from jaxtraffic.runs.config.checks import check_initial_amplitudes
@@ -72,8 +73,13 @@ def policy_as_controller(fn: Callable[[Any], Any], env_params: learn_env.EnvPara
     in [-1, 1]^3 (e.g. ``lambda o: model.predict(o, deterministic=True)[0]``). ``env_params`` / ``config``:
     the environment it was trained on (as for ``GainEnv``); the controller acts on that environment's grid
     (``controller_grid``) with its gain bound, filter and observation. ``host`` and ``batched``: see
-    ``control.gain_policy.function_controller`` (``host=False`` for a JAX function)."""
+    ``control.gain_policy.function_controller`` (``host=False`` for a JAX function). Built inside
+    ``normalization.applying(stats)`` (``evaluate.py --controller-normalization``), ``fn`` sees observations
+    normalised as SB3's ``VecNormalize`` did in training (host functions only)."""
     ep = resolve_env_params(env_params, **config)
+    if active() is not None and not host:
+        raise ValueError("--controller-normalization applies to host policies (host=True) only")
+    fn = normalized_policy(fn, active())  # evaluate.py --controller-normalization (ecosystem.normalization)
     return function_controller(fn, ep.gain_max, gain_filter=ep.gain_filter, obs_segments=ep.obs_segments,
                                sigma_nodes=ep.filter_nodes, host=host, batched=batched, name=name)
 

@@ -275,7 +275,7 @@ def run_scenarios(controllers: dict[str, Controller], eval_config: EvalConfig,
     groups: dict[tuple[str, str, NoiseReading | None], list[tuple[str, int]]] = {}
     for sc in SCENARIOS:
         for name in (*sc.controllers, *(others(controllers) if "ppo" in sc.controllers else ())):
-            if name in EXTRA_LEARNED and name not in controllers:
+            if name in _L and name not in controllers:  # a learned one not given (judge: no PPO)
                 continue
             gid = (name, sc.name if (sc.name, name) in overrides else "", _program_reading(sc.reading(eval_config.dt,
                                                                                                       name)))

@@ -169,12 +169,12 @@ def _autoreset_mode(mode: AutoresetMode | str) -> AutoresetMode:
     if isinstance(mode, str) and mode in AutoresetMode.__members__:
         mode = AutoresetMode[mode]
     try:
-        mode = AutoresetMode(mode)
+        resolved: AutoresetMode | None = AutoresetMode(mode)
     except ValueError:
-        mode = None
-    if mode not in (AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP):
+        resolved = None
+    if resolved is None or resolved not in (AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP):
         raise ValueError(f"autoreset_mode must be NEXT_STEP or SAME_STEP, got {given!r}")
-    return mode
+    return resolved
 
 
 def _keep(hold: jax.Array, old: Any, new: Any) -> Any:

@@ -212,7 +212,7 @@ class GainVectorEnv(gym.vector.VectorEnv):
         self._state: Any = None
         self._obs: Any = None
         self._hold = np.zeros(self.num_envs, bool)  # NEXT_STEP: reset at the next step
-        self._next_obs = None  # NEXT_STEP: the first observations of the held environments' next episodes
+        self._next_obs: Any = None  # NEXT_STEP: the first observations of the held environments' next episodes
         tp = self.env_params.traffic
         self._history = History(self.num_envs, self.env_params.horizon, tp.n_points) if render_mode else None
 

@@ -134,7 +134,8 @@ class GainEnv(gym.Env):
         self.observation_space, self.action_space = _spaces(self.env_params)
         self._reset_fn = jax.jit(_reset)
         self._step_fn = jax.jit(_step)
-        self._key = self._state = None
+        self._key: jax.Array | None = None
+        self._state: Any = None  # (a learn_env.EnvState once reset)
         self._history = History(1, self.env_params.horizon, self.env_params.traffic.n_points) if render_mode else None
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -168,12 +169,12 @@ def _autoreset_mode(mode: AutoresetMode | str) -> AutoresetMode:
     if isinstance(mode, str) and mode in AutoresetMode.__members__:
         mode = AutoresetMode[mode]
     try:
-        mode = AutoresetMode(mode)
+        resolved: AutoresetMode | None = AutoresetMode(mode)
     except ValueError:
-        mode = None
-    if mode not in (AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP):
+        resolved = None
+    if resolved is None or resolved not in (AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP):
         raise ValueError(f"autoreset_mode must be NEXT_STEP or SAME_STEP, got {given!r}")
-    return mode
+    return resolved
 
 
 def _keep(hold: jax.Array, old: Any, new: Any) -> Any:
@@ -207,9 +208,11 @@ class GainVectorEnv(gym.vector.VectorEnv):
 
         self._reset_fn = jax.jit(jax.vmap(_reset, (0, None)))
         self._step_fn = jax.jit(step_all, donate_argnums=1)  # the batch's delay buffers are updated in place
-        self._keys = self._state = self._obs = None
+        self._keys: jax.Array | None = None  # (set by reset: batched keys, states and observations)
+        self._state: Any = None
+        self._obs: Any = None
         self._hold = np.zeros(self.num_envs, bool)  # NEXT_STEP: reset at the next step
-        self._next_obs = None  # NEXT_STEP: the first observations of the held environments' next episodes
+        self._next_obs: Any = None  # NEXT_STEP: the first observations of the held environments' next episodes
         tp = self.env_params.traffic
         self._history = History(self.num_envs, self.env_params.horizon, tp.n_points) if render_mode else None
 

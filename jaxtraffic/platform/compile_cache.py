@@ -30,6 +30,7 @@ from __future__ import annotations
 import os
 import stat
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 
 ENV = "JAXTRAFFIC_COMPILATION_CACHE"
@@ -40,7 +41,7 @@ _OFF = ("0", "off", "false", "no")
 __all__ = ["ENV", "MAX_BYTES", "MIN_COMPILE_S", "default_dir", "enable", "private", "usable"]
 
 
-def default_dir(env: dict | None = None) -> Path:
+def default_dir(env: Mapping[str, str] | None = None) -> Path:
     """``$XDG_CACHE_HOME/jaxtraffic/xla``, or ``~/.cache/jaxtraffic/xla``."""
     env = os.environ if env is None else env
     base = env.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
@@ -73,7 +74,7 @@ def usable(where: Path) -> bool:
     return private(where)
 
 
-def enable(path: str | os.PathLike | None = None, env: dict | None = None) -> Path | None:
+def enable(path: str | os.PathLike | None = None, env: Mapping[str, str] | None = None) -> Path | None:
     """Turn on jax's persistent compilation cache (see the module docstring for the rules).
 
     ``path``: the directory (default: from ``JAXTRAFFIC_COMPILATION_CACHE``, else ``default_dir``).
@@ -84,7 +85,7 @@ def enable(path: str | os.PathLike | None = None, env: dict | None = None) -> Pa
     import jax
 
     env = os.environ if env is None else env
-    if env.get("JAX_COMPILATION_CACHE_DIR") or jax.config.jax_compilation_cache_dir:
+    if env.get("JAX_COMPILATION_CACHE_DIR") or jax.config.jax_compilation_cache_dir:  # type: ignore[attr-defined]
         return None  # the user's own cache: not ours to change
     choice = env.get(ENV, "").strip()
     if path is None and choice.lower() in _OFF:

@@ -259,7 +259,7 @@ def _loop(config: TrainConfig, run_dir: Path, saved, make_algorithm, config_file
     msg = ""
     if interrupted and consistent is not None and consistent[1][prog.counter] != saved_at:
         algo.save(*consistent, run_dir, writer)  # the last completed chunk, before saying it is saved
-    if interrupted:
+    if signum is not None:  # (interrupted; spelled so that mypy narrows signum)
         msg = report_interruption(signum, run_dir, bool(prog.rows), prog.count != at_start,
                                   f"{prog.count} {algo.unit}")
     if not prog.rows:
@@ -270,7 +270,7 @@ def _loop(config: TrainConfig, run_dir: Path, saved, make_algorithm, config_file
         plot_learning_curve(run_dir / CURVE, run_dir / "learning_curve.png", **(
             {"title": algo.curve_title} if algo.curve_title else {}))
     say(algo.finish(interrupted, run_dir, writer))
-    if interrupted:
+    if signum is not None:
         raise TrainingInterrupted(signum, msg)
     return run_dir
 

@@ -233,7 +233,8 @@ class RunLock:
     when the process ends, however it ends). A second training of the same directory gets a ``ValueError``."""
 
     def __init__(self, run_dir: Path, active: bool = True):
-        self.path, self.active, self.fd = run_dir / LOCK, active, None
+        self.path, self.active = run_dir / LOCK, active
+        self.fd: int | None = None
 
     def __enter__(self):
         if not self.active:

@@ -13,6 +13,7 @@ COMMAND_LINES = {
     "gradient-gains": ["gradient", "--policy", "gains", "--out-dir", "runs/gradient-gains"],
     "gradient-network": ["gradient", "--policy", "network", "--out-dir", "runs/gradient-network"],
     "gradient-robust": ["gradient", "--policy", "schedule", "--out-dir", "runs/gradient-robust"],
+    "adaptive-residual": ["gradient", "--policy", "residual", "--out-dir", "runs/adaptive-residual"],
 }
 PLANT_FLAGS = {"reference": ["--n-points", "801", "--scheme", "muscl", "--substeps", "2", "--controller-points", "201"],
                "half": ["--n-points", "401", "--scheme", "muscl", "--controller-points", "201"]}
@@ -20,7 +21,8 @@ PLANT_FLAGS = {"reference": ["--n-points", "801", "--scheme", "muscl", "--subste
 
 @pytest.mark.parametrize("name", NAMES)
 def test_each_recipe_is_the_run_its_command_line_described(name):
-    plant = {"gradient-gains": "reference", "gradient-network": "reference", "gradient-robust": "half"}.get(name)
+    plant = {"gradient-gains": "reference", "gradient-network": "reference", "gradient-robust": "half",
+             "adaptive-residual": "half"}.get(name)
     argv = COMMAND_LINES[name] + (PLANT_FLAGS[plant] if plant else [])
     assert recipe(name) == config_from_args(argv)
     if plant:  # evaluate.py's plant for the recipe: the same fields the flags set

@@ -108,8 +108,8 @@ def make_train(grad_config: GradientConfig, base: TrafficParams, devices: list |
     for the signature and must be None."""
     if devices is not None or jax.process_count() > 1:
         raise ValueError("the CEM trainer runs in one process, on its devices (devices=None)")
-    if grad_config.policy not in ("gains", "schedule"):
-        raise ValueError(f"method 'cem' trains the gains or schedule policy, not {grad_config.policy!r}")
+    if grad_config.policy not in ("gains", "schedule", "residual"):
+        raise ValueError(f"method 'cem' trains the gains, schedule or residual policy, not {grad_config.policy!r}")
     n_steps = horizon_steps(grad_config, base.dt)
 
     def init(key: Array) -> CemState:

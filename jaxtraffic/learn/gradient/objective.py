@@ -50,6 +50,7 @@ from flax import struct
 from jax.sharding import Mesh
 
 from jaxtraffic.control.adapter import ControllerGrid, on_grid
+from jaxtraffic.control.adaptive_residual import ALPHA_KNOTS, adaptive_residual, residual_gains
 from jaxtraffic.control.base import Controller
 from jaxtraffic.control.gain_law import DelaySchedule, constant_gains, schedule_gains, scheduled_gains, sigma_nodes
 from jaxtraffic.control.gain_policy import equilibrium_gains, feature_size, policy_controller
@@ -132,6 +133,8 @@ def init_theta(grad_config: GradientConfig, base: TrafficParams, key: Array) -> 
         return g0
     if grad_config.policy == "schedule":
         return jnp.tile(g0, (len(grad_config.schedule_knots), 1))
+    if grad_config.policy == "residual":  # [eta2, eta3] at every (delay, alpha_hat) knot; zeros: the adaptive law
+        return jnp.tile(g0[1:], (len(grad_config.schedule_knots), len(ALPHA_KNOTS), 1))
     n = grad_config.controller_points or base.n_points
     params = _network(grad_config).init(key, jnp.zeros((feature_size(n),)))
     actor = params["params"]["actor"]
@@ -150,6 +153,9 @@ def own_controller(theta: Any, grad_config: GradientConfig, n_points: int, dx: f
         return constant_gains(theta[0], theta[1], theta[2], grad_config.filter_sigma, dx)
     if grad_config.policy == "schedule":
         return scheduled_gains(theta, grad_config.schedule_knots, delay, grad_config.filter_sigma, dx)
+    if grad_config.policy == "residual":
+        return adaptive_residual(theta, delay, delay_knots=grad_config.schedule_knots, alpha_knots=ALPHA_KNOTS,
+                                 filter_sigma=grad_config.filter_sigma, dx=dx)
     mean, var = obs_statistics(n_points)
     return policy_controller(theta, mean, var, grad_config.grad_gain_max, hidden=tuple(grad_config.hidden),
                              gain_filter=grad_config.gain_filter,
@@ -158,12 +164,17 @@ def own_controller(theta: Any, grad_config: GradientConfig, n_points: int, dx: f
 
 def fixed_gains(theta: Any, grad_config: GradientConfig, delay: float | Array) -> Array | None:
     """The gains (3,) a gains or schedule policy applies when told ``delay`` (s); None for a network (its gains
-    depend on the state)."""
+    depend on the state); for a residual, its correction's [0, eta2, eta3] at the initial estimate (the
+    nominal's alpha, ``ALPHA_KNOTS``' paper value 0.15)."""
     if grad_config.policy == "gains":
         return jnp.asarray(theta)
     if grad_config.policy == "schedule":
         return schedule_gains(DelaySchedule(knots=jnp.asarray(grad_config.schedule_knots, theta.dtype), table=theta,
                                             delay=jnp.asarray(delay, theta.dtype)))
+    if grad_config.policy == "residual":
+        ctrl = adaptive_residual(theta, delay, delay_knots=grad_config.schedule_knots, alpha_knots=ALPHA_KNOTS)
+        g = residual_gains(ctrl.settings, jnp.asarray(0.15, theta.dtype))
+        return jnp.concatenate([jnp.zeros((1,), theta.dtype), g])
     return None
 
 

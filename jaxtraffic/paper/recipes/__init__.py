@@ -5,6 +5,8 @@ same files), loaded by ``recipe(name)``.
     gradient-gains.toml    three constant gains trained by Adam through the reference plant
     gradient-network.toml  the actor network trained by Adam through the reference plant
     gradient-robust.toml   the robust delay schedule, trained by CEM over the robustness map's ranges
+    adaptive-residual.toml a learned correction on adaptive backstepping, trained by CEM as the schedule (not yet
+                           run by the main job)
 
 ``evaluate.py`` sets each run's directory and, from its own grids, the training plant (``training_plant``).
 """
@@ -18,7 +20,7 @@ import tomllib
 from jaxtraffic.runs.config import TrainConfig
 from jaxtraffic.runs.config.toml import flat_of_toml
 
-NAMES = ("ppo", "gradient-gains", "gradient-network", "gradient-robust")
+NAMES = ("ppo", "gradient-gains", "gradient-network", "gradient-robust", "adaptive-residual")
 
 
 def recipe(name: str) -> TrainConfig:

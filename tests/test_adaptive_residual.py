@@ -94,7 +94,7 @@ def test_a_residual_run_trains_by_cem_saves_and_loads(tmp_path):
     from jaxtraffic.runs.gradient.trainer import train_gradient
 
     out = tmp_path / "r"
-    config = config_from_args(["--algo", "gradient", "--policy", "residual", "--out-dir", str(out), "--quiet",
+    config = config_from_args(["gradient", "--policy", "residual", "--out-dir", str(out), "--quiet",
                                "--n-points", "21", "--train-delays", "2,6", "--train-alphas", "0.15,0.4",
                                "--train-horizon-s", "10", "--grad-steps", "5", "--eval-horizon-s", "10"])
     assert config.grad.grad_method == "cem" and config.grad.schedule_knots == (0.0, 4.0, 8.0)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import pytest
 
+from importlib import resources
+
 from jaxtraffic.cli.train import config_from_args
 from jaxtraffic.paper.recipes import NAMES, recipe, training_plant
 
@@ -33,3 +35,14 @@ def test_each_recipe_is_the_run_its_command_line_described(name):
 def test_an_unknown_recipe_is_refused():
     with pytest.raises(ValueError, match="no recipe 'ppo2'"):
         recipe("ppo2")
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_each_recipe_file_is_a_config_file_of_train_py(name):
+    """``train.py [ALGO] --config RECIPE.toml`` is the recipe, with and without the subcommand (a gradient
+    recipe's fields are no valid PPO run: the other subcommand's defaults must not be built from them)."""
+    with resources.as_file(resources.files("jaxtraffic.paper.recipes").joinpath(f"{name}.toml")) as path:
+        algo = recipe(name).run.algo
+        assert config_from_args(["--config", str(path)]) == recipe(name)
+        assert config_from_args([algo, "--config", str(path)]) == recipe(name)
+        assert config_from_args([algo, "--config", str(path), "--seed", "3"]) == recipe(name).replace(seed=3)

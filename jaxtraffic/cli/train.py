@@ -98,6 +98,13 @@ def _out_dir(algo: str, values: dict[str, Any]) -> str:
     return f"runs/gradient-{values.get('policy', 'gains')}" if algo == "gradient" else RunConfig.out_dir
 
 
+def _base(algo: str, from_file: dict[str, Any]) -> TrainConfig:
+    """The defaults of ``train.py ALGO``'s flags: the --config file's values when the file is a run of ``algo``
+    (or names none), else the defaults (a gradient file's fields need not make a valid PPO run)."""
+    file = from_file if from_file.get("algo", algo) == algo else {}
+    return TrainConfig.from_flat(**{"out_dir": _out_dir(algo, file), **file, "algo": algo})
+
+
 def _given(argv: list[str], names: set[str]) -> set[str]:
     """The fields set by flags of ``argv`` (``--n-points``, ``--no-require-certificate``), by name."""
     given = set()
@@ -162,7 +169,7 @@ def parse(argv: list[str] | None = None) -> tuple[TrainConfig, Cluster, set[str]
     from_file = read_flat(_value_of(argv, "--config")) if _value_of(argv, "--config") else {}
     if not argv or argv[0] not in (*ALGOS, *HELP):
         argv.insert(0, _default_algo(argv, from_file))
-    bases = {a: TrainConfig.from_flat(**{"out_dir": _out_dir(a, from_file), **from_file, "algo": a}) for a in ALGOS}
+    bases = {a: _base(a, from_file) for a in ALGOS}
     classes = {a: flags_class(a, bases[a]) for a in ALGOS}
     algo = argv[0] if argv[0] in ALGOS else "ppo"
     names = {f.name for f in dataclasses.fields(classes[algo])} - {"config", "cluster"}

@@ -57,7 +57,7 @@ def test_evaluate_end_to_end(tiny_run, tmp_path):
                              f"predict_controller:{tiny_run}"])
     on_disk = json.loads((out / "metrics.json").read_text())
     assert "units" in on_disk and "meta" in on_disk
-    skipped = {"grad_network"}  # (grad_gains and grad_robust are there)
+    skipped = {"grad_network"}  # (grad_gains, grad_robust and grad_residual are there)
     # --controller ppo_predict (the PPO run as a plain predict(obs), bridged back): wherever PPO is
     expected = {s.name: set(s.controllers) - skipped | ({"ppo_predict"} if "ppo" in s.controllers else set())
                 for s in SCENARIOS}
@@ -91,6 +91,10 @@ def test_evaluate_end_to_end(tiny_run, tmp_path):
     assert "gradient: delay schedule (robust)" in report and "grad_robust" in on_disk["delay4"]
     robust = json.loads((out / "robustness.json").read_text())["controllers"]
     assert {"grad_robust", "backstepping"} <= set(robust) and "final_rho_offset" in robust["grad_robust"]
+    # the learned residual on adaptive backstepping: told D on the map, like the schedule
+    assert "grad_residual" in on_disk["delay4"] and "learned residual on adaptive backstepping" in report
+    told = json.loads((out / "robustness.json").read_text())["table"]["rows"]
+    assert "grad_residual" in robust and told["grad_residual"]["told"] == "D"
     assert "oracle: gains by delay" in report
     assert "oracle: gains by delay" not in (out / "reference" / "REPORT.md").read_text()
     # both readings with units, the numerical check beside Table 2, claim 5 per reading
@@ -121,11 +125,14 @@ def test_evaluate_end_to_end(tiny_run, tmp_path):
     # the evaluated controllers themselves, loadable from the results
     from jaxtraffic.runs import load_policy
 
-    assert {p.name for p in (out / "runs").iterdir()} == {"ppo", "grad_gains", "grad_robust"}
+    assert {p.name for p in (out / "runs").iterdir()} == {"ppo", "grad_gains", "grad_robust", "grad_residual"}
+    load_policy(out / "runs" / "grad_residual")
     load_policy(out / "runs" / "ppo")
     load_policy(out / "runs" / "grad_gains")
     # every learned run's certificate, in its summary and in the report
     assert "Stability certificate of the learned laws" in report and (out / "fig_certificate.png").stat().st_size
+    # the residual's law is not what the certificate models: listed with the reason, not certified
+    assert "learned residual on adaptive backstepping: no certificate: control.stability certifies" in report
 
 
 def test_figures_drawn_in_the_background_report_their_lines_and_errors_in_the_caller():

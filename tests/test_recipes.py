@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import pytest
-
 from importlib import resources
+
+import pytest
 
 from jaxtraffic.cli.train import config_from_args
 from jaxtraffic.paper.recipes import NAMES, recipe, training_plant

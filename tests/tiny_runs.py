@@ -87,7 +87,8 @@ def train_runs(root: Path) -> None:
     W: like S, but the rule also asks for a wave speed no policy has (--min-wave-speed 1e9);
     R: a rule never met, random restarts every 2 chunks, 6 chunks; R_half: R's first 3 chunks, then --resume.
     Also compares, right after A, the in-memory policy with ``load_policy(A)``, and trains the tiny
-    gradient run ``GRADIENT_ROOT/gradient-gains`` that test_evaluate.py evaluates beside A."""
+    gradient runs under ``GRADIENT_ROOT`` (gains, robust schedule, residual) that test_evaluate.py evaluates
+    beside A."""
     shared = SharedCompile(ppo.make_train)
     ppo.make_train = shared
     a = _cli(root / "A", "--total-steps", str(4 * CHUNK), "--keep-going")
@@ -99,6 +100,11 @@ def train_runs(root: Path) -> None:
     # and a tiny robust delay schedule (CEM, 2 candidates x 2 plants), evaluated as grad_robust
     train_gradient(TrainConfig.from_flat(algo="gradient", policy="schedule", n_points=21, train_delays=(2.0, 6.0),
                                          out_dir=str(root / GRADIENT_ROOT / "gradient-robust"), train_alphas=(0.15,),
+                                         train_horizon_s=6.0, steps_per_chunk=1, grad_steps=1, cem_population=2,
+                                         eval_horizon_s=6.0, quiet=True))
+    # and a tiny learned residual on adaptive backstepping (CEM, 2 candidates x 2 plants), evaluated as grad_residual
+    train_gradient(TrainConfig.from_flat(algo="gradient", policy="residual", n_points=21, train_delays=(2.0, 6.0),
+                                         out_dir=str(root / GRADIENT_ROOT / "adaptive-residual"), train_alphas=(0.15,),
                                          train_horizon_s=6.0, steps_per_chunk=1, grad_steps=1, cem_population=2,
                                          eval_horizon_s=6.0, quiet=True))
     (root / "A.done").touch()  # run A (and the gradient run) complete: test_evaluate.py can start

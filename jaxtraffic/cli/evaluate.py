@@ -59,6 +59,7 @@ GRADIENT_RUNS = {
     "grad_gains": ("gradient-gains", "reference"),
     "grad_network": ("gradient-network", "reference"),
     "grad_robust": ("gradient-robust", "half"),
+    "grad_residual": ("adaptive-residual", "half"),
 }
 
 

@@ -69,10 +69,14 @@ def plot_certificate(png: Path, certs: dict[str, dict], delay: float = 4.0) -> N
 
 def certificate_section(learned_runs: dict[str, dict], out_dir: str | Path,
                         log: Callable[[str], None] = print) -> list[str]:
-    """REPORT.md lines: each learned run's certificate, and ``fig_certificate.png`` in ``out_dir``."""
-    certs = _certificates(learned_runs)
-    if not certs:
+    """REPORT.md lines: each learned run's certificate, and ``fig_certificate.png`` in ``out_dir`` (a law the
+    certificate does not model, e.g. the residual on adaptive backstepping, is listed with the reason)."""
+    every = _certificates(learned_runs)
+    certs = {k: c for k, c in every.items() if c.get("applies", True)}
+    if not every:
         return []
+    if not certs:
+        return ["## Stability certificate of the learned laws", "", *_not_applicable(every), ""]
     plot_certificate(Path(out_dir) / "fig_certificate.png", certs)
     log("  wrote fig_certificate.png")
     lines = ["## Stability certificate of the learned laws", "",
@@ -85,5 +89,11 @@ def certificate_section(learned_runs: dict[str, dict], out_dir: str | Path,
         lines.append(f"| {LEARNED_LABELS.get(name, name)} | ({', '.join(f'{g:+.3f}' for g in c['gains'])}) | "
                      f"{c['delay']:g} | {c['alpha']:g} | {c['sigma']:g} | {c['max_growth']:+.2e} | "
                      f"{c['worst_wavelength']:.3g} | **{'certified' if c['stable'] else 'not certified'}** |")
-    lines += ["", "![certificate](fig_certificate.png)", ""]
+    lines += ["", *_not_applicable(every), "", "![certificate](fig_certificate.png)", ""]
     return lines
+
+
+def _not_applicable(certs: dict[str, dict]) -> list[str]:
+    """One line per learned law the certificate does not model (its summary says ``"applies": false``), and why."""
+    return [f"- {LEARNED_LABELS.get(name, name)}: no certificate: {c.get('reason', 'it does not apply')}."
+            for name, c in certs.items() if not c.get("applies", True)]

@@ -19,7 +19,8 @@ import numpy as np
 from jaxtraffic.sim.metrics import STABLE_STD
 
 LEARNED_LABELS = {"ppo": "PPO", "ppo_robust": "PPO (robust)", "grad_gains": "gradient: 3 constant gains",
-                  "grad_network": "gradient: network", "grad_robust": "gradient: delay schedule (robust)"}
+                  "grad_network": "gradient: network", "grad_robust": "gradient: delay schedule (robust)",
+                  "grad_residual": "learned residual on adaptive backstepping"}
 
 
 def stabilised_cells(r: dict[str, np.ndarray]) -> int:

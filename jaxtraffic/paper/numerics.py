@@ -17,9 +17,9 @@ import numpy as np
 
 from jaxtraffic.control import Controller
 from jaxtraffic.control.adapter import ControllerGrid, adapt, baseline_grid
-from jaxtraffic.paper.scenarios import CTRL_DELAY, EvalConfig, others, run_batch
+from jaxtraffic.paper.scenarios import CTRL_DELAY, EXTRA_LEARNED, EvalConfig, others, run_batch
 
-NUMERICS_CONTROLLERS = ("open_loop", "backstepping", "ppo", "grad_gains", "grad_network", "grad_robust")
+NUMERICS_CONTROLLERS = ("open_loop", "backstepping", "ppo", *EXTRA_LEARNED)
 NUMERICS_INDICES = ("J_TTT", "J_fuel", "J_comfort", "J_comfort_a2", "J_comfort_at2", "J_comfort_no_switch_on",
                     "J_TTT_kmh", "J_fuel_kmh", "J_comfort_kmh", "J_comfort_no_switch_on_kmh", "J_comfort_switch_on",
                     "final_rho_L2", "final_v_L2")

@@ -21,13 +21,13 @@ from jaxtraffic.io.drawing import new_figure, save_figure
 from jaxtraffic.io.files import atomic_write_text, write_json
 from jaxtraffic.paper.learned import LEARNED_LABELS, STABLE_STD
 from jaxtraffic.paper.maps import MAP_LABELS, excluded_text, rejudge
-from jaxtraffic.paper.scenarios import EvalConfig, learned, others
+from jaxtraffic.paper.scenarios import EXTRA_LEARNED, EvalConfig, learned, others
 from jaxtraffic.paper.summaries import _fmt
 
 CLAIMS = {1: "learning curve; PPO converges, the open loop does not", 2: "D = 0: PPO vs Lyapunov",
           3: "D = 4 s: Lyapunov fails, backstepping and PPO stabilise", 4: "Table 2 (300 s, D = 4 s)",
           5: "alpha noise: PPO stabilises, backstepping fails", 6: "mismatched delay 3 s / 5 s"}
-DELAY4 = ("open_loop", "lyapunov", "backstepping", "ppo", "grad_gains", "grad_network", "grad_robust")
+DELAY4 = ("open_loop", "lyapunov", "backstepping", "ppo", *EXTRA_LEARNED)
 TITLE = "## The experiments on the reference plant"
 
 

@@ -49,10 +49,11 @@ CONTROLLER_STYLE = {
     "grad_gains": dict(color="tab:purple", ls="--"),
     "grad_network": dict(color="tab:brown", ls="-."),
     "grad_robust": dict(color="tab:pink", ls=":"),
+    "grad_residual": dict(color="tab:olive", ls="--"),
 }
 LABELS = {"open_loop": "open loop", "lyapunov": "Lyapunov", "backstepping": "backstepping",
           "ppo": "PPO", "grad_gains": "gradient gains", "grad_network": "gradient network",
-          "grad_robust": "gradient delay schedule (robust)"}
+          "grad_robust": "gradient delay schedule (robust)", "grad_residual": "learned residual (adaptive)"}
 
 
 def _style(label: str) -> dict:

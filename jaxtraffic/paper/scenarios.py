@@ -81,7 +81,7 @@ class Scenario:
 
 
 # learned controllers beyond the paper's PPO, evaluated wherever PPO is when they are given
-EXTRA_LEARNED = ("grad_gains", "grad_network", "grad_robust")
+EXTRA_LEARNED = ("grad_gains", "grad_network", "grad_robust", "grad_residual")
 _L = ("ppo", *EXTRA_LEARNED)
 BASELINES = ("open_loop", "lyapunov", "backstepping")
 # model-based controllers evaluated on the robustness map only (issue 38; ``paper.maps``): adaptive
@@ -350,7 +350,7 @@ def run_robustness(controllers: dict[str, Controller], eval_config: EvalConfig,
         if name not in controllers:
             continue
         ctrl, batched, chunk = controllers[name], False, None
-        if name in ("backstepping", *MAP_ONLY):
+        if name in ("backstepping", *MAP_ONLY, "grad_residual"):
             # the predictor's loop runs to the largest assumed delay of its chunk: one delay per
             # chunk (the batch is delay-major and dealt over the devices), 20 % faster than 64
             chunk = -(-dd.shape[1] // host_mesh().size)

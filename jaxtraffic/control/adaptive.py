@@ -40,6 +40,8 @@ resolve, the estimate drifts: docs/model.md section 18.1, known limits).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any
+
 import jax
 import jax.numpy as jnp
 from flax import struct
@@ -68,6 +70,9 @@ class AdaptiveSettings:
     gap h* of the estimated plant), 0 about the estimated plant's equilibrium at h_bar.
     """
 
+    if TYPE_CHECKING:  # added by flax.struct.dataclass (dataclasses.replace), which its stub omits
+        def replace(self, **changes: Any) -> AdaptiveSettings: ...
+
     k: Array
     delay: Array
     alpha0: Array
@@ -84,6 +89,9 @@ class EstimatorState:
     """The estimator's state: the estimate alpha_hat, the information R ((m/s)^2, the forgetting sum
     of the weighted mean squared sensitivity), the previous observation (veh/m, m/s, on the
     controller's grid) and whether there is one."""
+
+    if TYPE_CHECKING:  # added by flax.struct.dataclass (dataclasses.replace), which its stub omits
+        def replace(self, **changes: Any) -> EstimatorState: ...
 
     alpha_hat: Array
     info: Array

@@ -30,6 +30,7 @@ controller's target and the environment's ``gains`` (the applied, filtered gains
 from __future__ import annotations
 
 import functools
+from typing import TYPE_CHECKING, Any
 
 import chex
 import jax
@@ -92,6 +93,9 @@ class EnvParams:
 
 @struct.dataclass
 class EnvState:
+    if TYPE_CHECKING:  # added by flax.struct.dataclass (dataclasses.replace), which its stub omits
+        def replace(self, **changes: Any) -> EnvState: ...
+
     plant: PlantState
     plant_params: TrafficParams  # this episode's plant (randomised delay / alpha)
     t: Array  # step within the episode

@@ -19,7 +19,7 @@ switch-on spike is defined the same way for every controller and delay.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -111,6 +111,9 @@ class MetricsAccumulator:
     n_active (scalar): number of accumulated (healthy) steps.
     last_bad_step (scalar): last step index whose reward was below REWARD_TARGET (-1: none).
     """
+
+    if TYPE_CHECKING:  # added by flax.struct.dataclass (dataclasses.replace), which its stub omits
+        def replace(self, **changes: Any) -> MetricsAccumulator: ...
 
     J_TTT: Array
     J_fuel: Array

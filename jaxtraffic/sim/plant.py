@@ -28,7 +28,7 @@ a non-finite time gap, hence CONTROL. ``sim.outcome.check_outcome`` raises on a 
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import chex
 import jax
@@ -50,6 +50,9 @@ Array = jax.Array
 class PlantState:
     """State of one freeway: rho (veh/m), v (m/s), sent time gaps (ring buffer, s), the last
     sent field h_prev (s), the step counter and the divergence flag."""
+
+    if TYPE_CHECKING:  # added by flax.struct.dataclass (dataclasses.replace), which its stub omits
+        def replace(self, **changes: Any) -> PlantState: ...
 
     rho: Array
     v: Array

@@ -22,7 +22,7 @@ traced leaves, so changing a learning rate or a clip range does not recompile.
 from __future__ import annotations
 
 import functools
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -104,6 +104,9 @@ class RunningStats:
 
 @struct.dataclass
 class Runner:
+    if TYPE_CHECKING:  # added by flax.struct.dataclass (dataclasses.replace), which its stub omits
+        def replace(self, **changes: Any) -> Runner: ...
+
     params: Any
     opt_state: Any
     env_state: Any

@@ -19,7 +19,7 @@ normalised features). Both keep the applied gains as their controller state.
 from __future__ import annotations
 
 import functools
-from typing import Any
+from typing import Any, cast
 
 import chex
 import jax
@@ -29,7 +29,8 @@ from flax import struct
 
 from jaxtraffic.control.base import Controller, Observation
 from jaxtraffic.control.gain_law import gain_law
-from jaxtraffic.control.networks import ActorCritic
+from jaxtraffic.control.networks import ActorCritic, actor_critic_apply
+from jaxtraffic.model.delay import DelayBuffer
 from jaxtraffic.model.params import TrafficParams, equilibrium
 
 Array = jax.Array
@@ -160,7 +161,7 @@ def _policy_act_fn(hidden: tuple, init_sigma: float, obs_segments: int, sigma_no
     def act(settings: PolicySettings, gains_prev, obs, nominal, key):
         eq = equilibrium(nominal)  # once per step: the features and the law share it
         x = policy_features(obs, gains_prev, nominal, settings.gain_max, eq, obs_segments)
-        mean, _, _ = network.apply(settings.params, normalize_obs(x, settings.obs_mean, settings.obs_var))
+        mean, _, _ = actor_critic_apply(network)(settings.params, normalize_obs(x, settings.obs_mean, settings.obs_var))
         target = action_to_gains(mean, settings.gain_max)
         return filtered_gain_law(gains_prev, target, settings.gain_filter, obs, nominal, eq, sigma_nodes)
 
@@ -258,7 +259,7 @@ def equilibrium_gains(controller: Controller, nominal: TrafficParams, n_iter: in
     rho_bar, v_bar = equilibrium(nominal)
     n = nominal.n_points
     obs = Observation(rho=jnp.full((n,), rho_bar), v=jnp.full((n,), v_bar), h_prev=jnp.full((n,), nominal.h_bar),
-                      t=jnp.zeros(()), sent=None)
+                      t=jnp.zeros(()), sent=cast(DelayBuffer, None))  # a gain law never reads the sent buffer
 
     def body(_, gains):
         return controller.act_fn(controller.settings, gains, obs, nominal, None)[1]

@@ -94,7 +94,7 @@ def _metadata(params: learn_env.EnvParams, **extra: Any) -> dict[str, Any]:
 def _check_seed(seed: Any, what: str = "seed") -> None:
     """ValueError unless ``seed`` is None or an int in [0, 2**63) (Gymnasium's rule; 1.5 or -1 are refused)."""
     if seed is not None and not (isinstance(seed, numbers.Integral) and not isinstance(seed, (bool, np.bool_))
-                                 and 0 <= seed < 2**63):
+                                 and 0 <= int(seed) < 2**63):
         raise ValueError(f"{what} must be None or an int >= 0, got {seed!r}")
 
 

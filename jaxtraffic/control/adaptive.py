@@ -40,7 +40,7 @@ resolve, the estimate drifts: docs/model.md section 18.1, known limits).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import jax
 import jax.numpy as jnp
@@ -115,7 +115,7 @@ def _init(settings: AdaptiveSettings, obs, nominal: TrafficParams) -> EstimatorS
 def shock_weights(rho: Array, scale: Array) -> Array:
     """Per-node weights 1 / (1 + (|rho_{i+1} - rho_{i-1}| / (2 scale))^2), the inlet node 0 (its
     speed is extrapolated, not modelled) weighted 0; one-sided differences at the outlet."""
-    grad = jnp.abs(jnp.gradient(rho))
+    grad = jnp.abs(cast(Array, jnp.gradient(rho)))  # one axis: one array, not a list of them
     w = 1.0 / (1.0 + (grad / scale) ** 2)
     return w.at[0].set(0.0)
 

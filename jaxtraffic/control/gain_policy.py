@@ -35,9 +35,11 @@ from jaxtraffic.model.params import TrafficParams, equilibrium
 
 Array = jax.Array
 N_GAINS = 3
+# a bound |eta_i| <= gain_max_i: one for all gains, or one per gain (a tuple, as ``EnvParams`` holds it, or an array)
+GainMax = Array | float | tuple[float, ...]
 
 
-def _bound(gain_max: Array | float | tuple) -> Array | float:
+def _bound(gain_max: GainMax) -> Array | float:
     """The gain bound as an operand: a per-gain tuple (as ``EnvParams`` holds it) becomes an array."""
     return jnp.asarray(gain_max) if isinstance(gain_max, (tuple, list)) else gain_max
 
@@ -61,7 +63,7 @@ def pool_segments(fields: Array, segments: int) -> Array:
     return fields @ jnp.asarray(_segment_matrix(fields.shape[-1], segments)).T
 
 
-def policy_features(obs: Observation, gains_prev: Array, nominal: TrafficParams, gain_max: Array | float,
+def policy_features(obs: Observation, gains_prev: Array, nominal: TrafficParams, gain_max: GainMax,
                     eq: tuple[Array, Array] | None = None, segments: int = 0) -> Array:
     """The policy's observation vector, shape (``feature_size(n, segments)``,): [rho/rho_bar - 1,
     v/v_bar - 1, h_prev/h_bar - 1] (each pooled over ``segments`` road segments when > 0, static),
@@ -77,7 +79,7 @@ def feature_size(n_points: int, segments: int = 0) -> int:
     return 3 * (segments or n_points) + N_GAINS
 
 
-def action_to_gains(action: Array, gain_max: Array | float) -> Array:
+def action_to_gains(action: Array, gain_max: GainMax) -> Array:
     """The policy's gains eta = gain_max * tanh(action), shape (3,); ``gain_max``: a scalar or one
     bound per gain."""
     return _bound(gain_max) * jnp.tanh(action)
@@ -168,7 +170,7 @@ def _policy_act_fn(hidden: tuple, init_sigma: float, obs_segments: int, sigma_no
     return act
 
 
-def policy_controller(params: Any, obs_mean: Array, obs_var: Array, gain_max: float | Array, *,
+def policy_controller(params: Any, obs_mean: Array, obs_var: Array, gain_max: GainMax, *,
                       hidden: tuple, init_sigma: float = 0.5, gain_filter: float | Array = 1.0,
                       obs_segments: int = 0, sigma_nodes: float = 0.0) -> Controller:
     """Controller applying the policy's deterministic gains (the mean of its Gaussian, squashed,
@@ -229,7 +231,7 @@ def _function_act_fn(fn: Any, host: bool, batched: bool, obs_segments: int, sigm
     return act
 
 
-def function_controller(fn: Any, gain_max: float | Array, *, gain_filter: float | Array = 1.0,
+def function_controller(fn: Any, gain_max: GainMax, *, gain_filter: float | Array = 1.0,
                         obs_segments: int = 0, sigma_nodes: float = 0.0, host: bool = True, batched: bool = False,
                         name: str = "function") -> Controller:
     """A policy given as a function as a controller: ``fn(obs) -> a``, from the gain environment's

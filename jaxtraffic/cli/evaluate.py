@@ -169,6 +169,14 @@ def _fail(msg: str) -> SystemExit:
     return SystemExit(2)
 
 
+def selected_plants(args: EvaluateOptions) -> tuple[str, ...]:
+    """The plants ``--plants`` names, in the order of ``PLANTS``; ``SystemExit(2)`` for a bad value."""
+    plants = [p.strip() for p in args.plants.split(",") if p.strip()]
+    if not plants or any(p not in PLANTS for p in plants) or len(set(plants)) != len(plants):
+        raise _fail(f"--plants must name one or both of {PLANTS}, separated by a comma, got {args.plants!r}")
+    return tuple(p for p in PLANTS if p in plants)
+
+
 def check_args(args: EvaluateOptions) -> tuple[int, int]:
     """Reject bad flags (``SystemExit(2)`` with a message naming the flag, the value and the allowed
     range) before anything is created or compiled; returns the robustness grid sizes."""
@@ -179,10 +187,7 @@ def check_args(args: EvaluateOptions) -> tuple[int, int]:
         raise _fail(str(err)) from None
     if args.judge and not args.controller:
         raise _fail("--judge judges your own policy: give it with --controller NAME=SOURCE:FUNCTION[:ARG]")
-    plants = [p.strip() for p in args.plants.split(",") if p.strip()]
-    if not plants or any(p not in PLANTS for p in plants) or len(set(plants)) != len(plants):
-        raise _fail(f"--plants must name one or both of {PLANTS}, separated by a comma, got {args.plants!r}")
-    args.plants = tuple(p for p in PLANTS if p in plants)
+    selected_plants(args)
     ref_n, ref_s = parse_grid(args.reference_grid, "--reference-grid")
     if ref_n < 3 or ref_s < 1:
         raise _fail(f"--reference-grid needs >= 3 points and >= 1 substep, got {args.reference_grid!r}")
@@ -290,13 +295,14 @@ def _normalization(args: EvaluateOptions) -> dict[str, Path]:
 def _judge(args: EvaluateOptions, argv: list[str] | None, t0: float) -> dict[str, Any]:
     """``--judge``: the --controller policies against the baselines on each plant, no training (``cli.judge``)."""
     own, grids = external.load(args.controller, _normalization(args))
-    common = {"dt": float(TrafficParams().dt), "horizon_s": args.horizon, "seeds": tuple(range(args.noise_seeds)),
-              "robust_delays": (), "robust_alphas": (), "numerics_check": False}
+    common: dict[str, Any] = {"dt": float(TrafficParams().dt), "horizon_s": args.horizon,
+                              "seeds": tuple(range(args.noise_seeds)), "robust_delays": (), "robust_alphas": (),
+                              "numerics_check": False}
     ref_n, ref_s = parse_grid(args.reference_grid, "--reference-grid")
     configs = {"paper": paper.EvalConfig(n_points=args.n_points or paper.EvalConfig.n_points, **common),
                "reference": paper.EvalConfig(n_points=ref_n, scheme="muscl", substeps=ref_s, **common)}
     meta = {"argv": list(sys.argv[1:] if argv is None else argv)}
-    result = judge.judge_plants(own, grids, {p: configs[p] for p in args.plants}, args.out, meta, log=_log)
+    result = judge.judge_plants(own, grids, {p: configs[p] for p in selected_plants(args)}, args.out, meta, log=_log)
     _log(f"total {time.perf_counter() - t0:.1f} s")
     return result
 
@@ -336,9 +342,9 @@ def _main(args: EvaluateOptions, argv: list[str] | None, t0: float, nd: int, na:
                             "summary": json.loads((run_dir / "summary.json").read_text())
                             if (run_dir / "summary.json").exists() else {}}, **grad_runs,
                     **{name: {"run_dir": f"--controller {name}", "summary": {}, "curve": None} for name in own}}
-    common = {"dt": dt, "horizon_s": args.horizon, "seeds": tuple(range(args.noise_seeds)),
-              "robust_horizon_s": args.robust_horizon or 2.0 * args.horizon,
-              "numerics_check": args.numerics_check}
+    common: dict[str, Any] = {"dt": dt, "horizon_s": args.horizon, "seeds": tuple(range(args.noise_seeds)),
+                              "robust_horizon_s": args.robust_horizon or 2.0 * args.horizon,
+                              "numerics_check": args.numerics_check}
     configs = {"paper": paper.EvalConfig(n_points=n_points, robust_delays=paper.robust_axis(nd, 0.0, 8.0, dt),
                                          robust_alphas=paper.robust_axis(na, 0.05, 0.6), **common)}
     rd, ra = parse_grid(args.reference_robust_grid, "--reference-robust-grid")
@@ -346,9 +352,10 @@ def _main(args: EvaluateOptions, argv: list[str] | None, t0: float, nd: int, na:
         n_points=ref_n, scheme="muscl", substeps=ref_s, robust_delays=paper.robust_axis(rd, 0.0, 8.0, dt),
         robust_alphas=paper.robust_axis(ra, 0.05, 0.6), **common)
     meta = {"policy": policy, "policy_delay0": policy0, "argv": list(sys.argv[1:] if argv is None else argv)}
-    configs = {plant: configs[plant] for plant in args.plants}
+    plants = selected_plants(args)
+    configs = {plant: configs[plant] for plant in plants}
     oracles = {}
-    for plant in args.plants:
+    for plant in plants:
         try:
             oracles[plant] = load_oracle(args.oracle_dir / f"{plant}.json", configs[plant])
         except (TypeError, KeyError, AttributeError, IndexError) as err:  # valid JSON of the wrong shape
@@ -360,7 +367,7 @@ def _main(args: EvaluateOptions, argv: list[str] | None, t0: float, nd: int, na:
                                     ppo_delay0=ppo0, learning_curve_csv=lc, learned_runs=learned_runs, grids=grids)
     if distributed.is_writer():
         export_runs(learned_runs, args.out / "runs")
-    metrics = results[args.plants[0]]
+    metrics = results[plants[0]]
     _log(f"total {time.perf_counter() - t0:.1f} s; verdicts: "
          + "; ".join(f"{k}: {json.dumps(m['meta']['claims'])}" for k, m in results.items()))
     return metrics

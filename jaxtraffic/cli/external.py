@@ -12,9 +12,10 @@ from __future__ import annotations
 import importlib
 import importlib.util
 import re
+from collections.abc import Sequence
 from pathlib import Path
 from types import ModuleType
-from typing import Any
+from typing import Any, TypedDict
 
 from jaxtraffic.control.adapter import ControllerGrid
 from jaxtraffic.control.base import Controller
@@ -25,10 +26,20 @@ RESERVED = {*BASELINES, "ppo", *EXTRA_LEARNED}
 SPEC = re.compile(r"(?P<name>[A-Za-z_][A-Za-z0-9_.-]*)=(?P<source>[^:]+):(?P<function>[A-Za-z_]\w*)(?::(?P<arg>.*))?$")
 
 
-def parse(specs: list[str]) -> list[dict[str, str | None]]:
+class ControllerSpec(TypedDict):
+    """One ``--controller NAME=SOURCE:FUNCTION[:ARGUMENT]`` value (``arg``: None without an ARGUMENT)."""
+
+    name: str
+    source: str
+    function: str
+    arg: str | None
+
+
+def parse(specs: Sequence[str]) -> list[ControllerSpec]:
     """Each ``--controller`` value as {name, source, function, arg}; ``ValueError`` for a malformed one, a
     name taken by a built-in controller or given twice."""
-    out, seen = [], set()
+    out: list[ControllerSpec] = []
+    seen: set[str] = set()
     for spec in specs:
         m = SPEC.match(spec)
         if m is None:
@@ -38,7 +49,7 @@ def parse(specs: list[str]) -> list[dict[str, str | None]]:
             raise ValueError(f"--controller {spec!r}: the name {m['name']!r} is "
                              + ("given twice" if m["name"] in seen else "a built-in controller's"))
         seen.add(m["name"])
-        out.append(m.groupdict())
+        out.append(ControllerSpec(name=m["name"], source=m["source"], function=m["function"], arg=m["arg"]))
     return out
 
 
@@ -48,16 +59,18 @@ def _module(source: str) -> ModuleType:
         if not path.is_file():
             raise ValueError(f"--controller: no file {source}")
         spec = importlib.util.spec_from_file_location(f"jaxtraffic_user_{path.stem}", path)
+        if spec is None or spec.loader is None:  # (not for a .py file: its loader is the source loader)
+            raise ValueError(f"--controller: cannot import {source}")
         module = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(module)
         return module
     return importlib.import_module(source)
 
 
-def parse_normalization(specs: list[str], controllers: list[str]) -> dict[str, Path]:
+def parse_normalization(specs: Sequence[str], controllers: Sequence[str]) -> dict[str, Path]:
     """``--controller-normalization NAME=FILE`` values as name -> file; ``ValueError`` for a malformed one, or
     one naming no ``--controller``."""
-    out = {}
+    out: dict[str, Path] = {}
     for spec in specs:
         name, sep, file = spec.partition("=")
         if not sep or not file or name not in controllers or name in out:
@@ -67,7 +80,7 @@ def parse_normalization(specs: list[str], controllers: list[str]) -> dict[str, P
     return out
 
 
-def unnormalised(specs: list[str], normalization: dict[str, Path]) -> str | None:
+def unnormalised(specs: Sequence[str], normalization: dict[str, Path]) -> str | None:
     """Why a ``--controller`` must be refused: its ARGUMENT is a model file with a ``vecnormalize*.pkl`` beside it
     (trained under SB3's VecNormalize) and no ``--controller-normalization`` for it; None when none is."""
     for s in parse(specs):
@@ -79,16 +92,18 @@ def unnormalised(specs: list[str], normalization: dict[str, Path]) -> str | None
     return None
 
 
-def load(specs: list[str], normalization: dict[str, Path] | None = None
+def load(specs: Sequence[str], normalization: dict[str, Path] | None = None
          ) -> tuple[dict[str, Controller], dict[str, ControllerGrid]]:
     """(name -> controller, name -> its grid when given) of the ``--controller`` values; ``normalization``: name
     -> the VecNormalize statistics its policy is fed through (``ecosystem.normalization.applying``)."""
-    controllers, grids = {}, {}
+    controllers: dict[str, Controller] = {}
+    grids: dict[str, ControllerGrid] = {}
+    normalization = normalization or {}
     for s in parse(specs):
         function = getattr(_module(s["source"]), s["function"], None)
         if not callable(function):
             raise ValueError(f"--controller {s['name']}: {s['source']} has no function {s['function']}")
-        stats = load_obs_normalization(normalization[s["name"]]) if s["name"] in (normalization or {}) else None
+        stats = load_obs_normalization(normalization[s["name"]]) if s["name"] in normalization else None
         with applying(stats):
             made: Any = function(s["arg"]) if s["arg"] is not None else function()
         controller, grid = made if isinstance(made, tuple) else (made, None)

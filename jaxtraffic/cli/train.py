@@ -166,7 +166,7 @@ def parse(argv: list[str] | None = None) -> tuple[TrainConfig, Cluster, set[str]
     if "--version" in argv:
         print(f"{PROG} {_version()}")
         raise SystemExit(0)
-    from_file = read_flat(_value_of(argv, "--config")) if _value_of(argv, "--config") else {}
+    from_file = read_flat(config_file) if (config_file := _value_of(argv, "--config")) else {}
     if not argv or argv[0] not in (*ALGOS, *HELP):
         argv.insert(0, _default_algo(argv, from_file))
     bases = {a: _base(a, from_file) for a in ALGOS}
@@ -175,8 +175,9 @@ def parse(argv: list[str] | None = None) -> tuple[TrainConfig, Cluster, set[str]
     names = {f.name for f in dataclasses.fields(classes[algo])} - {"config", "cluster"}
     tuples = {"--" + f.name.replace("_", "-") for f in dataclasses.fields(classes[algo]) if "tuple" in str(f.type)}
     argv = _split_commas(argv, tuples)
-    commands = Union[tuple(Annotated[classes[a], tyro.conf.subcommand(a, description=ABOUT[a])]  # noqa: UP007
-                           for a in ALGOS)]
+    # a type built at run time (the flag classes are): a value to mypy, not a type alias
+    commands: Any = Union[tuple(Annotated[classes[a], tyro.conf.subcommand(a, description=ABOUT[a])]  # noqa: UP007
+                                for a in ALGOS)]
     owner = {"--" + f.name.replace("_", "-"): a for a in reversed(ALGOS) for f in dataclasses.fields(classes[a])}
     with tyro_errors.on_parse_error(lambda event: _one_line(event, algo, owner)):
         flags = tyro.cli(commands, args=argv, prog=PROG, config=(tyro.conf.FlagCreatePairsOff,), compact_help=True,

@@ -40,6 +40,8 @@ resolve, the estimate drifts: docs/model.md section 18.1, known limits).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any, cast
+
 import jax
 import jax.numpy as jnp
 from flax import struct
@@ -68,6 +70,9 @@ class AdaptiveSettings:
     gap h* of the estimated plant), 0 about the estimated plant's equilibrium at h_bar.
     """
 
+    if TYPE_CHECKING:  # added by flax.struct.dataclass (dataclasses.replace), which its stub omits
+        def replace(self, **changes: Any) -> AdaptiveSettings: ...
+
     k: Array
     delay: Array
     alpha0: Array
@@ -84,6 +89,9 @@ class EstimatorState:
     """The estimator's state: the estimate alpha_hat, the information R ((m/s)^2, the forgetting sum
     of the weighted mean squared sensitivity), the previous observation (veh/m, m/s, on the
     controller's grid) and whether there is one."""
+
+    if TYPE_CHECKING:  # added by flax.struct.dataclass (dataclasses.replace), which its stub omits
+        def replace(self, **changes: Any) -> EstimatorState: ...
 
     alpha_hat: Array
     info: Array
@@ -107,7 +115,7 @@ def _init(settings: AdaptiveSettings, obs, nominal: TrafficParams) -> EstimatorS
 def shock_weights(rho: Array, scale: Array) -> Array:
     """Per-node weights 1 / (1 + (|rho_{i+1} - rho_{i-1}| / (2 scale))^2), the inlet node 0 (its
     speed is extrapolated, not modelled) weighted 0; one-sided differences at the outlet."""
-    grad = jnp.abs(jnp.gradient(rho))
+    grad = jnp.abs(cast(Array, jnp.gradient(rho)))  # one axis: one array, not a list of them
     w = 1.0 / (1.0 + (grad / scale) ** 2)
     return w.at[0].set(0.0)
 

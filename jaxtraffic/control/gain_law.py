@@ -10,6 +10,7 @@ the high wavenumbers a pointwise law destabilises (``control.stability``, docs/m
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 
 import chex
 import jax
@@ -120,8 +121,8 @@ def schedule_gains(s: DelaySchedule) -> Array:
     return jax.vmap(lambda column: jnp.interp(s.delay, s.knots, column), in_axes=1)(s.table)
 
 
-def scheduled_gains(table: Array, knots: Array, delay: float | Array = 4.0, filter_sigma: float = FILTER_SIGMA,
-                    dx: float = 5.0) -> Controller:
+def scheduled_gains(table: Array, knots: Array | Sequence[float], delay: float | Array = 4.0,
+                    filter_sigma: float = FILTER_SIGMA, dx: float = 5.0) -> Controller:
     """The three-gain law with gains scheduled in the told delay (``DelaySchedule``): ``table`` (K, 3) at the
     ``knots`` (K,) s; ``filter_sigma`` (m, static) and ``dx`` (m) as in ``constant_gains``. ``tell_delay``
     (``control.base``) sets the delay, or a batch of delays."""

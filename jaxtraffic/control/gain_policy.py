@@ -19,7 +19,7 @@ normalised features). Both keep the applied gains as their controller state.
 from __future__ import annotations
 
 import functools
-from typing import Any
+from typing import Any, cast
 
 import chex
 import jax
@@ -29,14 +29,17 @@ from flax import struct
 
 from jaxtraffic.control.base import Controller, Observation
 from jaxtraffic.control.gain_law import gain_law
-from jaxtraffic.control.networks import ActorCritic
+from jaxtraffic.control.networks import ActorCritic, actor_critic_apply
+from jaxtraffic.model.delay import DelayBuffer
 from jaxtraffic.model.params import TrafficParams, equilibrium
 
 Array = jax.Array
 N_GAINS = 3
+# a bound |eta_i| <= gain_max_i: one for all gains, or one per gain (a tuple, as ``EnvParams`` holds it, or an array)
+GainMax = Array | float | tuple[float, ...]
 
 
-def _bound(gain_max: Array | float | tuple) -> Array | float:
+def _bound(gain_max: GainMax) -> Array | float:
     """The gain bound as an operand: a per-gain tuple (as ``EnvParams`` holds it) becomes an array."""
     return jnp.asarray(gain_max) if isinstance(gain_max, (tuple, list)) else gain_max
 
@@ -60,7 +63,7 @@ def pool_segments(fields: Array, segments: int) -> Array:
     return fields @ jnp.asarray(_segment_matrix(fields.shape[-1], segments)).T
 
 
-def policy_features(obs: Observation, gains_prev: Array, nominal: TrafficParams, gain_max: Array | float,
+def policy_features(obs: Observation, gains_prev: Array, nominal: TrafficParams, gain_max: GainMax,
                     eq: tuple[Array, Array] | None = None, segments: int = 0) -> Array:
     """The policy's observation vector, shape (``feature_size(n, segments)``,): [rho/rho_bar - 1,
     v/v_bar - 1, h_prev/h_bar - 1] (each pooled over ``segments`` road segments when > 0, static),
@@ -76,7 +79,7 @@ def feature_size(n_points: int, segments: int = 0) -> int:
     return 3 * (segments or n_points) + N_GAINS
 
 
-def action_to_gains(action: Array, gain_max: Array | float) -> Array:
+def action_to_gains(action: Array, gain_max: GainMax) -> Array:
     """The policy's gains eta = gain_max * tanh(action), shape (3,); ``gain_max``: a scalar or one
     bound per gain."""
     return _bound(gain_max) * jnp.tanh(action)
@@ -160,14 +163,14 @@ def _policy_act_fn(hidden: tuple, init_sigma: float, obs_segments: int, sigma_no
     def act(settings: PolicySettings, gains_prev, obs, nominal, key):
         eq = equilibrium(nominal)  # once per step: the features and the law share it
         x = policy_features(obs, gains_prev, nominal, settings.gain_max, eq, obs_segments)
-        mean, _, _ = network.apply(settings.params, normalize_obs(x, settings.obs_mean, settings.obs_var))
+        mean, _, _ = actor_critic_apply(network)(settings.params, normalize_obs(x, settings.obs_mean, settings.obs_var))
         target = action_to_gains(mean, settings.gain_max)
         return filtered_gain_law(gains_prev, target, settings.gain_filter, obs, nominal, eq, sigma_nodes)
 
     return act
 
 
-def policy_controller(params: Any, obs_mean: Array, obs_var: Array, gain_max: float | Array, *,
+def policy_controller(params: Any, obs_mean: Array, obs_var: Array, gain_max: GainMax, *,
                       hidden: tuple, init_sigma: float = 0.5, gain_filter: float | Array = 1.0,
                       obs_segments: int = 0, sigma_nodes: float = 0.0) -> Controller:
     """Controller applying the policy's deterministic gains (the mean of its Gaussian, squashed,
@@ -228,7 +231,7 @@ def _function_act_fn(fn: Any, host: bool, batched: bool, obs_segments: int, sigm
     return act
 
 
-def function_controller(fn: Any, gain_max: float | Array, *, gain_filter: float | Array = 1.0,
+def function_controller(fn: Any, gain_max: GainMax, *, gain_filter: float | Array = 1.0,
                         obs_segments: int = 0, sigma_nodes: float = 0.0, host: bool = True, batched: bool = False,
                         name: str = "function") -> Controller:
     """A policy given as a function as a controller: ``fn(obs) -> a``, from the gain environment's
@@ -258,7 +261,7 @@ def equilibrium_gains(controller: Controller, nominal: TrafficParams, n_iter: in
     rho_bar, v_bar = equilibrium(nominal)
     n = nominal.n_points
     obs = Observation(rho=jnp.full((n,), rho_bar), v=jnp.full((n,), v_bar), h_prev=jnp.full((n,), nominal.h_bar),
-                      t=jnp.zeros(()), sent=None)
+                      t=jnp.zeros(()), sent=cast(DelayBuffer, None))  # a gain law never reads the sent buffer
 
     def body(_, gains):
         return controller.act_fn(controller.settings, gains, obs, nominal, None)[1]

@@ -11,7 +11,8 @@ Default: two hidden layers of 64 units (the paper's 8-layer network is ``hidden=
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import cast
 
 import flax.linen as nn
 import jax
@@ -19,6 +20,9 @@ import jax.numpy as jnp
 import numpy as np
 
 SMALL_HIDDEN = (64, 64)
+
+# what ActorCritic.apply returns: (mean, sigma, value)
+ActorCriticApply = Callable[..., tuple[jax.Array, jax.Array, jax.Array]]
 
 
 class MLP(nn.Module):
@@ -49,3 +53,9 @@ class ActorCritic(nn.Module):
         sigma = jnp.broadcast_to(nn.softplus(raw_sigma) + self.sigma_offset, mean.shape)
         value = MLP(self.hidden, 1, out_scale=1.0, name="critic")(x)[..., 0]
         return mean, sigma, value
+
+
+def actor_critic_apply(network: ActorCritic) -> ActorCriticApply:
+    """``network.apply`` itself, typed as returning what ``ActorCritic.__call__`` returns: flax types
+    ``Module.apply`` as ``Any | tuple[Any, variables]``, the second form being for ``mutable=``, never passed here."""
+    return cast(ActorCriticApply, network.apply)

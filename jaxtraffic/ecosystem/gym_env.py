@@ -91,10 +91,15 @@ def _metadata(params: learn_env.EnvParams, **extra: Any) -> dict[str, Any]:
     return {"render_modes": RENDER_MODES, "render_fps": round(1.0 / float(params.traffic.dt)), **extra}
 
 
+def _is_int(x: object) -> bool:
+    """An integer, numpy's included, not a bool. A plain predicate, not an ``isinstance`` in place: mypy takes
+    ``isinstance(n, numbers.Integral)`` of an ``int`` n for False (and the code after a failed check for dead)."""
+    return isinstance(x, numbers.Integral) and not isinstance(x, (bool, np.bool_))
+
+
 def _check_seed(seed: Any, what: str = "seed") -> None:
     """ValueError unless ``seed`` is None or an int in [0, 2**63) (Gymnasium's rule; 1.5 or -1 are refused)."""
-    if seed is not None and not (isinstance(seed, numbers.Integral) and not isinstance(seed, (bool, np.bool_))
-                                 and 0 <= seed < 2**63):
+    if seed is not None and not (_is_int(seed) and 0 <= seed < 2**63):
         raise ValueError(f"{what} must be None or an int >= 0, got {seed!r}")
 
 
@@ -191,7 +196,7 @@ class GainVectorEnv(gym.vector.VectorEnv):
                  render_mode: str | None = None, autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
                  **config: Any):
         self.render_mode = _check_render_mode(render_mode)
-        if not isinstance(num_envs, numbers.Integral) or isinstance(num_envs, bool) or num_envs < 1:
+        if not _is_int(num_envs) or num_envs < 1:
             raise ValueError(f"num_envs must be an int >= 1, got {num_envs!r}")
         mode = _autoreset_mode(autoreset_mode)
         self.num_envs = int(num_envs)
@@ -284,6 +289,7 @@ class GainVectorEnv(gym.vector.VectorEnv):
 
     def _record(self, hold: np.ndarray, done: np.ndarray, rho: np.ndarray) -> None:
         h = self._history
+        assert h is not None  # step() records only with a render_mode
         stepped = np.flatnonzero(~hold)
         h.record(stepped, rho[stepped])
         restart = hold if self.metadata["autoreset_mode"] == AutoresetMode.NEXT_STEP else done

@@ -78,7 +78,7 @@ def provenance() -> dict[str, Any]:
         "machine": {"cpu": _cpu_model(), "cores": os.cpu_count(), "platform": platform.platform(),
                     "backend": jax.default_backend(), "devices": [str(d) for d in jax.devices()]},
         "compilation_cache": jax.config.jax_compilation_cache_dir,  # type: ignore[attr-defined]  # (flags: no stub)
-        "utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
     }
 
 

@@ -30,6 +30,7 @@ controller's target and the environment's ``gains`` (the applied, filtered gains
 from __future__ import annotations
 
 import functools
+from typing import TYPE_CHECKING, Any
 
 import chex
 import jax
@@ -92,6 +93,9 @@ class EnvParams:
 
 @struct.dataclass
 class EnvState:
+    if TYPE_CHECKING:  # added by flax.struct.dataclass (dataclasses.replace), which its stub omits
+        def replace(self, **changes: Any) -> EnvState: ...
+
     plant: PlantState
     plant_params: TrafficParams  # this episode's plant (randomised delay / alpha)
     t: Array  # step within the episode
@@ -197,10 +201,10 @@ def step_env(key: Array, state: EnvState, action: Array, params: EnvParams):
     tp = params.traffic
     eq = equilibrium(tp)  # once per step: the law, the reward target, both observations, the reset
     ctrl = gp.gain_target_controller(action_to_gains(action, params), params.gain_filter, eq, params.filter_nodes)
-    plant, gains, h, info = closed_loop_step(state.plant, state.gains, ctrl, state.plant_params, tp,
-                                             plant_alpha(state.plant_params, k_plant), k_plant, eq)
+    plant, gains, h, step_info = closed_loop_step(state.plant, state.gains, ctrl, state.plant_params, tp,
+                                                  plant_alpha(state.plant_params, k_plant), k_plant, eq)
     terminated = plant.diverged
-    r = (info.reward - params.h_rate_weight * h_rate_cost(state.plant.h_prev, h, tp.h_bar, tp.dx)
+    r = (step_info.reward - params.h_rate_weight * h_rate_cost(state.plant.h_prev, h, tp.h_bar, tp.dx)
          - params.wave_weight * backward_wave_cost(gains, linearize(tp), params.wave_speed_min))
     r = jnp.where(terminated, -params.diverge_penalty, r)
     t = state.t + 1
@@ -257,10 +261,10 @@ def auto_reset(done: Array, key: Array, state: EnvState, obs: Array, params: Env
     # (e.g. delay_min / dt in double precision) must stay what it is in a plain call
     static = tuple((i, x) for i, x in enumerate(p_leaves) if isinstance(x, (int, float, bool)))
     p_def = (p_def, static)
-    p_leaves = tuple(x for x in p_leaves if not isinstance(x, (int, float, bool)))
+    traced = tuple(x for x in p_leaves if not isinstance(x, (int, float, bool)))
     s_leaves, s_def = jax.tree.flatten(stripped)  # (custom_vmap unflattens its flags into the argument trees:
     # only plain containers may appear there, not dataclasses that check their fields, like TrafficParams)
-    obs, new = _resetters(p_def, s_def)(done, key, tuple(s_leaves), obs, p_leaves, eq)
+    obs, new = _resetters(p_def, s_def)(done, key, tuple(s_leaves), obs, traced, eq)
     return obs, _with_buffer(jax.tree.unflatten(s_def, new), data)
 
 

@@ -223,7 +223,7 @@ def check_steps(n_steps: object, record_every: object = 0) -> None:
     def is_int(x: object) -> TypeGuard[numbers.Integral]:
         return isinstance(x, numbers.Integral) and not isinstance(x, (bool, np.bool_))
 
-    if not is_int(n_steps) or not 1 <= n_steps < 2**31:
+    if not is_int(n_steps) or not 1 <= int(n_steps) < 2**31:
         raise ValueError(f"n_steps must be an int in [1, 2**31) (the rollout counts steps in int32), got {n_steps!r}")
     if not is_int(record_every) or record_every < 0:
         raise ValueError(f"record_every must be an int >= 0 (0: no trajectory), got {record_every!r}")

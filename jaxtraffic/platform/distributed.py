@@ -30,6 +30,7 @@ from typing import Any
 
 import jax
 import numpy as np
+import numpy.typing as npt
 from jax.experimental import multihost_utils
 
 ENV = {"coordinator_address": "JAX_COORDINATOR_ADDRESS", "num_processes": "JAX_NUM_PROCESSES",
@@ -100,7 +101,7 @@ def to_host(tree: Any) -> Any:
     return multihost_utils.process_allgather(tree, tiled=True)
 
 
-def agree(local: np.ndarray) -> np.ndarray:
+def agree(local: npt.ArrayLike) -> np.ndarray:
     """Every process's ``local`` (a small integer vector), stacked along a new first axis (process
     order); a collective, so every process must call it at the same point."""
     local = np.asarray(local, np.int32)

@@ -75,8 +75,8 @@ def load_policy(run_dir: str | Path, seed: int | None = None, checkpoint: str = 
     run_dir = Path(run_dir)
     config = load_config(run_dir)
     best = run_dir / BEST
-    if checkpoint == "best" and best.exists():
-        check_problem(config, load_best(run_dir).get(PROBLEM), best)
+    if checkpoint == "best" and (saved_best := load_best(run_dir)) is not None:  # (None: no best.msgpack)
+        check_problem(config, saved_best.get(PROBLEM), best)
     if (run_dir / CHECKPOINT).exists():
         check_problem(config, load_checkpoint(run_dir)[1].get(PROBLEM), run_dir / CHECKPOINT)
     try:

@@ -19,7 +19,7 @@ switch-on spike is defined the same way for every controller and delay.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -83,12 +83,12 @@ def material_acceleration(v: Array, v_next: Array, dx: Array | float, dt: Array 
     return (v_next - v) * (1.0 / dt) + v * spatial_gradient(v, dx)
 
 
-def fuel_rate(v: Array, a: Array) -> Array:
+def fuel_rate(v: Array | float, a: Array | float) -> Array:
     """Fuel rate xi(v, a) = max(0, b0 + b1 v + b3 v^3 + b4 v a), in ml/s per vehicle."""
     return jnp.maximum(0.0, FUEL_B0 + FUEL_B1 * v + FUEL_B3 * v**3 + FUEL_B4 * v * a)
 
 
-def fuel_rate_kmh(v: Array, a: Array) -> Array:
+def fuel_rate_kmh(v: Array | float, a: Array | float) -> Array:
     """The paper's reading of xi: ``fuel_rate`` with the speed in km/h and the acceleration in
     km/h/s (v, a given in SI: m/s, m/s^2)."""
     return fuel_rate(KMH * v, KMH * a)
@@ -111,6 +111,9 @@ class MetricsAccumulator:
     n_active (scalar): number of accumulated (healthy) steps.
     last_bad_step (scalar): last step index whose reward was below REWARD_TARGET (-1: none).
     """
+
+    if TYPE_CHECKING:  # added by flax.struct.dataclass (dataclasses.replace), which its stub omits
+        def replace(self, **changes: Any) -> MetricsAccumulator: ...
 
     J_TTT: Array
     J_fuel: Array

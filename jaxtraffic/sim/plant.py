@@ -28,7 +28,7 @@ a non-finite time gap, hence CONTROL. ``sim.outcome.check_outcome`` raises on a 
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import TYPE_CHECKING, Any, overload
 
 import chex
 import jax
@@ -50,6 +50,9 @@ Array = jax.Array
 class PlantState:
     """State of one freeway: rho (veh/m), v (m/s), sent time gaps (ring buffer, s), the last
     sent field h_prev (s), the step counter and the divergence flag."""
+
+    if TYPE_CHECKING:  # added by flax.struct.dataclass (dataclasses.replace), which its stub omits
+        def replace(self, **changes: Any) -> PlantState: ...
 
     rho: Array
     v: Array
@@ -154,6 +157,12 @@ def plant_step(state: PlantState, h_sent: Array, p: TrafficParams, key: Array) -
     return _plant_step(state, h_sent, p, plant_alpha(p, key))[0]
 
 
+@overload
+def _plant_step(state: PlantState, h_sent: Array, p: TrafficParams, alpha: Array,
+                target: None = None, bad_input: Array | bool = False) -> tuple[PlantState, Array, None]: ...
+@overload
+def _plant_step(state: PlantState, h_sent: Array, p: TrafficParams, alpha: Array,
+                target: tuple[Array, Array], bad_input: Array | bool = False) -> tuple[PlantState, Array, Array]: ...
 def _plant_step(state: PlantState, h_sent: Array, p: TrafficParams, alpha: Array,
                 target: tuple[Array, Array] | None = None, bad_input: Array | bool = False
                 ) -> tuple[PlantState, Array, Array | None]:

@@ -11,7 +11,7 @@ alphas of all steps are drawn at once, before the loop, from the plant's key, an
 from __future__ import annotations
 
 import functools
-from typing import Any
+from typing import Any, TypeVar
 
 import jax
 import jax.numpy as jnp
@@ -135,6 +135,7 @@ def _simulate(params: TrafficParams, controller: Controller | None, rho0: Array 
     controller = open_loop() if controller is None else controller
     if rho0 is None:
         rho0, v0 = paper_initial_condition(p)
+    assert v0 is not None  # both or neither (_check_rollout_args)
     key = jax.random.PRNGKey(0) if key is None else key
     k_ctrl = jax.random.split(key)[1]
     rho_bar, v_bar = equilibrium(nominal)
@@ -269,17 +270,21 @@ def simulate(
                          alpha_input.noise, alpha_input.alphas)
 
 
+_Option = TypeVar("_Option", Record, Memory, AlphaInput)
+
+
 def _options(record: Record | None, memory: Memory | None, alpha_input: AlphaInput | None
              ) -> tuple[Record, Memory, AlphaInput]:
     """The option objects with their defaults filled in; TypeError for another type (e.g. a bare int)."""
-    out = []
-    for name, value, cls in (("record", record, Record), ("memory", memory, Memory),
-                             ("alpha_input", alpha_input, AlphaInput)):
-        value = cls() if value is None else value
-        if not isinstance(value, cls):
-            raise TypeError(f"{name} must be a {cls.__name__} (sim.options), got {type(value).__name__}")
-        out.append(value)
-    return tuple(out)
+    return (_option("record", record, Record), _option("memory", memory, Memory),
+            _option("alpha_input", alpha_input, AlphaInput))
+
+
+def _option(name: str, value: object, cls: type[_Option]) -> _Option:
+    value = cls() if value is None else value
+    if not isinstance(value, cls):
+        raise TypeError(f"{name} must be a {cls.__name__} (sim.options), got {type(value).__name__}")
+    return value
 
 
 def _check_rollout_args(params, n_steps, rho0, v0, nominal, record: Record, memory: Memory) -> None:

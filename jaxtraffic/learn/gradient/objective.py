@@ -238,6 +238,7 @@ def scenario_objective(theta: Any, params: TrafficParams, rho0: Array, v0: Array
     res = simulate(params, make_controller(theta, grad_config, base, params.delay), n_steps=n_steps, rho0=rho0, v0=v0,
                    nominal=base, record=Record(every=grad_config.record_every), memory=Memory(remat=remat))
     tr, m = res.trajectory, res.metrics
+    assert tr is not None  # recorded: record_every >= 1
     waves = jnp.log1p(jnp.var(tr.rho * 1000.0, axis=-1) / 100.0 + jnp.var(tr.v, axis=-1))
     late = jnp.arange(1, waves.shape[0] + 1, dtype=waves.dtype)  # t_k / T up to a factor
     j = (-w.reward_weight * jnp.mean(tr.reward) + w.waves_weight * jnp.sum(late * waves) / jnp.sum(late)

@@ -22,7 +22,7 @@ traced leaves, so changing a learning rate or a clip range does not recompile.
 from __future__ import annotations
 
 import functools
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -33,7 +33,7 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from jaxtraffic.control.gain_policy import normalize_obs
-from jaxtraffic.control.networks import SMALL_HIDDEN, ActorCritic
+from jaxtraffic.control.networks import SMALL_HIDDEN, ActorCritic, actor_critic_apply
 from jaxtraffic.learn.fields import check_fields, hyper
 from jaxtraffic.learn.ppo.losses import Batch, compute_gae, gaussian_log_prob, ppo_loss
 from jaxtraffic.sim.sharding import local_copy
@@ -104,6 +104,9 @@ class RunningStats:
 
 @struct.dataclass
 class Runner:
+    if TYPE_CHECKING:  # added by flax.struct.dataclass (dataclasses.replace), which its stub omits
+        def replace(self, **changes: Any) -> Runner: ...
+
     params: Any
     opt_state: Any
     env_state: Any
@@ -257,7 +260,7 @@ def _learn(ppo_config: PPOConfig, apply_fn, tx, params, opt_state, batch: Batch,
 def _update_seed(ppo_config: PPOConfig, env, env_params, runner: Runner, axis_name: str | None):
     """One PPO update for one seed on this device's environments: rollout, GAE, statistics, epochs."""
     net = ppo_config.network(env.action_size)
-    apply_fn = net.apply
+    apply_fn = actor_critic_apply(net)
     tx = make_optimizer(ppo_config)
     key, k_roll, k_perm = jax.random.split(runner.key, 3)
     dev = _device_index(axis_name)

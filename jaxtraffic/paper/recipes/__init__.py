@@ -13,9 +13,8 @@ same files), loaded by ``recipe(name)``.
 
 from __future__ import annotations
 
-from importlib import resources
-
 import tomllib
+from importlib import resources
 
 from jaxtraffic.runs.config import TrainConfig
 from jaxtraffic.runs.config.toml import flat_of_toml

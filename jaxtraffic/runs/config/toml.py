@@ -11,11 +11,11 @@ written); ``read_config(p)`` of a file that
 from __future__ import annotations
 
 import math
+import tomllib
 from pathlib import Path
 from typing import Any
 
 import tomli_w
-import tomllib
 
 from jaxtraffic.io.files import atomic_write_text
 from jaxtraffic.runs.config.tree import SECTIONS, TrainConfig, leaf_fields

@@ -244,7 +244,7 @@ def leaf_fields(section: str) -> list[dataclasses.Field]:
     return [f for f in dataclasses.fields(SECTIONS[section]) if section != "grad" or f.name not in BORROWED]
 
 
-_DEFAULT = {f.name: f.default for f in dataclasses.fields(TrainConfig)}
+_DEFAULT: dict[str, Any] = {f.name: f.default for f in dataclasses.fields(TrainConfig)}  # section -> its default
 SECTION_ALGO = {"ppo": "ppo", "grad": "gradient"}  # the sections one algorithm reads
 
 

@@ -63,7 +63,11 @@ def evaluation(ctrl: Controller, plant: TrafficParams, n_steps: int, gains: Any 
     own grid, its nominal there)) and the closed loop's wave speed there (m/s)."""
     res = simulate(plant, ctrl, n_steps=n_steps)
     out = {k: float(v) for k, v in res.metrics.items()}
-    g = jnp.asarray(gains) if gains is not None else equilibrium_gains(*own)
+    if gains is None:
+        assert own is not None, "evaluation: give gains or own"
+        g = equilibrium_gains(*own)
+    else:
+        g = jnp.asarray(gains)
     out["equilibrium_gains"] = np.asarray(g).tolist()
     out["wave_speed"] = float(gain_law_wave_speed(g, linearize(plant)))
     return out
@@ -98,7 +102,7 @@ class GradientTraining:
     def __init__(self, config: TrainConfig, grad_config: GradientConfig, plant: TrafficParams) -> None:
         self.config, self.grad_config, self.plant = config, grad_config, plant
         self.total = grad_config.grad_steps
-        self.curve_title = f"gradient-based training ({grad_config.policy})"
+        self.curve_title: str | None = f"gradient-based training ({grad_config.policy})"
         self.init, self.train_chunk = (cem.make_train if grad_config.grad_method == "cem" else objective.make_train)(
             grad_config, plant)
         self.eval_steps = max(1, round(config.run.eval_horizon_s / config.plant.dt))

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxtraffic.control.gain_policy import normalize_obs
-from jaxtraffic.control.networks import ActorCritic
+from jaxtraffic.control.networks import ActorCritic, actor_critic_apply
 from jaxtraffic.runs.policy import load_policy
 
 __all__ = ["load_predict"]
@@ -38,7 +38,7 @@ def load_predict(run_dir: str | Path, seed: int | None = None, checkpoint: str =
 
     @jax.jit
     def action(obs):
-        mean, _, _ = network.apply(s.params, normalize_obs(obs, s.obs_mean, s.obs_var))
+        mean, _, _ = actor_critic_apply(network)(s.params, normalize_obs(obs, s.obs_mean, s.obs_var))
         return jnp.tanh(mean)
 
     def predict(obs: np.ndarray) -> np.ndarray:

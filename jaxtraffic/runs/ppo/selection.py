@@ -29,7 +29,7 @@ import enum
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol, cast
 
 import jax
 import jax.numpy as jnp
@@ -64,7 +64,16 @@ def _half_and_end(res):
     return res.trajectory.rho_L2[:, 1], res.metrics["final_rho_L2"], res.metrics["J_comfort"], res.metrics["diverged"]
 
 
-def make_suite(nominal, steps: int, delays, ics=DEFAULT_ICS, j_slack: float = 1.2, plant=None):
+class Suite(Protocol):
+    """What ``make_suite`` returns: ``suite(controller, n_members)`` scores members; ``suite.reference`` holds
+    backstepping's numbers on the suite (``rho_L2_half``, ``rho_L2_end``, ``J_comfort``, ``labels``)."""
+
+    reference: dict[str, Any]
+
+    def __call__(self, controller: Any, n_members: int) -> dict: ...
+
+
+def make_suite(nominal, steps: int, delays, ics=DEFAULT_ICS, j_slack: float = 1.2, plant=None) -> Suite:
     """``suite(controller, n_members) -> dict`` of numpy arrays: ``score`` (members,) and the
     per-scenario ``rho_L2_half``, ``rho_L2_end`` (veh/km), ``J_comfort``, ``ratio`` (members, S).
     ``controller``: a policy controller on the grid of ``nominal`` whose settings carry a leading member
@@ -98,9 +107,10 @@ def make_suite(nominal, steps: int, delays, ics=DEFAULT_ICS, j_slack: float = 1.
         return {"score": ratio.max(axis=1), "ratio": ratio, "rho_L2_half": half * 1e3, "rho_L2_end": end * 1e3,
                 "J_comfort": jc, "labels": labels}
 
-    suite.reference = {"rho_L2_half": ref_half * 1e3, "rho_L2_end": ref_end * 1e3, "J_comfort": ref_j,
-                          "labels": labels}
-    return suite
+    out = cast(Suite, suite)  # a function with an attribute: the Protocol's two members
+    out.reference = {"rho_L2_half": ref_half * 1e3, "rho_L2_end": ref_end * 1e3, "J_comfort": ref_j,
+                     "labels": labels}
+    return out
 
 
 # ----------------------------------------------------------------------------- checkpoint selection

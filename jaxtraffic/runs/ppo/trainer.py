@@ -159,7 +159,7 @@ class PPOTraining:
 
     unit = "env steps"
     curve_fields = CURVE_FIELDS
-    curve_title = None
+    curve_title: str | None = None
 
     def __init__(self, config: TrainConfig, ppo_config: algorithm.PPOConfig, env_params: learn_env.EnvParams,
                  run_dir: Path) -> None:

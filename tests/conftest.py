@@ -66,6 +66,23 @@ def small() -> TrafficParams:
     return TrafficParams(**SMALL)
 
 
+def check_told_delay_run(out: Path, kind: str) -> None:
+    """A trained run of a policy told the delay (a delay schedule, the residual on adaptive backstepping): it
+    loads with ``load_policy``, is told 4 s (its training plant's delay), its summary holds ``kind``'s record,
+    and told 2 s and 6 s in one batch on tiny plants it does not diverge in 20 steps."""
+    from jaxtraffic import simulate_batch, stack_params
+    from jaxtraffic.control import takes_delay, tell_delay
+    from jaxtraffic.runs import load_policy
+
+    ctrl, config = load_policy(out)
+    assert takes_delay(ctrl) and float(ctrl.settings.delay) == config.plant.delay == 4.0
+    assert f'"{kind}"' in (out / "summary.json").read_text()
+    batch = tell_delay(ctrl, jnp.asarray([2.0, 6.0]))
+    plants = stack_params(*(TrafficParams(n_points=21, delay=d) for d in (2.0, 6.0)))
+    res = simulate_batch(plants, batch, n_steps=20, batch_controller=True)
+    assert not np.any(np.asarray(res.metrics["diverged"]))
+
+
 # The tiny training session (tiny_runs.py): started once, in the background, as soon as the tests
 # are collected, each part only if a collected test needs it, so that it overlaps with the unit tests.
 # JAXTRAFFIC_TEST_RUNS=DIR keeps its run directories in DIR, and a later pytest invocation with the

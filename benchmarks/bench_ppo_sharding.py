@@ -55,7 +55,7 @@ def main() -> None:
     ap.add_argument("--chunks", type=int, default=4, help="timed chunks per version (after the compiling one)")
     ap.add_argument("--num-envs", type=int, default=None, help="default: train.py's")
     args = ap.parse_args()
-    s = TrainConfig() if args.num_envs is None else TrainConfig.from_flat(num_envs=args.num_envs)
+    s = TrainConfig() if args.num_envs is None else TrainConfig.make(ppo={"num_envs": args.num_envs})
     cfg, env_params = build(s)
     old = pmap_module(args.pmap_rev)
     versions = {}

@@ -58,7 +58,7 @@ def _block(x):
 
 def throughput(num_envs: int, chunks: int) -> dict:
     """Steps/s of ``train_chunk`` with the default settings but ``num_envs``."""
-    s = TrainConfig.from_flat(num_envs=num_envs)
+    s = TrainConfig.make(ppo={"num_envs": num_envs})
     cfg, env_params = build(s)
     steps_per_chunk = cfg.steps_per_update * cfg.updates_per_chunk
     load0 = load()

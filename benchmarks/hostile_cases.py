@@ -122,8 +122,8 @@ def cases(tmp: Path) -> list[tuple[str, str, list, dict, int, str]]:
                                                                    "--tensorboard", "D"] + r("s5")], {}, 2,
          "a flag of `train.py ppo`"),
         ("4", "gradient with PPO's batch rule broken (--num-minibatches 7 in config)",
-         [["-c", "from jaxtraffic.runs.config import TrainConfig; TrainConfig.from_flat(algo='gradient', "
-                 "num_minibatches=7); print('accepted')"]], {}, 0, "accepted"),
+         [["-c", "from jaxtraffic.runs.config import TrainConfig; TrainConfig.make(run={'algo': 'gradient'}, "
+                 "ppo={'num_minibatches': 7}); print('accepted')"]], {}, 0, "accepted"),
         ("5", "evaluate.py SIGINT during the robustness map", [T + ["--total-steps", "64"] + r("e"),
                                                                E + ["--run", str(tmp / "e"), "--out", str(tmp / "eo"),
                                                                     "--horizon", "4", "--noise-seeds", "1",

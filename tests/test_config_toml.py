@@ -27,8 +27,9 @@ def _trained(run) -> bytes:
 
 
 def test_toml_round_trip(tmp_path):
-    config = TrainConfig.from_flat(algo="gradient", policy="network", min_wave_speed=None, max_wall_s=math.inf,
-                                   delay_range=(1.0, 2.0), num_seeds=3, hidden=(8, 8))
+    config = TrainConfig.make(run={"algo": "gradient", "min_wave_speed": None, "max_wall_s": math.inf},
+                              grad={"policy": "network"}, env={"delay_range": (1.0, 2.0)},
+                              ppo={"num_seeds": 3, "hidden": (8, 8)})
     write_config(config, tmp_path / "c.toml")
     assert read_config(tmp_path / "c.toml") == config
     (tmp_path / "bad.toml").write_text("[ppo]\nclip_epss = 0.1\n")
@@ -40,11 +41,11 @@ def test_toml_round_trip(tmp_path):
 def test_a_run_from_its_config_toml_is_the_same_run(argv, tmp_path):
     first = train_cli.main([*argv, "--out-dir", str(tmp_path / "a")])
     again = train_cli.main(["--config", str(first / "config.toml"), "--out-dir", str(tmp_path / "b")])
-    assert load_config(again).replace(out_dir="x") == load_config(first).replace(out_dir="x")
+    assert load_config(again).updated(run={"out_dir": "x"}) == load_config(first).updated(run={"out_dir": "x"})
     assert _trained(again) == _trained(first)  # every saved array, byte for byte (the meta holds wall times)
     # the file's algorithm selects the subcommand; a flag given with --config overrides the file
     over = train_cli.config_from_args(["--config", str(first / "config.toml"), "--seed", "5"])
-    assert over.run.seed == 5 and over.replace(seed=0) == load_config(first).replace(seed=0)
+    assert over.run.seed == 5 and over.updated(run={"seed": 0}) == load_config(first).updated(run={"seed": 0})
     algo = load_config(first).run.algo
     assert train_cli.config_from_args([algo, "--config", str(first / "config.toml")]) == load_config(first)
     with pytest.raises(SystemExit):  # (here: a bad value)

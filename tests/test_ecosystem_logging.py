@@ -16,9 +16,9 @@ from jaxtraffic.runs.curve import CURVE_FIELDS
 from jaxtraffic.runs.ppo.trainer import train
 from jaxtraffic.runs.tracking import as_callback, scalars
 
-TINY = {"n_points": 21, "delay": 0.5, "max_delay_steps": 20, "num_envs": 4, "num_steps": 8, "updates_per_chunk": 2,
-        "update_epochs": 2, "num_minibatches": 2, "horizon_s": 3.0, "eval_horizon_s": 2.0, "val_horizon_s": 2.0,
-        "keep_going": True}
+TINY = {"plant": {"n_points": 21, "delay": 0.5, "max_delay_steps": 20},
+        "ppo": {"num_envs": 4, "num_steps": 8, "updates_per_chunk": 2, "update_epochs": 2, "num_minibatches": 2},
+        "env": {"horizon_s": 3.0}, "run": {"eval_horizon_s": 2.0, "val_horizon_s": 2.0, "keep_going": True}}
 CHUNK = 4 * 8 * 2
 
 
@@ -26,13 +26,13 @@ CHUNK = 4 * 8 * 2
 def test_callbacks_csv_progress_and_tensorboard(tmp_path, capsys):
     has_tb, has_mlflow = available("tensorboardX"), available("mlflow")
     seen: list[dict] = []
-    cfg = TrainConfig.from_flat(**TINY, total_steps=3 * CHUNK, out_dir=str(tmp_path / "run"),
-                                tensorboard=str(tmp_path / "tb") if has_tb else None)
+    cfg = TrainConfig.make(**TINY).updated(run={"total_steps": 3 * CHUNK, "out_dir": str(tmp_path / "run"),
+                                                "tensorboard": str(tmp_path / "tb") if has_tb else None})
     trackers = []
     if has_mlflow:
         from jaxtraffic.runs.tracking import MLflowTracker
 
-        trackers.append(MLflowTracker(tmp_path / "mlflow", run_name="tiny", params=cfg.flat()))
+        trackers.append(MLflowTracker(tmp_path / "mlflow", run_name="tiny", params=cfg.tables()))
     run = train(cfg, callbacks=[seen.append, *map(as_callback, trackers)])
     for tracker in trackers:
         tracker.close()

@@ -71,9 +71,11 @@ def test_a_few_steps_lower_the_objective():
 
 @pytest.mark.slow
 def test_network_run_lowers_objective_round_trips_and_resumes_exactly(tmp_path):
-    config = TrainConfig.from_flat(algo="gradient", policy="network", out_dir=str(tmp_path / "a"), delay=2.0,
-                               n_points=SMALL["n_points"], dt=SMALL["dt"], train_delays=(2.0,), train_horizon_s=30.0,
-                               steps_per_chunk=2, grad_steps=4, eval_horizon_s=30.0, quiet=True)
+    config = TrainConfig.make(run={"algo": "gradient", "out_dir": str(tmp_path / "a"), "eval_horizon_s": 30.0,
+                                   "quiet": True},
+                              grad={"policy": "network", "train_delays": (2.0,), "train_horizon_s": 30.0,
+                                    "steps_per_chunk": 2, "grad_steps": 4},
+                              plant={"delay": 2.0, "n_points": SMALL["n_points"], "dt": SMALL["dt"]})
     train_gradient(config)
     for name in ("config.json", "checkpoint.msgpack", "learning_curve.csv", "learning_curve.png", "summary.json"):
         assert (tmp_path / "a" / name).exists(), name
@@ -94,9 +96,9 @@ def test_network_run_lowers_objective_round_trips_and_resumes_exactly(tmp_path):
 
     np.testing.assert_array_equal(actions(ctrl), actions(objective.make_controller(state.theta, cfg, plant)))
     # 2 steps, then --resume to 4: the same policy as 4 steps in one go
-    half = config.replace(out_dir=str(tmp_path / "b"), grad_steps=2)
+    half = config.updated(run={"out_dir": str(tmp_path / "b")}, grad={"grad_steps": 2})
     train_gradient(half)
-    train_gradient(half.replace(grad_steps=4, resume=True))
+    train_gradient(half.updated(grad={"grad_steps": 4}, run={"resume": True}))
     np.testing.assert_array_equal(actions(load_policy(tmp_path / "b")[0]), actions(ctrl))
 
 
@@ -107,6 +109,6 @@ def test_train_cli_gradient_defaults_come_from_the_library():
     assert cfg == objective.GradientConfig.for_policy("network")
     assert gradient_setup(config_from_args(["gradient"]))[0] == objective.GradientConfig()
     # the gain bound is the gradient trainer's own (PPO's gain_max, per gain, does not apply; nor is it its flag)
-    per_gain = TrainConfig.from_flat(algo="gradient", gain_max=(1.0, 2.0, 2.0))
+    per_gain = TrainConfig.make(run={"algo": "gradient"}, env={"gain_max": (1.0, 2.0, 2.0)})
     assert gradient_setup(per_gain)[0] == objective.GradientConfig()
     assert gradient_setup(config_from_args(["gradient", "--grad-gain-max", "2"]))[0].grad_gain_max == 2.0

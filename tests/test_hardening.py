@@ -100,19 +100,20 @@ def test_bad_training_flags_exit_2_before_anything_is_written(argv, match, tmp_p
 
 
 def test_config_accepts_numpy_scalars_and_normalises_them():
-    cfg = TrainConfig.from_flat(n_points=np.int64(21), lr=np.float32(0.5), max_wall_s=float("inf"))
+    cfg = TrainConfig.make(plant={"n_points": np.int64(21)}, ppo={"lr": np.float32(0.5)},
+                           run={"max_wall_s": float("inf")})
     assert type(cfg.plant.n_points) is int and type(cfg.ppo.lr) is float
     with pytest.raises(ValueError, match="must be an integer"):
-        TrainConfig.from_flat(num_envs=4.0)
+        TrainConfig.make(ppo={"num_envs": 4.0})
 
 
 def test_device_count_constraints():
-    cfg = TrainConfig.from_flat(num_envs=4, num_steps=8, num_minibatches=2)
+    cfg = TrainConfig.make(ppo={"num_envs": 4, "num_steps": 8, "num_minibatches": 2})
     check_devices(cfg, 2)
     with pytest.raises(ValueError, match=r"num_envs = 4: must be divisible by the number of devices"):
         check_devices(cfg, 3)
     with pytest.raises(ValueError, match="batch of each device"):
-        check_devices(TrainConfig.from_flat(num_envs=4, num_steps=1, num_minibatches=4), 2)
+        check_devices(TrainConfig.make(ppo={"num_envs": 4, "num_steps": 1, "num_minibatches": 4}), 2)
 
 
 # ----------------------------------------------------------------------------- non-finite values
@@ -599,15 +600,18 @@ def test_resume_with_another_device_count_explains(ref_run, tmp_path):
 @pytest.mark.slow
 def test_resume_keeps_the_saved_run_control_and_refuses_other_changes(ref_run):
     saved = load_config(ref_run)
-    cfg = saved.replace(lr=0.5, num_seeds=3, total_steps=7 * CHUNK, out_dir=str(ref_run), resume=True)
+    cfg = saved.updated(ppo={"lr": 0.5, "num_seeds": 3},
+                        run={"total_steps": 7 * CHUNK, "out_dir": str(ref_run), "resume": True})
     with pytest.raises(ValueError, match=r"would change it: --lr 0.5 \(the run's value: 0.001\), --num-seeds 3"):
         train_cli.resumed_config(cfg, {"lr": 0.5, "num_seeds": 3, "total_steps": 7 * CHUNK, "n_points": 21})
     # an equal value is no change; a run-control flag applies; one not given keeps the run's saved value
-    default = TrainConfig().replace(out_dir=str(ref_run), resume=True, total_steps=7 * CHUNK, n_points=21)
+    default = TrainConfig().updated(run={"out_dir": str(ref_run), "resume": True, "total_steps": 7 * CHUNK},
+                                    plant={"n_points": 21})
     merged = train_cli.resumed_config(default, {"total_steps": 7 * CHUNK, "n_points": 21, "resume": True})
     assert merged.run.total_steps == 7 * CHUNK and merged.run.resume and merged.run.out_dir == str(ref_run)
     assert merged.run.keep_going == saved.run.keep_going and merged.run.max_wall_s == saved.run.max_wall_s
-    assert merged.replace(total_steps=saved.run.total_steps, resume=False) == saved.replace(out_dir=str(ref_run))
+    assert merged.updated(run={"total_steps": saved.run.total_steps, "resume": False}) == saved.updated(
+        run={"out_dir": str(ref_run)})
 
 
 def test_crafted_checkpoint_without_checksum_wrapper_is_rejected(tmp_path):

@@ -429,8 +429,9 @@ def test_gradient_memory_estimate_refuses_before_allocating():
     from jaxtraffic.runs.gradient.policy import gradient_setup
     from jaxtraffic.runs.gradient.trainer import check_memory, memory_estimate
 
-    grad_config, plant = gradient_setup(TrainConfig.from_flat(algo="gradient", policy="gains", n_points=21,
-                                                              train_delays=(1.0,), train_horizon_s=2.0))
+    grad_config, plant = gradient_setup(TrainConfig.make(
+        run={"algo": "gradient"}, grad={"policy": "gains", "train_delays": (1.0,), "train_horizon_s": 2.0},
+        plant={"n_points": 21}))
     need = memory_estimate(grad_config, plant)
     check_memory(grad_config, plant, have=100 * need)
     with pytest.raises(ValueError, match=r"the rollouts alone need about .* GiB, more than this machine's"):

@@ -67,8 +67,8 @@ class Counting:
         return "done"
 
 
-def _run(tmp_path: Path, algo: Counting, **flat):
-    config = TrainConfig.from_flat(out_dir=str(tmp_path / "run"), quiet=True, **flat)
+def _run(tmp_path: Path, algo: Counting, **run):
+    config = TrainConfig.make(run={"out_dir": str(tmp_path / "run"), "quiet": True, **run})
     config, run_dir, saved = prepare(config)
     rows: list[dict] = []
     run_training(config, run_dir, saved, lambda: algo, lambda: config_json(config), [rows.append])
@@ -84,7 +84,7 @@ def test_the_loop_checkpoints_curves_and_summarises_any_algorithm(tmp_path):
         assert [int(r["value"]) for r in csv.DictReader(f)] == [1, 2, 3, 4, 5]
     state, meta = ckpt.load_checkpoint(run_dir)
     assert state["value"] == 5 and meta["updates"] == 5 and meta["updates_to_half"] == 3
-    assert meta[ckpt.PROBLEM] == ckpt.problem_of(TrainConfig.from_flat(out_dir=str(run_dir), quiet=True))
+    assert meta[ckpt.PROBLEM] == ckpt.problem_of(TrainConfig.make(run={"out_dir": str(run_dir), "quiet": True}))
     assert (run_dir / "learning_curve.png").exists() and (run_dir / ckpt.CONFIG).exists()
 
 

@@ -29,7 +29,7 @@ def test_each_recipe_is_the_run_its_command_line_described(name):
     assert recipe(name) == config_from_args(argv)
     if plant:  # evaluate.py's plant for the recipe: the same fields the flags set
         fields = training_plant(plant, 201, (801, 2))
-        assert recipe(name).replace(**fields) == recipe(name)
+        assert recipe(name).updated(**fields) == recipe(name)
 
 
 def test_an_unknown_recipe_is_refused():
@@ -45,4 +45,4 @@ def test_each_recipe_file_is_a_config_file_of_train_py(name):
         algo = recipe(name).run.algo
         assert config_from_args(["--config", str(path)]) == recipe(name)
         assert config_from_args([algo, "--config", str(path)]) == recipe(name)
-        assert config_from_args([algo, "--config", str(path), "--seed", "3"]) == recipe(name).replace(seed=3)
+        assert config_from_args([algo, "--config", str(path), "--seed", "3"]) == recipe(name).updated(run={"seed": 3})

@@ -31,11 +31,11 @@ TREE_FIELDS = {f.name for s in SECTIONS for f in leaf_fields(s)}
 
 def test_every_flag_reaches_the_algorithm_under_its_own_name():
     assert set(GIVEN) == {f.name for f in leaf_fields("grad")} - {"policy"}
-    cfg = gradient_setup(TrainConfig.from_flat(algo="gradient", **GIVEN))[0]
+    cfg = gradient_setup(TrainConfig.make(run={"algo": "gradient"}, grad=GIVEN))[0]
     assert {name: getattr(cfg, name) for name in GIVEN} == GIVEN
     # the fields the algorithm has beyond the flags of its section come from the environment and the network
-    tree = TrainConfig.from_flat(algo="gradient", gain_filter=0.5, filter_sigma=10.0, controller_points=11,
-                                 n_points=21)
+    tree = TrainConfig.make(run={"algo": "gradient"}, plant={"n_points": 21},
+                            env={"gain_filter": 0.5, "filter_sigma": 10.0, "controller_points": 11})
     cfg = gradient_setup(tree)[0]
     assert (cfg.gain_filter, cfg.filter_sigma, cfg.controller_points, cfg.hidden) == (0.5, 10.0, 11,
                                                                                       tuple(tree.ppo.hidden))
@@ -88,10 +88,11 @@ def test_one_rule_checked_by_the_tree_and_by_the_struct(name, value, struct):
     rule = fields.range_of(lib, name)
     assert rule is not None and not fields.in_range(value, rule)
     message = re.escape(f"{name} = {value!r}: {fields.range_text(rule)}")
-    flat = {name: (1.0, value, 3.0) if name == "gain_max" else (2.0, value) if name == "train_delays"
-            else (value,) if name == "train_alphas" else value}
+    given = {name: (1.0, value, 3.0) if name == "gain_max" else (2.0, value) if name == "train_delays"
+             else (value,) if name == "train_alphas" else value}
+    section = next(s for s in SECTIONS if name in {f.name for f in leaf_fields(s)})
     with pytest.raises(ValueError, match=message):
-        TrainConfig.from_flat(algo="gradient", **flat)
+        TrainConfig.make(**{section: given, "run": {"algo": "gradient"}})
     with pytest.raises(ValueError, match=message):
         struct(value)
 

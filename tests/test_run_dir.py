@@ -241,7 +241,7 @@ def test_gradient_scenarios_the_plant_cannot_represent_and_flags_of_the_other_al
 def test_ppo_rules_do_not_block_a_gradient_run_and_gradient_flags_do_not_pass_for_ppo(tmp_path, capsys):
     from jaxtraffic.runs.config import TrainConfig
 
-    TrainConfig.from_flat(algo="gradient", num_minibatches=7)  # PPO's batch rule does not apply
+    TrainConfig.make(run={"algo": "gradient"}, ppo={"num_minibatches": 7})  # PPO's batch rule does not apply
     code, err = _main([*TINY, "--out-dir", str(tmp_path / "p"), "--grad-steps", "3"], capsys)
     assert code == 2 and "--grad-steps: a flag of `train.py gradient`, not of `train.py ppo`" in err
     code, err = _main([*TINY, "--out-dir", str(tmp_path / "p"), "--amp-range", "1,1"], capsys)
@@ -262,7 +262,7 @@ def test_sizes_and_horizons_beyond_what_can_run_are_flag_errors(tmp_path, capsys
         code, err = _main([*args, "--out-dir", str(tmp_path / "r")], capsys)
         assert code == 2 and match in err and err.count("\n") == 1, err
     with pytest.raises(ValueError, match=r"num_envs = 1024: with num_steps = 100 and 4 seed"):
-        check_memory(TrainConfig.from_flat(num_envs=1024, num_steps=100, num_seeds=4), have=2.0**20)
+        check_memory(TrainConfig.make(ppo={"num_envs": 1024, "num_steps": 100, "num_seeds": 4}), have=2.0**20)
     check_memory(TrainConfig(), have=2.0**34)  # the defaults fit 16 GiB
 
 

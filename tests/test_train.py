@@ -70,8 +70,8 @@ def test_run_directory_contents(runs):
     assert cfg["jax_version"] == jax.__version__ and cfg["horizon_steps"] == 30 and cfg["version"] == 3
     loaded = load_config(run)  # the one loader (resume, load_policy, evaluation) reads the tree back
     assert loaded.plant.n_points == 21 and loaded.ppo.num_envs == 4 and loaded.run.max_wall_s == float("inf")
-    assert loaded.env == TrainConfig.from_flat(**{k: tuple(v) if isinstance(v, list) else v
-                                                  for k, v in tree["env"].items()}).env
+    assert loaded.env == TrainConfig.make(env={k: tuple(v) if isinstance(v, list) else v
+                                               for k, v in tree["env"].items()}).env
     rows = _rows(run)
     assert list(rows[0]) == CURVE_FIELDS
     assert [int(r["env_steps"]) for r in rows] == [CHUNK, 2 * CHUNK, 3 * CHUNK, 4 * CHUNK]
@@ -244,12 +244,12 @@ def test_cli_help_documents_every_flag(algo, capsys):
     assert exc.value.code == 0
     text = capsys.readouterr().out
     other = "gradient" if algo == "ppo" else "ppo"
-    mine = {f.name for f in fields_for(algo)}
-    for f in fields_for(algo):
+    mine = {f.name for _, f in fields_for(algo)}
+    for _, f in fields_for(algo):
         assert f.metadata.get("help"), f"{f.name} has no help"
         flag = ("--no-" if f.default is True else "--") + f.name.replace("_", "-")
         assert flag in text
-    for f in fields_for(other):
+    for _, f in fields_for(other):
         if f.name not in mine:
             assert f"--{f.name.replace('_', '-')} " not in text
     for flag in ("--delay", "--n-points", "--out-dir", "--resume", "--max-wall-s", "--config", "--hidden",

@@ -94,19 +94,17 @@ def train_runs(root: Path) -> None:
     a = _cli(root / "A", "--total-steps", str(4 * CHUNK), "--keep-going")
     write_json(root / "roundtrip.json", _round_trip(a, jax.device_get(shared.last_runner)))
     # a tiny gradient-trained gains run where evaluate.py looks for it (the other gradient runs are absent)
-    train_gradient(TrainConfig.from_flat(algo="gradient", out_dir=str(root / GRADIENT_ROOT / "gradient-gains"),
-                                         n_points=21, train_delays=(4.0,), train_horizon_s=6.0, steps_per_chunk=1,
-                                         grad_steps=1, eval_horizon_s=6.0, quiet=True))
+    grad_run = {"algo": "gradient", "eval_horizon_s": 6.0, "quiet": True}
+    tiny = {"train_horizon_s": 6.0, "steps_per_chunk": 1, "grad_steps": 1}
+    train_gradient(TrainConfig.make(run={**grad_run, "out_dir": str(root / GRADIENT_ROOT / "gradient-gains")},
+                                    plant={"n_points": 21}, grad={**tiny, "train_delays": (4.0,)}))
     # and a tiny robust delay schedule (CEM, 2 candidates x 2 plants), evaluated as grad_robust
-    train_gradient(TrainConfig.from_flat(algo="gradient", policy="schedule", n_points=21, train_delays=(2.0, 6.0),
-                                         out_dir=str(root / GRADIENT_ROOT / "gradient-robust"), train_alphas=(0.15,),
-                                         train_horizon_s=6.0, steps_per_chunk=1, grad_steps=1, cem_population=2,
-                                         eval_horizon_s=6.0, quiet=True))
+    cem = {**tiny, "train_delays": (2.0, 6.0), "train_alphas": (0.15,), "cem_population": 2}
+    train_gradient(TrainConfig.make(run={**grad_run, "out_dir": str(root / GRADIENT_ROOT / "gradient-robust")},
+                                    plant={"n_points": 21}, grad={**cem, "policy": "schedule"}))
     # and a tiny learned residual on adaptive backstepping (CEM, 2 candidates x 2 plants), evaluated as grad_residual
-    train_gradient(TrainConfig.from_flat(algo="gradient", policy="residual", n_points=21, train_delays=(2.0, 6.0),
-                                         out_dir=str(root / GRADIENT_ROOT / "adaptive-residual"), train_alphas=(0.15,),
-                                         train_horizon_s=6.0, steps_per_chunk=1, grad_steps=1, cem_population=2,
-                                         eval_horizon_s=6.0, quiet=True))
+    train_gradient(TrainConfig.make(run={**grad_run, "out_dir": str(root / GRADIENT_ROOT / "adaptive-residual")},
+                                    plant={"n_points": 21}, grad={**cem, "policy": "residual"}))
     (root / "A.done").touch()  # run A (and the gradient run) complete: test_evaluate.py can start
     b = _cli(root / "B", "--total-steps", str(2 * CHUNK), "--keep-going")
     shutil.copytree(b, root / "B_first")

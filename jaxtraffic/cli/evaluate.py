@@ -93,7 +93,7 @@ def find_or_train_run(run: Path | None, n_points: int | None) -> Path:
         return DEFAULT_RUN
     _log(f"no trained run at {DEFAULT_RUN}: training it first (paper/recipes/ppo.toml, at most "
          f"{recipe('ppo').run.max_wall_s:g} s)")
-    config = recipe("ppo").replace(out_dir=str(DEFAULT_RUN), **({"n_points": n_points} if n_points else {}))
+    config = recipe("ppo").updated(run={"out_dir": str(DEFAULT_RUN)}, plant={"n_points": n_points} if n_points else {})
     return train_run(config)
 
 
@@ -110,9 +110,9 @@ def gradient_controllers(mode: str, root: Path, controller_points: int, referenc
             if mode != "auto":
                 continue
             if (run_dir / "checkpoint.msgpack").exists():  # an interrupted training
-                config = load_config(run_dir).replace(resume=True)
+                config = load_config(run_dir).updated(run={"resume": True})
             else:
-                config = recipe(sub).replace(out_dir=str(run_dir),
+                config = recipe(sub).updated(run={"out_dir": str(run_dir)},
                                              **training_plant(plant, controller_points, reference))
             _log(f"no trained run at {run_dir}: {'continuing' if config.run.resume else 'training'} it first "
                  f"(paper/recipes/{sub}.toml on {config.plant.n_points} points)")

@@ -24,13 +24,14 @@ from tyro import _errors as tyro_errors
 from jaxtraffic.cli import errors
 from jaxtraffic.cli.options import Cluster, program
 from jaxtraffic.platform import compile_cache, distributed
-from jaxtraffic.runs.config import ALGOS, RUN_CONTROL, SECTIONS, RunConfig, TrainConfig, load_config
-from jaxtraffic.runs.config.toml import read_flat
-from jaxtraffic.runs.config.tree import fields_for
+from jaxtraffic.runs.config import ALGOS, SECTIONS, RunConfig, TrainConfig, load_config
+from jaxtraffic.runs.config.toml import read_tables
+from jaxtraffic.runs.config.tree import fields_for, flag_sections, run_control
 from jaxtraffic.runs.gradient.trainer import train_gradient
 from jaxtraffic.runs.ppo.trainer import train
 from jaxtraffic.runs.session import TrainingInterrupted, check_resumable
 
+Tables = dict[str, dict[str, Any]]  # {section: {field: value}}, as a config file's tables
 PROG = program("train.py")  # in messages: the program the user typed
 # flags of the last release that are gone: what to give instead
 REMOVED = {"--algo": "`train.py gradient` (or `train.py ppo`): the algorithm is the subcommand",
@@ -55,11 +56,11 @@ def flags_class(algo: str, base: TrainConfig) -> type:
     """The dataclass tyro derives ``train.py ALGO``'s flags from: the leaf fields ``algo`` reads
     (``tree.fields_for``) with ``base``'s values as defaults and their metadata's help, --config and the
     cluster's flags."""
-    hints = {k: v for cls in reversed(SECTIONS.values()) for k, v in typing.get_type_hints(cls).items()}
-    flat = base.flat()
-    leaves = [(f.name, Literal[tuple(f.metadata["choices"])] if "choices" in f.metadata else hints[f.name],
-               dataclasses.field(default=flat[f.name], metadata={"help": f.metadata.get("help")}))
-              for f in fields_for(algo)]
+    hints = {s: typing.get_type_hints(cls) for s, cls in SECTIONS.items()}
+    values = base.tables()
+    leaves = [(f.name, Literal[tuple(f.metadata["choices"])] if "choices" in f.metadata else hints[s][f.name],
+               dataclasses.field(default=values[s][f.name], metadata={"help": f.metadata.get("help")}))
+              for s, f in fields_for(algo)]
     cls = dataclasses.make_dataclass(algo, [*leaves, (
         "config", Union[Path, None], dataclasses.field(default=None, metadata={  # noqa: UP007 (a runtime type)
             "help": "start from this config file (a run's config.toml); the flags given override it"})), (
@@ -80,10 +81,10 @@ def _value_of(argv: list[str], flag: str) -> str | None:
     return value
 
 
-def _default_algo(argv: list[str], from_file: dict[str, Any]) -> str:
+def _default_algo(argv: list[str], from_file: Tables) -> str:
     """The subcommand of a command line without one: the --config file's algorithm, or the resumed run's, or PPO."""
-    if "algo" in from_file:
-        return from_file["algo"]
+    if "algo" in from_file.get("run", {}):
+        return from_file["run"]["algo"]
     run_dir = Path(_value_of(argv, "--out-dir") or RunConfig.out_dir)
     if "--resume" in argv and (run_dir / "config.json").exists():
         try:
@@ -93,16 +94,22 @@ def _default_algo(argv: list[str], from_file: dict[str, Any]) -> str:
     return "ppo"
 
 
-def _out_dir(algo: str, values: dict[str, Any]) -> str:
+def _out_dir(algo: str, tables: Tables) -> str:
     """The default run directory: runs/default (PPO), runs/gradient-POLICY."""
-    return f"runs/gradient-{values.get('policy', 'gains')}" if algo == "gradient" else RunConfig.out_dir
+    policy = tables.get("grad", {}).get("policy", "gains")
+    return f"runs/gradient-{policy}" if algo == "gradient" else RunConfig.out_dir
 
 
-def _base(algo: str, from_file: dict[str, Any]) -> TrainConfig:
+def _with_run(tables: Tables, algo: str) -> Tables:
+    """``tables`` with the run's algorithm ``algo`` and, unless they give one, its default run directory."""
+    return {**tables, "run": {"out_dir": _out_dir(algo, tables), **tables.get("run", {}), "algo": algo}}
+
+
+def _base(algo: str, from_file: Tables) -> TrainConfig:
     """The defaults of ``train.py ALGO``'s flags: the --config file's values when the file is a run of ``algo``
     (or names none), else the defaults (a gradient file's fields need not make a valid PPO run)."""
-    file = from_file if from_file.get("algo", algo) == algo else {}
-    return TrainConfig.from_flat(**{"out_dir": _out_dir(algo, file), **file, "algo": algo})
+    file = from_file if from_file.get("run", {}).get("algo", algo) == algo else {}
+    return TrainConfig.make(**_with_run(file, algo))
 
 
 def _given(argv: list[str], names: set[str]) -> set[str]:
@@ -166,7 +173,7 @@ def parse(argv: list[str] | None = None) -> tuple[TrainConfig, Cluster, set[str]
     if "--version" in argv:
         print(f"{PROG} {_version()}")
         raise SystemExit(0)
-    from_file = read_flat(config_file) if (config_file := _value_of(argv, "--config")) else {}
+    from_file = read_tables(config_file) if (config_file := _value_of(argv, "--config")) else {}
     if not argv or argv[0] not in (*ALGOS, *HELP):
         argv.insert(0, _default_algo(argv, from_file))
     bases = {a: _base(a, from_file) for a in ALGOS}
@@ -183,11 +190,13 @@ def parse(argv: list[str] | None = None) -> tuple[TrainConfig, Cluster, set[str]
         flags = tyro.cli(commands, args=argv, prog=PROG, config=(tyro.conf.FlagCreatePairsOff,), compact_help=True,
                          default=classes["ppo"](), description=DESCRIPTION)
     given = _given(argv[1:], names)
-    values = {**from_file, **{k: getattr(flags, k) for k in given}, "algo": algo}
-    if values.get("min_wave_speed") == -math.inf:  # the paper's rule alone (stored as null in the JSON outputs)
-        values["min_wave_speed"] = None
-    values.setdefault("out_dir", _out_dir(algo, values))
-    return TrainConfig.from_flat(**values), flags.cluster, given
+    tables: Tables = {s: dict(t) for s, t in from_file.items()}
+    section = flag_sections(algo)
+    for k in given:
+        value = getattr(flags, k)
+        tables.setdefault(section[k], {})[k] = None if k == "min_wave_speed" and value == -math.inf else value
+    # (min_wave_speed -inf: the paper's rule alone, stored as null in the JSON outputs)
+    return TrainConfig.make(**_with_run(tables, algo)), flags.cluster, given
 
 
 def config_from_args(argv: list[str] | None = None) -> TrainConfig:
@@ -197,21 +206,26 @@ def config_from_args(argv: list[str] | None = None) -> TrainConfig:
 
 def resumed_config(config: TrainConfig, given: set[str] | dict) -> TrainConfig:
     """On --resume: the run's saved configuration, with the run-control flags given on the command line
-    (``config.RUN_CONTROL``; for the gradient trainer also --grad-steps) applied, and recorded in the
+    (``tree.run_control``) applied, and recorded in the
     run's config.json; a flag that would change the trained problem is an error."""
     saved = load_config(config.run.out_dir)
     if saved.run.algo != config.run.algo:
         raise ValueError(f"{config.run.out_dir} holds a {saved.run.algo} run: resume it with "
                          f"`{PROG} {saved.run.algo} --resume`")
-    control = (*RUN_CONTROL, "grad_steps") if saved.run.algo == "gradient" else RUN_CONTROL
-    flat, old = config.flat(), saved.flat()
-    changed = [f"--{k.replace('_', '-')} {flat[k]!r} (the run's value: {old[k]!r})" for k in given
-               if k not in control and k in old and flat[k] != old[k]]
+    control = run_control(saved.run.algo)
+    section = flag_sections(saved.run.algo)
+    new, old = config.tables(), saved.tables()
+    owners = {k: section[k] for k in given if k in section}
+    changed = [f"--{k.replace('_', '-')} {new[s][k]!r} (the run's value: {old[s][k]!r})" for k, s in owners.items()
+               if k not in control.get(s, ()) and new[s][k] != old[s][k]]
     if changed:
         raise ValueError("--resume continues the run with its saved configuration; these flags would change it: "
                          + ", ".join(changed) + "; drop them, or start a new run (--overwrite clears this one)")
-    return saved.replace(**{**{k: flat[k] for k in given if k in control}, "resume": True,
-                            "out_dir": config.run.out_dir})
+    kept: Tables = {}
+    for k, s in owners.items():
+        if k in control.get(s, ()):
+            kept.setdefault(s, {})[k] = new[s][k]
+    return saved.updated(**{**kept, "run": {**kept.get("run", {}), "resume": True, "out_dir": config.run.out_dir}})
 
 
 def main(argv: list[str] | None = None) -> Path:

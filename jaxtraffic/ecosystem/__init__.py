@@ -45,6 +45,7 @@ from jaxtraffic.ecosystem.normalization import active, normalized_policy
 from jaxtraffic.learn import env as learn_env
 from jaxtraffic.runs.config import TrainConfig
 from jaxtraffic.runs.config.checks import check_initial_amplitudes
+from jaxtraffic.runs.config.tree import flag_sections
 
 N_GAINS = learn_env.TrafficEnv.action_size
 
@@ -53,13 +54,21 @@ __all__ = ["ACTION_EPS", "ENV_ID", "N_GAINS", "controller_grid", "resolve_env_pa
 
 
 def resolve_env_params(env_params: learn_env.EnvParams | None = None, **config: Any) -> learn_env.EnvParams:
-    """``env_params`` itself, or the environment of ``TrainConfig.from_flat(**config)`` (the training
-    defaults for the fields not given, validated by the config and against the plant)."""
+    """``env_params`` itself, or the environment that ``train.py ppo`` with the flags ``config`` trains on
+    (keywords named as its flags: ``n_points=21, horizon_s=1.0``; the training defaults for the fields not given,
+    validated by the config and against the plant)."""
     if env_params is not None:
         if config:
             raise TypeError(f"give env_params or config fields, not both (got {sorted(config)})")
         return env_params
-    train_config = TrainConfig.from_flat(**config)
+    section = flag_sections("ppo")
+    unknown = sorted(set(config) - set(section))
+    if unknown:
+        raise TypeError(f"unknown environment config field {unknown[0]!r} (the fields are train.py ppo's flags)")
+    tables: dict[str, dict[str, Any]] = {}
+    for k, v in config.items():
+        tables.setdefault(section[k], {})[k] = v
+    train_config = TrainConfig.make(**tables)
     env_params = train_config.env_params()
     check_initial_amplitudes(train_config, env_params.traffic)
     return env_params

@@ -24,7 +24,8 @@ import numpy as np
 from flax import serialization
 
 from jaxtraffic.io.files import atomic_write_bytes, to_jsonable
-from jaxtraffic.runs.config import RUN_CONTROL, TrainConfig
+from jaxtraffic.runs.config import TrainConfig
+from jaxtraffic.runs.config.tree import run_control
 
 CHECKPOINT = "checkpoint.msgpack"
 CONFIG = "config.json"
@@ -103,8 +104,9 @@ PROBLEM = "config_problem"  # the trained problem (``problem_of``), in the check
 def problem_of(config: TrainConfig) -> str:
     """What a checkpoint was trained on: every config field but the run control (``RUN_CONTROL`` and the
     gradient trainer's step count, which a resume may change), as canonical JSON."""
-    skip = {*RUN_CONTROL, "grad_steps"}
-    return json.dumps(to_jsonable({k: v for k, v in config.flat().items() if k not in skip}), sort_keys=True)
+    skip = run_control("gradient")
+    return json.dumps(to_jsonable({s: {k: v for k, v in table.items() if k not in skip.get(s, ())}
+                                   for s, table in config.tables().items()}), sort_keys=True)
 
 
 def check_problem(config: TrainConfig, stored: Any, path: Path) -> None:
@@ -112,13 +114,20 @@ def check_problem(config: TrainConfig, stored: Any, path: Path) -> None:
     trained on another problem than ``config`` says; files written before the binding hold none."""
     if not isinstance(stored, str):
         return
-    saved, now = json.loads(stored), json.loads(problem_of(config))
+    saved, now = _fields(json.loads(stored)), _fields(json.loads(problem_of(config)))
     diff = [k for k in saved if k in now and saved[k] != now[k]]
     if diff:
         said = ", ".join(f"{k} = {now[k]!r}" for k in diff[:4])
         raise ValueError(f"{path.parent / CONFIG}: {said}, but {path.name} was trained with "
                          f"{', '.join(repr(saved[k]) for k in diff[:4])}: the two files do not belong together "
                          "(config.json edited after training, or taken from another run)")
+
+
+def _fields(problem: Any) -> dict[str, Any]:
+    """A ``problem_of`` as ``{"section.field": value}`` (one written before the sections, ``{field: value}``,
+    compares with nothing: its run is refused by its config.json's version)."""
+    return {f"{s}.{k}": v for s, table in problem.items() if isinstance(table, dict) for k, v in table.items()} \
+        if isinstance(problem, dict) else {}
 
 
 def save_best(run_dir: str | Path, state: dict, problem: str | None = None) -> None:

@@ -28,8 +28,9 @@ from jaxtraffic.io.files import write_json
 from jaxtraffic.io.provenance import provenance
 from jaxtraffic.platform import distributed
 from jaxtraffic.runs import checkpoint as ckpt
-from jaxtraffic.runs.config import RUN_CONTROL, TrainConfig, load_config
+from jaxtraffic.runs.config import TrainConfig, load_config
 from jaxtraffic.runs.config.toml import CONFIG_TOML, write_config
+from jaxtraffic.runs.config.tree import run_control
 from jaxtraffic.runs.curve import append_curve, plot_learning_curve, write_curve
 from jaxtraffic.runs.session import (
     StopSignals,
@@ -167,13 +168,14 @@ class Algorithm(Protocol):
         ...
 
 
-def _resumed_config(config: TrainConfig, run_dir: Path, keep: Sequence[str]) -> TrainConfig:
-    """The run's saved config, with only the run-control fields (and ``keep``) taken from ``config``."""
-    flat = config.flat()
-    return load_config(run_dir).replace(**{k: flat[k] for k in (*RUN_CONTROL, *keep)})
+def _resumed_config(config: TrainConfig, run_dir: Path) -> TrainConfig:
+    """The run's saved config, with only the run-control fields (``tree.run_control``) taken from ``config``."""
+    own = config.tables()
+    return load_config(run_dir).updated(**{s: {k: own[s][k] for k in names}
+                                           for s, names in run_control(config.run.algo).items()})
 
 
-def prepare(config: TrainConfig, keep: Sequence[str] = ()) -> tuple[TrainConfig, Path, tuple[Any, dict] | None]:
+def prepare(config: TrainConfig) -> tuple[TrainConfig, Path, tuple[Any, dict] | None]:
     """(the config to train, its run directory, the saved (state, meta) on resume): the run directory checked
     and claimed, the checkpoint read and checked against the config before anything compiles."""
     run_dir = Path(config.run.out_dir)
@@ -181,7 +183,7 @@ def prepare(config: TrainConfig, keep: Sequence[str] = ()) -> tuple[TrainConfig,
     saved = None
     if config.run.resume:
         check_resumable(run_dir)
-        config = _resumed_config(config, run_dir, keep)
+        config = _resumed_config(config, run_dir)
     claim_run_dir(run_dir, config.run.resume, config.run.overwrite)  # refuse another run's directory first
     if config.run.resume:
         saved = ckpt.load_checkpoint(run_dir)

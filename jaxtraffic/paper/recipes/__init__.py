@@ -17,7 +17,7 @@ import tomllib
 from importlib import resources
 
 from jaxtraffic.runs.config import TrainConfig
-from jaxtraffic.runs.config.toml import flat_of_toml
+from jaxtraffic.runs.config.toml import tables_of_toml
 
 NAMES = ("ppo", "gradient-gains", "gradient-network", "gradient-robust", "adaptive-residual")
 
@@ -28,18 +28,20 @@ def recipe(name: str) -> TrainConfig:
         raise ValueError(f"no recipe {name!r}; the recipes are {NAMES}")
     where = f"jaxtraffic/paper/recipes/{name}.toml"
     text = resources.files(__package__).joinpath(f"{name}.toml").read_text()
-    return TrainConfig.from_flat(**flat_of_toml(tomllib.loads(text), where))
+    return TrainConfig.make(**tables_of_toml(tomllib.loads(text), where))
 
 
-def training_plant(kind: str, controller_points: int, reference: tuple[int, int]) -> dict:
-    """The training plant of a gradient recipe as config fields: ``kind`` "reference" is the reference plant
-    (MUSCL, ``reference`` = (points, substeps)); "half" is MUSCL on the controller's grid refined once (it agrees
-    with the reference plant on which high-alpha plants diverge at a quarter of its cost, docs/model.md
-    section 17). The controller acts on its own grid of ``controller_points`` nodes."""
+def training_plant(kind: str, controller_points: int, reference: tuple[int, int]) -> dict[str, dict]:
+    """The training plant of a gradient recipe as config tables (``TrainConfig.updated``): ``kind``
+    "reference" is the reference plant (MUSCL, ``reference`` = (points, substeps)); "half" is MUSCL on the
+    controller's grid refined once (it agrees with the reference plant on which high-alpha plants diverge at a
+    quarter of its cost, docs/model.md section 17). The controller acts on its own grid of ``controller_points``
+    nodes."""
     if kind == "reference":
         n_points, substeps = reference
     elif kind == "half":
         n_points, substeps = 2 * (controller_points - 1) + 1, 1
     else:
         raise ValueError(f"training plant kind must be 'reference' or 'half', got {kind!r}")
-    return {"n_points": n_points, "scheme": "muscl", "substeps": substeps, "controller_points": controller_points}
+    return {"plant": {"n_points": n_points, "scheme": "muscl", "substeps": substeps},
+            "env": {"controller_points": controller_points}}

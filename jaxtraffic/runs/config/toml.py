@@ -47,9 +47,10 @@ def write_config(config: TrainConfig, path: str | Path) -> None:
     atomic_write_text(path, config_toml(config))
 
 
-def flat_of_toml(data: dict[str, Any], where: str) -> dict[str, Any]:
-    """The fields a TOML document gives (``{field: value}``); ``ValueError`` for an unknown table or key."""
-    flat: dict[str, Any] = {}
+def tables_of_toml(data: dict[str, Any], where: str) -> dict[str, dict[str, Any]]:
+    """The fields a TOML document gives, by table (``{section: {field: value}}``); ``ValueError`` for an unknown
+    table or key."""
+    tables: dict[str, dict[str, Any]] = {}
     for s, table in data.items():
         if s not in SECTIONS or not isinstance(table, dict):
             raise ValueError(f"{where}: unknown table [{s}] (the tables are {', '.join(SECTIONS)})")
@@ -57,22 +58,23 @@ def flat_of_toml(data: dict[str, Any], where: str) -> dict[str, Any]:
         for k, v in table.items():
             if k not in names:
                 raise ValueError(f"{where}: [{s}] has no field {k!r}")
-            flat[k] = None if k == "min_wave_speed" and v == -math.inf else tuple(v) if isinstance(v, list) else v
-    return flat
+            tables.setdefault(s, {})[k] = (None if k == "min_wave_speed" and v == -math.inf
+                                           else tuple(v) if isinstance(v, list) else v)
+    return tables
 
 
-def read_flat(path: str | Path) -> dict[str, Any]:
-    """The fields a TOML config file gives."""
+def read_tables(path: str | Path) -> dict[str, dict[str, Any]]:
+    """The fields a TOML config file gives, by table."""
     try:
         data = tomllib.loads(Path(path).read_text())
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as err:
         raise ValueError(f"{path}: unreadable or not valid TOML ({type(err).__name__}: {err})") from None
-    return flat_of_toml(data, str(path))
+    return tables_of_toml(data, str(path))
 
 
 def read_config(path: str | Path) -> TrainConfig:
     """The ``TrainConfig`` of a TOML config file (fields it does not give: their defaults)."""
     try:
-        return TrainConfig.from_flat(**read_flat(path))
+        return TrainConfig.make(**read_tables(path))
     except (TypeError, ValueError) as err:
         raise ValueError(f"{path}: {err}") from None

@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
@@ -178,6 +179,13 @@ _lend_ranges(EnvConfig, GradientConfig)  # filter_sigma
 RUN_CONTROL = ("out_dir", "total_steps", "max_wall_s", "keep_going", "resume", "overwrite", "quiet", "stop_patience",
                "target_reward", "min_wave_speed", "require_certificate", "tensorboard", "val_target",
                "checkpoint_every")
+
+
+def run_control(algo: str) -> dict[str, tuple[str, ...]]:
+    """The fields a resume may change, by section: ``RUN_CONTROL``, and for the gradient trainer its step count."""
+    return {"run": RUN_CONTROL, **({"grad": ("grad_steps",)} if algo == "gradient" else {})}
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """The whole training configuration: ``plant``, ``env``, ``ppo`` (the library's ``PPOConfig`` as it is:
@@ -198,24 +206,31 @@ class TrainConfig:
             filter_sigma=self.env.filter_sigma, controller_points=self.env.controller_points or 0))
 
     @classmethod
-    def from_flat(cls, **values: Any) -> TrainConfig:
-        """A config from leaf-field names (``TrainConfig.from_flat(n_points=21, num_envs=64)``); an unknown
-        name is a ``TypeError``."""
-        parts: dict[str, dict[str, Any]] = {s: {} for s in SECTIONS}
-        for name, value in values.items():
-            if name not in _OWNER:
-                raise TypeError(f"unknown config field {name!r}")
-            parts[_OWNER[name]][name] = value
-        grad = GradientConfig.for_policy(**parts.pop("grad"))  # the policy's defaults under the given fields
-        return cls(grad=grad, **{s: dataclasses.replace(_DEFAULT[s], **kw) for s, kw in parts.items()})
+    def make(cls, **tables: Mapping[str, Any]) -> TrainConfig:
+        """A config from one mapping per section, the rest their defaults (``TrainConfig.make(plant={"n_points":
+        21}, ppo={"num_envs": 64})``; the gradient section's defaults are its policy's); an unknown section or
+        field is a ``TypeError``."""
+        for s, table in tables.items():
+            if s not in SECTIONS:
+                raise TypeError(f"unknown config section {s!r} (the sections are {', '.join(SECTIONS)})")
+            unknown = sorted(set(table) - {f.name for f in leaf_fields(s)})
+            if unknown:
+                raise TypeError(f"the config section {s!r} has no field {unknown[0]!r}")
+        grad = GradientConfig.for_policy(**tables.get("grad", {}))  # the policy's defaults under the given fields
+        return cls(grad=grad, **{s: dataclasses.replace(_DEFAULT[s], **tables.get(s, {})) for s in SECTIONS
+                                 if s != "grad"})
 
-    def flat(self) -> dict[str, Any]:
-        """Every leaf field by name."""
-        return {f.name: getattr(getattr(self, s), f.name) for s in SECTIONS for f in leaf_fields(s)}
+    def tables(self) -> dict[str, dict[str, Any]]:
+        """Every section's own fields (``leaf_fields``): ``{section: {field: value}}``, as a config file's tables."""
+        return {s: {f.name: getattr(getattr(self, s), f.name) for f in leaf_fields(s)} for s in SECTIONS}
 
-    def replace(self, **values: Any) -> TrainConfig:
-        """A copy with the given leaf fields changed."""
-        return TrainConfig.from_flat(**{**self.flat(), **values})
+    def updated(self, **tables: Mapping[str, Any]) -> TrainConfig:
+        """A copy with the given fields of the given sections changed (``config.updated(run={"seed": 3})``)."""
+        own = self.tables()
+        for s in tables:
+            if s not in own:
+                raise TypeError(f"unknown config section {s!r} (the sections are {', '.join(SECTIONS)})")
+        return TrainConfig.make(**{s: {**own[s], **tables.get(s, {})} for s in SECTIONS})
 
     def env_params(self) -> EnvParams:
         """The environment's parameters (``learn.env.EnvParams``): the training plant, its episodes, domain
@@ -248,15 +263,23 @@ _DEFAULT: dict[str, Any] = {f.name: f.default for f in dataclasses.fields(TrainC
 SECTION_ALGO = {"ppo": "ppo", "grad": "gradient"}  # the sections one algorithm reads
 
 
-def fields_for(algo: str) -> list[dataclasses.Field]:
-    """The leaf fields the algorithm ``algo`` reads that are set on the command line (``cli.train``): a field's
-    metadata ``algo`` ("ppo", "gradient", "both"; default: its section's) and ``cli`` (False: a config file's only)."""
-    return [f for s in SECTIONS for f in leaf_fields(s) if f.metadata.get("cli", True)
+def fields_for(algo: str) -> list[tuple[str, dataclasses.Field]]:
+    """(section, field) of each leaf field the algorithm ``algo`` reads that is set on the command line
+    (``cli.train``): a field's metadata ``algo`` ("ppo", "gradient", "both"; default: its section's) and ``cli``
+    (False: a config file's only)."""
+    return [(s, f) for s in SECTIONS for f in leaf_fields(s) if f.metadata.get("cli", True)
             and f.metadata.get("algo", SECTION_ALGO.get(s, "both")) in ("both", algo)]
 
 
-_OWNER = {f.name: s for s in SECTIONS for f in leaf_fields(s)}
-_TYPES = {f.name: str(f.type) for s in SECTIONS for f in leaf_fields(s)}
+def flag_sections(algo: str) -> dict[str, str]:
+    """The section of each of ``train.py ALGO``'s flags, by field name (a flag is named after its field, so the
+    names of one algorithm's fields are unique across its sections)."""
+    owner: dict[str, str] = {}
+    for s, f in fields_for(algo):
+        if f.name in owner:
+            raise RuntimeError(f"two config fields named {f.name!r} ({owner[f.name]}, {s}) would be one flag")
+        owner[f.name] = s
+    return owner
 
 
 def _tuples(x: Any) -> Any:
@@ -269,38 +292,44 @@ def config_json(config: TrainConfig, **extra: Any) -> dict[str, Any]:
     return {"version": CONFIG_VERSION, "config": dataclasses.asdict(config), **extra}
 
 
+def _from_json(f: dataclasses.Field, v: Any) -> Any:
+    """A field's value as JSON holds it: a list is a tuple; a null float that cannot be None is inf (JSON has no
+    inf: max_wall_s, val_target)."""
+    return math.inf if v is None and str(f.type) == "float" else _tuples(v)
+
+
 def config_from_json(data: dict[str, Any], where: str = "config.json") -> TrainConfig:
     """The ``TrainConfig`` of a config.json's content. Keys of options that no longer exist are ignored;
     a file of an older version (flat ``settings``, an ``algo`` section, a field missing) is an error."""
     if not isinstance(data, dict):
         raise ValueError(f"{where}: not a config.json written by train.py (a JSON {type(data).__name__}, "
                          "not an object)")
-    if "config" in data:
-        tree = data["config"]
-        if isinstance(tree, dict) and "algo" in tree and "ppo" not in tree:
-            raise ValueError(f"{where} was written by an older jaxtraffic (an 'algo' section; PPO's settings are "
-                             f"now the 'ppo' section, PPOConfig as it is): {OLD}")
-        required = ("plant", "env", "ppo", "run")  # (sections added later default when absent)
-        if not isinstance(tree, dict) or not all(isinstance(tree.get(s), dict) for s in required):
-            have = sorted(tree) if isinstance(tree, dict) else type(tree).__name__
-            missing = [s for s in required if not isinstance(tree, dict) or not isinstance(tree.get(s), dict)]
-            raise ValueError(f"{where}: the config tree lacks the section(s) {missing} (has {have}); "
-                             "not a complete config.json written by train.py")
-        flat = {k: v for s, section in tree.items() if isinstance(section, dict) for k, v in section.items()
-                if s != "grad" or k not in BORROWED}
-    elif "settings" in data:  # written before the config tree
+    if "settings" in data:  # written before the config tree
         raise ValueError(f"{where} was written by an older jaxtraffic (flat settings): {OLD}")
-    else:
+    if "config" not in data:
         raise ValueError(f"{where}: neither a config tree nor settings; not written by train.py")
-    missing = sorted(set(_OWNER) - set(flat))
-    if missing:
-        raise ValueError(f"{where} was written by an older jaxtraffic (it lacks {', '.join(missing)}): {OLD}")
-    # JSON has no inf: a null float that cannot be None stands for inf (max_wall_s, val_target), any other for the
-    # default
-    values = {k: math.inf if v is None and _TYPES[k] == "float" else _tuples(v) for k, v in flat.items()
-              if k in _OWNER and (v is not None or "None" in _TYPES[k] or _TYPES[k] == "float")}
+    tree = data["config"]
+    if isinstance(tree, dict) and "algo" in tree and "ppo" not in tree:
+        raise ValueError(f"{where} was written by an older jaxtraffic (an 'algo' section; PPO's settings are "
+                         f"now the 'ppo' section, PPOConfig as it is): {OLD}")
+    required = ("plant", "env", "ppo", "run")  # (sections added later default when absent)
+    if not isinstance(tree, dict) or not all(isinstance(tree.get(s), dict) for s in required):
+        have = sorted(tree) if isinstance(tree, dict) else type(tree).__name__
+        missing = [s for s in required if not isinstance(tree, dict) or not isinstance(tree.get(s), dict)]
+        raise ValueError(f"{where}: the config tree lacks the section(s) {missing} (has {have}); "
+                         "not a complete config.json written by train.py")
+    tables: dict[str, dict[str, Any]] = {}
+    for s in SECTIONS:
+        saved = tree.get(s) if isinstance(tree.get(s), dict) else {}
+        own = leaf_fields(s)
+        missing = [f.name for f in own if f.name not in saved]
+        if missing:
+            raise ValueError(f"{where} was written by an older jaxtraffic (its [{s}] lacks {', '.join(missing)}): "
+                             f"{OLD}")
+        tables[s] = {f.name: _from_json(f, saved[f.name]) for f in own
+                     if saved[f.name] is not None or "None" in str(f.type) or str(f.type) == "float"}
     try:
-        return TrainConfig.from_flat(**values)
+        return TrainConfig.make(**tables)
     except (TypeError, ValueError) as err:
         raise ValueError(f"{where}: {err}") from None
 

@@ -229,7 +229,7 @@ def train_gradient(config: TrainConfig, callbacks: Sequence[Callable[[dict], Non
     bound, ``grad_gain_max``), ``config.plant`` (the nominal plant), ``config.env.gain_filter``,
     ``config.ppo.hidden`` (network policy) and the run-control fields of ``config.run``; on resume, the saved
     config with the new ``RUN_CONTROL`` fields and ``grad_steps``. ``callbacks``: each learning-curve row."""
-    config, run_dir, saved = prepare(config, keep=("grad_steps",))
+    config, run_dir, saved = prepare(config)
     grad_config, plant = gradient_setup(config)  # validates: fail before creating the run directory
     objective.check_scenarios(grad_config, plant)
     if grad_config.grad_steps % grad_config.steps_per_chunk:  # a chunk is one compiled program of steps_per_chunk steps

@@ -134,7 +134,7 @@ def compare(run_dir: Path) -> dict:
     """The run's deterministic policy vs backstepping(4.0) and open loop, nonlinear plant, 300 s."""
     ctrl, config = load_policy(run_dir)
     pc = config.plant
-    plant = pc.traffic().replace(alpha_noise=0.0)
+    plant = pc.replace(alpha_noise=0.0)
     out = {"run_dir": str(run_dir), "plant": {"delay": pc.delay, "alpha": pc.alpha, "n_points": pc.n_points,
                                                "dt": pc.dt},
            "horizon_s": SIM_STEPS * pc.dt, "load_before": load()}

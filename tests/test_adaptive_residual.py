@@ -98,7 +98,7 @@ def test_a_residual_run_trains_by_cem_saves_and_loads(tmp_path):
                                "--n-points", "21", "--train-delays", "2,6", "--train-alphas", "0.15,0.4",
                                "--train-horizon-s", "10", "--grad-steps", "5", "--eval-horizon-s", "10"])
     assert config.grad.grad_method == "cem" and config.grad.schedule_knots == (0.0, 4.0, 8.0)
-    init = objective.init_theta(config.grad, config.plant.traffic(), jax.random.PRNGKey(0))
+    init = objective.init_theta(config.grad, config.plant, jax.random.PRNGKey(0))
     assert init.shape == (3, 3, 2) and not np.any(np.asarray(init))  # starts at the adaptive law
     train_gradient(config)
     check_told_delay_run(out, "residual")

@@ -37,6 +37,36 @@ def test_toml_round_trip(tmp_path):
         read_config(tmp_path / "bad.toml")
 
 
+def test_the_plant_section_is_traffic_params_and_a_file_sets_its_physics(tmp_path):
+    """The plant section is the library's TrafficParams as it is: a config file sets any of its fields (the
+    road's length, the inflow...), which reach the environment; only the ones with a help text are flags."""
+    (tmp_path / "road.toml").write_text("[plant]\nL = 2000.0\nq_in = 0.3\nn_points = 401\n")
+    config = read_config(tmp_path / "road.toml")
+    assert isinstance(config.plant, jaxtraffic.TrafficParams)
+    assert config.env_params().traffic == jaxtraffic.TrafficParams(delay=4.0, L=2000.0, q_in=0.3, n_points=401)
+    assert train_cli.config_from_args(["--config", str(tmp_path / "road.toml"), "--delay", "2"]).plant.L == 2000.0
+    with pytest.raises(SystemExit):  # a physical constant is a config file's, not a flag
+        train_cli.main(["--L", "2000"])
+    with pytest.raises(ValueError, match=r"q_in = 'fast': must be a number"):
+        TrainConfig.make(plant={"q_in": "fast"})
+
+
+def test_a_version_3_config_json_is_converted():
+    """Version 3 held eight of the plant's fields (the others could not be set: they were the defaults)."""
+    from jaxtraffic.runs.config import config_from_json, config_json
+    from jaxtraffic.runs.config.tree import fields_for
+
+    config = TrainConfig.make(plant={"n_points": 21, "delay": 2.0}, run={"seed": 7})
+    data = config_json(config)
+    flags = {f.name for s, f in fields_for("ppo") if s == "plant"}
+    assert flags == {"delay", "alpha", "alpha_noise", "n_points", "scheme", "substeps", "dt", "max_delay_steps"}
+    old = {**data, "version": 3, "config": {**data["config"], "plant": {k: v for k, v in data["config"]["plant"].items()
+                                                                         if k in flags}}}
+    assert config_from_json(old) == config
+    with pytest.raises(ValueError, match=r"older jaxtraffic \(its \[plant\] lacks L"):
+        config_from_json({**old, "version": 4})
+
+
 @pytest.mark.parametrize("argv", [[*TINY, "--total-steps", "64", "--keep-going"], GRAD], ids=["ppo", "gradient"])
 def test_a_run_from_its_config_toml_is_the_same_run(argv, tmp_path):
     first = train_cli.main([*argv, "--out-dir", str(tmp_path / "a")])

@@ -1,4 +1,4 @@
-"""One name per hyperparameter, from the flag to the code, and one range per field (``learn.fields``)."""
+"""One name per hyperparameter, from the flag to the code, and one range per field (``jaxtraffic.fields``)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxtraffic.learn import fields
+from jaxtraffic import fields
 from jaxtraffic.learn.env import make_env_params
 from jaxtraffic.learn.gradient.config import POLICY_DEFAULTS, GradientConfig
 from jaxtraffic.learn.gradient.objective import Weights, weights_of

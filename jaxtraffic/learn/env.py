@@ -41,7 +41,7 @@ from jax.custom_batching import custom_vmap
 
 from jaxtraffic.control import gain_policy as gp
 from jaxtraffic.control.gain_law import FILTER_SIGMA, sigma_nodes
-from jaxtraffic.learn.fields import check_fields, fail, hyper
+from jaxtraffic.fields import check_fields, fail, hyper
 from jaxtraffic.model.linear import LinearModel, gain_law_is_regular, gain_law_wave_speed, linearize
 from jaxtraffic.model.params import TrafficParams, equilibrium
 from jaxtraffic.sim.initial import paper_initial_condition
@@ -122,7 +122,7 @@ def make_env_params(traffic: TrafficParams | None = None, filter_sigma: float = 
         raise ValueError(f"delay_max={ep.delay_max} s exceeds the buffer ({traffic.max_delay_steps} steps)")
     if not (0.0 <= ep.alpha_min and ep.alpha_max <= 1.0):
         raise ValueError("alpha range must lie in [0, 1]")
-    check_fields(ep)  # each field's range (learn.fields: gain_max, gain_filter, the reward weights, ...)
+    check_fields(ep)  # each field's range (jaxtraffic.fields: gain_max, gain_filter, the reward weights, ...)
     if ep.obs_segments > traffic.n_points:
         raise fail("obs_segments", ep.obs_segments, f"must lie in [0, n_points = {traffic.n_points}]")
     if ep.horizon < 1:

@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from jaxtraffic.fields import hyper
 from jaxtraffic.model import fundamental
 from jaxtraffic.model.schemes import SCHEME_NAMES
 from jaxtraffic.platform.tracing import concrete
@@ -67,20 +68,23 @@ class TrafficParams:
     L: float = 1000.0
     l: float = 5.0
     q_in: float = 1.0 / 3.0
-    alpha: float = 0.15
+    # a field with a help text is also a flag of train.py (``jaxtraffic.fields``); the others are set in a run's
+    # config file ([plant] table)
+    alpha: float = hyper(0.15, lo=0.0, hi=1.0, help="ACC penetration rate")
     tau_acc: float = 2.0
     tau_m: float = 60.0
     h_bar: float = 1.5
     h_m: float = 1.0
-    delay: float = 0.0
-    dt: float = 0.1
+    delay: float = hyper(0.0, lo=0.0, help="plant input delay D, s (multiple of dt)")
+    dt: float = hyper(0.1, lo=0.0, lo_open=True, help="time step, s (the control period)")
     h_min: float = 0.5
     h_max: float = 3.0
-    alpha_noise: float = 0.0
-    n_points: int = struct.field(pytree_node=False, default=201)
-    substeps: int = struct.field(pytree_node=False, default=1)
-    max_delay_steps: int = struct.field(pytree_node=False, default=100)
-    scheme: str = struct.field(pytree_node=False, default="upwind")
+    alpha_noise: float = hyper(0.0, lo=0.0, help="per-step std of plant alpha noise")
+    n_points: int = hyper(201, lo=3, static=True, help="grid points (dx = L/(n-1))")
+    substeps: int = hyper(1, lo=1, static=True, help="solver steps per time step dt")
+    max_delay_steps: int = hyper(100, lo=0, hi=10**6, static=True, help="delay buffer capacity, steps")
+    scheme: str = hyper("upwind", static=True, help="the plant's numerical scheme (upwind: the paper's; muscl: "
+                        "second order)", choices=SCHEMES)
     model: str = struct.field(pytree_node=False, default="arz")
 
     def __post_init__(self) -> None:

@@ -45,7 +45,7 @@ def policy_certificate(controller: Controller, config: TrainConfig) -> dict[str,
     """The stability certificate (``control.stability``) of a run's controller on its own grid, at its
     training plant's nominal delay and alpha, as a JSON-ready dict."""
     grid = policy_grid(config)
-    nominal = config.plant.traffic().replace(n_points=grid.n_points, substeps=1, scheme="upwind", alpha_noise=0.0)
+    nominal = config.plant.replace(n_points=grid.n_points, substeps=1, scheme="upwind", alpha_noise=0.0)
     return certify_controller(controller, nominal, float(config.plant.delay), config.env.filter_sigma).to_json()
 
 

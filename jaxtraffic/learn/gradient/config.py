@@ -11,7 +11,7 @@ from typing import Any
 
 from jaxtraffic.control.gain_law import FILTER_SIGMA
 from jaxtraffic.control.networks import SMALL_HIDDEN
-from jaxtraffic.learn.fields import check_fields, fail, hyper
+from jaxtraffic.fields import check_fields, fail, hyper
 
 POLICIES = ("gains", "network", "schedule", "residual")
 METHODS = ("adam", "cem")  # Adam on the gradient of the objective; the cross-entropy method on the map's counts
@@ -24,7 +24,7 @@ class GradientConfig:
 
     A run's config nests it as it is (``runs.config.TrainConfig.grad``; ``gain_filter``, ``filter_sigma`` and
     ``controller_points`` are set from the environment's section, ``hidden`` from PPO's); each field is checked
-    against the range in its metadata (``learn.fields.hyper``).
+    against the range in its metadata (``jaxtraffic.fields.hyper``).
 
     The training scenarios are the Cartesian product of ``train_delays`` (s, multiples of dt) x
     ``train_alphas`` x ``train_amplitudes`` (veh/m) x ``train_wavenumbers`` x ``train_phases`` (rad) of the

@@ -34,7 +34,7 @@ from jax.sharding import PartitionSpec as P
 
 from jaxtraffic.control.gain_policy import normalize_obs
 from jaxtraffic.control.networks import SMALL_HIDDEN, ActorCritic, actor_critic_apply
-from jaxtraffic.learn.fields import check_fields, hyper
+from jaxtraffic.fields import check_fields, hyper
 from jaxtraffic.learn.ppo.losses import Batch, compute_gae, gaussian_log_prob, ppo_loss
 from jaxtraffic.sim.sharding import local_copy
 
@@ -119,7 +119,7 @@ class Runner:
 # --------------------------------------------------------------------------- pure PPO maths
 def check_ppo_config(ppo_config: PPOConfig) -> None:
     """Reject hyperparameters that make no sense (ValueError): each field against the range in its
-    metadata (``learn.fields.hyper``)."""
+    metadata (``jaxtraffic.fields.hyper``)."""
     check_fields(ppo_config)
 
 

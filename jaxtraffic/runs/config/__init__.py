@@ -10,7 +10,6 @@ from jaxtraffic.runs.config.tree import (
     RUN_CONTROL,
     SECTIONS,
     EnvConfig,
-    PlantConfig,
     RunConfig,
     TrainConfig,
     config_from_json,
@@ -19,5 +18,5 @@ from jaxtraffic.runs.config.tree import (
 )
 
 __all__ = ["ALGOS", "CONFIG_VERSION", "POPULATION", "RUN_CONTROL", "SECTIONS",
-           "EnvConfig", "PlantConfig", "RunConfig", "TrainConfig",
+           "EnvConfig", "RunConfig", "TrainConfig",
            "config_from_json", "config_json", "load_config", "read_config", "write_config"]

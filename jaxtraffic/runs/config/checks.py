@@ -5,7 +5,7 @@ fails before any directory is created or anything compiles, with a message namin
 the value and the allowed range, e.g. ``lr = -1.0: must be > 0``. It checks every
 leaf's type (from its annotation; numpy integers and floats are accepted and normalised to Python
 ones, strings and bools where a number is expected are not) and its range (the field's metadata,
-``learn.fields.hyper``: a library struct's field lends its range to the tree's field that sets it), then the
+``jaxtraffic.fields.hyper``: a library struct's field lends its range to the tree's field that sets it), then the
 constraints between fields.
 ``check_devices`` adds what depends on the process (the device count).
 The plant's physics (equilibrium, CFL, delay vs buffer) is checked by ``TrafficParams``.
@@ -19,7 +19,7 @@ import numbers
 import os
 from typing import Any
 
-from jaxtraffic.learn.fields import check_value, fail
+from jaxtraffic.fields import check_value, fail
 
 # Every float must be finite unless listed in ALLOW_INF.
 FLOAT32_MAX = 3.4028234663852886e38
@@ -101,22 +101,35 @@ def _check_pair(name: str, value: tuple | None) -> None:
         raise fail(name, value, f"both ends must be {span}" if hi_bound is None else f"must lie in {span}")
 
 
+def _checked(f: dataclasses.Field, value: Any) -> Any:
+    """``value`` of the field ``f`` checked (type, choices, range, pair bounds) and normalised."""
+    typed = _typed(f.name, str(f.type), value)
+    choices = f.metadata.get("choices")
+    if choices and typed is not None and typed not in choices:
+        raise fail(f.name, typed, f"must be one of {tuple(choices)}")
+    rule = f.metadata.get("range")
+    if isinstance(typed, tuple) and rule is None:  # LO,HI pairs
+        _check_pair(f.name, typed)
+    else:  # a number, or each element of a tuple (gain_max, the scenario grids)
+        check_value(f.name, typed, rule)
+    return typed
+
+
+def check_table(cls: type, table: dict[str, Any]) -> dict[str, Any]:
+    """The values ``table`` gives fields of the dataclass ``cls``, checked and normalised (before ``cls`` is
+    built: a library struct's own checks then see clean values)."""
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    return {k: _checked(fields[k], v) if k in fields else v for k, v in table.items()}
+
+
 def check_section(section: Any) -> None:
     """Check (and normalise in place: numpy scalars to Python ones, lists to tuples) one frozen
     config dataclass: every field's type, range and pair bounds."""
     for f in dataclasses.fields(section):
         value = getattr(section, f.name)
-        typed = _typed(f.name, str(f.type), value)
+        typed = _checked(f, value)
         if typed is not value:
             object.__setattr__(section, f.name, typed)
-        choices = f.metadata.get("choices")
-        if choices and typed is not None and typed not in choices:
-            raise fail(f.name, typed, f"must be one of {tuple(choices)}")
-        rule = f.metadata.get("range")
-        if isinstance(typed, tuple) and rule is None:  # LO,HI pairs
-            _check_pair(f.name, typed)
-        else:  # a number, or each element of a tuple (gain_max, the scenario grids)
-            check_value(f.name, typed, rule)
 
 
 def check_config(config: Any) -> None:

@@ -22,14 +22,14 @@ from types import MappingProxyType
 from typing import Any
 
 from jaxtraffic.control.gain_law import FILTER_SIGMA
+from jaxtraffic.fields import hyper, range_of
 from jaxtraffic.learn.env import EnvParams, make_env_params
-from jaxtraffic.learn.fields import hyper, range_of
 from jaxtraffic.learn.gradient.config import GradientConfig
 from jaxtraffic.learn.ppo import PPOConfig
-from jaxtraffic.model.params import SCHEMES, TrafficParams
+from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.sim.metrics import REWARD_TARGET
 
-CONFIG_VERSION = 3
+CONFIG_VERSION = 4  # 4: the plant section is TrafficParams (3: eight of its fields)
 OLD = "retrain the run with this version of train.py (its flags are in that config.json)"
 
 
@@ -38,7 +38,6 @@ def _defaults(cls: type) -> dict[str, Any]:
     return {f.name: f.default for f in dataclasses.fields(cls)}
 
 
-_TP = _defaults(TrafficParams)
 _EP = _defaults(EnvParams)
 _PPO = _defaults(PPOConfig)
 ALGOS = ("ppo", "gradient")
@@ -50,7 +49,7 @@ POPULATION = 2
 
 def _f(default: Any, help: str, **meta: Any) -> Any:
     """A config field with its ``help`` (the flag's help text), its range (``lo``, ``hi``, ... as
-    ``learn.fields.hyper``; a field that sets a library field takes its range, ``_lend_ranges``) and flag
+    ``jaxtraffic.fields.hyper``; a field that sets a library field takes its range, ``_lend_ranges``) and flag
     options in its metadata."""
     return hyper(default, help=help, **meta) if {"lo", "hi"} & set(meta) else \
         field(default=default, metadata={"help": help, **meta})
@@ -62,27 +61,6 @@ def _lend_ranges(tree_cls: type, lib_cls: type) -> None:
         rule = range_of(lib_cls, f.name) if f.name in {g.name for g in dataclasses.fields(lib_cls)} else None
         if rule is not None:
             f.metadata = MappingProxyType({**f.metadata, "range": rule})
-
-
-@dataclass(frozen=True)
-class PlantConfig:
-    """The nominal training plant and grid."""
-
-    delay: float = _f(float(_EP["traffic"].delay), "plant input delay D, s (multiple of dt)", lo=0.0)
-    alpha: float = _f(_TP["alpha"], "ACC penetration rate", lo=0.0, hi=1.0)
-    alpha_noise: float = _f(_TP["alpha_noise"], "per-step std of plant alpha noise", lo=0.0)
-    n_points: int = _f(_TP["n_points"], "grid points (dx = L/(n-1))", lo=3)
-    # upwind: the paper's; muscl: second order
-    scheme: str = _f(_TP["scheme"], "the plant's numerical scheme", choices=SCHEMES)
-    # a finer plant with the same control period
-    substeps: int = _f(_TP["substeps"], "solver steps per time step dt", lo=1)
-    dt: float = _f(_TP["dt"], "time step, s (the control period)", lo=0.0, lo_open=True)
-    max_delay_steps: int = _f(_TP["max_delay_steps"], "delay buffer capacity, steps", lo=0, hi=10**6)
-
-    def traffic(self) -> TrafficParams:
-        return TrafficParams(delay=self.delay, alpha=self.alpha, alpha_noise=self.alpha_noise,
-                             n_points=self.n_points, scheme=self.scheme, substeps=self.substeps, dt=self.dt,
-                             max_delay_steps=self.max_delay_steps)
 
 
 @dataclass(frozen=True)
@@ -188,10 +166,11 @@ def run_control(algo: str) -> dict[str, tuple[str, ...]]:
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """The whole training configuration: ``plant``, ``env``, ``ppo`` (the library's ``PPOConfig`` as it is:
+    """The whole training configuration: ``plant`` (the library's ``TrafficParams`` as it is: the training plant
+    and its grid), ``env``, ``ppo`` (the library's ``PPOConfig`` as it is:
     ``num_seeds`` is the population, ``num_envs`` each member's), ``grad`` (gradient-based training) and ``run``."""
 
-    plant: PlantConfig = PlantConfig()
+    plant: TrafficParams = _EP["traffic"]  # the environment's default plant (learn.env.EnvParams)
     env: EnvConfig = EnvConfig()
     ppo: PPOConfig = PPOConfig(num_envs=_PPO["num_envs"] // POPULATION, num_seeds=POPULATION)
     grad: GradientConfig = GradientConfig()
@@ -210,12 +189,16 @@ class TrainConfig:
         """A config from one mapping per section, the rest their defaults (``TrainConfig.make(plant={"n_points":
         21}, ppo={"num_envs": 64})``; the gradient section's defaults are its policy's); an unknown section or
         field is a ``TypeError``."""
+        from jaxtraffic.runs.config.checks import check_table  # (checks imports this module)
+
         for s, table in tables.items():
             if s not in SECTIONS:
                 raise TypeError(f"unknown config section {s!r} (the sections are {', '.join(SECTIONS)})")
             unknown = sorted(set(table) - {f.name for f in leaf_fields(s)})
             if unknown:
                 raise TypeError(f"the config section {s!r} has no field {unknown[0]!r}")
+        # each value's type and range before a section is built (a library struct checks its own values too)
+        tables = {s: check_table(SECTIONS[s], table) for s, table in tables.items()}
         grad = GradientConfig.for_policy(**tables.get("grad", {}))  # the policy's defaults under the given fields
         return cls(grad=grad, **{s: dataclasses.replace(_DEFAULT[s], **tables.get(s, {})) for s in SECTIONS
                                  if s != "grad"})
@@ -240,7 +223,7 @@ class TrainConfig:
         d_lo, d_hi = (round(d / pl.dt) * pl.dt for d in (d_lo, d_hi))
         a_lo, a_hi = en.alpha_range or (pl.alpha, pl.alpha)
         return make_env_params(
-            pl.traffic(), horizon=max(1, round(en.horizon_s / pl.dt)), gain_max=en.gain_max, amp_min=en.amp_range[0],
+            pl, horizon=max(1, round(en.horizon_s / pl.dt)), gain_max=en.gain_max, amp_min=en.amp_range[0],
             amp_max=en.amp_range[1], wavenumber_min=int(en.wavenumber_range[0]),
             wavenumber_max=int(en.wavenumber_range[1]), phase_max=en.phase_max, delay_min=d_lo, delay_max=d_hi,
             alpha_min=a_lo, alpha_max=a_hi, gain_filter=en.gain_filter, h_rate_weight=en.h_rate_weight,
@@ -248,7 +231,7 @@ class TrainConfig:
             diverge_penalty=en.diverge_penalty, filter_sigma=en.filter_sigma)
 
 
-SECTIONS = {"plant": PlantConfig, "env": EnvConfig, "ppo": PPOConfig, "grad": GradientConfig, "run": RunConfig}
+SECTIONS = {"plant": TrafficParams, "env": EnvConfig, "ppo": PPOConfig, "grad": GradientConfig, "run": RunConfig}
 # GradientConfig's fields that a run sets from other sections (``TrainConfig.__post_init__``), or not at all
 # (max_grad_norm: PPO's field of that name is the flag's)
 BORROWED = ("hidden", "gain_filter", "filter_sigma", "controller_points", "max_grad_norm")
@@ -265,9 +248,10 @@ SECTION_ALGO = {"ppo": "ppo", "grad": "gradient"}  # the sections one algorithm 
 
 def fields_for(algo: str) -> list[tuple[str, dataclasses.Field]]:
     """(section, field) of each leaf field the algorithm ``algo`` reads that is set on the command line
-    (``cli.train``): a field's metadata ``algo`` ("ppo", "gradient", "both"; default: its section's) and ``cli``
-    (False: a config file's only)."""
-    return [(s, f) for s in SECTIONS for f in leaf_fields(s) if f.metadata.get("cli", True)
+    (``cli.train``): a field with a ``help`` text, but ``cli`` False (a config file's only), whose metadata
+    ``algo`` ("ppo", "gradient", "both"; default: its section's) names ``algo``. (The plant's physical constants
+    have no help text: they are set in a config file's [plant] table.)"""
+    return [(s, f) for s in SECTIONS for f in leaf_fields(s) if f.metadata.get("cli", "help" in f.metadata)
             and f.metadata.get("algo", SECTION_ALGO.get(s, "both")) in ("both", algo)]
 
 
@@ -318,6 +302,8 @@ def config_from_json(data: dict[str, Any], where: str = "config.json") -> TrainC
         missing = [s for s in required if not isinstance(tree, dict) or not isinstance(tree.get(s), dict)]
         raise ValueError(f"{where}: the config tree lacks the section(s) {missing} (has {have}); "
                          "not a complete config.json written by train.py")
+    if data.get("version") == 3:  # the plant held eight of TrafficParams' fields: the others were the defaults
+        tree = {**tree, "plant": {**dataclasses.asdict(TrafficParams()), **tree["plant"]}}
     tables: dict[str, dict[str, Any]] = {}
     for s in SECTIONS:
         saved = tree.get(s) if isinstance(tree.get(s), dict) else {}

@@ -22,7 +22,7 @@ __all__ = ["gradient_setup", "load_gradient_policy", "own_grid_controller"]
 def gradient_setup(config: TrainConfig) -> tuple[GradientConfig, TrafficParams]:
     """The algorithm's settings and the nominal plant (no alpha noise) of a ``TrainConfig`` with
     ``run.algo = "gradient"``."""
-    nominal = config.plant.traffic().replace(alpha_noise=0.0)
+    nominal = config.plant.replace(alpha_noise=0.0)
     return config.grad, nominal
 
 

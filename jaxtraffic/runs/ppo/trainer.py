@@ -120,7 +120,7 @@ def make_evaluator(ppo_config: algorithm.PPOConfig, env_params: learn_env.EnvPar
 def _certified(gains: np.ndarray, candidate: np.ndarray, config: TrainConfig) -> np.ndarray:
     """Per member: whether its equilibrium ``gains`` ((M, 3)) are certified (``control.stability``) at the
     training delay and alpha with the law's filter; computed for the ``candidate`` members only."""
-    nominal = config.plant.traffic().replace(alpha_noise=0.0)
+    nominal = config.plant.replace(alpha_noise=0.0)
     return np.array([bool(c) and certify(g, nominal, float(config.plant.delay), config.env.filter_sigma).stable
                      for g, c in zip(np.asarray(gains), np.asarray(candidate), strict=True)])
 

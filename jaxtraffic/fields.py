@@ -1,9 +1,10 @@
 """A hyperparameter's allowed range lives in its own field's metadata (``hyper``), checked there (``check_fields``).
 
 ``lr: float = hyper(1e-3, lo=0.0, lo_open=True)`` declares the field, its default and its range once, in the
-dataclass that uses it (``learn.env.EnvParams``, ``learn.ppo.PPOConfig``, ``learn.gradient.GradientConfig``);
-the run's config and the struct itself both check it against that metadata, with one message naming the field,
-e.g. ``gamma = 5.0: must lie in (0.0, 1.0]``. This module imports nothing from jaxtraffic.
+dataclass that uses it (``model.params.TrafficParams``, ``learn.env.EnvParams``, ``learn.ppo.PPOConfig``,
+``learn.gradient.GradientConfig``); the run's config and the struct itself both check it against that metadata,
+with one message naming the field, e.g. ``gamma = 5.0: must lie in (0.0, 1.0]``. A field's ``help`` (one line)
+is its flag's help text on the command line. This module imports nothing from jaxtraffic (the ground floor).
 """
 
 from __future__ import annotations
@@ -18,7 +19,8 @@ def hyper(default: Any, *, lo: float | None = None, hi: float | None = None, lo_
           hi_open: bool = False, static: bool = False, **meta: Any) -> Any:
     """A dataclass field with ``default`` and its range ``lo`` .. ``hi`` (inclusive unless ``*_open``) in its
     metadata; ``static``: not a pytree leaf of a ``flax.struct`` dataclass (a shape or a count)."""
-    metadata = {"range": (lo, not lo_open, hi, not hi_open), **meta}
+    bounded = lo is not None or hi is not None
+    metadata = {**({"range": (lo, not lo_open, hi, not hi_open)} if bounded else {}), **meta}
     if static:
         metadata["pytree_node"] = False
     return dataclasses.field(default=default, metadata=metadata)

@@ -17,6 +17,7 @@ import dataclasses
 import math
 import numbers
 import os
+from collections.abc import Mapping
 from typing import Any
 
 from jaxtraffic.fields import check_value, fail
@@ -115,7 +116,7 @@ def _checked(f: dataclasses.Field, value: Any) -> Any:
     return typed
 
 
-def check_table(cls: type, table: dict[str, Any]) -> dict[str, Any]:
+def check_table(cls: type, table: Mapping[str, Any]) -> dict[str, Any]:
     """The values ``table`` gives fields of the dataclass ``cls``, checked and normalised (before ``cls`` is
     built: a library struct's own checks then see clean values)."""
     fields = {f.name: f for f in dataclasses.fields(cls)}

@@ -306,7 +306,8 @@ def config_from_json(data: dict[str, Any], where: str = "config.json") -> TrainC
         tree = {**tree, "plant": {**dataclasses.asdict(TrafficParams()), **tree["plant"]}}
     tables: dict[str, dict[str, Any]] = {}
     for s in SECTIONS:
-        saved = tree.get(s) if isinstance(tree.get(s), dict) else {}
+        section = tree.get(s)
+        saved: dict[str, Any] = section if isinstance(section, dict) else {}
         own = leaf_fields(s)
         missing = [f.name for f in own if f.name not in saved]
         if missing:

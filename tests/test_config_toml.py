@@ -52,17 +52,26 @@ def test_the_plant_section_is_traffic_params_and_a_file_sets_its_physics(tmp_pat
 
 
 def test_a_version_3_config_json_is_converted():
-    """Version 3 held eight of the plant's fields (the others could not be set: they were the defaults)."""
+    """Version 3 held eight of the plant's fields (the others could not be set: they were the defaults), and the
+    controller's own grid in the environment's section (None: the plant's)."""
     from jaxtraffic.runs.config import config_from_json, config_json
     from jaxtraffic.runs.config.tree import fields_for
 
-    config = TrainConfig.make(plant={"n_points": 21, "delay": 2.0}, run={"seed": 7})
+    config = TrainConfig.make(plant={"n_points": 21, "delay": 2.0}, run={"seed": 7, "algo": "gradient"},
+                              grad={"controller_points": 11})
     data = config_json(config)
     flags = {f.name for s, f in fields_for("ppo") if s == "plant"}
     assert flags == {"delay", "alpha", "alpha_noise", "n_points", "scheme", "substeps", "dt", "max_delay_steps"}
-    old = {**data, "version": 3, "config": {**data["config"], "plant": {k: v for k, v in data["config"]["plant"].items()
-                                                                         if k in flags}}}
+    tree = data["config"]
+    old = {**data, "version": 3, "config": {
+        **tree, "plant": {k: v for k, v in tree["plant"].items() if k in flags},
+        "env": {**tree["env"], "controller_points": 11},
+        "grad": {k: v for k, v in tree["grad"].items() if k != "controller_points"}}}
     assert config_from_json(old) == config
+    ppo = config_json(TrainConfig.make(plant={"n_points": 21}))
+    old_ppo = {**ppo, "version": 3,
+               "config": {**ppo["config"], "env": {**ppo["config"]["env"], "controller_points": None}}}
+    assert config_from_json(old_ppo).grad.controller_points == 0
     with pytest.raises(ValueError, match=r"older jaxtraffic \(its \[plant\] lacks L"):
         config_from_json({**old, "version": 4})
 

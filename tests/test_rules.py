@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import jaxtraffic
 from jaxtraffic import fields
 from jaxtraffic.learn.env import make_env_params
 from jaxtraffic.learn.gradient.config import POLICY_DEFAULTS, GradientConfig
@@ -25,7 +26,7 @@ GIVEN = {"grad_steps": 6, "grad_lr": 0.02, "train_delays": (1.0, 2.0), "train_al
          "record_every": 3, "steps_per_chunk": 2, "reward_weight": 0.5, "waves_weight": 0.25, "comfort_weight": 2e-5,
          "scenario_clip": 0.75, "init_gains": (0.1, -0.2, 0.3),
          "schedule_knots": (0.0, 3.0), "grad_method": "cem", "cem_population": 5, "cem_sigma": 0.4,
-         "grad_gain_max": 2.5}
+         "grad_gain_max": 2.5, "controller_points": 11}
 TREE_FIELDS = {f.name for s in SECTIONS for f in leaf_fields(s)}
 
 
@@ -34,13 +35,13 @@ def test_every_flag_reaches_the_algorithm_under_its_own_name():
     cfg = gradient_setup(TrainConfig.make(run={"algo": "gradient"}, grad=GIVEN))[0]
     assert {name: getattr(cfg, name) for name in GIVEN} == GIVEN
     # the fields the algorithm has beyond the flags of its section come from the environment and the network
-    tree = TrainConfig.make(run={"algo": "gradient"}, plant={"n_points": 21},
-                            env={"gain_filter": 0.5, "filter_sigma": 10.0, "controller_points": 11})
+    tree = TrainConfig.make(run={"algo": "gradient"}, plant={"n_points": 21}, grad={"controller_points": 11},
+                            env={"gain_filter": 0.5, "filter_sigma": 10.0})
     cfg = gradient_setup(tree)[0]
     assert (cfg.gain_filter, cfg.filter_sigma, cfg.controller_points, cfg.hidden) == (0.5, 10.0, 11,
                                                                                       tuple(tree.ppo.hidden))
     extra = {f.name for f in dataclasses.fields(GradientConfig)} - set(GIVEN) - {"policy"}
-    assert extra == {"hidden", "gain_filter", "filter_sigma", "controller_points", "max_grad_norm"}
+    assert extra == {"hidden", "gain_filter", "filter_sigma", "max_grad_norm"}
     # the policies' defaults and the objective's weights use the same names
     assert all(set(d) <= set(GIVEN) for d in POLICY_DEFAULTS.values())
     assert {f.name for f in dataclasses.fields(Weights)} <= set(GIVEN)
@@ -52,13 +53,17 @@ def test_every_range_lives_in_a_field_and_fields_imports_no_jaxtraffic():
     """The tree's fields that configure a library field carry that field's range (one home), and the helper
     module sits below everything it serves."""
     from jaxtraffic.learn.env import EnvParams
-    from jaxtraffic.runs.config.tree import EnvConfig
+    from jaxtraffic.learn.env_config import EnvConfig
 
-    for tree_cls, lib_cls in ((EnvConfig, EnvParams),):
-        for f in dataclasses.fields(tree_cls):
-            lib = fields.range_of(lib_cls, f.name) if f.name in {g.name for g in dataclasses.fields(lib_cls)} else None
-            if lib is not None:
-                assert f.metadata.get("range") == lib, (tree_cls.__name__, f.name)
+    assert SECTIONS["env"] is EnvConfig and SECTIONS["plant"] is jaxtraffic.TrafficParams  # no mirror classes
+    shared = {f.name for f in dataclasses.fields(EnvParams)} & {f.name for f in dataclasses.fields(EnvConfig)}
+    assert shared and all(fields.range_of(EnvParams, n) is None for n in shared)  # the range is EnvConfig's alone
+    for name in shared:
+        assert getattr(EnvParams(), name) == getattr(EnvConfig(), name), name  # one default
+        rule = fields.range_of(EnvConfig, name)
+        if rule is not None and rule[0] is not None:  # the struct is checked against EnvConfig's range
+            with pytest.raises(ValueError, match=rf"{name} = "):
+                make_env_params(**{name: rule[0] - 1.0})
     tree = ast.parse(Path(fields.__file__).read_text())
     imported = [n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)] + \
         [a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names]
@@ -82,9 +87,9 @@ def test_every_range_lives_in_a_field_and_fields_imports_no_jaxtraffic():
 ])
 def test_one_rule_checked_by_the_tree_and_by_the_struct(name, value, struct):
     lib = {"gamma": PPOConfig, "clip_eps": PPOConfig, "gain_filter": GradientConfig}.get(name, GradientConfig)
-    from jaxtraffic.learn.env import EnvParams
+    from jaxtraffic.learn.env_config import EnvConfig
 
-    lib = EnvParams if name in ("wave_weight", "gain_max") else lib
+    lib = EnvConfig if name in ("wave_weight", "gain_max") else lib
     rule = fields.range_of(lib, name)
     assert rule is not None and not fields.in_range(value, rule)
     message = re.escape(f"{name} = {value!r}: {fields.range_text(rule)}")

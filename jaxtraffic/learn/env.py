@@ -29,6 +29,7 @@ controller's target and the environment's ``gains`` (the applied, filtered gains
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from typing import TYPE_CHECKING, Any
 
@@ -40,8 +41,9 @@ from flax import struct
 from jax.custom_batching import custom_vmap
 
 from jaxtraffic.control import gain_policy as gp
-from jaxtraffic.control.gain_law import FILTER_SIGMA, sigma_nodes
-from jaxtraffic.fields import check_fields, fail, hyper
+from jaxtraffic.control.gain_law import sigma_nodes
+from jaxtraffic.fields import check_value, fail, range_of
+from jaxtraffic.learn.env_config import EnvConfig
 from jaxtraffic.model.linear import LinearModel, gain_law_is_regular, gain_law_wave_speed, linearize
 from jaxtraffic.model.params import TrafficParams, equilibrium
 from jaxtraffic.sim.initial import paper_initial_condition
@@ -58,34 +60,40 @@ Array = jax.Array
 RESET_ONLY_WHERE_DONE = True
 
 
+_C = EnvConfig()  # the defaults, defined there once (with each field's range and help)
+PLANT = TrafficParams(delay=4.0)  # the default nominal (training) plant: the paper's road at D = 4 s
+
+
 @struct.dataclass
 class EnvParams:
-    """Environment settings; ``traffic`` is the nominal plant (its delay is the training delay).
+    """Environment settings as the environment steps them (traced leaves, static shapes); ``traffic`` is the
+    nominal plant (its delay is the training delay). Built from a ``learn.env_config.EnvConfig`` by
+    ``env_params`` (or ``make_env_params`` field by field); the meaning, unit and range of each field are
+    ``EnvConfig``'s.
 
     Ranges (lo, hi) are sampled uniformly at every reset; equal bounds disable randomisation.
     """
 
-    traffic: TrafficParams = TrafficParams(delay=4.0)
-    horizon: int = 1000  # steps per episode (100 s)
+    traffic: TrafficParams = PLANT
+    horizon: int = round(_C.horizon_s / PLANT.dt)  # steps per episode
     # |eta_i| <= gain_max_i (dimensionless): one bound for all gains or one per gain (a 3-tuple)
-    gain_max: float | tuple[float, float, float] = hyper((1.0, 3.0, 3.0), lo=0.0, lo_open=True)
-    amp_min: float = 0.010  # veh/m
-    amp_max: float = 0.010
-    wavenumber_min: int = 4
-    wavenumber_max: int = 4
-    phase_max: float = hyper(0.0, lo=0.0)  # rad; phase ~ U(0, phase_max)
-    delay_min: float = 4.0  # s
-    delay_max: float = 4.0
-    alpha_min: float = 0.15
-    alpha_max: float = 0.15
-    diverge_penalty: float = hyper(100.0, lo=0.0)  # dimensionless, the reward of the diverging step, subtracted
-    # applied gains move this fraction of the way to the policy's each step; 1: applied directly (the paper)
-    gain_filter: float = hyper(0.2, lo=0.0, lo_open=True, hi=1.0)
-    h_rate_weight: float = hyper(0.2, lo=0.0)  # dimensionless; 0: the paper's reward
-    wave_weight: float = hyper(0.5, lo=0.0)  # dimensionless, times backward_wave_cost; 0: the paper's reward
-    wave_speed_min: float = 1.0  # m/s, backward_wave_cost's threshold
+    gain_max: float | tuple[float, float, float] = _C.gain_max
+    amp_min: float = _C.amp_range[0]  # veh/m
+    amp_max: float = _C.amp_range[1]
+    wavenumber_min: int = _C.wavenumber_range[0]
+    wavenumber_max: int = _C.wavenumber_range[1]
+    phase_max: float = _C.phase_max  # rad; phase ~ U(0, phase_max)
+    delay_min: float = PLANT.delay  # s
+    delay_max: float = PLANT.delay
+    alpha_min: float = PLANT.alpha
+    alpha_max: float = PLANT.alpha
+    diverge_penalty: float = _C.diverge_penalty  # dimensionless, the reward of the diverging step, subtracted
+    gain_filter: float = _C.gain_filter
+    h_rate_weight: float = _C.h_rate_weight  # dimensionless; 0: the paper's reward
+    wave_weight: float = _C.wave_weight  # dimensionless, times backward_wave_cost; 0: the paper's reward
+    wave_speed_min: float = _C.wave_speed_min  # m/s, backward_wave_cost's threshold
     # observation: 0: the full normalised fields (3 n values); K > 0: each field averaged over K equal segments
-    obs_segments: int = hyper(16, lo=0, static=True)
+    obs_segments: int = struct.field(pytree_node=False, default=_C.obs_segments)
     # the gain law's Gaussian filter of the observed rho~, v~, in node spacings of ``traffic``'s grid
     # (``control.gain_law``; make_env_params sets it from a width in m); 0: the paper's pointwise law
     filter_nodes: float = struct.field(pytree_node=False, default=0.0)
@@ -102,10 +110,29 @@ class EnvState:
     gains: Array  # gains applied at the previous step, shape (3,) (dimensionless): the controller state
 
 
-def make_env_params(traffic: TrafficParams | None = None, filter_sigma: float = FILTER_SIGMA, **kwargs) -> EnvParams:
-    """EnvParams whose delay range defaults to the plant's delay and alpha range to its alpha;
-    ``filter_sigma``: width (m) of the gain law's spatial filter on ``traffic``'s grid (0: none)."""
-    traffic = TrafficParams(delay=4.0) if traffic is None else traffic
+def env_params(config: EnvConfig, traffic: TrafficParams) -> EnvParams:
+    """The environment of ``config`` around the nominal plant ``traffic``: episodes of ``horizon_s`` in whole
+    steps, training delays D +- ``delay_spread`` (or ``delay_range``; clipped at 0, rounded to whole steps),
+    alphas ``alpha_range`` (default: the plant's alone)."""
+    d_lo, d_hi = config.delay_range or (max(0.0, traffic.delay - config.delay_spread),
+                                        traffic.delay + config.delay_spread)
+    d_lo, d_hi = (round(d / traffic.dt) * traffic.dt for d in (d_lo, d_hi))
+    a_lo, a_hi = config.alpha_range or (traffic.alpha, traffic.alpha)
+    return make_env_params(
+        traffic, horizon=max(1, round(config.horizon_s / traffic.dt)), gain_max=config.gain_max,
+        amp_min=config.amp_range[0], amp_max=config.amp_range[1], wavenumber_min=int(config.wavenumber_range[0]),
+        wavenumber_max=int(config.wavenumber_range[1]), phase_max=config.phase_max, delay_min=d_lo, delay_max=d_hi,
+        alpha_min=a_lo, alpha_max=a_hi, gain_filter=config.gain_filter, h_rate_weight=config.h_rate_weight,
+        wave_weight=config.wave_weight, wave_speed_min=config.wave_speed_min, obs_segments=config.obs_segments,
+        diverge_penalty=config.diverge_penalty, filter_sigma=config.filter_sigma)
+
+
+def make_env_params(traffic: TrafficParams | None = None, filter_sigma: float = _C.filter_sigma,
+                    **kwargs) -> EnvParams:
+    """EnvParams field by field (the rest their defaults), whose delay range defaults to the plant's delay and
+    alpha range to its alpha; ``filter_sigma``: width (m) of the gain law's spatial filter on ``traffic``'s grid
+    (0: none). Each field shared with ``EnvConfig`` is checked against its range there."""
+    traffic = PLANT if traffic is None else traffic
     kwargs["filter_nodes"] = sigma_nodes(filter_sigma, float(traffic.dx))
     kwargs.setdefault("delay_min", float(traffic.delay))
     kwargs.setdefault("delay_max", float(traffic.delay))
@@ -122,7 +149,10 @@ def make_env_params(traffic: TrafficParams | None = None, filter_sigma: float = 
         raise ValueError(f"delay_max={ep.delay_max} s exceeds the buffer ({traffic.max_delay_steps} steps)")
     if not (0.0 <= ep.alpha_min and ep.alpha_max <= 1.0):
         raise ValueError("alpha range must lie in [0, 1]")
-    check_fields(ep)  # each field's range (jaxtraffic.fields: gain_max, gain_filter, the reward weights, ...)
+    for f in dataclasses.fields(EnvConfig):  # each field's range (EnvConfig's: gain_max, gain_filter, ...)
+        if hasattr(ep, f.name):
+            check_value(f.name, getattr(ep, f.name), f.metadata.get("range"))
+    check_value("filter_sigma", filter_sigma, range_of(EnvConfig, "filter_sigma"))
     if ep.obs_segments > traffic.n_points:
         raise fail("obs_segments", ep.obs_segments, f"must lie in [0, n_points = {traffic.n_points}]")
     if ep.horizon < 1:

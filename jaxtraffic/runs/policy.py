@@ -37,7 +37,7 @@ def policy_grid(config: TrainConfig) -> ControllerGrid:
     """The grid a run's controller acts on: ``controller_points`` nodes (default the training plant's),
     period dt, the training plant's delay buffer."""
     pl = config.plant
-    return ControllerGrid(n_points=config.env.controller_points or pl.n_points, dt=float(pl.dt),
+    return ControllerGrid(n_points=config.grad.controller_points or pl.n_points, dt=float(pl.dt),
                           max_delay_steps=pl.max_delay_steps)
 
 

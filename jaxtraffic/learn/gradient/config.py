@@ -22,8 +22,8 @@ class GradientConfig:
     """Gradient-training settings. Shape-setting fields (scenario grid, horizon, policy, network)
     are static; the objective weights and Adam's settings are traced (``Weights``, ``grad_lr``...).
 
-    A run's config nests it as it is (``runs.config.TrainConfig.grad``; ``gain_filter``, ``filter_sigma`` and
-    ``controller_points`` are set from the environment's section, ``hidden`` from PPO's); each field is checked
+    A run's config nests it as it is (``runs.config.TrainConfig.grad``; ``gain_filter`` and ``filter_sigma`` are
+    set from the environment's section, ``hidden`` and ``max_grad_norm`` from PPO's); each field is checked
     against the range in its metadata (``jaxtraffic.fields.hyper``).
 
     The training scenarios are the Cartesian product of ``train_delays`` (s, multiples of dt) x
@@ -56,7 +56,8 @@ class GradientConfig:
     grad_steps: int = hyper(40, lo=1, help="Adam steps (cem: generations)")
     scenario_clip: float = hyper(0.0, lo=0.0, help="> 0: clip each scenario's gradient to this norm; 0: off")
     filter_sigma: float = hyper(FILTER_SIGMA, lo=0.0)  # m, the gain law's Gaussian filter; 0: pointwise
-    controller_points: int = 0  # the controller's own grid (``control.adapter``); 0: the plant's
+    # the controller's own grid (``control.adapter``; the plant's n_points must refine it by an integer factor)
+    controller_points: int = hyper(0, lo=0, help="controller's grid points (0: the plant's)")
     schedule_knots: tuple[float, ...] = hyper((0.0, 2.0, 4.0, 6.0, 8.0), help="schedule policy: its knot delays, s")
     grad_method: str = hyper("adam", help="adam: Adam on the objective; cem: the cross-entropy method on the map's "
                              "counts", choices=METHODS)

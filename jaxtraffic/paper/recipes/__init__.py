@@ -44,4 +44,4 @@ def training_plant(kind: str, controller_points: int, reference: tuple[int, int]
     else:
         raise ValueError(f"training plant kind must be 'reference' or 'half', got {kind!r}")
     return {"plant": {"n_points": n_points, "scheme": "muscl", "substeps": substeps},
-            "env": {"controller_points": controller_points}}
+            "grad": {"controller_points": controller_points}}

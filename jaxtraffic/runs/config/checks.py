@@ -5,8 +5,7 @@ fails before any directory is created or anything compiles, with a message namin
 the value and the allowed range, e.g. ``lr = -1.0: must be > 0``. It checks every
 leaf's type (from its annotation; numpy integers and floats are accepted and normalised to Python
 ones, strings and bools where a number is expected are not) and its range (the field's metadata,
-``jaxtraffic.fields.hyper``: a library struct's field lends its range to the tree's field that sets it), then the
-constraints between fields.
+``jaxtraffic.fields.hyper``, on the library struct's own field), then the constraints between fields.
 ``check_devices`` adds what depends on the process (the device count).
 The plant's physics (equilibrium, CFL, delay vs buffer) is checked by ``TrafficParams``.
 """
@@ -146,11 +145,11 @@ def check_config(config: Any) -> None:
                     f"must divide the batch num_envs * num_steps = {al.num_envs} * {al.num_steps} = {batch}")
     if run.algo == "ppo" and al.num_minibatches > batch:
         raise fail("num_minibatches", al.num_minibatches, f"must be <= the batch num_envs * num_steps = {batch}")
-    cp = en.controller_points
-    if cp is not None and (cp > pl.n_points or (pl.n_points - 1) % (cp - 1)):
+    cp = config.grad.controller_points
+    if cp and (cp > pl.n_points or (pl.n_points - 1) % (cp - 1)):
         raise fail("controller_points", cp, f"the plant's grid (n-points {pl.n_points}) must refine it by an integer "
                     f"factor: (n_points - 1) a multiple of (controller_points - 1)")
-    if cp is not None and cp != pl.n_points and run.algo != "gradient":
+    if cp and cp != pl.n_points and run.algo != "gradient":
         raise fail("controller_points", cp, "PPO's controller acts on the training plant's grid; only `train.py "
                     "gradient` trains a controller on a grid of its own")
     if run.val_plant == "reference" and run.val_horizon_s > 0 and run.algo == "ppo":

@@ -1,7 +1,13 @@
-"""One config tree for training: plant, environment, algorithm, run (nested frozen dataclasses).
+"""One config tree for training: the library's configs nested as they are, and the run's own.
 
-Each default is defined once: the plant's, the environment's and PPO's come from the library
-structs they configure (``TrafficParams``, ``EnvParams``, ``PPOConfig``), the run's are here.
+    plant  model.params.TrafficParams    the nominal training plant and its grid
+    env    learn.env_config.EnvConfig    episodes, domain randomisation, reward shaping, observation
+    ppo    learn.ppo.PPOConfig           PPO (num_seeds: the population)
+    grad   learn.gradient.GradientConfig the gradient and CEM trainers
+    run    RunConfig (here)              where, how long, the stop rule
+
+Each setting is a field of the one dataclass that uses it, with its default, range and help text there; a
+section is built with ``TrainConfig.make(plant={...}, ...)``, read with ``config.tables()``.
 ``train.py``'s flags are derived from the fields by tyro (``cli.train``: one flag per leaf field that the
 algorithm reads, ``fields_for``, named after it, with the one-line ``help`` of its metadata; a longer explanation
 is the comment above the field). A run's config.json is ``config_json(config)``, and
@@ -16,30 +22,22 @@ import dataclasses
 import json
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from types import MappingProxyType
 from typing import Any
 
-from jaxtraffic.control.gain_law import FILTER_SIGMA
-from jaxtraffic.fields import hyper, range_of
-from jaxtraffic.learn.env import EnvParams, make_env_params
+from jaxtraffic.fields import hyper
+from jaxtraffic.learn.env import PLANT, EnvParams, env_params
+from jaxtraffic.learn.env_config import EnvConfig
 from jaxtraffic.learn.gradient.config import GradientConfig
 from jaxtraffic.learn.ppo import PPOConfig
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.sim.metrics import REWARD_TARGET
 
-CONFIG_VERSION = 4  # 4: the plant section is TrafficParams (3: eight of its fields)
+CONFIG_VERSION = 4  # 4: the plant section is TrafficParams, controller_points the gradient trainer's
 OLD = "retrain the run with this version of train.py (its flags are in that config.json)"
 
 
-def _defaults(cls: type) -> dict[str, Any]:
-    """The default of each field of the dataclass ``cls`` (read, not instantiated)."""
-    return {f.name: f.default for f in dataclasses.fields(cls)}
-
-
-_EP = _defaults(EnvParams)
-_PPO = _defaults(PPOConfig)
 ALGOS = ("ppo", "gradient")
 # The default PPO recipe is a population (docs/model.md section 13.8, "Why a population"): POPULATION members
 # trained at once, each on PPOConfig's num_envs / POPULATION environments, so that a chunk steps as many
@@ -48,61 +46,9 @@ POPULATION = 2
 
 
 def _f(default: Any, help: str, **meta: Any) -> Any:
-    """A config field with its ``help`` (the flag's help text), its range (``lo``, ``hi``, ... as
-    ``jaxtraffic.fields.hyper``; a field that sets a library field takes its range, ``_lend_ranges``) and flag
-    options in its metadata."""
-    return hyper(default, help=help, **meta) if {"lo", "hi"} & set(meta) else \
-        field(default=default, metadata={"help": help, **meta})
-
-
-def _lend_ranges(tree_cls: type, lib_cls: type) -> None:
-    """Each field of ``tree_cls`` named as a field of ``lib_cls`` that has a range takes that range (one home)."""
-    for f in dataclasses.fields(tree_cls):
-        rule = range_of(lib_cls, f.name) if f.name in {g.name for g in dataclasses.fields(lib_cls)} else None
-        if rule is not None:
-            f.metadata = MappingProxyType({**f.metadata, "range": rule})
-
-
-@dataclass(frozen=True)
-class EnvConfig:
-    """Episodes, domain randomisation and reward shaping (``learn.env.EnvParams``)."""
-
-    horizon_s: float = _f(_EP["horizon"] * float(_EP["traffic"].dt), "episode length, s", lo=0.0, lo_open=True,
-                          algo="ppo")
-    # training plant delays ~ U(D - spread, D + spread) s, clipped at 0; 0 disables
-    delay_spread: float = _f(1.0, "plant delays D +- this, s (0: D alone)", lo=0.0, algo="ppo")
-    delay_range: tuple[float, float] | None = _f(None, "plant delays LO HI, s (over --delay-spread)", algo="ppo")
-    alpha_range: tuple[float, float] | None = _f(None, "plant alphas LO HI", algo="ppo")
-    amp_range: tuple[float, float] = _f((_EP["amp_min"], _EP["amp_max"]), "initial amplitude LO HI, veh/m",
-                                        algo="ppo")
-    wavenumber_range: tuple[int, int] = _f((_EP["wavenumber_min"], _EP["wavenumber_max"]),
-                                           "initial wavenumber LO HI", algo="ppo")
-    phase_max: float = _f(_EP["phase_max"], "initial phase ~ U(0, this), rad", algo="ppo")
-    # |eta_i| bound of PPO's (normalised) gains: one value, or one per gain (the gradient trainer's: grad_gain_max)
-    gain_max: float | tuple[float, float, float] = _f(_EP["gain_max"], "|eta_i| bound: one, or ETA1 ETA2 ETA3",
-                                                      algo="ppo")
-    # the applied gains move this fraction of the way to the policy's each step (a first-order filter, time
-    # constant ~ dt/k); 1: applied directly (the paper)
-    gain_filter: float = _f(_EP["gain_filter"], "gain filter fraction per step (1: none)")
-    # training reward -= w * sum_i ((h_i - h_prev_i)/h_bar)^2, the squared step change of the commanded time gap
-    # (dimensionless); 0: the paper's reward
-    h_rate_weight: float = _f(_EP["h_rate_weight"], "reward weight of the time-gap rate", algo="ppo")
-    # training reward -= w * learn.env.backward_wave_cost(applied gains): 0 when their closed-loop wave speed
-    # (linear.gain_law_wave_speed) is >= wave_speed_min, rising to 1 at 5 m/s below it; 0: the paper's reward
-    wave_weight: float = _f(_EP["wave_weight"], "reward weight of backward waves", algo="ppo")
-    wave_speed_min: float = _f(_EP["wave_speed_min"], "wave speed the wave cost allows, m/s", algo="ppo")
-    # the reward of the step on which the plant leaves the physical region (the episode then ends), subtracted
-    diverge_penalty: float = _f(_EP["diverge_penalty"], "penalty of a diverging step", algo="ppo")
-    # observation: each normalised field (rho, v, h_prev) averaged over this many equal road segments; 0: the
-    # full fields (3 x n_points values)
-    obs_segments: int = _f(_EP["obs_segments"], "observed road segments (0: every point)", algo="ppo")
-    # width of the Gaussian filter the learned gain law applies to the observed rho~, v~ (its own spatial scale,
-    # docs/model.md section 16); 0: the paper's pointwise law
-    filter_sigma: float = _f(FILTER_SIGMA, "gain law's spatial filter width, m (0: none)")
-    # the gradient-trained controller's own grid (nodes over the road; the plant's n_points must refine it by an
-    # integer factor); None: the plant's grid
-    controller_points: int | None = _f(None, "controller's grid points (default: the plant's)", lo=3,
-                                       algo="gradient")
+    """A run field with its ``help`` (the flag's help text), its range (``lo``, ``hi``, ... as
+    ``jaxtraffic.fields.hyper``) and flag options in its metadata."""
+    return hyper(default, help=help, **meta)
 
 
 @dataclass(frozen=True)
@@ -151,9 +97,6 @@ class RunConfig:
     tensorboard: str | None = _f(None, "TensorBoard log directory")
 
 
-_lend_ranges(EnvConfig, EnvParams)
-_lend_ranges(EnvConfig, GradientConfig)  # filter_sigma
-
 RUN_CONTROL = ("out_dir", "total_steps", "max_wall_s", "keep_going", "resume", "overwrite", "quiet", "stop_patience",
                "target_reward", "min_wave_speed", "require_certificate", "tensorboard", "val_target",
                "checkpoint_every")
@@ -167,12 +110,12 @@ def run_control(algo: str) -> dict[str, tuple[str, ...]]:
 @dataclass(frozen=True)
 class TrainConfig:
     """The whole training configuration: ``plant`` (the library's ``TrafficParams`` as it is: the training plant
-    and its grid), ``env``, ``ppo`` (the library's ``PPOConfig`` as it is:
+    and its grid), ``env`` (``learn.env_config.EnvConfig``), ``ppo`` (the library's ``PPOConfig`` as it is:
     ``num_seeds`` is the population, ``num_envs`` each member's), ``grad`` (gradient-based training) and ``run``."""
 
-    plant: TrafficParams = _EP["traffic"]  # the environment's default plant (learn.env.EnvParams)
+    plant: TrafficParams = PLANT  # the environment's default nominal plant (learn.env)
     env: EnvConfig = EnvConfig()
-    ppo: PPOConfig = PPOConfig(num_envs=_PPO["num_envs"] // POPULATION, num_seeds=POPULATION)
+    ppo: PPOConfig = PPOConfig(num_envs=PPOConfig.num_envs // POPULATION, num_seeds=POPULATION)
     grad: GradientConfig = GradientConfig()
     run: RunConfig = RunConfig()
 
@@ -182,7 +125,7 @@ class TrainConfig:
         # the gradient trainer's filter, grid and network are the environment's and PPO's (one value each)
         object.__setattr__(self, "grad", dataclasses.replace(
             self.grad, hidden=tuple(self.ppo.hidden), gain_filter=self.env.gain_filter,
-            filter_sigma=self.env.filter_sigma, controller_points=self.env.controller_points or 0))
+            filter_sigma=self.env.filter_sigma))
 
     @classmethod
     def make(cls, **tables: Mapping[str, Any]) -> TrainConfig:
@@ -216,25 +159,14 @@ class TrainConfig:
         return TrainConfig.make(**{s: {**own[s], **tables.get(s, {})} for s in SECTIONS})
 
     def env_params(self) -> EnvParams:
-        """The environment's parameters (``learn.env.EnvParams``): the training plant, its episodes, domain
-        randomisation (delays rounded to whole steps) and reward shaping."""
-        pl, en = self.plant, self.env
-        d_lo, d_hi = en.delay_range or (max(0.0, pl.delay - en.delay_spread), pl.delay + en.delay_spread)
-        d_lo, d_hi = (round(d / pl.dt) * pl.dt for d in (d_lo, d_hi))
-        a_lo, a_hi = en.alpha_range or (pl.alpha, pl.alpha)
-        return make_env_params(
-            pl, horizon=max(1, round(en.horizon_s / pl.dt)), gain_max=en.gain_max, amp_min=en.amp_range[0],
-            amp_max=en.amp_range[1], wavenumber_min=int(en.wavenumber_range[0]),
-            wavenumber_max=int(en.wavenumber_range[1]), phase_max=en.phase_max, delay_min=d_lo, delay_max=d_hi,
-            alpha_min=a_lo, alpha_max=a_hi, gain_filter=en.gain_filter, h_rate_weight=en.h_rate_weight,
-            wave_weight=en.wave_weight, wave_speed_min=en.wave_speed_min, obs_segments=en.obs_segments,
-            diverge_penalty=en.diverge_penalty, filter_sigma=en.filter_sigma)
+        """The environment's parameters (``learn.env.env_params`` of the env section around the plant)."""
+        return env_params(self.env, self.plant)
 
 
 SECTIONS = {"plant": TrafficParams, "env": EnvConfig, "ppo": PPOConfig, "grad": GradientConfig, "run": RunConfig}
 # GradientConfig's fields that a run sets from other sections (``TrainConfig.__post_init__``), or not at all
 # (max_grad_norm: PPO's field of that name is the flag's)
-BORROWED = ("hidden", "gain_filter", "filter_sigma", "controller_points", "max_grad_norm")
+BORROWED = ("hidden", "gain_filter", "filter_sigma", "max_grad_norm")
 
 
 def leaf_fields(section: str) -> list[dataclasses.Field]:
@@ -302,8 +234,11 @@ def config_from_json(data: dict[str, Any], where: str = "config.json") -> TrainC
         missing = [s for s in required if not isinstance(tree, dict) or not isinstance(tree.get(s), dict)]
         raise ValueError(f"{where}: the config tree lacks the section(s) {missing} (has {have}); "
                          "not a complete config.json written by train.py")
-    if data.get("version") == 3:  # the plant held eight of TrafficParams' fields: the others were the defaults
-        tree = {**tree, "plant": {**dataclasses.asdict(TrafficParams()), **tree["plant"]}}
+    if data.get("version") == 3:  # the plant held eight of TrafficParams' fields (the others were the defaults);
+        # the controller's own grid was the environment's (None: the plant's)
+        env = dict(tree["env"])
+        grad = {**(tree.get("grad") or {}), "controller_points": env.pop("controller_points", None) or 0}
+        tree = {**tree, "plant": {**dataclasses.asdict(TrafficParams()), **tree["plant"]}, "env": env, "grad": grad}
     tables: dict[str, dict[str, Any]] = {}
     for s in SECTIONS:
         section = tree.get(s)

@@ -201,6 +201,7 @@ def test_vector_env_step_matches_single_env_spaces():
         venv.step(np.zeros((2, 3), np.float32))
 
 
+@pytest.mark.slow  # end to end (seconds to tens of seconds): CI's slow tier
 def test_sb3_vec_env_adapter_and_example(tmp_path):
     need("stable_baselines3")
     from stable_baselines3.common.env_checker import check_env as sb3_check_env

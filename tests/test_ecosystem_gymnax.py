@@ -11,6 +11,7 @@ import sys
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from extras import need
 
 need("gymnax")
@@ -75,6 +76,7 @@ def test_wrappers_under_vmap_and_scan():
     np.testing.assert_allclose(out["final"][8], out["obs"][8], atol=1e-6)
 
 
+@pytest.mark.slow  # end to end (seconds to tens of seconds): CI's slow tier
 def test_example_purejaxrl_style_ppo_trains():
     """The example as a user runs it (a subprocess, with the test XLA flags: cheaper compilation)."""
     proc = subprocess.run([sys.executable, str(REPO / "examples" / "gymnax_ppo.py"), "--n-points", str(N),

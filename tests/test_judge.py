@@ -13,6 +13,7 @@ TINY = ["--horizon", "1", "--noise-seeds", "1", "--n-points", "11", "--reference
 SPEC = f"mine={REPO / 'tests' / 'judge_controller.py'}:soft_lyapunov"
 
 
+@pytest.mark.slow  # end to end (seconds to tens of seconds): CI's slow tier
 def test_judge_without_training(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)  # runs/ would be created here by a training
     out = tmp_path / "judged"

@@ -335,6 +335,7 @@ def test_cli_invalid_value_from_the_shell(tmp_path):
     assert not out.exists()
 
 
+@pytest.mark.slow  # end to end (seconds to tens of seconds): CI's slow tier
 def test_two_cpu_devices(two_device_proc):
     try:
         stdout, stderr = two_device_proc.communicate(timeout=300)

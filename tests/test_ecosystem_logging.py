@@ -58,7 +58,7 @@ def test_callbacks_csv_progress_and_tensorboard(tmp_path, capsys):
         history = client.get_metric_history(trackers[0].run_id, "eval_reward")
         assert [(m.step, m.value) for m in history] == [(int(r["env_steps"]), r["eval_reward"]) for r in seen]
         mlrun = client.get_run(trackers[0].run_id)
-        assert mlrun.info.status == "FINISHED" and mlrun.data.params["num_envs"] == "4"
+        assert mlrun.info.status == "FINISHED" and mlrun.data.params["ppo.num_envs"] == "4"
         assert set(mlrun.data.metrics) == set(scalars(seen[-1]))
 
 

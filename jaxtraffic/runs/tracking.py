@@ -83,7 +83,8 @@ class MLflowTracker:
     """A ``Tracker`` logging to one MLflow run (the client API: no global MLflow state is touched).
 
     ``store``: a directory (an SQLite store ``mlflow.db`` there, offline) or an MLflow tracking URI;
-    ``experiment``: its name (created if new); ``run_name``; ``params``: logged once (e.g. the flat config).
+    ``experiment``: its name (created if new); ``run_name``; ``params``: logged once (e.g. ``config.tables()``: a
+    nested mapping is logged with dotted keys, ``ppo.num_envs``).
     ``run_id`` names the run (``mlflow.MlflowClient(tracking_uri).get_metric_history(run_id, name)``)."""
 
     def __init__(self, store: str | Path, experiment: str = "jaxtraffic", run_name: str | None = None,
@@ -99,7 +100,9 @@ class MLflowTracker:
         experiment_id = found.experiment_id if found else self._client.create_experiment(experiment)
         self.run_id = self._client.create_run(experiment_id, run_name=run_name).info.run_id
         if params:  # (MLflow keeps parameter values as strings of at most 6000 characters)
-            self._client.log_batch(self.run_id, params=[Param(k, str(v)[:6000]) for k, v in params.items()])
+            flat = {f"{k}.{k2}": v2 for k, v in params.items() if isinstance(v, Mapping) for k2, v2 in v.items()}
+            flat.update({k: v for k, v in params.items() if not isinstance(v, Mapping)})
+            self._client.log_batch(self.run_id, params=[Param(k, str(v)[:6000]) for k, v in flat.items()])
 
     def log(self, step: int, values: Mapping[str, float]) -> None:
         now = int(time.time() * 1000)

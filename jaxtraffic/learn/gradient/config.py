@@ -62,6 +62,10 @@ class GradientConfig:
                              "counts", choices=METHODS)
     cem_population: int = hyper(24, lo=2, help="cem: parameter sets per generation")
     cem_sigma: float = hyper(0.3, lo=0.0, lo_open=True, help="cem: initial std of the search over the gains")
+    cem_tie_weight: float = hyper(0.01, lo=0.0, help="cem: fitness weight of the mean log final std_x(rho) "
+                                  "(log veh/km) against the counts; small: a tie-breaker between equal counts")
+    residual_alpha_floor: float = hyper(0.0, lo=0.0, hi=1.0, help="residual policy: its table's rows at alpha_hat "
+                                        "knots below this stay zero (the adaptive law) and are not trained")
 
     def __post_init__(self) -> None:
         if self.policy not in POLICIES:

@@ -13,7 +13,8 @@ decayed; larger, it trades decay against the counts: the residual's recipe, BENC
 ``cem_population`` parameter sets from a diagonal Gaussian (the current mean is always one of them, so the
 mean's own fitness is known), rolls every one out on every scenario (one batched, forward-only
 ``simulate_batch``), and refits the Gaussian to the best fifth (the elites; a floor
-``SIGMA_MIN`` keeps it searching). The policy (``CemState.theta``) is the best parameter set evaluated so far.
+``SIGMA_MIN`` keeps it searching; a residual's rows below ``residual_alpha_floor`` are not sampled: they stay
+zero). The policy (``CemState.theta``) is the best parameter set evaluated so far.
 Deterministic for a given key. ``make_train`` has the signature of ``objective.make_train``, so the same
 host loop (``learn.runs.loop``, through ``gradient.trainer``) runs, checkpoints and resumes it.
 """

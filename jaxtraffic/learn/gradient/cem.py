@@ -9,7 +9,7 @@ training scenarios of a ``GradientConfig`` (plants offset from the map's cells):
     fitness(theta) = #stabilised - DIVERGED_COST #diverged - cem_tie_weight mean_s log(final std_s + 1e-3 veh/km)
 
 (with the default ``cem_tie_weight`` 0.01 the last term only orders laws of equal counts, by how far their waves
-decayed; larger, it trades decay against the counts: the residual's recipe, BENCHMARKS.md). Each generation samples
+decayed; larger, it trades decay against the counts). Each generation samples
 ``cem_population`` parameter sets from a diagonal Gaussian (the current mean is always one of them, so the
 mean's own fitness is known), rolls every one out on every scenario (one batched, forward-only
 ``simulate_batch``), and refits the Gaussian to the best fifth (the elites; a floor

@@ -118,7 +118,7 @@ POLICY_DEFAULTS: dict[str, dict[str, Any]] = {
     # judged at 300 s: at 600 s the adaptive law already stabilises every consistent training plant and the counts
     # no longer tell laws apart; at 300 s it has stabilised 3 of 36 (docs/model.md section 18.2), so they reward speed.
     # The table's alpha_hat = 0.05 row, below every training plant's alpha, is held at the adaptive law (zero): trained,
-    # it was extrapolated and lost the map's (2 s, 0.05) cell for seed 1 (BENCHMARKS.md)
+    # it was extrapolated and lost the map's (2 s, 0.05) cell for seed 1 (docs/model.md section 18.2)
     "residual": {"grad_method": "cem", "grad_steps": 10, "train_delays": (0.3, 1.7, 3.3, 4.7, 6.3, 7.7),
                  "train_alphas": (0.125, 0.225, 0.325, 0.425, 0.525, 0.575), "train_horizon_s": 300.0,
                  "reward_weight": 0.0, "waves_weight": 1.0, "comfort_weight": 0.0, "scenario_clip": 1.0,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -103,3 +105,24 @@ def test_a_residual_run_trains_by_cem_saves_and_loads(tmp_path):
     train_gradient(config)
     check_told_delay_run(out, "residual")
     assert '"applies": false' in (out / "summary.json").read_text()  # no certificate for this law
+
+
+def test_cem_holds_the_rows_below_the_alpha_floor_at_the_adaptive_law():
+    """``residual_alpha_floor``: the table's rows at alpha_hat knots below it start and stay zero under CEM
+    (there the residual is the adaptive law); the other rows are searched."""
+    from jaxtraffic.learn.gradient import cem
+
+    cfg = objective.GradientConfig(policy="residual", grad_method="cem", train_delays=(1.0, 5.0),
+                                   train_alphas=(0.15, 0.4), train_horizon_s=10.0, record_every=10,
+                                   steps_per_chunk=2, cem_population=4, schedule_knots=(0.0, 4.0, 8.0),
+                                   residual_alpha_floor=0.1, init_gains=(0.0, 0.1, 0.2))
+    plant = TrafficParams(n_points=21, delay=2.0)
+    init = objective.init_theta(cfg, plant, jax.random.PRNGKey(0))
+    assert not np.any(np.asarray(init[:, 0]))
+    np.testing.assert_allclose(np.asarray(init[:, 1:]), np.broadcast_to([0.1, 0.2], (3, 2, 2)), rtol=1e-6)
+    start, chunk = cem.make_train(cfg, plant)
+    state, _ = chunk(start(jax.random.PRNGKey(1)))
+    assert not np.any(np.asarray(state.theta[:, 0])) and not np.any(np.asarray(state.mean[:, 0]))
+    assert np.any(np.asarray(state.mean[:, 1:]) != np.asarray(init[:, 1:]))  # the others moved
+    everywhere = objective.trainable(dataclasses.replace(cfg, residual_alpha_floor=0.0), init)
+    assert np.all(np.asarray(everywhere) == 1.0)  # the default: the whole table is trained

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -159,6 +161,8 @@ def test_cem_fitness_is_the_maps_counts():
             s += (not gone) and float(jnp.std(res.final.rho)) < STABLE_STD
         assert (int(stab[p]), int(div[p])) == (s, d)
     assert int(div[1]) > 0 and float(fit[0]) > float(fit[1])
+    fit0, _, _ = cem.fitness(thetas, dataclasses.replace(CEM_CFG, cem_tie_weight=0.0), PLANT, n)  # counts alone
+    np.testing.assert_array_equal(np.asarray(fit0), np.asarray(stab - cem.DIVERGED_COST * div, fit0.dtype))
 
 
 def test_cem_keeps_its_best_and_is_deterministic():

@@ -6,13 +6,15 @@ their gradient is zero almost everywhere, and the smooth wave objectives of ``le
 badly (measured, docs/model.md section 17). CEM optimises the counts themselves, on the
 training scenarios of a ``GradientConfig`` (plants offset from the map's cells):
 
-    fitness(theta) = #stabilised - DIVERGED_COST #diverged - TIE_WEIGHT mean_s log(final std_s + 1e-3 veh/km)
+    fitness(theta) = #stabilised - DIVERGED_COST #diverged - cem_tie_weight mean_s log(final std_s + 1e-3 veh/km)
 
-(the last term only orders laws of equal counts: by how far their waves decayed). Each generation samples
+(with the default ``cem_tie_weight`` 0.01 the last term only orders laws of equal counts, by how far their waves
+decayed; larger, it trades decay against the counts). Each generation samples
 ``cem_population`` parameter sets from a diagonal Gaussian (the current mean is always one of them, so the
 mean's own fitness is known), rolls every one out on every scenario (one batched, forward-only
 ``simulate_batch``), and refits the Gaussian to the best fifth (the elites; a floor
-``SIGMA_MIN`` keeps it searching). The policy (``CemState.theta``) is the best parameter set evaluated so far.
+``SIGMA_MIN`` keeps it searching; a residual's rows below ``residual_alpha_floor`` are not sampled: they stay
+zero). The policy (``CemState.theta``) is the best parameter set evaluated so far.
 Deterministic for a given key. ``make_train`` has the signature of ``objective.make_train``, so the same
 host loop (``learn.runs.loop``, through ``gradient.trainer``) runs, checkpoints and resumes it.
 """
@@ -27,14 +29,19 @@ import jax.numpy as jnp
 from flax import struct
 
 from jaxtraffic.learn.gradient.config import GradientConfig
-from jaxtraffic.learn.gradient.objective import horizon_steps, init_theta, make_controller, training_scenarios
+from jaxtraffic.learn.gradient.objective import (
+    horizon_steps,
+    init_theta,
+    make_controller,
+    trainable,
+    training_scenarios,
+)
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.sim.metrics import STABLE_STD, VEH_PER_KM
 from jaxtraffic.sim.rollout import simulate_batch
 
 Array = jax.Array
 DIVERGED_COST = 2.0  # a diverged plant costs two stabilised ones
-TIE_WEIGHT = 0.01
 SIGMA_MIN = 0.05  # floor of the search distribution's standard deviation (dimensionless gains)
 ELITE_FRACTION = 5  # the elites are the best population / ELITE_FRACTION (rounded, at least 2)
 DIVERGED_STD = 50.0  # veh/km: the tie-breaker's wave amplitude of a diverged plant (a jam-scale wave)
@@ -71,14 +78,14 @@ def fitness(thetas: Array, grad_config: GradientConfig, base: TrafficParams,
     stab = (~div & (std < STABLE_STD)).sum(axis=1)
     n_div = div.sum(axis=1)
     tie = jnp.mean(jnp.log(jnp.where(div, DIVERGED_STD, std * VEH_PER_KM) + 1e-3), axis=1)
-    return stab - DIVERGED_COST * n_div - TIE_WEIGHT * tie, stab, n_div
+    return stab - DIVERGED_COST * n_div - grad_config.cem_tie_weight * tie, stab, n_div
 
 
 def _generation(state: CemState, grad_config: GradientConfig, base: TrafficParams,
                 n_steps: int) -> tuple[CemState, dict]:
     key, sub = jax.random.split(state.key)
     noise = jax.random.normal(sub, (grad_config.cem_population, *state.mean.shape), state.mean.dtype)
-    pop = (state.mean + state.sigma * noise).at[0].set(state.mean)
+    pop = (state.mean + state.sigma * noise * trainable(grad_config, state.mean)).at[0].set(state.mean)
     fit, stab, n_div = fitness(pop, grad_config, base, n_steps)
     order = jnp.argsort(-fit)
     elites = pop[order[:max(2, round(grad_config.cem_population / ELITE_FRACTION))]]

@@ -134,13 +134,22 @@ def init_theta(grad_config: GradientConfig, base: TrafficParams, key: Array) -> 
     if grad_config.policy == "schedule":
         return jnp.tile(g0, (len(grad_config.schedule_knots), 1))
     if grad_config.policy == "residual":  # [eta2, eta3] at every (delay, alpha_hat) knot; zeros: the adaptive law
-        return jnp.tile(g0[1:], (len(grad_config.schedule_knots), len(ALPHA_KNOTS), 1))
+        return jnp.tile(g0[1:], (len(grad_config.schedule_knots), len(ALPHA_KNOTS), 1)) * trainable(grad_config, g0)
     n = grad_config.controller_points or base.n_points
     params = _network(grad_config).init(key, jnp.zeros((feature_size(n),)))
     actor = params["params"]["actor"]
     last = sorted(k for k in actor if k.startswith("Dense_"))[-1]
     bias = jnp.arctanh(g0 / grad_config.grad_gain_max)
     return {"params": {**params["params"], "actor": {**actor, last: {**actor[last], "bias": bias}}}}
+
+
+def trainable(grad_config: GradientConfig, theta: Array) -> Array | float:
+    """1 where a gains, schedule or residual parameter is trained, 0 where it is held at zero: a residual's rows
+    at alpha_hat knots below ``residual_alpha_floor`` (the adaptive law there; broadcasts against its table)."""
+    if grad_config.policy != "residual":
+        return 1.0
+    keep = jnp.asarray(ALPHA_KNOTS) >= grad_config.residual_alpha_floor
+    return keep.astype(jnp.result_type(theta))[None, :, None]
 
 
 def own_controller(theta: Any, grad_config: GradientConfig, n_points: int, dx: float, delay: float | Array = 4.0

@@ -103,3 +103,25 @@ def test_removed_flags_name_their_replacement_and_version(capsys):
     with pytest.raises(SystemExit):  # no abbreviations: --clip is not --clip-eps
         train_cli.main(["--clip", "0.1"])
     assert "unrecognized arguments: --clip" in capsys.readouterr().err
+
+
+def test_sections_and_flags_map_to_fields_and_unknown_names_are_refused():
+    """``make``/``updated`` take one mapping per section; flag names map to their sections (``flag_tables``), the
+    same mapping the Gymnasium environment's keywords go through."""
+    from jaxtraffic.ecosystem import resolve_env_params
+    from jaxtraffic.runs.config.tree import flag_tables
+
+    assert flag_tables("ppo", {"n_points": 21, "lr": 0.5, "seed": 2}) == {
+        "plant": {"n_points": 21}, "ppo": {"lr": 0.5}, "run": {"seed": 2}}
+    with pytest.raises(TypeError, match="'grad_lr' is not a field of train.py ppo's flags"):
+        flag_tables("ppo", {"grad_lr": 0.1})
+    with pytest.raises(TypeError, match="unknown config section 'algo'"):
+        TrainConfig.make(algo={"lr": 0.5})
+    with pytest.raises(TypeError, match="section 'ppo' has no field 'n_points'"):
+        TrainConfig.make(ppo={"n_points": 21})
+    with pytest.raises(TypeError, match="unknown config section 'plants'"):
+        TrainConfig().updated(plants={"n_points": 21})
+    assert TrainConfig().updated(ppo={"lr": 0.5}) == TrainConfig.make(ppo={"lr": 0.5})
+    assert resolve_env_params(n_points=21, horizon_s=1.0).horizon == 10
+    with pytest.raises(TypeError, match="unknown environment config field"):
+        resolve_env_params(n_pionts=21)

@@ -26,7 +26,7 @@ from jaxtraffic.cli.options import Cluster, program
 from jaxtraffic.platform import compile_cache, distributed
 from jaxtraffic.runs.config import ALGOS, SECTIONS, RunConfig, TrainConfig, load_config
 from jaxtraffic.runs.config.toml import read_tables
-from jaxtraffic.runs.config.tree import fields_for, flag_sections, run_control
+from jaxtraffic.runs.config.tree import fields_for, flag_sections, flag_tables, run_control
 from jaxtraffic.runs.gradient.trainer import train_gradient
 from jaxtraffic.runs.ppo.trainer import train
 from jaxtraffic.runs.session import TrainingInterrupted, check_resumable
@@ -190,12 +190,12 @@ def parse(argv: list[str] | None = None) -> tuple[TrainConfig, Cluster, set[str]
         flags = tyro.cli(commands, args=argv, prog=PROG, config=(tyro.conf.FlagCreatePairsOff,), compact_help=True,
                          default=classes["ppo"](), description=DESCRIPTION)
     given = _given(argv[1:], names)
-    tables: Tables = {s: dict(t) for s, t in from_file.items()}
-    section = flag_sections(algo)
-    for k in given:
-        value = getattr(flags, k)
-        tables.setdefault(section[k], {})[k] = None if k == "min_wave_speed" and value == -math.inf else value
-    # (min_wave_speed -inf: the paper's rule alone, stored as null in the JSON outputs)
+    values = {k: getattr(flags, k) for k in given}
+    if values.get("min_wave_speed") == -math.inf:  # the paper's rule alone (stored as null in the JSON outputs)
+        values["min_wave_speed"] = None
+    tables: Tables = {s: dict(t) for s, t in from_file.items()}  # the file's, then the flags over them
+    for s, t in flag_tables(algo, values).items():
+        tables[s] = {**tables.get(s, {}), **t}
     return TrainConfig.make(**_with_run(tables, algo)), flags.cluster, given
 
 
@@ -213,18 +213,14 @@ def resumed_config(config: TrainConfig, given: set[str] | dict) -> TrainConfig:
         raise ValueError(f"{config.run.out_dir} holds a {saved.run.algo} run: resume it with "
                          f"`{PROG} {saved.run.algo} --resume`")
     control = run_control(saved.run.algo)
-    section = flag_sections(saved.run.algo)
     new, old = config.tables(), saved.tables()
-    owners = {k: section[k] for k in given if k in section}
+    owners = {k: s for k, s in flag_sections(saved.run.algo).items() if k in given}
     changed = [f"--{k.replace('_', '-')} {new[s][k]!r} (the run's value: {old[s][k]!r})" for k, s in owners.items()
                if k not in control.get(s, ()) and new[s][k] != old[s][k]]
     if changed:
         raise ValueError("--resume continues the run with its saved configuration; these flags would change it: "
                          + ", ".join(changed) + "; drop them, or start a new run (--overwrite clears this one)")
-    kept: Tables = {}
-    for k, s in owners.items():
-        if k in control.get(s, ()):
-            kept.setdefault(s, {})[k] = new[s][k]
+    kept = flag_tables(saved.run.algo, {k: new[s][k] for k, s in owners.items() if k in control.get(s, ())})
     return saved.updated(**{**kept, "run": {**kept.get("run", {}), "resume": True, "out_dir": config.run.out_dir}})
 
 

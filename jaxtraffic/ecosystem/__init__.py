@@ -45,7 +45,7 @@ from jaxtraffic.ecosystem.normalization import active, normalized_policy
 from jaxtraffic.learn import env as learn_env
 from jaxtraffic.runs.config import TrainConfig
 from jaxtraffic.runs.config.checks import check_initial_amplitudes
-from jaxtraffic.runs.config.tree import flag_sections
+from jaxtraffic.runs.config.tree import flag_tables
 
 N_GAINS = learn_env.TrafficEnv.action_size
 
@@ -61,14 +61,10 @@ def resolve_env_params(env_params: learn_env.EnvParams | None = None, **config: 
         if config:
             raise TypeError(f"give env_params or config fields, not both (got {sorted(config)})")
         return env_params
-    section = flag_sections("ppo")
-    unknown = sorted(set(config) - set(section))
-    if unknown:
-        raise TypeError(f"unknown environment config field {unknown[0]!r} (the fields are train.py ppo's flags)")
-    tables: dict[str, dict[str, Any]] = {}
-    for k, v in config.items():
-        tables.setdefault(section[k], {})[k] = v
-    train_config = TrainConfig.make(**tables)
+    try:
+        train_config = TrainConfig.make(**flag_tables("ppo", config))
+    except TypeError as err:
+        raise TypeError(f"unknown environment config field: {err} (the fields are train.py ppo's flags)") from None
     env_params = train_config.env_params()
     check_initial_amplitudes(train_config, env_params.traffic)
     return env_params

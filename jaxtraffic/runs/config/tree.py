@@ -45,56 +45,50 @@ ALGOS = ("ppo", "gradient")
 POPULATION = 2
 
 
-def _f(default: Any, help: str, **meta: Any) -> Any:
-    """A run field with its ``help`` (the flag's help text), its range (``lo``, ``hi``, ... as
-    ``jaxtraffic.fields.hyper``) and flag options in its metadata."""
-    return hyper(default, help=help, **meta)
-
-
 @dataclass(frozen=True)
 class RunConfig:
     """Run control: where, how long, the stop rule. ``RUN_CONTROL`` fields may change on resume."""
 
-    algo: str = _f("ppo", "ppo or gradient (train.py's subcommand)", choices=ALGOS, cli=False)
-    out_dir: str = _f("runs/default", "run directory (gradient: runs/gradient-POLICY)")
+    algo: str = hyper("ppo", help="ppo or gradient (train.py's subcommand)", choices=ALGOS, cli=False)
+    out_dir: str = hyper("runs/default", help="run directory (gradient: runs/gradient-POLICY)")
     # continue from the run directory's checkpoint with its saved config, run control included; the RUN_CONTROL
     # flags given with it (gradient: also grad_steps) apply and are recorded, any other change is an error
-    resume: bool = _f(False, "continue the run in --out-dir")
+    resume: bool = hyper(False, help="continue the run in --out-dir")
     # a fresh run into an out_dir holding another run's results (checkpoint, best policy, summary, learning
     # curve) clears them first; without it that is an error
-    overwrite: bool = _f(False, "clear the run in --out-dir first")
-    seed: int = _f(0, "PRNG seed", lo=0, hi=2**32 - 1)
-    total_steps: int = _f(10_000_000, "environment steps per member", lo=1, algo="ppo")
-    max_wall_s: float = _f(math.inf, "stop after this many seconds", lo=0.0, lo_open=True)
-    keep_going: bool = _f(False, "ignore the stop rule", algo="ppo")
+    overwrite: bool = hyper(False, help="clear the run in --out-dir first")
+    seed: int = hyper(0, help="PRNG seed", lo=0, hi=2**32 - 1)
+    total_steps: int = hyper(10_000_000, help="environment steps per member", lo=1, algo="ppo")
+    max_wall_s: float = hyper(math.inf, help="stop after this many seconds", lo=0.0, lo_open=True)
+    keep_going: bool = hyper(False, help="ignore the stop rule", algo="ppo")
     # stop rule: the deterministic evaluation reward (end of the evaluation rollout) >= this
-    target_reward: float = _f(REWARD_TARGET, "stop rule: evaluation reward >= this", algo="ppo")
+    target_reward: float = hyper(REWARD_TARGET, help="stop rule: evaluation reward >= this", algo="ppo")
     # the stop rule also requires the closed loop's kinematic wave speed at the policy's equilibrium gains
     # (linear.gain_law_wave_speed) >= this; None (-inf on the command line): the paper's rule alone
-    min_wave_speed: float | None = _f(0.5, "stop rule: wave speed >= this, m/s (-inf: off)", algo="ppo")
+    min_wave_speed: float | None = hyper(0.5, help="stop rule: wave speed >= this, m/s (-inf: off)", algo="ppo")
     # the stop rule also requires the stability certificate (control.stability) of the policy's equilibrium
     # gains at the training delay and alpha: largest growth rate over wavenumbers <= 1e-3/s
-    require_certificate: bool = _f(True, "stop rule: the stability certificate", algo="ppo")
+    require_certificate: bool = hyper(True, help="stop rule: the stability certificate", algo="ppo")
     # consecutive evaluations that must meet the stop rule (per population member) before stopping
-    stop_patience: int = _f(1, "stop rule: consecutive evaluations", lo=1, algo="ppo")
+    stop_patience: int = hyper(1, help="stop rule: consecutive evaluations", lo=1, algo="ppo")
     # a member that has not met the stop rule this many env steps after its start is re-initialised from a new
     # key (its best checkpoint is kept); 0: never (also with keep_going)
-    restart_steps: int = _f(1_500_000, "restart a member after these steps (0: never)", lo=0, algo="ppo")
+    restart_steps: int = hyper(1_500_000, help="restart a member after these steps (0: never)", lo=0, algo="ppo")
     # validation suite (learn.ppo.selection): each member's policy on 2 initial states x 3 training delays, scored
     # against backstepping; each member's best checkpoint is kept (best.msgpack), the best member is the policy
-    val_horizon_s: float = _f(600.0, "validation suite length, s (0: none)", lo=0.0, algo="ppo")
+    val_horizon_s: float = hyper(600.0, help="validation suite length, s (0: none)", lo=0.0, algo="ppo")
     # the plant the validation suite runs on: reference (TrafficParams.reference: MUSCL, 801 points, 2 solver
     # steps; the policy acts on its training grid through control.adapter) or training (the training plant)
-    val_plant: str = _f("reference", "validation suite's plant", choices=("reference", "training"), algo="ppo")
+    val_plant: str = hyper("reference", help="validation suite's plant", choices=("reference", "training"), algo="ppo")
     # 1: at the nominal delay the density L2 at half the suite horizon below backstepping's, J_comfort within
     # 20 % of its, and no delay of the suite diverging or still growing; inf: no such condition
-    val_target: float = _f(1.0, "stop rule: validation score <= this", lo=0.0, lo_open=True, algo="ppo")
-    eval_horizon_s: float = _f(300.0, "evaluation rollout length, s", lo=0.0, lo_open=True)
+    val_target: float = hyper(1.0, help="stop rule: validation score <= this", lo=0.0, lo_open=True, algo="ppo")
+    eval_horizon_s: float = hyper(300.0, help="evaluation rollout length, s", lo=0.0, lo_open=True)
     # also after a session's first chunk, at the end and on SIGINT/SIGTERM; SIGKILL loses at most this many chunks
-    checkpoint_every: int = _f(10, "chunks between checkpoints", lo=1, algo="ppo")
-    quiet: bool = _f(False, "no progress lines")
+    checkpoint_every: int = hyper(10, help="chunks between checkpoints", lo=1, algo="ppo")
+    quiet: bool = hyper(False, help="no progress lines")
     # also write the learning-curve rows as TensorBoard scalars (needs tensorboardX: pip install 'jaxtraffic[tb]')
-    tensorboard: str | None = _f(None, "TensorBoard log directory")
+    tensorboard: str | None = hyper(None, help="TensorBoard log directory")
 
 
 RUN_CONTROL = ("out_dir", "total_steps", "max_wall_s", "keep_going", "resume", "overwrite", "quiet", "stop_patience",
@@ -122,7 +116,7 @@ class TrainConfig:
     def __post_init__(self) -> None:
         from jaxtraffic.runs.config.checks import check_config  # every field's type and range (ValueError)
         check_config(self)
-        # the gradient trainer's filter, grid and network are the environment's and PPO's (one value each)
+        # the gradient trainer's filter and network are the environment's and PPO's (one value each)
         object.__setattr__(self, "grad", dataclasses.replace(
             self.grad, hidden=tuple(self.ppo.hidden), gain_filter=self.env.gain_filter,
             filter_sigma=self.env.filter_sigma))
@@ -196,6 +190,19 @@ def flag_sections(algo: str) -> dict[str, str]:
             raise RuntimeError(f"two config fields named {f.name!r} ({owner[f.name]}, {s}) would be one flag")
         owner[f.name] = s
     return owner
+
+
+def flag_tables(algo: str, values: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
+    """``values`` given by flag name (``train.py ALGO``'s flags, or the Gymnasium environment's keywords) as
+    config tables, ``{section: {field: value}}``; an unknown name is a ``TypeError``."""
+    section = flag_sections(algo)
+    unknown = sorted(set(values) - set(section))
+    if unknown:
+        raise TypeError(f"{unknown[0]!r} is not a field of train.py {algo}'s flags")
+    tables: dict[str, dict[str, Any]] = {}
+    for k, v in values.items():
+        tables.setdefault(section[k], {})[k] = v
+    return tables
 
 
 def _tuples(x: Any) -> Any:

@@ -287,7 +287,8 @@ def plot_robustness_map(
     for ax in list(axes.flat)[k:]:
         ax.remove()
     if nominal is not None:
-        title = f"{title}\nred star: training / nominal point (D = {nominal[0]:g} s, alpha = {nominal[1]:g})"
+        title = (f"{title}\nred star: nominal point (D = {nominal[0]:g} s, alpha = {nominal[1]:g}), the training point "
+                 "of the laws trained at one plant")
     if mesh is not None:
         cb = fig.colorbar(mesh, ax=axes.ravel().tolist()[:k], shrink=0.8, extend="both")
         cb.set_label(f"{quantity}, log scale; grey hatched = diverged")

@@ -214,7 +214,8 @@ def resumed_config(config: TrainConfig, given: set[str] | dict) -> TrainConfig:
                          f"`{PROG} {saved.run.algo} --resume`")
     control = run_control(saved.run.algo)
     new, old = config.tables(), saved.tables()
-    owners = {k: s for k, s in flag_sections(saved.run.algo).items() if k in given}
+    section = flag_sections(saved.run.algo)
+    owners = {k: section[k] for k in given if k in section}  # in the order the flags were given
     changed = [f"--{k.replace('_', '-')} {new[s][k]!r} (the run's value: {old[s][k]!r})" for k, s in owners.items()
                if k not in control.get(s, ()) and new[s][k] != old[s][k]]
     if changed:

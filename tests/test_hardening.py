@@ -471,9 +471,9 @@ def test_sigkill_at_random_points_then_resume_is_bit_identical(procs, ref_run):
         proc = _resume(run, total)
     assert kills, "the training ended before it could be killed"
     # a write interrupted by SIGKILL leaves a temporary file behind: the next start removes it
-    (run / ".checkpoint.msgpack.stale.tmp").write_bytes(b"x" * 100)
+    (run / ".checkpoint.msgpack.stale_12.tmp").write_bytes(b"x" * 100)
     rc, _, err = _finish(proc)
-    if rc == 0 and (run / ".checkpoint.msgpack.stale.tmp").exists():  # the last resume had already started
+    if rc == 0 and (run / ".checkpoint.msgpack.stale_12.tmp").exists():  # the last resume had already started
         rc, _, err = _finish(_resume(run, total))
     assert rc == 0, err[-3000:]
     state_ref, meta_ref = ckpt.load_checkpoint(ref_run)

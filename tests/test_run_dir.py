@@ -13,15 +13,30 @@ from tiny_runs import TINY
 from jaxtraffic.cli import train as train_cli
 from jaxtraffic.runs import checkpoint as ckpt
 from jaxtraffic.runs.config import load_config
-from jaxtraffic.runs.session import NonFiniteTraining, RunLock, check_finite, claim_run_dir
+from jaxtraffic.io.files import clean_stale_tmp
+from jaxtraffic.runs.session import (
+    RUN_FILES,
+    RUN_MARKER,
+    NonFiniteTraining,
+    RunLock,
+    check_finite,
+    claim_run_dir,
+    is_run_dir,
+)
 
 GRAD = ["gradient", "--policy", "gains", "--n-points", "21", "--train-delays", "1",
         "--train-horizon-s", "2", "--steps-per-chunk", "1", "--eval-horizon-s", "2", "--quiet"]
 
 
+def _ours(run):
+    run.mkdir()
+    claim_run_dir(run, resume=False, overwrite=False, clear=True)  # an empty folder: the marker is written
+    assert is_run_dir(run) and [p.name for p in run.iterdir()] == [RUN_MARKER]
+
+
 def test_a_fresh_run_refuses_another_runs_directory_unless_told_to_clear_it(tmp_path):
     run = tmp_path / "run"
-    run.mkdir()
+    _ours(run)
     (run / ckpt.CONFIG).write_text("{}")
     (run / "learning_curve.csv").write_text("update\n")
     claim_run_dir(run, resume=False, overwrite=False)  # no results: a run stopped before its first chunk
@@ -35,7 +50,66 @@ def test_a_fresh_run_refuses_another_runs_directory_unless_told_to_clear_it(tmp_
     claim_run_dir(run, resume=False, overwrite=True)  # allowed, nothing removed yet
     assert (run / ckpt.CHECKPOINT).exists()
     claim_run_dir(run, resume=False, overwrite=True, clear=True)
-    assert sorted(p.name for p in run.iterdir()) == ["notes.txt"]  # only the run's own files are removed
+    assert sorted(p.name for p in run.iterdir()) == [RUN_MARKER, "notes.txt"]  # only the run's own files go
+
+
+def _snapshot(folder):
+    return {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in folder.iterdir()}
+
+
+@pytest.mark.parametrize("names", [("config.toml",), ("config.json",), ("learning_curve.csv", "learning_curve.png"),
+                                   (".config.json.abcd1234.tmp", ".notes.tmp"), ("notes.txt",)])
+@pytest.mark.parametrize("flags", [(), ("--overwrite",), ("--resume",)])
+def test_a_users_folder_is_never_taken_over(tmp_path, capsys, names, flags):
+    """A folder holding a user's own files under a run's names (no checkpoint) is refused in one line, exit 2,
+    with or without --overwrite, and nothing in it changes (issue 50, item 12)."""
+    mine = tmp_path / "p"
+    mine.mkdir()
+    for name in names:
+        (mine / name).write_text(f"the user's {name}\n")
+    before = _snapshot(mine)
+    code, err = _main(GRAD + ["--out-dir", str(mine), *flags], capsys)
+    assert code == 2 and err.count("\n") == 1, err
+    assert ("holds no training run of jaxtraffic's" in err) or ("nothing to resume" in err), err
+    assert _snapshot(mine) == before
+    with pytest.raises(ValueError, match="holds no training run"):
+        claim_run_dir(mine, resume=False, overwrite=True, clear=True)
+    assert _snapshot(mine) == before and not is_run_dir(mine)
+
+
+def test_a_marker_must_be_the_real_one_and_only_the_runs_temporaries_are_removed(tmp_path):
+    run = tmp_path / "r"
+    run.mkdir()
+    (run / RUN_MARKER).write_text("mine\n")  # a file of that name with other content proves nothing
+    (run / "config.toml").write_text("the user's\n")
+    assert not is_run_dir(run)
+    with pytest.raises(ValueError, match="holds no training run"):
+        claim_run_dir(run, resume=False, overwrite=True, clear=True)
+    (run / RUN_MARKER).unlink()
+    (run / "config.toml").unlink()
+    real = tmp_path / "real-marker"
+    _ours(real)
+    (run / RUN_MARKER).symlink_to(real / RUN_MARKER)  # nor does a link to a real one
+    assert not is_run_dir(run)
+    (run / RUN_MARKER).unlink()
+    _ours(run / "sub")
+    sub = run / "sub"
+    for name in (".config.json.abcd1234.tmp", ".best.msgpack.x_y_z_12.tmp", ".notes.txt.abcd1234.tmp", ".a.tmp"):
+        (sub / name).write_text("x")
+    assert [p.name for p in clean_stale_tmp(sub, (*RUN_FILES, RUN_MARKER))] == [
+        ".best.msgpack.x_y_z_12.tmp", ".config.json.abcd1234.tmp"]
+    assert sorted(p.name for p in sub.iterdir()) == sorted([RUN_MARKER, ".a.tmp", ".notes.txt.abcd1234.tmp"])
+
+
+def test_a_run_written_before_the_marker_is_still_ours(tmp_path):
+    """Runs of earlier versions (docs/results/runs) have no marker: a checksummed checkpoint proves them ours."""
+    run = tmp_path / "old"
+    run.mkdir()
+    ckpt._write_checked(run / ckpt.BEST, {"x": np.zeros(2)})
+    (run / ckpt.CONFIG).write_text("{}")
+    assert is_run_dir(run)
+    claim_run_dir(run, resume=False, overwrite=True, clear=True)
+    assert sorted(p.name for p in run.iterdir()) == [RUN_MARKER]
 
 
 def test_one_training_at_a_time_holds_the_lock(tmp_path):

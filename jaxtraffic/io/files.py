@@ -17,7 +17,10 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
+import stat
 import tempfile
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -59,10 +62,13 @@ def atomic_write_text(path: str | Path, text: str) -> None:
     atomic_write_bytes(path, text.encode())
 
 
-def clean_stale_tmp(run_dir: str | Path) -> list[Path]:
-    """Remove the temporary files (``.<name>.XXXX.tmp``) that a killed process left in ``run_dir``;
-    returns them. Call it only when no other process writes to the directory."""
-    stale = sorted(p for p in Path(run_dir).glob(".*.tmp") if p.is_file())
+def clean_stale_tmp(run_dir: str | Path, names: Iterable[str]) -> list[Path]:
+    """Remove the temporary files that a killed ``atomic_write_bytes`` of one of ``names`` left in ``run_dir``
+    (``.<name>.<8 random characters>.tmp``, regular files only; anything else, a user's ``.x.tmp`` included, is
+    left alone); returns them. Call it only when no other process writes to the directory."""
+    pattern = re.compile("|".join(rf"\.{re.escape(n)}\.[A-Za-z0-9_]{{8}}\.tmp" for n in names))
+    stale = sorted(p for p in Path(run_dir).glob(".*.tmp")
+                   if pattern.fullmatch(p.name) and stat.S_ISREG(p.lstat().st_mode))
     for p in stale:
         p.unlink(missing_ok=True)
     return stale

@@ -15,6 +15,7 @@ import fcntl
 import math
 import os
 import signal
+import stat
 import sys
 import threading
 from pathlib import Path
@@ -22,12 +23,12 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jaxtraffic.io.files import clean_stale_tmp
+from jaxtraffic.io.files import atomic_write_bytes, clean_stale_tmp
 from jaxtraffic.platform import distributed
 from jaxtraffic.runs import checkpoint as ckpt
 
 __all__ = ["NonFiniteTraining", "RunLock", "StopSignals", "TrainingInterrupted", "check_finite", "check_out_dir",
-           "check_resumable", "claim_run_dir", "fmt_time", "open_run_dir", "own_run_dir", "print_or_drop",
+           "check_resumable", "claim_run_dir", "fmt_time", "is_run_dir", "open_run_dir", "own_run_dir", "print_or_drop",
            "report_interruption"]
 
 LOCK = ".lock"  # held (flock) by the training that writes the directory
@@ -35,6 +36,9 @@ LOCK = ".lock"  # held (flock) by the training that writes the directory
 RUN_FILES = (ckpt.CONFIG, "config.toml", ckpt.CHECKPOINT, ckpt.BEST, ckpt.SUMMARY, "learning_curve.csv",
              "learning_curve.png")
 RESULTS = (ckpt.CHECKPOINT, ckpt.BEST, ckpt.SUMMARY)  # what a fresh run would mix with
+# written first into every run directory: the proof that the folder is a training run's (claim_run_dir)
+RUN_MARKER = ".jaxtraffic-run"
+_MARKER_TEXT = b"jaxtraffic training run: train.py may replace the files it wrote here (--resume, --overwrite)\n"
 
 
 def print_or_drop(*args, file=None) -> None:
@@ -190,7 +194,7 @@ def own_run_dir(run_dir: Path, resume: bool, overwrite: bool, writer: bool, say)
     open_run_dir(run_dir)
     with RunLock(run_dir):
         claim_run_dir(run_dir, resume, overwrite, clear=True)
-        stale = clean_stale_tmp(run_dir)
+        stale = clean_stale_tmp(run_dir, (*RUN_FILES, RUN_MARKER))
         if stale:
             say(f"removed {len(stale)} temporary file(s) left by an interrupted write: "
                 f"{', '.join(p.name for p in stale)}")
@@ -212,12 +216,44 @@ def check_finite(what: str, tree, run_dir: Path, progress: str) -> None:
                                 f" became NaN/inf; {kept}. Lower the learning rate or the scales that blew up")
 
 
+def _regular_head(path: Path, n: int) -> bytes:
+    """The first ``n`` bytes of ``path`` if it is a regular file of this user (never following a link, never
+    blocking on a FIFO), else ``b""``."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError:
+        return b""
+    with os.fdopen(fd, "rb") as f:
+        st = os.fstat(f.fileno())
+        return f.read(n) if stat.S_ISREG(st.st_mode) and st.st_uid == os.getuid() else b""
+
+
+def _marked(run_dir: Path) -> bool:
+    return _regular_head(run_dir / RUN_MARKER, len(_MARKER_TEXT) + 1) == _MARKER_TEXT
+
+
+def is_run_dir(run_dir: Path) -> bool:
+    """``run_dir`` holds a training run of ours: its ``RUN_MARKER`` (a regular file of this user with the marker's
+    exact text) or, for a run written before the marker existed, a checkpoint or best policy in the checksummed
+    format (its header names ``ckpt.FORMAT``). Neither is held by a user's folder by accident."""
+    return _marked(run_dir) or any(ckpt.FORMAT.encode() in _regular_head(run_dir / name, 64)
+                                   for name in (ckpt.CHECKPOINT, ckpt.BEST))
+
+
 def claim_run_dir(run_dir: Path, resume: bool, overwrite: bool, clear: bool = False) -> None:
-    """A run directory holds one run. A fresh run refuses a directory holding another run's results
-    (``ValueError``) unless ``overwrite``; with ``clear`` (the writer, under ``RunLock``) those files are
-    removed first. A directory holding no results (no checkpoint, best policy or summary: a run stopped before
-    its first chunk completed) is taken over without asking."""
-    if resume or not run_dir.is_dir():
+    """A run directory holds one run, and is new, empty or a run of ours (``is_run_dir``): a folder holding
+    anything else is refused (``ValueError``), with or without ``overwrite``, and nothing in it is touched. A
+    fresh run refuses a directory holding another run's results unless ``overwrite``; with ``clear`` (the writer,
+    under ``RunLock``) those files are removed first and the marker is written. A run of ours holding no results
+    (a run stopped before its first chunk completed) is taken over without asking."""
+    if not run_dir.is_dir():
+        return
+    ours = is_run_dir(run_dir)
+    if not ours and any(p.name != LOCK for p in run_dir.iterdir()):
+        raise ValueError(f"out_dir {run_dir}: a non-empty folder that holds no training run of jaxtraffic's (no "
+                         f"{RUN_MARKER} file, no checkpoint); train.py writes only into a new, an empty or its own "
+                         "run folder: give another out_dir")
+    if resume:
         return
     present = [n for n in RUN_FILES if (run_dir / n).exists() or (run_dir / n).is_symlink()]
     if any(n in RESULTS for n in present) and not overwrite:
@@ -226,6 +262,8 @@ def claim_run_dir(run_dir: Path, resume: bool, overwrite: bool, clear: bool = Fa
     if clear:
         for name in present:
             (run_dir / name).unlink()
+        if not _marked(run_dir):
+            atomic_write_bytes(run_dir / RUN_MARKER, _MARKER_TEXT)
 
 
 class RunLock:

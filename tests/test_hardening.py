@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import leaves_equal
+from report_helpers import previous_report
 from tiny_runs import xla_env
 
 import jaxtraffic as jt
@@ -631,10 +632,7 @@ def test_evaluate_interrupted_exits_cleanly_and_leaves_its_output_as_it_was(ref_
     swallowed interrupt, and --out still holds the earlier report and nothing else (SIGTERM and SIGHUP take the
     same path, ``cli.staging.signals_raise``)."""
     sig = signal.SIGINT
-    out = tmp_path / "res"
-    out.mkdir()
-    (out / "REPORT.md").write_text("earlier")
-    (out / ".jaxtraffic-report").write_text("")  # a previous report of evaluate.py's
+    out = previous_report(tmp_path / "res")  # a previous report of evaluate.py's
     proc = subprocess.Popen([sys.executable, str(REPO / "evaluate.py"), "--run", str(ref_run), "--out", str(out),
                              "--horizon", "4", "--noise-seeds", "1", "--robust-grid", "2x2", "--gradient", "none",
                              "--plants", "paper"],
@@ -647,7 +645,7 @@ def test_evaluate_interrupted_exits_cleanly_and_leaves_its_output_as_it_was(ref_
     assert rc == 128 + sig, (rc, err[-2000:])
     assert f"interrupted ({signal.Signals(sig).name}): nothing was written to {out}" in err
     assert "Traceback" not in err and "terminate called" not in err, err[-2000:]
-    assert sorted(p.name for p in out.iterdir()) == [".jaxtraffic-report", "REPORT.md"]
+    assert sorted(p.name for p in out.iterdir()) == [".jaxtraffic-report", "REPORT.md"]  # and the marker unchanged
     assert (out / "REPORT.md").read_text() == "earlier" and not list(tmp_path.glob(".res.jaxtraffic-partial-*"))
 
 

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from report_helpers import previous_report
 
 import jaxtraffic as jt
 from jaxtraffic.cli import errors, staging
@@ -160,16 +161,58 @@ def test_an_entry_placed_during_the_run_in_an_unmarked_folder_is_never_replaced(
     (stage.work / "REPORT.md").write_text("new report")
     (out / "REPORT.md").write_text("the user's own notes")
     before = checksum(out)
-    with pytest.raises(ValueError, match="REPORT.md appeared there during the run"):
+    with pytest.raises(staging.Refused, match="REPORT.md hold.s. what no report of evaluate.py's wrote there"):
         stage.publish()
     stage.discard()
     assert checksum(out) == before and (out / "REPORT.md").read_text() == "the user's own notes"
+    assert (stage.work / "REPORT.md").read_text() == "new report"  # the job's report is kept for the user
     # the same name in a folder holding a report of ours is that report's entry: replaced
-    (out / staging.MARKER).write_text("")
+    (out / "REPORT.md").unlink()
+    previous_report(out)
     stage = staging.Staging(out)
     (stage.work / "REPORT.md").write_text("new report")
     stage.publish()
     assert (out / "REPORT.md").read_text() == "new report"
+
+
+def test_a_marker_is_not_ownership(tmp_path, no_work):
+    """Issue 50, item 13: a copied report (docs/results into a project), an empty or older marker, a symlinked
+    marker, a report entry the user added to, a run inside --out: refused, nothing touched."""
+    run = fake_run(tmp_path / "r")
+    report = previous_report(tmp_path / "report", {"REPORT.md": "ours", "runs/ppo/summary.json": "{}"})
+    project_dir = tmp_path / "project"
+    shutil.copytree(report, project_dir)  # the report's marker came along with the copy
+    (project_dir / "runs" / "mine").mkdir()
+    (project_dir / "runs" / "mine" / "config.json").write_text("the user's run")
+    empty_marker, linked = tmp_path / "empty-marker", tmp_path / "linked"
+    empty_marker.mkdir()
+    (empty_marker / staging.MARKER).write_text("")
+    (empty_marker / "runs").mkdir()
+    linked.mkdir()
+    (linked / staging.MARKER).symlink_to(report / staging.MARKER)
+    for out, why in ((project_dir, "written for another folder"), (empty_marker, "not one evaluate.py writes"),
+                     (linked, "is a symbolic link")):
+        before = checksum(out)
+        with pytest.raises(SystemExit) as exc:
+            evaluate_cli.main(["--run", str(run), "--out", str(out)])
+        assert exc.value.code == 2 and checksum(out) == before and no_work == []
+        assert why in staging.check_out(out)
+    # a genuine report whose runs/ the user added a run to: that entry is not replaced, nor anything else
+    (report / "runs" / "mine").mkdir()
+    (report / "runs" / "mine" / "config.json").write_text("the user's run")
+    before = checksum(report)
+    stage = staging.Staging(report)
+    (stage.work / "runs").mkdir()
+    (stage.work / "REPORT.md").write_text("new")
+    with pytest.raises(staging.Refused, match="runs hold"):
+        stage.publish()
+    stage.discard()
+    assert checksum(report) == before
+    # evaluating a run that lies inside --out: refused before any work
+    inner = fake_run(report / "runs" / "ppo")
+    with pytest.raises(SystemExit) as exc:
+        evaluate_cli.main(["--run", str(inner), "--out", str(report)])
+    assert exc.value.code == 2 and no_work == []
 
 
 # ----------------------------------------------------------------------------- 2. the staging folder
@@ -239,12 +282,7 @@ def test_planted_lock_symlink_is_not_followed(tmp_path, capsys, no_work):
 
 
 def test_a_failed_move_leaves_the_previous_report_intact(tmp_path, monkeypatch):
-    out = tmp_path / "res"
-    out.mkdir()
-    (out / staging.MARKER).write_text("")
-    (out / "REPORT.md").write_text("previous")
-    (out / "runs").mkdir()
-    (out / "runs" / "old.json").write_text("{}")
+    out = previous_report(tmp_path / "res", {"REPORT.md": "previous", "runs/old.json": "{}"})
     before = checksum(out)
     stage = staging.Staging(out)
     (stage.work / "REPORT.md").write_text("new")
@@ -325,10 +363,7 @@ def test_compile_cache_unusable_path_says_so(tmp_path, capsys):
     (FileNotFoundError(errno.ENOENT, "No such file or directory", "/r/config.json"), 2, "/r/config.json: No such"),
 ])
 def test_evaluate_os_errors_are_one_line_with_their_status(err, code, text, tmp_path, monkeypatch, capsys):
-    out = tmp_path / "res"
-    out.mkdir()
-    (out / staging.MARKER).write_text("")
-    (out / "REPORT.md").write_text("previous")
+    out = previous_report(tmp_path / "res", {"REPORT.md": "previous"})
     run = fake_run(tmp_path / "r")
     before, parent_before = checksum(out), sorted(p.name for p in tmp_path.iterdir())
 

@@ -8,12 +8,13 @@ import json
 
 import numpy as np
 import pytest
+from report_helpers import previous_report
 from tiny_runs import TINY
 
 from jaxtraffic.cli import train as train_cli
+from jaxtraffic.io.files import clean_stale_tmp
 from jaxtraffic.runs import checkpoint as ckpt
 from jaxtraffic.runs.config import load_config
-from jaxtraffic.io.files import clean_stale_tmp
 from jaxtraffic.runs.session import (
     RUN_FILES,
     RUN_MARKER,
@@ -234,11 +235,7 @@ def test_ppo_gone_nan_stops_with_an_error_and_no_summary(tmp_path, capsys):
 def test_publish_replaces_what_the_job_wrote_and_leaves_the_rest(tmp_path):
     from jaxtraffic.cli import staging
 
-    out = tmp_path / "results"
-    (out / "reference").mkdir(parents=True)
-    (out / staging.MARKER).write_text("")  # a previous report of evaluate.py's
-    (out / "REPORT.md").write_text("old")
-    (out / "reference" / "stale.png").write_text("old")
+    out = previous_report(tmp_path / "results", {"REPORT.md": "old", "reference/stale.png": "old"})
     (out / "convergence").mkdir()  # another tool's output in the same directory
     dead = tmp_path / f".results{staging._PARTIAL}killed"  # a killed run's leftovers: our marker, our uid
     dead.mkdir()
@@ -266,10 +263,7 @@ def test_evaluate_writes_whole_or_nothing(outcome, tmp_path, monkeypatch, capsys
     from jaxtraffic.cli import evaluate as evaluate_cli
     from jaxtraffic.cli import staging
 
-    out = tmp_path / "results"
-    out.mkdir()
-    (out / "REPORT.md").write_text("earlier")
-    (out / staging.MARKER).write_text("")
+    out = previous_report(tmp_path / "results")
 
     def fake_main(args, *rest):
         (args.out / "REPORT.md").parent.mkdir(parents=True, exist_ok=True)

@@ -221,6 +221,11 @@ def check_paths(args: EvaluateOptions, argv: list[str] | None) -> None:
     why = staging.check_out(args.out)
     if why:
         raise _fail(f"--out {args.out}: {why}")
+    out = args.out.resolve()
+    for flag, path in (("--run", args.run), ("--run-delay0", args.run_delay0), ("--runs-root", args.runs_root)):
+        if path is not None and path.resolve().is_relative_to(out):
+            raise _fail(f"{flag} {path}: lies inside --out {args.out}, whose entries the report replaces: move the "
+                        "run out of it, or choose another --out")
     for spec in external.parse(args.controller):
         source = str(spec["source"])
         if source.endswith(".py") and not Path(source).is_file():

@@ -2,9 +2,12 @@
 like the trainers'.
 
 ``--out`` must be a folder the job owns (``check_out``): one that does not exist yet, an empty folder, or a
-folder holding a report ``evaluate.py`` published before (recognised by its marker file, ``MARKER``, written
-into every report). Anything else (a project folder, a home, a dangling symbolic link, ``""``) is refused
-before any work starts; nothing here ever removes a folder the job did not write.
+folder holding a report ``evaluate.py`` published there before. That is proved by its marker file, ``MARKER``: a
+regular file (not a link) of this user, in JSON, naming the folder it was written for (its device and inode: a
+copy of a report elsewhere, docs/results copied into a project, is not ours) and listing every file and folder the
+report wrote. Anything else (a project folder, a home, a dangling symbolic link, ``""``, a marker of an older
+version or of another folder) is refused before any work starts; nothing here ever removes a folder the job did not
+write, nor an entry holding anything the listed report did not write.
 
 ``Staging(out)`` takes one lock per output folder (``.NAME.jaxtraffic-lock`` beside it, opened without following
 a symbolic link: a second job on the same ``--out`` is refused), removes stale staging folders of earlier jobs on
@@ -12,7 +15,9 @@ the same ``--out`` (recognised by their own marker and their owner, while the lo
 and creates a fresh staging folder with ``tempfile.mkdtemp`` in the parent (mode 0700, an unpredictable name).
 ``publish()`` then moves each entry written there into ``out``, replacing the entry of the same name (entries of
 ``out`` the job did not write are left alone), with the signals deferred and every step undone if one fails:
-``out`` ends up holding the new report or, unchanged, the previous one. ``discard()`` removes the staging folder.
+``out`` ends up holding the new report or, unchanged, the previous one. If an entry to replace is not the previous
+report's own (``Refused``), nothing is replaced and the new report stays in the staging folder, named in the error.
+``discard()`` removes the staging folder.
 
 ``signals_raise()`` turns SIGINT, SIGTERM and SIGHUP into ``Stopped`` in the main thread (a
 ``BaseException``: no ``except Exception`` swallows it). ``leave(code)`` exits with ``code``; while one
@@ -25,6 +30,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import fcntl
+import json
 import os
 import shutil
 import signal
@@ -80,6 +86,55 @@ def _is_ours(path: Path, marker: str) -> bool:
     return stat.S_ISDIR(st.st_mode) and stat.S_ISREG(mk.st_mode) and st.st_uid == uid and mk.st_uid == uid
 
 
+_FORMAT = "jaxtraffic-report"
+_MARKER_LIMIT = 1 << 22  # bytes: a report's marker lists a few hundred paths
+
+
+class Refused(ValueError):
+    """``publish`` found an entry to replace that the previous report did not write: nothing was replaced."""
+
+
+def _listing(path: Path) -> list[str]:
+    """Every path under ``path`` relative to it ("." for itself), a folder with a trailing "/", a link with "@":
+    what a report wrote there (``MARKER``)."""
+    def name(p: Path) -> str:
+        rel = str(p.relative_to(path)) if p != path else "."
+        return rel + ("@" if p.is_symlink() else "/" if p.is_dir() else "")
+
+    if path.is_symlink() or not path.is_dir():
+        return [name(path)]
+    return sorted([name(path), *(name(p) for p in path.rglob("*"))])
+
+
+def _folder_id(out: Path) -> list[int]:
+    st = out.lstat()
+    return [st.st_dev, st.st_ino]
+
+
+def read_marker(out: Path) -> dict | str:
+    """``out``'s ``MARKER`` (``{"entries": {name: listing}}``), or why ``out`` holds no report of ours."""
+    try:
+        fd = os.open(out / MARKER, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
+    except FileNotFoundError:
+        return f"no {MARKER} file"
+    except OSError as err:
+        return f"its {MARKER} is a symbolic link" if err.errno == errno.ELOOP else f"its {MARKER}: {err.strerror}"
+    with os.fdopen(fd, "rb") as f:
+        st = os.fstat(f.fileno())
+        if not stat.S_ISREG(st.st_mode) or st.st_uid != os.getuid():
+            return f"its {MARKER} is not a regular file of yours"
+        data = f.read(_MARKER_LIMIT + 1)
+    try:
+        marker = json.loads(data) if len(data) <= _MARKER_LIMIT else None
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError):
+        marker = None
+    if not (isinstance(marker, dict) and marker.get("format") == _FORMAT and isinstance(marker.get("entries"), dict)):
+        return f"its {MARKER} is not one evaluate.py writes (an older version's, or another file's)"
+    if marker.get("folder") != _folder_id(out):
+        return f"its {MARKER} was written for another folder (a copied report is not evaluate.py's to replace)"
+    return marker
+
+
 def check_out(out: Path) -> str | None:
     """Why ``out`` may not be ``evaluate.py``'s output folder, or None when it may (see the module docstring)."""
     if str(out) == "":
@@ -88,13 +143,11 @@ def check_out(out: Path) -> str | None:
         return f"a dangling symbolic link (to {os.readlink(out)})"
     if out.exists() and not out.is_dir():
         return "exists and is not a directory"
-    if out.is_dir():
-        entries = [p.name for p in out.iterdir()]
-        if entries and MARKER not in entries:
-            return (f"a non-empty folder that holds no report of evaluate.py's (no {MARKER} file); it will not "
-                    "write into it (it would replace entries of the same names): give a new or an empty folder")
-        if entries and not (out / MARKER).is_file():
-            return f"its {MARKER} is not a regular file"
+    if out.is_dir() and any(out.iterdir()):
+        marker = read_marker(out)
+        if isinstance(marker, str):
+            return (f"a non-empty folder that holds no report of evaluate.py's ({marker}); it will not write into it "
+                    "(it would replace entries of the same names): give a new or an empty folder")
     parent = out
     while not parent.exists() and not parent.is_symlink():
         parent = parent.parent
@@ -128,6 +181,7 @@ class Staging:
         self.out = Path(os.path.realpath(out)) if Path(out).is_symlink() else Path(out)
         self.out.parent.mkdir(parents=True, exist_ok=True)
         self._fd = _lock(self.out)
+        self.kept = False  # publish() refused: the report stays in work for the user
         try:
             for old in self.out.parent.glob(f".{self.out.name}{_PARTIAL}*"):
                 if _is_ours(old, STAGING_MARKER):  # the lock proves no live job writes there
@@ -139,18 +193,23 @@ class Staging:
             raise
 
     def publish(self) -> None:
-        """Move the report into ``out`` (see the module docstring) and release the lock."""
+        """Move the report into ``out`` (see the module docstring) and release the lock; ``Refused`` (the new
+        report kept in ``work``) if an entry to replace is not the previous report's."""
         (self.work / STAGING_MARKER).unlink()
-        (self.work / MARKER).write_text("a report written by evaluate.py; evaluate.py --out may replace it\n")
         with _deferred_signals() as got:
-            _swap(self.work, self.out)
+            try:
+                _swap(self.work, self.out)
+            except Refused:
+                self.kept = True  # discard() leaves it
+                raise
         self.close()
         if got:  # the move is a few renames: it was let finish, and the job is complete
             print(f"note: {signal.Signals(got[0]).name} received while the report was moved into {self.out}; "
                   "the move was completed first", file=sys.stderr, flush=True)
 
     def discard(self) -> None:
-        shutil.rmtree(self.work, ignore_errors=True)
+        if not self.kept:
+            shutil.rmtree(self.work, ignore_errors=True)
         self.close()
 
     def close(self) -> None:
@@ -177,16 +236,28 @@ def _deferred_signals() -> Iterator[list[int]]:
 
 def _swap(work: Path, out: Path) -> None:
     """Replace ``out``'s entries by ``work``'s of the same names, all or none; removes ``work``. An entry of the
-    same name is replaced only in a folder that holds a report of ours (its ``MARKER``): ``check_out`` judged
-    ``out`` when the job started, and this judges it again, since the job ran for minutes meanwhile."""
+    same name is replaced only if the previous report's ``MARKER`` lists it and everything now under it (judged
+    again here: the job ran for minutes since ``check_out``); otherwise ``Refused``, nothing touched."""
     created = not out.exists()
     if created:
         out.mkdir()
     names = sorted(p.name for p in work.iterdir())
-    clash = [n for n in names if n != MARKER and os.path.lexists(out / n)]
-    if clash and not _is_ours(out, MARKER):  # placed there during the run, in a folder that holds no report of ours
-        raise ValueError(f"--out {out}: {', '.join(clash)} appeared there during the run, in a folder that holds no "
-                         f"report of evaluate.py's (no {MARKER}); nothing was replaced or removed")
+    clash = [n for n in names if os.path.lexists(out / n) and n != MARKER]
+    previous = read_marker(out) if any(p.name != MARKER for p in out.iterdir()) else {"entries": {}}
+    if isinstance(previous, str):
+        foreign = clash
+    else:
+        foreign = [n for n in clash if not set(_listing(out / n)) <= set(previous["entries"].get(n, ()))]
+    if foreign:
+        raise Refused(f"--out {out}: {', '.join(foreign)} hold(s) what no report of evaluate.py's wrote there "
+                      f"({previous if isinstance(previous, str) else 'files added since'}); nothing was replaced or "
+                      f"removed, and the new report is in {work}")
+    kept = {} if isinstance(previous, str) else {n: v for n, v in previous["entries"].items()
+                                                  if n not in names and os.path.lexists(out / n)}
+    entries = {**kept, **{n: _listing(work / n) for n in names}}
+    (work / MARKER).write_text(json.dumps({"format": _FORMAT, "version": 2, "folder": _folder_id(out),
+                                           "entries": entries}, indent=1) + "\n")
+    names = sorted(p.name for p in work.iterdir())
     backup = Path(tempfile.mkdtemp(prefix=".jaxtraffic-old-", dir=out))
     moved_old, moved_new = [], []
     try:

@@ -84,3 +84,20 @@ def test_ratio_errors():
     with pytest.raises(ValueError, match="whole number of plant steps"):
         ratios(GRID, P.replace(dt=0.3, delay=0.0, max_delay_steps=20))
     assert ratios(GRID, P.replace(n_points=81, dt=0.25, max_delay_steps=20)) == (4, 2)
+
+
+@pytest.mark.parametrize("bad", [jnp.nan, jnp.inf, -jnp.inf])
+@pytest.mark.parametrize("plant", [P, P.replace(n_points=41, dt=0.25, max_delay_steps=20)], ids=["own", "refined"])
+def test_a_non_finite_controller_is_refused_through_the_adapter_as_directly(bad, plant):
+    """Issue 50, item 14: a policy whose output is NaN or inf somewhere is not saturated into a healthy-looking
+    rollout by the adapter (evaluate.py and the judge adapt every controller): the closed loop refuses its first
+    step (reason CONTROL), as ``simulate`` does with the controller acting directly; a finite law is unchanged."""
+    ctrl = jt.Controller(settings=jnp.float32(bad),
+                         act_fn=lambda s, c, obs, nom, k: (jnp.full_like(obs.rho, nom.h_bar).at[3].set(s), c))
+    direct = jt.simulate(P, ctrl, n_steps=6)
+    adapted = jt.simulate(plant, adapt(ctrl, GRID, plant), n_steps=12)
+    for res in (direct, adapted):
+        assert bool(res.metrics["diverged"]) and int(res.metrics["diverged_reason"]) == jt.Divergence.CONTROL
+        assert float(res.metrics["diverged_at_s"]) <= 0.5  # its first step (s)
+    healthy = jt.simulate(plant, adapt(jt.lyapunov(1.0), GRID, plant), n_steps=12)
+    assert not bool(healthy.metrics["diverged"])

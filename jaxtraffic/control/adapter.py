@@ -12,7 +12,9 @@ controller's by integers r = dx_ctrl / dx_plant and s = dt_ctrl / dt_plant:
 * the controller sees its own nominal (the plant's physical constants on its grid and period) and
   a delay buffer of the fields it has sent, one entry per control period;
 * action: its time gap, saturated on its own nodes, is interpolated linearly to the plant's nodes
-  and held for s plant steps (the controller acts at plant steps 0, s, 2 s, ...).
+  and held for s plant steps (the controller acts at plant steps 0, s, 2 s, ...). An output that is not
+  finite anywhere (NaN, inf) reaches the plant as NaN, so the closed loop refuses the step (reason
+  ``Divergence.CONTROL``) exactly as for the controller acting directly.
 
 With r = s = 1 the adapted controller equals the controller itself (tested). A plant coarser than
 the controller, or a ratio that is not an integer, is a ``ValueError``.
@@ -126,10 +128,11 @@ def on_grid(controller: Controller, grid: ControllerGrid, r: int, s: int) -> Con
     def act(settings, cs: AdaptedState, obs, nominal, key):
         sub, nom = view(obs, nominal, cs.h_ctrl, cs.sent)
         h, inner_state = inner.act_fn(settings, cs.inner, sub, nom, key)
+        finite = jnp.all(jnp.isfinite(h))  # a NaN/inf output reaches the plant as NaN: refused there, not hidden
         h = saturate(h, nom).astype(obs.rho.dtype)
         now = cs.step % s == 0
-        new = AdaptedState(inner=inner_state, h_ctrl=h, sent=delay_buffer.push(cs.sent, h), h_plant=prolong(h, r),
-                           step=cs.step + 1)
+        new = AdaptedState(inner=inner_state, h_ctrl=h, sent=delay_buffer.push(cs.sent, h),
+                           h_plant=jnp.where(finite, prolong(h, r), jnp.nan), step=cs.step + 1)
         if s > 1:  # between two control instants the previous field is held
             new = jax.tree.map(lambda a, b: jnp.where(now, a, b), new, cs.replace(step=cs.step + 1))
         return new.h_plant, new

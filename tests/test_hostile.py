@@ -467,9 +467,9 @@ def test_gradient_memory_estimate_refuses_before_allocating():
     grad_config, plant = gradient_setup(TrainConfig.make(
         run={"algo": "gradient"}, grad={"policy": "gains", "train_delays": (1.0,), "train_horizon_s": 2.0},
         plant={"n_points": 21}))
-    need = memory_estimate(grad_config, plant)
+    need = sum(memory_estimate(grad_config, plant).values())
     check_memory(grad_config, plant, have=100 * need)
-    with pytest.raises(ValueError, match=r"the rollouts alone need about .* GiB, more than this machine's"):
+    with pytest.raises(ValueError, match=r"the run needs about .* GiB \(rollouts: .* GiB\), more than this machine's"):
         check_memory(grad_config, plant, have=need)
 
 

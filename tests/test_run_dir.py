@@ -323,15 +323,37 @@ def test_sizes_and_horizons_beyond_what_can_run_are_flag_errors(tmp_path, capsys
     for flags, match in ((["--horizon-s", "1e30"], "horizon_s = 1e+30: must be at most 1e+08 time steps"),
                          (["--max-delay-steps", "2147483648"],
                           "max_delay_steps = 2147483648: must lie in [0, 1000000]"),
-                         (["--num-envs", "2147483648"], "the rollouts alone need about"),
+                         (["--num-envs", "2147483648"], "the run needs about"),
                          (["gradient", "--init-gains", "1,2"],
                           "--init-gains: too few values")):
         args = [*TINY, *flags] if flags[0] != "gradient" else [*GRAD, *flags[1:]]
         code, err = _main([*args, "--out-dir", str(tmp_path / "r")], capsys)
         assert code == 2 and match in err and err.count("\n") == 1, err
-    with pytest.raises(ValueError, match=r"num_envs = 1024: with num_steps = 100 and 4 seed"):
+    with pytest.raises(ValueError, match=r"num_envs = 1024: with num_steps = 100, 4 seed"):
         check_memory(TrainConfig.make(ppo={"num_envs": 1024, "num_steps": 100, "num_seeds": 4}), have=2.0**20)
     check_memory(TrainConfig(), have=2.0**34)  # the defaults fit 16 GiB
+
+
+def test_the_memory_check_counts_the_delay_buffer_the_suite_and_the_network(tmp_path, capsys):
+    """Issue 50, item 15: a delay buffer of 10^6 steps with 4 environments (0.31 GiB estimated before, 16.6 GB
+    reached) and a (30000, 30000) network (0.03 MiB estimated before) are refused in one line before anything is
+    compiled or written; the estimate grows with each component it counts."""
+    from jaxtraffic.runs.config import TrainConfig
+    from jaxtraffic.runs.config.checks import check_memory, memory_estimate
+
+    small = TrainConfig.make(ppo={"num_envs": 4, "num_seeds": 1})
+    base = memory_estimate(small)
+    big_buffer = memory_estimate(small.updated(plant={"max_delay_steps": 10**6}))
+    big_net = memory_estimate(small.updated(ppo={"hidden": (30000, 30000)}))
+    assert big_buffer["validation suite"] > 5000 * base["validation suite"] and big_buffer["validation suite"] > 2**36
+    assert big_net["networks"] > 36 * 4 * 2 * 30000**2 and sum(big_net.values()) > 2**37
+    for flags, big in ((["--max-delay-steps", "1000000"], "validation suite"), (["--hidden", "30000", "30000"],
+                                                                                 "networks")):
+        code, err = _main([*TINY, *flags, "--out-dir", str(tmp_path / "m")], capsys)
+        assert code == 2 and err.count("\n") == 1 and f"({big}: " in err, err
+        assert not (tmp_path / "m").exists()
+    with pytest.raises(ValueError, match=r"the run needs about .* GiB \(validation suite"):
+        check_memory(small.updated(plant={"max_delay_steps": 10**6}), have=24 * 2.0**30)
 
 
 def test_module_entry_points_and_the_gradient_chunk_rule(tmp_path, capsys):

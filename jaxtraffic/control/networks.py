@@ -37,6 +37,16 @@ class MLP(nn.Module):
         return nn.Dense(self.out, kernel_init=nn.initializers.orthogonal(self.out_scale))(x)
 
 
+def actor_critic_size(d_in: int, hidden: Sequence[int], n_actions: int = 3) -> int:
+    """The number of parameters of ``ActorCritic(hidden)`` on ``d_in`` inputs (counted, nothing built: the memory
+    checks size a network before it is allocated)."""
+    def mlp(out: int) -> int:
+        widths = [d_in, *hidden, out]
+        return sum(a * b + b for a, b in zip(widths[:-1], widths[1:], strict=True))
+
+    return mlp(n_actions) + n_actions + mlp(1)
+
+
 class ActorCritic(nn.Module):
     """Returns (mean (..., 3), sigma (..., 3), value (...,))."""
 

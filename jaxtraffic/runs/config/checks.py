@@ -192,28 +192,62 @@ def check_devices(config: Any, n_devices: int) -> None:
                     f"must divide the batch of each device, num_envs / devices * num_steps = {local}")
 
 
-def memory_estimate(config: Any) -> float:
-    """A lower bound of the bytes PPO's programs hold (float32): every environment's state (fields, delay
-    buffer) and one update's rollout (observations, actions, rewards, values... per step)."""
-    n, envs = config.plant.n_points, config.ppo.num_envs * config.ppo.num_seeds
-    state = (config.plant.max_delay_steps + 6) * n
-    transition = 2 * (3 * n + 3) + 12
-    return 4.0 * envs * (state + config.ppo.num_steps * transition)
+# Measured on a 2-core CPU (peak RSS less the bare process's, 2026-12-05, benchmarks/memory_check.py): max_delay_steps
+# 50 000 on 201 points: 3.2 GiB against 4.9 estimated; hidden (4000, 4000): 4.3 GiB, 33 copies of the parameters.
+CARRY_COPIES = 2  # a lax.scan's carry lives twice (the step's input and output) while a step runs
+NETWORK_COPIES = 36  # training (parameters, gradients, Adam's moments), the suite's per-scenario repeat, checkpoints
+
+
+def memory_estimate(config: Any) -> dict[str, float]:
+    """The bytes PPO's programs hold (float32), by what holds them: the training environments (fields and delay
+    buffer, ``CARRY_COPIES``), one update's rollout, the evaluation rollouts (one per member), the validation suite
+    (its scenarios on the judging plant, the reference plant's grid by default, with their delay buffers and the
+    policy's own buffer of sent fields, and backstepping's reference rollouts), and the networks (``NETWORK_COPIES``
+    per member, and the activations of a minibatch forward and backward)."""
+    from jaxtraffic.control.gain_policy import feature_size
+    from jaxtraffic.control.networks import actor_critic_size
+    from jaxtraffic.model.params import REFERENCE_POINTS
+
+    pl, al, run = config.plant, config.ppo, config.run
+    n, cap, members = pl.n_points, pl.max_delay_steps + 1, al.num_seeds
+    env_state = (cap + 6) * n
+    envs = al.num_envs * members
+    d_in = feature_size(n, config.env.obs_segments)
+    parts = {"training environments": CARRY_COPIES * envs * env_state,
+             "one update's rollout": envs * al.num_steps * (2 * (d_in + 3) + 12),
+             "evaluation rollouts": CARRY_COPIES * members * env_state,
+             "networks": NETWORK_COPIES * members * actor_critic_size(d_in, al.hidden)
+             + 3 * envs * al.num_steps // al.num_minibatches * 2 * sum(al.hidden)}
+    if run.val_horizon_s > 0:
+        judge = REFERENCE_POINTS if run.val_plant == "reference" else n
+        scenarios = 3 * 2  # the validation delays (at most 3) and its two initial waves (runs.ppo.selection)
+        parts["validation suite"] = CARRY_COPIES * scenarios * (members + 1) * ((cap + 6) * judge + cap * n)
+    return {k: 4.0 * v for k, v in parts.items()}
 
 
 def check_memory(config: Any, have: float | None = None) -> None:
-    """PPO's rollouts must fit this machine's memory (``have`` bytes; default: the physical memory)."""
+    """PPO's programs must fit this machine's memory (``have`` bytes; default: the physical memory)."""
+    need = memory_estimate(config)
+    refuse_memory(need, have, "num_envs", config.ppo.num_envs,
+                  f"with num_steps = {config.ppo.num_steps}, {config.ppo.num_seeds} seed(s), max_delay_steps = "
+                  f"{config.plant.max_delay_steps} on {config.plant.n_points} points and hidden = "
+                  f"{tuple(config.ppo.hidden)}", "use fewer environments, steps, a smaller delay buffer or network")
+
+
+def refuse_memory(need: dict[str, float], have: float | None, field: str, value: Any, what: str, advice: str) -> None:
+    """``fail(field, value, ...)`` if the bytes ``need`` (by component) exceed 80 % of ``have`` (default: this
+    machine's physical memory), naming the largest component."""
     if have is None:
         try:
             have = float(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
         except (ValueError, OSError, AttributeError):
             return
-    need = memory_estimate(config)
-    if need > 0.8 * have:
-        al = config.ppo
-        raise fail("num_envs", al.num_envs, f"with num_steps = {al.num_steps} and {config.ppo.num_seeds} seed(s) "
-                    f"(num_steps, seeds) the rollouts alone need about {need / 2**30:.3g} GiB, more than this "
-                    f"machine's {have / 2**30:.3g} GiB; use fewer environments or steps")
+    total = sum(need.values())
+    if total > 0.8 * have:
+        big = max(need, key=lambda k: need[k])
+        raise fail(field, value, f"{what}: the run needs about {total / 2**30:.3g} GiB ({big}: "
+                                 f"{need[big] / 2**30:.3g} GiB), more than this machine's {have / 2**30:.3g} GiB; "
+                                 f"{advice}")
 
 
 def check_initial_amplitudes(config: Any, traffic: Any) -> None:

@@ -17,7 +17,6 @@ rounding: the scenario split changes the sums' order).
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -30,7 +29,8 @@ from jaxtraffic.control.adapter import adapt, baseline_grid
 from jaxtraffic.control.adaptive_residual import ALPHA_KNOTS as RESIDUAL_ALPHA_KNOTS
 from jaxtraffic.control.base import Controller
 from jaxtraffic.control.baselines import backstepping
-from jaxtraffic.control.gain_policy import equilibrium_gains
+from jaxtraffic.control.gain_policy import equilibrium_gains, feature_size
+from jaxtraffic.control.networks import actor_critic_size
 from jaxtraffic.io.files import write_json
 from jaxtraffic.learn.gradient import cem, objective
 from jaxtraffic.learn.gradient.config import GradientConfig
@@ -38,6 +38,7 @@ from jaxtraffic.model.linear import gain_law_wave_speed, linearize
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.runs import checkpoint as ckpt
 from jaxtraffic.runs.config import TrainConfig, config_json
+from jaxtraffic.runs.config.checks import CARRY_COPIES, NETWORK_COPIES, refuse_memory
 from jaxtraffic.runs.gradient.policy import gradient_setup, own_grid_controller
 from jaxtraffic.runs.loop import Clock, Progress, prepare, run_training, summary_base
 from jaxtraffic.runs.policy import policy_certificate
@@ -196,32 +197,28 @@ class GradientTraining:
                 + f"; outputs in {run_dir}")
 
 
-def memory_estimate(grad_config: GradientConfig, plant: TrafficParams) -> float:
-    """A lower bound of the bytes one gradient (or CEM) step holds (float32): every scenario's (and CEM candidate's)
-    plant state (fields, delay buffer), stored once per recording chunk for the backward pass (Adam) plus the
-    chunk recomputed, or once (CEM: no backward pass)."""
+def memory_estimate(grad_config: GradientConfig, plant: TrafficParams) -> dict[str, float]:
+    """The bytes one gradient (or CEM) step holds (float32), by what holds them: every scenario's (and CEM
+    candidate's) plant state (fields, delay buffer; ``CARRY_COPIES``), stored once per recording chunk for the
+    backward pass (Adam) plus the chunk recomputed, or once (CEM: no backward pass); and the policy's parameters
+    (``NETWORK_COPIES`` per candidate)."""
     n_steps = objective.horizon_steps(grad_config, plant.dt)
     every = grad_config.record_every
     cem_run = grad_config.grad_method == "cem"
     batch = grad_config.n_scenarios * (grad_config.cem_population if cem_run else 1)
     state = (plant.max_delay_steps + 6) * plant.n_points
-    return 4.0 * batch * state * (1 if cem_run else n_steps // every + every)
+    size = actor_critic_size(feature_size(plant.n_points), grad_config.hidden) if grad_config.policy == "network" else 3
+    return {"rollouts": 4.0 * CARRY_COPIES * batch * state * (1 if cem_run else n_steps // every + every),
+            "networks": 4.0 * NETWORK_COPIES * (grad_config.cem_population if cem_run else 1) * size}
 
 
 def check_memory(grad_config: GradientConfig, plant: TrafficParams, have: float | None = None) -> None:
     """The gradient trainer's rollouts must fit this machine's memory (``have`` bytes; default: the physical
-    memory); the same rule and message as PPO's (``runs.config.checks.check_memory``)."""
-    if have is None:
-        try:
-            have = float(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
-        except (ValueError, OSError, AttributeError):
-            return
-    need = memory_estimate(grad_config, plant)
-    if need > 0.8 * have:
-        raise ValueError(f"n_scenarios = {grad_config.n_scenarios} (--train-delays x initial states) on "
-                         f"{plant.n_points} points over {objective.horizon_steps(grad_config, plant.dt)} steps: "
-                         f"the rollouts alone need about {need / 2**30:.3g} GiB, more than this machine's "
-                         f"{have / 2**30:.3g} GiB; use fewer scenarios, points or a shorter --train-horizon-s")
+    memory); the same rule as PPO's (``runs.config.checks.refuse_memory``)."""
+    refuse_memory(memory_estimate(grad_config, plant), have, "n_scenarios", grad_config.n_scenarios,
+                  f"(--train-delays x initial states) on {plant.n_points} points over "
+                  f"{objective.horizon_steps(grad_config, plant.dt)} steps with max_delay_steps = "
+                  f"{plant.max_delay_steps}", "use fewer scenarios, points or a shorter --train-horizon-s")
 
 
 def train_gradient(config: TrainConfig, callbacks: Sequence[Callable[[dict], None]] = ()) -> Path:

@@ -208,9 +208,10 @@ def check_args(args: EvaluateOptions) -> tuple[int, int]:
 
 
 def _raw_out_empty(argv: list[str] | None) -> bool:
-    """Whether ``--out ""`` was given (argparse's ``Path("")`` is ``.``, the current folder)."""
+    """Whether ``--out ""`` (or ``--out-dir ""``) was given (argparse's ``Path("")`` is ``.``, the current folder)."""
     argv = sys.argv[1:] if argv is None else argv
-    return any((a == "--out" and i + 1 < len(argv) and argv[i + 1] == "") or a == "--out="
+    flags = ("--out", "--out-dir")
+    return any((a in flags and i + 1 < len(argv) and argv[i + 1] == "") or a in [f + "=" for f in flags]
                for i, a in enumerate(argv))
 
 
@@ -251,7 +252,8 @@ def check_paths(args: EvaluateOptions, argv: list[str] | None) -> None:
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     """Run the evaluation (exit statuses: ``cli.errors``; 2 for bad flags, 74 for an OS error, 128+N on a
     signal; ``--out`` is replaced whole or left as it was, ``cli.staging``)."""
-    args = parse_args(argv)
+    with errors.exit_codes(PROG):  # `evaluate.py --help | head`: one line, not a traceback (as train.py)
+        args = parse_args(argv)
     t0 = time.perf_counter()
     nd, na = check_args(args)
     check_paths(args, argv)

@@ -45,8 +45,9 @@ class EvaluateOptions:
     """PPO run trained with D = 4 s (default runs/default, trained first if missing)"""
     run_delay0: Path | None = None
     """optional PPO run trained with D = 0, for scenario delay0"""
-    out: Path = Path("results")
-    """output folder (created by the job; a non-empty one must hold an earlier report of ours)"""
+    out: Annotated[Path, tyro.conf.arg(aliases=("--out-dir",))] = Path("results")
+    """output folder (created by the job; a non-empty one must hold an earlier report of ours); --out-dir is the
+    same flag (train.py's name)"""
     n_points: int | None = None
     """grid points of the paper plant (default: the PPO run's)"""
     horizon: float = 300.0
@@ -102,12 +103,31 @@ def parse_evaluate(argv: list[str] | None, prog: str) -> EvaluateOptions:
     """The options of the command line ``argv`` (default ``sys.argv[1:]``)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     refuse_renamed(argv, RENAMED, prog)
+    exit_on_version(argv, prog)
     return tyro.cli(EvaluateOptions, args=argv, prog=prog, config=(tyro.conf.UseAppendAction,),
-                    description=inspect.cleandoc(EvaluateOptions.__doc__ or ""))
+                    description=inspect.cleandoc(EvaluateOptions.__doc__ or "") + " --version: the version.")
+
+
+def version() -> str:
+    """The package's version as written in ``jaxtraffic._version`` (an editable install's metadata can be stale)."""
+    from jaxtraffic._version import __version__
+
+    return __version__
+
+
+def exit_on_version(argv: list[str], prog: str) -> None:
+    """``--version`` anywhere in ``argv``: print ``PROG VERSION`` and exit 0 (both programs)."""
+    if "--version" in argv:
+        print(f"{prog} {version()}")
+        raise SystemExit(0)
 
 
 def program(default: str) -> str:
-    """The program's name as the user typed it (``jaxtraffic-evaluate``, ``evaluate.py``), else ``default``."""
-    name = Path(sys.argv[0]).name if sys.argv and sys.argv[0] else ""
+    """The program's name as the user typed it (``jaxtraffic-evaluate``, ``evaluate.py``, ``python -m jaxtraffic
+    train`` for ``default`` train.py), else ``default``."""
+    path = Path(sys.argv[0]) if sys.argv and sys.argv[0] else None
+    if path is not None and path.name == "__main__.py" and path.parent.name == "jaxtraffic":  # python -m jaxtraffic
+        return f"python -m jaxtraffic {Path(default).stem}"
+    name = path.name if path is not None else ""
     return name if name and name not in ("-c", "-m", "__main__.py", "pytest") and not name.startswith("pytest") \
         else default

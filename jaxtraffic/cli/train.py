@@ -3,9 +3,10 @@ gradient [flags]`` (gradients through the simulator); ``train.py ALGO --help`` l
 
 tyro derives the flags from the config tree: one per leaf field the algorithm reads (``tree.fields_for``), named
 after it (``--n-points`` sets ``plant.n_points``), with its default and its metadata's one-line ``help``.
-``--config FILE.toml`` starts from a config file (a run's config.toml reproduces it); flags override it.
-Without a subcommand, ``ppo`` is inserted, unless ``--config`` names a gradient run's config or ``--resume``
-a gradient run's directory. Ctrl-C or SIGTERM stops after the current chunk with its checkpoint saved (exit
+``--config FILE.toml`` starts from a config file (a run's config.toml reproduces it), ``--recipe NAME`` from one of
+the main job's runs (``paper.recipes``: the package's own config files; not with ``--config``); flags override it.
+Without a subcommand, ``ppo`` is inserted, unless the config file or recipe is a gradient run's or ``--resume``
+names a gradient run's directory. Ctrl-C or SIGTERM stops after the current chunk with its checkpoint saved (exit
 130 / 143); ``--resume`` continues from it. ``--coordinator-address HOST:PORT --num-processes N --process-id
 I`` (or the ``JAX_*`` variables) run N cooperating processes (docs/tutorials/cluster.md).
 """
@@ -22,7 +23,8 @@ import tyro
 from tyro import _errors as tyro_errors
 
 from jaxtraffic.cli import errors
-from jaxtraffic.cli.options import Cluster, program
+from jaxtraffic.cli.options import Cluster, exit_on_version, program
+from jaxtraffic.paper.recipes import NAMES, recipe_tables
 from jaxtraffic.platform import compile_cache, distributed
 from jaxtraffic.runs.config import ALGOS, SECTIONS, RunConfig, TrainConfig, load_config
 from jaxtraffic.runs.config.toml import read_tables
@@ -41,15 +43,9 @@ REMOVED = {"--algo": "`train.py gradient` (or `train.py ppo`): the algorithm is 
 ABOUT = {"ppo": "Train the paper's PPO gain policy (the default subcommand).",
          "gradient": "Train a policy (gains, network or delay schedule) by gradients through the simulator."}
 HELP = ("-h", "--help", "-H", "--help-verbose")
-DESCRIPTION = ("Train a gain policy: train.py ppo [flags] (also train.py [flags]) or train.py gradient [flags]; "
-               "train.py ALGO --help lists ALGO's flags (-H: with their help); --version: the version.")
-
-
-def _version() -> str:
-    """The package's version as written in ``jaxtraffic._version`` (an editable install's metadata can be stale)."""
-    from jaxtraffic._version import __version__
-
-    return __version__
+DESCRIPTION = (f"Train a gain policy: {PROG} ppo [flags] (also {PROG} [flags]) or {PROG} gradient [flags]; "
+               f"{PROG} ALGO --help lists ALGO's flags (-H: with their help); --recipe NAME starts from a run of "
+               f"the main job ({', '.join(NAMES)}); --version: the version.")
 
 
 def flags_class(algo: str, base: TrainConfig) -> type:
@@ -64,6 +60,9 @@ def flags_class(algo: str, base: TrainConfig) -> type:
     cls = dataclasses.make_dataclass(algo, [*leaves, (
         "config", Union[Path, None], dataclasses.field(default=None, metadata={  # noqa: UP007 (a runtime type)
             "help": "start from this config file (a run's config.toml); the flags given override it"})), (
+        "recipe", Union[Literal[NAMES], None], dataclasses.field(default=None, metadata={  # noqa: UP007 (a runtime type)
+            "help": f"start from the main job's run NAME ({', '.join(NAMES)}; not with --config); the flags given "
+                    "override it"})), (
         "cluster", Annotated[Cluster, tyro.conf.OmitArgPrefixes], dataclasses.field(default_factory=Cluster))],
         frozen=True)
     cls.__doc__ = ABOUT[algo]
@@ -79,6 +78,20 @@ def _value_of(argv: list[str], flag: str) -> str | None:
         elif arg.startswith(flag + "="):
             value = arg.split("=", 1)[1]
     return value
+
+
+def _start_tables(argv: list[str]) -> Tables:
+    """The tables the command line starts from: the packaged recipe ``--recipe NAME``'s (``paper.recipes``) or the
+    ``--config FILE``'s (the two are exclusive), else none."""
+    name, config_file = _value_of(argv, "--recipe"), _value_of(argv, "--config")
+    if name is not None and config_file is not None:
+        raise ValueError("--recipe and --config both name the configuration to start from: give one (flags given "
+                         "with either override it)")
+    if name is not None:
+        if name not in NAMES:
+            raise ValueError(f"--recipe {name!r}: no such recipe; the recipes are: {', '.join(NAMES)}")
+        return recipe_tables(name)
+    return read_tables(config_file) if config_file else {}
 
 
 def _default_algo(argv: list[str], from_file: Tables) -> str:
@@ -170,16 +183,14 @@ def parse(argv: list[str] | None = None) -> tuple[TrainConfig, Cluster, set[str]
     and the fields its flags set."""
     argv = list(sys.argv[1:] if argv is None else argv)
     _refuse_removed(argv)
-    if "--version" in argv:
-        print(f"{PROG} {_version()}")
-        raise SystemExit(0)
-    from_file = read_tables(config_file) if (config_file := _value_of(argv, "--config")) else {}
+    exit_on_version(argv, PROG)
+    from_file = _start_tables(argv)
     if not argv or argv[0] not in (*ALGOS, *HELP):
         argv.insert(0, _default_algo(argv, from_file))
     bases = {a: _base(a, from_file) for a in ALGOS}
     classes = {a: flags_class(a, bases[a]) for a in ALGOS}
     algo = argv[0] if argv[0] in ALGOS else "ppo"
-    names = {f.name for f in dataclasses.fields(classes[algo])} - {"config", "cluster"}
+    names = {f.name for f in dataclasses.fields(classes[algo])} - {"config", "recipe", "cluster"}
     tuples = {"--" + f.name.replace("_", "-") for f in dataclasses.fields(classes[algo]) if "tuple" in str(f.type)}
     argv = _split_commas(argv, tuples)
     # a type built at run time (the flag classes are): a value to mypy, not a type alias

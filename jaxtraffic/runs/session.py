@@ -156,6 +156,17 @@ def check_total(meta: dict, counter: str, total: int, flag: str, path: Path) -> 
                          f"below that: give {flag} >= {done} to continue (or leave it out)")
 
 
+def rounding_note(total: int, per_chunk: int, flag: str, unit: str, chunk: str) -> str:
+    """The note a run says once at its start when its length ``total`` (``flag``, in ``unit``) is no whole number of
+    chunks of ``per_chunk`` (``chunk``: what a chunk is made of): the run goes on to the end of the chunk that
+    passes it; "" when it is a whole number."""
+    if total % per_chunk == 0:
+        return ""
+    end = -(-total // per_chunk) * per_chunk
+    return (f"note: {flag} {total} is rounded up to {end} {unit}: the run goes in whole chunks of {per_chunk} {unit} "
+            f"({chunk}), and the last one ends past {total}")
+
+
 def report_interruption(signum: int, run_dir: Path, any_chunk: bool, new_chunk: bool, progress: str) -> str:
     """Say what an interruption left on disk and return the message; raise ``TrainingInterrupted``
     if it left nothing new (otherwise the caller writes its summary first, then raises it)."""

@@ -1,12 +1,11 @@
-"""The main job's training runs as data: one TOML configuration per run (``train.py --config FILE`` reads the
-same files), loaded by ``recipe(name)``.
+"""The main job's training runs as data: one TOML configuration per run (``train.py --recipe NAME`` or
+``train.py --config FILE`` trains one on its own), loaded by ``recipe(name)``.
 
     ppo.toml               the paper's PPO policy at D = 4 s on the paper's grid
     gradient-gains.toml    three constant gains trained by Adam through the reference plant
     gradient-network.toml  the actor network trained by Adam through the reference plant
     gradient-robust.toml   the robust delay schedule, trained by CEM over the robustness map's ranges
-    adaptive-residual.toml a learned correction on adaptive backstepping, trained by CEM as the schedule (not yet
-                           run by the main job)
+    adaptive-residual.toml a learned correction on adaptive backstepping, trained by CEM as the schedule
 
 ``evaluate.py`` sets each run's directory and, from its own grids, the training plant (``training_plant``).
 """
@@ -15,6 +14,7 @@ from __future__ import annotations
 
 import tomllib
 from importlib import resources
+from typing import Any
 
 from jaxtraffic.runs.config import TrainConfig
 from jaxtraffic.runs.config.toml import tables_of_toml
@@ -22,13 +22,19 @@ from jaxtraffic.runs.config.toml import tables_of_toml
 NAMES = ("ppo", "gradient-gains", "gradient-network", "gradient-robust", "adaptive-residual")
 
 
-def recipe(name: str) -> TrainConfig:
-    """The configuration of the main job's run ``name`` (one of ``NAMES``)."""
+def recipe_tables(name: str) -> dict[str, dict[str, Any]]:
+    """The fields the recipe ``name`` (one of ``NAMES``) gives, by table, as a config file's
+    (``runs.config.toml.read_tables``); ``ValueError`` naming the recipes for another name."""
     if name not in NAMES:
-        raise ValueError(f"no recipe {name!r}; the recipes are {NAMES}")
+        raise ValueError(f"no recipe {name!r}; the recipes are: {', '.join(NAMES)}")
     where = f"jaxtraffic/paper/recipes/{name}.toml"
     text = resources.files(__package__).joinpath(f"{name}.toml").read_text()
-    return TrainConfig.make(**tables_of_toml(tomllib.loads(text), where))
+    return tables_of_toml(tomllib.loads(text), where)
+
+
+def recipe(name: str) -> TrainConfig:
+    """The configuration of the main job's run ``name`` (one of ``NAMES``)."""
+    return TrainConfig.make(**recipe_tables(name))
 
 
 def training_plant(kind: str, controller_points: int, reference: tuple[int, int]) -> dict[str, dict]:

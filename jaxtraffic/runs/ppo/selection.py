@@ -204,3 +204,58 @@ class Validation(enum.Enum):
 def format_scores(score: np.ndarray) -> str:
     """Scores for a progress line: the score, or the status's text when it is not a score ("-", "bad")."""
     return ",".join(f"{x:.2f}" if (v := Validation.of(x)) is Validation.SCORED else v.value for x in np.asarray(score))
+
+
+# ----------------------------------------------------------------------------- the run's closing line
+def best_text(score: float, member: int, env_steps: int, validated: bool) -> str:
+    """The best checkpoint in words for the run's closing line: its score and what it measures (``validated``: a
+    validation suite ran), or that no checkpoint was scored; never the ranking's internal numbers."""
+    where = f"member {member} at {env_steps} env steps"
+    if not math.isfinite(score):
+        return "no best checkpoint kept"
+    status = Validation.of(score)
+    if status is Validation.SCORED and validated:
+        return (f"best checkpoint: {where}, validation score {score:.3g} (the worst ratio to backstepping over the "
+                "suite, dimensionless; <= 1: as good as backstepping)")
+    if status is Validation.SCORED:  # no suite: the score is the evaluation reward, negated
+        return f"best checkpoint: {where}, evaluation reward {-score:.4g} (dimensionless)"
+    if status is Validation.REJECTED:
+        return (f"no scored checkpoint (every validated one was rejected: a rollout diverged or stopped converging); "
+                f"the policy kept: {where}")
+    return (f"no scored checkpoint (none met the evaluation's conditions of the stop rule); the policy kept: {where}, "
+            "the highest evaluation reward")
+
+
+def rule_text(run: Any, ev: dict, certified: np.ndarray | None, score: np.ndarray | None) -> str:
+    """Per member, which conditions of the stop rule its evaluation ``ev`` (``final_reward``, ``diverged``,
+    ``wave_speed``) met and failed, with the values. ``run``: the run's ``RunConfig``; ``certified`` and ``score``
+    (``scores``): of the same evaluation, None when unknown (not evaluated in this session). The certificate and
+    the validation are checked only for members meeting the conditions before them."""
+    lines = []
+    for i, (r, div, s) in enumerate(zip(*(np.asarray(ev[k]).tolist() for k in ("final_reward", "diverged",
+                                                                               "wave_speed")), strict=True)):
+        ok: bool | None = r >= run.target_reward and not div  # None: unknown in this session
+        parts = ["reward target not met (the evaluation diverged)" if div else
+                 f"reward target {_met(ok)} (eval reward {r:.4g} {'>=' if ok else '<'} {run.target_reward:g}, "
+                 "dimensionless)"]
+        if run.min_wave_speed is not None:
+            fast = s >= run.min_wave_speed
+            ok = ok and fast
+            parts.append(f"wave speed {_met(fast)} ({s:+.2f} m/s {'>=' if fast else '<'} {run.min_wave_speed:g} m/s)")
+        if run.require_certificate:
+            cert = None if certified is None or not ok else bool(certified[i])
+            parts.append(f"certificate {'not checked' if not ok else _met(cert)}")
+            ok = ok and cert
+        if run.val_horizon_s > 0:
+            x = None if score is None or not ok else float(score[i])
+            scored = x is not None and Validation.of(x) is Validation.SCORED
+            parts.append("validation " + ("not run" if ok is False else _met(None) if x is None else
+                                          f"{_met(x <= run.val_target)} (score {x:.3g} "
+                                          f"{'<=' if x <= run.val_target else '>'} {run.val_target:g})" if scored
+                                          else "not met (rejected: a rollout diverged or stopped converging)"))
+        lines.append(f"member {i}: " + ", ".join(parts))
+    return "; ".join(lines)
+
+
+def _met(ok: bool | None) -> str:
+    return "unknown (not evaluated in this session)" if ok is None else "met" if ok else "not met"

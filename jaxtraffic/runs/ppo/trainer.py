@@ -56,7 +56,7 @@ from jaxtraffic.runs.curve import CURVE_FIELDS
 from jaxtraffic.runs.loop import Clock, Progress, prepare, run_training, summary_base
 from jaxtraffic.runs.policy import load_policy, policy_certificate
 from jaxtraffic.runs.ppo import members, selection
-from jaxtraffic.runs.session import check_finite, check_total, fmt_time
+from jaxtraffic.runs.session import check_finite, check_total, fmt_time, rounding_note
 from jaxtraffic.sim.initial import paper_initial_condition
 from jaxtraffic.sim.metrics import VEH_PER_KM
 from jaxtraffic.sim.rollout import simulate_batch
@@ -176,6 +176,7 @@ class PPOTraining:
                                                      selection.validation_delays(env_params), plant=judge)
         self.steps_per_chunk = ppo_config.steps_per_update * ppo_config.updates_per_chunk
         self.last_eval: dict = {}
+        self.last_checks: tuple[np.ndarray | None, np.ndarray | None] = (None, None)
 
     def _policy(self):  # the current (params, obs mean, obs var), leading member axis
         host = jax.device_get(self.rep)
@@ -202,9 +203,11 @@ class PPOTraining:
         self.members = Members.of(self.progress.own, self.ppo_config.num_seeds)
         self.best_saved = self.best
         c, run = self.ppo_config, self.config.run
+        note = rounding_note(run.total_steps, self.steps_per_chunk, "--total-steps", "env steps", f"{c.num_envs} "
+                             f"envs x {c.num_steps} steps x {c.updates_per_chunk} updates per member")
         return (f"training PPO: {c.num_envs} envs x {c.num_steps} steps/update, {c.updates_per_chunk} updates/chunk,"
                 f" {c.num_seeds} seed(s), {len(jax.devices())} device(s), plant D = {self.config.plant.delay:g} s, "
-                f"target eval reward >= {run.target_reward}")
+                f"target eval reward >= {run.target_reward}" + (f"\n{note}" if note else ""))
 
     def _judge(self, ev: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(paper rule met, stop rule met, score) per member, of one evaluation."""
@@ -212,12 +215,13 @@ class PPOTraining:
         reward = ev["final_reward"]
         paper = (reward >= run.target_reward) & ~np.asarray(ev["diverged"])
         candidate = paper & (True if run.min_wave_speed is None else ev["wave_speed"] >= run.min_wave_speed)
-        if run.require_certificate:
-            candidate = candidate & _certified(ev["equilibrium_gains"], candidate, self.config)
+        certified = _certified(ev["equilibrium_gains"], candidate, self.config) if run.require_certificate else None
+        candidate = candidate if certified is None else candidate & certified
         score = selection.scores(reward, candidate, self.suite, functools.partial(
             member_controller, self.ppo_config, self.env_params, self.rep.params, self.rep.stats.mean,
             self.rep.stats.var))
         ok = candidate & ((score <= run.val_target) if self.suite is not None else True)
+        self.last_checks = (certified, score)  # for the closing line (selection.rule_text)
         return paper, ok, score
 
     def chunk(self, clock: Clock) -> tuple[dict, str]:
@@ -330,10 +334,13 @@ class PPOTraining:
             summary["certificate"] = policy_certificate(load_policy(run_dir)[0], self.config)
             write_json(run_dir / ckpt.SUMMARY, summary)
         sec = prog.seconds_to("stop_rule")
-        rule = f"first reached after {sec:.1f} s" if sec is not None else "not reached"
+        rule = (f"first reached after {sec:.1f} s" if sec is not None else "not reached; at the last evaluation: "
+                + selection.rule_text(run, ev, *(self.last_checks if self.last_eval else (None, None))))
+        best_line = selection.best_text(float(best.score[best_member]), best_member,
+                                        int(best.env_steps[best_member]), self.suite is not None)
         return (f"done: {prog.env_steps} env steps in {prog.wall_s:.1f} s; eval reward per seed "
-                f"{np.round(ev['final_reward'], 4)}; stop rule {rule}; best checkpoint: member {best_member}, score "
-                f"{best.score[best_member]:.3g} at {best.env_steps[best_member]} env steps; outputs in {run_dir}")
+                f"{np.round(ev['final_reward'], 4)} (dimensionless)\nstop rule {rule}\n{best_line}\n"
+                f"outputs in {run_dir}")
 
 
 def config_file(config: TrainConfig, env_params: learn_env.EnvParams) -> dict:

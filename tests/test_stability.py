@@ -135,3 +135,12 @@ def test_certificate_penalty_is_zero_when_certified_and_pushes_towards_it():
     assert float(pen2) < float(pen)
     filtered = objective.GradientConfig(filter_sigma=25.0)
     assert float(objective.penalty_and_grad(jnp.asarray(POINTWISE), filtered, base, (40,))[0]) == 0.0
+
+
+def test_a_growing_mode_is_marginal_not_certified():
+    """Issue 47, item 7: a positive growth rate below the training's tolerance is "marginal", never "certified"."""
+    from jaxtraffic.control.stability import GROWTH_TOL, verdict
+
+    assert verdict(-1e-4) == "certified" and verdict(0.0) == "certified"
+    assert verdict(5.1e-4) == "marginal" and verdict(GROWTH_TOL) == "marginal"
+    assert verdict(2 * GROWTH_TOL) == "not certified"

@@ -28,14 +28,14 @@ def network_51():
     from jaxtraffic.ecosystem import policy_as_controller
 
     weights = jnp.full((3, 3 * 51 + 3), 1e-3)
-    return policy_as_controller(lambda obs: jnp.tanh(weights @ obs), n_points=51, host=False)
+    return policy_as_controller(lambda obs: jnp.tanh(weights @ obs), n_points=51, obs_segments=0, host=False)
 
 
 def network_51_on_its_grid():
     """The same network with the grid it was built for: adapted to any plant that refines it."""
     from jaxtraffic.ecosystem import controller_grid
 
-    return network_51(), controller_grid(n_points=51)
+    return network_51(), controller_grid(n_points=51, obs_segments=0)
 
 
 def exits():
@@ -71,4 +71,4 @@ def raises_on_the_second_call():
             raise RuntimeError("my policy failed at step 2")
         return np.zeros(3, np.float32)
 
-    return policy_as_controller(policy, n_points=11)
+    return policy_as_controller(policy, n_points=11, obs_segments=0)

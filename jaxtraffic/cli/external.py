@@ -212,7 +212,7 @@ def check_grids(own: Mapping[str, Controller], grids: Mapping[str, ControllerGri
     """Each of ``own`` (on its grid of ``grids``, else the baselines') acting for one step on each plant of
     ``configs`` (compiled and run: a host policy is called once), before any work; ``ControllerFailed`` naming
     the first that cannot, e.g. a policy built for another grid than the plant's."""
-    hint = ("a policy built for another grid must say so: return (controller, ControllerGrid(n_points=N, dt=DT)) "
+    hint = ("if it was built for another grid, say so: return (controller, ControllerGrid(n_points=N, dt=DT)) "
             "from its function (docs/tutorials/own-policy.md)")
     for plant, config in configs.items():
         nom = config.nominal()
@@ -231,8 +231,9 @@ def check_grids(own: Mapping[str, Controller], grids: Mapping[str, ControllerGri
                 jax.block_until_ready(h)
             except (Exception, SystemExit) as err:
                 cause = why(err, [])
+                grid_like = any(w in cause.lower() for w in ("shape", "n_points", "size", "segments"))
                 raise ControllerFailed(f"--controller {name} cannot act on {on}: {cause}"
-                                       + (f"; {hint}" if "shape" in cause.lower() else ""), cause) from None
+                                       + (f"; {hint}" if grid_like else ""), cause) from None
 
 
 @contextlib.contextmanager

@@ -217,7 +217,7 @@ def check_grids(own: Mapping[str, Controller], grids: Mapping[str, ControllerGri
     for plant, config in configs.items():
         nom = config.nominal()
         rho0, v0 = paper_initial_condition(nom)
-        obs = initial_state(nom, rho0, v0).observation(nom)
+        batch = jax.tree.map(lambda a: a[None], initial_state(nom, rho0, v0).observation(nom))  # a batch of 1
         for name, ctrl in own.items():
             grid = grids.get(name)
             on = f"the {plant} plant ({config.describe()})"
@@ -227,13 +227,18 @@ def check_grids(own: Mapping[str, Controller], grids: Mapping[str, ControllerGri
                 raise ControllerFailed(f"--controller {name}: its grid ({grid.n_points if grid else '?'} points, "
                                        f"dt = {grid.dt if grid else '?'} s) does not fit {on}: {err}") from None
             try:
-                h = jax.jit(lambda c, o, nom=nom: c.act(c.init(o, nom), o, nom, jax.random.PRNGKey(0))[0])(acting, obs)
+                h = jax.jit(jax.vmap(_one_step(nom), in_axes=(None, 0)))(acting, batch)  # as in the rollouts
                 jax.block_until_ready(h)
             except (Exception, SystemExit) as err:
                 cause = why(err, [])
                 grid_like = any(w in cause.lower() for w in ("shape", "n_points", "size", "segments"))
                 raise ControllerFailed(f"--controller {name} cannot act on {on}: {cause}"
                                        + (f"; {hint}" if grid_like else ""), cause) from None
+
+
+def _one_step(nom: Any) -> Callable:
+    """(controller, observation) -> the time gap it sends first on the plant of ``nom`` (s)."""
+    return lambda c, o: c.act(c.init(o, nom), o, nom, jax.random.PRNGKey(0))[0]
 
 
 @contextlib.contextmanager

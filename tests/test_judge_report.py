@@ -190,3 +190,18 @@ def test_a_failure_during_the_run_is_named():
                                      "step 2") and "\n" not in str(exc.value)
     with pytest.raises(ZeroDivisionError), external.blamed([spec]):  # not the user's: passes through
         raise ZeroDivisionError("jaxtraffic's own")
+
+
+def test_a_failure_during_the_judges_run_is_one_line(tmp_path, capsys, monkeypatch):
+    """The policy passes the up-front check and fails in the run (its scenarios: here one short rollout of it)."""
+    ran = []
+
+    def rollout_of_mine(controllers, config, log):
+        ran.append(config.n_points)
+        return jt.simulate(config.nominal(), controllers["mine"], n_steps=3)
+
+    monkeypatch.setattr(judge, "run_scenarios", rollout_of_mine)
+    err = _refused(["--judge", "--controller", f"mine={CONTROLLERS}:raises_on_the_second_call", "--out",
+                    str(tmp_path / "o"), *TINY, "--plants", "paper"], capsys)
+    assert ran == [11] and "--controller mine failed during the run: RuntimeError: my policy failed at step 2" in err
+    assert not (tmp_path / "o").exists()

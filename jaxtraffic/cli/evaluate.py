@@ -303,9 +303,9 @@ def _judge(args: EvaluateOptions, argv: list[str] | None, t0: float, own: dict[s
     configs = {"paper": paper.EvalConfig(n_points=args.n_points or paper.EvalConfig.n_points, **common),
                "reference": paper.EvalConfig(n_points=ref_n, scheme="muscl", substeps=ref_s, **common)}
     configs = {p: configs[p] for p in selected_plants(args)}
-    external.check_grids(own, grids, configs)
     meta = {"argv": list(sys.argv[1:] if argv is None else argv)}
     with external.blamed(args.controller):
+        external.check_grids(own, grids, configs)
         result = judge.judge_plants(own, grids, configs, args.out, meta, log=_log)
     _log(f"total {time.perf_counter() - t0:.1f} s")
     return result
@@ -341,7 +341,8 @@ def _main(args: EvaluateOptions, argv: list[str] | None, t0: float, nd: int, na:
         return _judge(args, argv, t0, own, own_grids)
     if own:
         planned = policy_grid(planned_config(args))
-        external.check_grids(own, own_grids, plant_configs(args, planned.n_points, planned.dt, nd, na))
+        with external.blamed(args.controller):
+            external.check_grids(own, own_grids, plant_configs(args, planned.n_points, planned.dt, nd, na))
     run_dir = find_or_train_run(args.run, args.n_points)
     ppo, config = load_policy(run_dir)
     for flag, value in (("--horizon", args.horizon), ("--robust-horizon", args.robust_horizon)):

@@ -82,7 +82,7 @@ def _one_line(text: str) -> str:
 
 def why(err: BaseException, files: Sequence[str] = ()) -> str:
     """``err`` in one line: its type and message (a host callback's failure: the user's exception, the last line of
-    the message), a ``sys.exit`` named as such, and the last line of ``files`` (the user's sources) it passed."""
+    the message), a ``sys.exit`` named as such, and the last place in ``files`` (the user's sources) it passed."""
     if isinstance(err, ControllerFailed):
         return err.cause
     if isinstance(err, SystemExit):

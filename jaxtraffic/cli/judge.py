@@ -54,7 +54,9 @@ def judge_plants(own: dict[str, Any], grids: dict[str, Any], configs: dict[str, 
     out_dir.mkdir(parents=True, exist_ok=True)
     result: dict[str, Any] = {
         "meta": {**meta, "controllers": sorted(own), "compared_with": list(REFERENCES), "provenance": provenance()},
-        "units": {k: UNITS[k] for k in UNIT_KEYS}, "scenarios": legend(), "plants": {}}
+        "units": {**{k: UNITS[k] for k in UNIT_KEYS},
+                  "rho_L2_ratio_to_REF": "dimensionless: the policy's final_rho_L2 over REF's (comparison)"},
+        "scenarios": legend(), "plants": {}}
     for plant, config in configs.items():
         t0 = time.perf_counter()
         log(f"== {plant} plant: {config.describe()}")

@@ -161,7 +161,8 @@ def _diverged(m: dict[str, Any]) -> str:
     if not m["diverged"]:
         return "no"
     at = m.get("diverged_at_s")
-    seeds = (f", {100 * m['diverged_fraction']:.0f} % of {m['n_seeds']} seeds" if m.get("n_seeds", 1) > 1 else "")
+    n = m.get("n_seeds", 1)
+    seeds = f", {round(m['diverged_fraction'] * n)} of {n} seeds" if n > 1 and "diverged_fraction" in m else ""
     return "**yes**" + (f" (at t = {at:.4g} s{seeds})" if isinstance(at, (int, float)) else seeds)
 
 

@@ -18,8 +18,8 @@ The same command runs as N cooperating processes with ``--coordinator-address HO
 --num-processes N --process-id I`` or the ``JAX_*`` variables (``jaxtraffic.platform.distributed``;
 docs/tutorials/cluster.md): the batched rollouts (and any training the job starts) are split over
 every process's devices, and only process 0 prints and writes.
-``--judge --controller ...`` judges only the user's policies against the baselines, training nothing
-(``cli.judge``; ``main`` then returns judge.json's dict).
+``--controller`` policies are imported, made and run for one step on each plant before any training
+(``cli.external``); ``--judge`` judges only them against the baselines, training nothing (``cli.judge``).
 The logic lives in ``jaxtraffic.paper``; ``main(argv)`` returns the metrics dict.
 """
 
@@ -299,24 +299,57 @@ def _normalization(args: EvaluateOptions) -> dict[str, Path]:
                                         [str(s["name"]) for s in external.parse(args.controller)])
 
 
-def _judge(args: EvaluateOptions, argv: list[str] | None, t0: float) -> dict[str, Any]:
-    """``--judge``: the --controller policies against the baselines on each plant, no training (``cli.judge``)."""
-    own, grids = external.load(args.controller, _normalization(args))
+def _judge(args: EvaluateOptions, argv: list[str] | None, t0: float, own: dict[str, Any],
+           grids: dict[str, Any]) -> dict[str, Any]:
+    """``--judge``: the --controller policies against the baselines on each plant, no training (``cli.judge``);
+    each policy is first run for one step on each plant (``external.check_grids``), before the baselines."""
     common: dict[str, Any] = {"dt": float(TrafficParams().dt), "horizon_s": args.horizon,
                               "seeds": tuple(range(args.noise_seeds)), "robust_delays": (), "robust_alphas": (),
                               "numerics_check": False}
     ref_n, ref_s = parse_grid(args.reference_grid, "--reference-grid")
     configs = {"paper": paper.EvalConfig(n_points=args.n_points or paper.EvalConfig.n_points, **common),
                "reference": paper.EvalConfig(n_points=ref_n, scheme="muscl", substeps=ref_s, **common)}
+    configs = {p: configs[p] for p in selected_plants(args)}
     meta = {"argv": list(sys.argv[1:] if argv is None else argv)}
-    result = judge.judge_plants(own, grids, {p: configs[p] for p in selected_plants(args)}, args.out, meta, log=_log)
+    with external.blamed(args.controller):
+        external.check_grids(own, grids, configs)
+        result = judge.judge_plants(own, grids, configs, args.out, meta, log=_log)
     _log(f"total {time.perf_counter() - t0:.1f} s")
     return result
 
 
+def planned_config(args: EvaluateOptions) -> TrainConfig:
+    """The config of the PPO run the main job will evaluate (``find_or_train_run``), read before it is trained."""
+    if args.run is not None:
+        return load_config(args.run)
+    if (DEFAULT_RUN / "config.json").exists() and (DEFAULT_RUN / "checkpoint.msgpack").exists():
+        return load_config(DEFAULT_RUN)
+    return recipe("ppo").updated(plant={"n_points": args.n_points} if args.n_points else {})
+
+
+def plant_configs(args: EvaluateOptions, n_points: int, dt: float, nd: int, na: int) -> dict[str, paper.EvalConfig]:
+    """The main job's ``EvalConfig`` of each plant of ``--plants`` (the paper plant on ``n_points``, step ``dt``)."""
+    common: dict[str, Any] = {"dt": dt, "horizon_s": args.horizon, "seeds": tuple(range(args.noise_seeds)),
+                              "robust_horizon_s": args.robust_horizon or 2.0 * args.horizon,
+                              "numerics_check": args.numerics_check}
+    configs = {"paper": paper.EvalConfig(n_points=n_points, robust_delays=paper.robust_axis(nd, 0.0, 8.0, dt),
+                                         robust_alphas=paper.robust_axis(na, 0.05, 0.6), **common)}
+    ref_n, ref_s = parse_grid(args.reference_grid, "--reference-grid")
+    rd, ra = parse_grid(args.reference_robust_grid, "--reference-robust-grid")
+    configs["reference"] = paper.EvalConfig(
+        n_points=ref_n, scheme="muscl", substeps=ref_s, robust_delays=paper.robust_axis(rd, 0.0, 8.0, dt),
+        robust_alphas=paper.robust_axis(ra, 0.05, 0.6), **common)
+    return {plant: configs[plant] for plant in selected_plants(args)}
+
+
 def _main(args: EvaluateOptions, argv: list[str] | None, t0: float, nd: int, na: int) -> dict[str, Any]:
+    own, own_grids = external.load(args.controller, _normalization(args))  # the user's: checked before training
     if args.judge:
-        return _judge(args, argv, t0)
+        return _judge(args, argv, t0, own, own_grids)
+    if own:
+        planned = policy_grid(planned_config(args))
+        with external.blamed(args.controller):
+            external.check_grids(own, own_grids, plant_configs(args, planned.n_points, planned.dt, nd, na))
     run_dir = find_or_train_run(args.run, args.n_points)
     ppo, config = load_policy(run_dir)
     for flag, value in (("--horizon", args.horizon), ("--robust-horizon", args.robust_horizon)):
@@ -341,26 +374,15 @@ def _main(args: EvaluateOptions, argv: list[str] | None, t0: float, nd: int, na:
     ref_n, ref_s = parse_grid(args.reference_grid, "--reference-grid")
     grad, grad_grids, grad_runs = gradient_controllers(args.gradient, args.runs_root, n_points, (ref_n, ref_s))
     grids.update(grad_grids)
-    # --controller: the user's own, judged wherever PPO is
-    own, own_grids = external.load(args.controller, _normalization(args))
     grids.update(own_grids)
     lc = run_dir / "learning_curve.csv"
     learned_runs = {"ppo": {"run_dir": str(run_dir), "curve": _curve(lc),
                             "summary": json.loads((run_dir / "summary.json").read_text())
                             if (run_dir / "summary.json").exists() else {}}, **grad_runs,
                     **{name: {"run_dir": f"--controller {name}", "summary": {}, "curve": None} for name in own}}
-    common: dict[str, Any] = {"dt": dt, "horizon_s": args.horizon, "seeds": tuple(range(args.noise_seeds)),
-                              "robust_horizon_s": args.robust_horizon or 2.0 * args.horizon,
-                              "numerics_check": args.numerics_check}
-    configs = {"paper": paper.EvalConfig(n_points=n_points, robust_delays=paper.robust_axis(nd, 0.0, 8.0, dt),
-                                         robust_alphas=paper.robust_axis(na, 0.05, 0.6), **common)}
-    rd, ra = parse_grid(args.reference_robust_grid, "--reference-robust-grid")
-    configs["reference"] = paper.EvalConfig(
-        n_points=ref_n, scheme="muscl", substeps=ref_s, robust_delays=paper.robust_axis(rd, 0.0, 8.0, dt),
-        robust_alphas=paper.robust_axis(ra, 0.05, 0.6), **common)
     meta = {"policy": policy, "policy_delay0": policy0, "argv": list(sys.argv[1:] if argv is None else argv)}
-    plants = selected_plants(args)
-    configs = {plant: configs[plant] for plant in plants}
+    configs = plant_configs(args, n_points, dt, nd, na)
+    plants = tuple(configs)
     oracles = {}
     for plant in plants:
         try:
@@ -370,8 +392,10 @@ def _main(args: EvaluateOptions, argv: list[str] | None, t0: float, nd: int, na:
                              f"(benchmarks/gain_oracle.py): {type(err).__name__}: {err}") from None
         _log(f"   oracle rows of the {plant} map: {args.oracle_dir / (plant + '.json')}" if oracles[plant] else
              f"   no oracle rows for the {plant} map in {args.oracle_dir} (benchmarks/gain_oracle.py --plant {plant})")
-    results = paper.evaluate_plants({"ppo": ppo, **grad, **own}, configs, args.out, meta, oracles=oracles, log=_log,
-                                    ppo_delay0=ppo0, learning_curve_csv=lc, learned_runs=learned_runs, grids=grids)
+    with external.blamed(args.controller):
+        results = paper.evaluate_plants({"ppo": ppo, **grad, **own}, configs, args.out, meta, oracles=oracles,
+                                        log=_log, ppo_delay0=ppo0, learning_curve_csv=lc, learned_runs=learned_runs,
+                                        grids=grids)
     if distributed.is_writer():
         export_runs(learned_runs, args.out / "runs")
     metrics = results[plants[0]]

@@ -78,9 +78,10 @@ class EvaluateOptions:
     (FILE written by jaxtraffic.ecosystem.normalization.export_obs_normalization; no pickle is read). A
     vecnormalize*.pkl next to the controller's model without this flag is refused"""
     judge: bool = False
-    """judge only the --controller policies against the baselines (open loop, Lyapunov, backstepping) on every
-    scenario and plant: no training, no learned controller of jaxtraffic (for that comparison leave --judge out:
-    the main job judges --controller beside PPO and the gradient-trained runs, training those missing)"""
+    """judge only the --controller policies against the baselines (open loop, Lyapunov, backstepping, adaptive
+    backstepping) on every scenario and plant: no training, no learned controller of jaxtraffic (for that
+    comparison leave --judge out: the main job judges --controller beside PPO and the gradient-trained runs,
+    training those missing)"""
     numerics_check: bool = True
     """rerun Table 2's scenario on each plant refined twice and with the other scheme"""
     cluster: Annotated[Cluster, tyro.conf.OmitArgPrefixes] = field(default_factory=Cluster)

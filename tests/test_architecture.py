@@ -12,7 +12,7 @@ ROOT = Path(__file__).resolve().parents[1] / "jaxtraffic"
 
 # the layers, lowest first: a module imports only modules of its own layer or lower ones
 LAYERS = {"_version": 0, "_registration": 0, "fields": 0, "io": 0, "platform": 0, "model": 1, "control": 2, "sim": 3,
-          "learn": 4, "runs": 5, "ecosystem": 6, "paper": 6, "cli": 7, "__main__": 7}
+          "learn": 4, "compare": 4, "runs": 5, "ecosystem": 6, "paper": 6, "cli": 7, "__main__": 7}
 # packages whose subpackages are siblings: neither imports the other (PPO and gradient training, the algorithms and
 # their run machinery alike)
 SIBLINGS = [("jaxtraffic.learn.ppo", "jaxtraffic.learn.gradient"), ("jaxtraffic.runs.ppo", "jaxtraffic.runs.gradient"),

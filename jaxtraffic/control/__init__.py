@@ -13,6 +13,7 @@ from jaxtraffic.control.baselines import (
     open_loop,
     predict,
 )
+from jaxtraffic.control.filters import measurement_filter
 from jaxtraffic.control.gain_law import (
     GAIN_NAMES,
     DelaySchedule,
@@ -32,6 +33,7 @@ __all__ = [
     "GAIN_NAMES", "AdaptiveSettings", "EstimatorState", "adaptive_backstepping",
     "BacksteppingSettings", "Controller", "DelaySchedule", "LyapunovSettings", "Observation",
     "backstepping", "constant_gains", "equilibrium_gains", "gain_law", "gain_target_controller", "lyapunov",
-    "lyapunov_equivalent_gains", "lyapunov_input", "lyapunov_law", "open_loop", "policy_controller", "predict",
+    "lyapunov_equivalent_gains", "lyapunov_input", "lyapunov_law", "measurement_filter", "open_loop",
+    "policy_controller", "predict",
     "saturate", "schedule_gains", "scheduled_gains", "takes_delay", "tell_delay",
 ]

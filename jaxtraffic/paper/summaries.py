@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from jaxtraffic.compare.stats import settle_times
 from jaxtraffic.io.files import to_jsonable
 from jaxtraffic.model.params import equilibrium
 from jaxtraffic.paper.scenarios import SETTLE_FRACTION, EvalConfig, Outcome
@@ -68,12 +69,8 @@ INDICES = ("J_TTT", "J_fuel", "J_comfort")
 
 def _settle_time(t: np.ndarray, y: np.ndarray, threshold: float) -> float | None:
     """First recorded time after which y stays <= threshold to the end; None if y ends above."""
-    above = np.nonzero(~(y <= threshold))[0]
-    if above.size == 0:
-        return float(t[0])
-    k = above[-1] + 1
-    return float(t[k]) if k < len(t) else None
-
+    got = float(settle_times(t, y, threshold=threshold)[0])
+    return got if np.isfinite(got) else None
 
 
 def summarise(out: Outcome, init_l2: tuple[float, float]) -> dict[str, Any]:

@@ -1,0 +1,12 @@
+"""The fair comparison of control laws (docs/model.md section 19): a distribution of scenarios split into a train
+and a test half (``scenarios``), the measures of one rollout over its whole horizon and their distributions with
+bootstrap intervals (``stats``), and the protocol that runs laws over a split on a plant (``protocol``).
+
+Layer: above ``sim`` and ``control``, below the trainers and the paper's experiments, which draw from it."""
+
+from jaxtraffic.compare.protocol import LawSpec, evaluate_laws, summary_table
+from jaxtraffic.compare.scenarios import SPLITS, ScenarioDistribution, Scenarios, sample
+from jaxtraffic.compare.stats import bootstrap_interval, per_scenario, settle_times, summarise
+
+__all__ = ["SPLITS", "LawSpec", "ScenarioDistribution", "Scenarios", "bootstrap_interval", "evaluate_laws",
+           "per_scenario", "sample", "settle_times", "summarise", "summary_table"]

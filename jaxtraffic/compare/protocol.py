@@ -1,0 +1,113 @@
+"""Run control laws over a split of scenarios on one plant (docs/model.md section 19).
+
+A law is declared by a ``LawSpec``: its name and label, how it is built (a ``Controller`` on its own grid), what it
+is told of each scenario's plant ("nothing", or "delay": ``control.tell_delay`` with the scenario's D) and the grid
+it acts on (default: ``baseline_grid``, the paper's whenever the plant refines it). ``evaluate_laws`` runs every law
+on every scenario (chunks of ``chunk`` scenarios, one compiled program per law and plant) and returns the
+per-scenario measures (``stats.per_scenario``); ``summary_table`` writes their distributions as Markdown.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import numpy as np
+
+from jaxtraffic.compare import stats
+from jaxtraffic.compare.scenarios import Scenarios
+from jaxtraffic.control.adapter import ControllerGrid, adapt, baseline_grid
+from jaxtraffic.control.base import Controller, tell_delay
+from jaxtraffic.model.params import TrafficParams
+from jaxtraffic.sim.options import Record
+from jaxtraffic.sim.rollout import simulate_batch
+
+TOLD = ("nothing", "delay")
+
+
+@dataclasses.dataclass(frozen=True)
+class LawSpec:
+    """A control law in the comparison: ``build()`` gives its ``Controller`` on ``grid`` (None: ``baseline_grid``
+    of the plant); ``told``: what it learns of each scenario's plant ("nothing" or "delay")."""
+
+    name: str
+    label: str
+    build: Callable[[], Controller]
+    told: str = "nothing"
+    grid: ControllerGrid | None = None
+
+    def __post_init__(self) -> None:
+        if self.told not in TOLD:
+            raise ValueError(f"law {self.name}: told must be one of {TOLD}, got {self.told!r}")
+
+
+def _slice(tree: Any, i: int, j: int) -> Any:
+    return jax.tree.map(lambda x: x[i:j] if np.ndim(x) else x, tree)
+
+
+def _run(spec: LawSpec, plants: TrafficParams, rho0: np.ndarray, v0: np.ndarray, nominal: TrafficParams,
+         n_steps: int, every: int) -> dict[str, np.ndarray]:
+    """One chunk of scenarios under one law: its per-scenario measures."""
+    ctrl = spec.build()
+    told = spec.told == "delay"
+    if told:
+        ctrl = tell_delay(ctrl, np.asarray(plants.delay))
+    ctrl = adapt(ctrl, spec.grid or baseline_grid(nominal), nominal)
+    res = simulate_batch(plants, ctrl, n_steps=n_steps, rho0=rho0.astype(np.float32), v0=v0.astype(np.float32),
+                         nominal=nominal, batch_controller=told, record=Record(every=every))
+    tr, met = res.trajectory, {k: np.asarray(v) for k, v in res.metrics.items()}
+    t = np.append(np.asarray(tr.t)[0], n_steps * float(nominal.dt))
+    l2 = np.concatenate([np.asarray(tr.rho_L2), met["final_rho_L2"][:, None]], axis=1)
+    return stats.per_scenario(t, l2, met["diverged"], met)
+
+
+def evaluate_laws(laws: list[LawSpec], scenarios: Scenarios, nominal: TrafficParams, horizon_s: float,
+                  record_every_s: float = 5.0, chunk: int = 64, log: Callable[[str], None] = print
+                  ) -> dict[str, dict[str, np.ndarray]]:
+    """Every law of ``laws`` on every scenario (module docstring): name -> per-scenario measures. ``nominal``: the
+    model and target every law is handed (the plant's grid, the nominal alpha), ``horizon_s`` (s) a whole number
+    of recording periods ``record_every_s`` (s)."""
+    dt = float(nominal.dt)
+    every = max(1, round(record_every_s / dt))
+    n_steps = every * max(1, math.ceil(horizon_s / (every * dt) - 1e-9))
+    names = [s.name for s in laws]
+    if len(set(names)) != len(names):
+        raise ValueError(f"law names must be distinct, got {names}")
+    out = {}
+    for spec in laws:
+        parts = [_run(spec, _slice(scenarios.plants, i, i + chunk), scenarios.rho0[i:i + chunk],
+                      scenarios.v0[i:i + chunk], nominal, n_steps, every) for i in range(0, len(scenarios), chunk)]
+        out[spec.name] = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+        fail = out[spec.name]["diverged"].mean()
+        log(f"   {spec.label}: median mean L2 {np.median(out[spec.name]['mean_rho_L2']):.3g} veh/km over "
+            f"{len(scenarios)} {scenarios.split} scenarios, {100 * fail:.0f} % diverged")
+    return out
+
+
+def _fmt(x: float, digits: int = 3) -> str:
+    return "inf" if not np.isfinite(x) else f"{x:.{digits}g}"
+
+
+def summary_table(results: dict[str, dict[str, np.ndarray]], labels: dict[str, str], reference: str,
+                  seed: int = 0) -> tuple[list[str], dict[str, Any]]:
+    """(Markdown lines, the summaries as JSON): per law, the median [95 % interval] of each measure, the failure
+    rates, and the median ratio of mean_rho_L2 to ``reference``'s on the same scenarios."""
+    summ = {k: stats.summarise(v, results.get(reference), seed) for k, v in results.items()}
+    cols = ("mean_rho_L2", "late_max_rho_L2", "settle_s", "J_comfort")
+    head = ["law", *(f"{c} ({stats.UNITS[c]})" if c != "J_comfort" else "J_comfort" for c in cols),
+            f"mean_rho_L2 / {labels.get(reference, reference)}", "diverged", "not settled"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for k, s in summ.items():
+        cells = [labels.get(k, k)]
+        for c in cols:
+            lo, hi = s[c]["ci95"]
+            cells.append(f"{_fmt(s[c]['median'])} [{_fmt(lo)}, {_fmt(hi)}]")
+        r = s["ratio_mean_rho_L2"]
+        cells.append(f"{_fmt(r['median'])} [{_fmt(r['ci95'][0])}, {_fmt(r['ci95'][1])}]")
+        for f in ("diverged_rate", "not_settled_rate"):
+            cells.append(f"{100 * s[f]['value']:.0f} % [{100 * s[f]['ci95'][0]:.0f}, {100 * s[f]['ci95'][1]:.0f}]")
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines, summ

@@ -1,0 +1,100 @@
+"""The measures of a rollout over its whole horizon and their distributions over scenarios (docs/model.md
+section 19).
+
+Per scenario (``per_scenario``), from the density deviation's L2 norm recorded along the rollout:
+
+    mean_rho_L2      veh/km  its time average over [0, T] (trapezoid over the records)
+    late_max_rho_L2  veh/km  its maximum over the last half, [T/2, T]
+    settle_s         s       the first recorded time after which it stays <= SETTLE_FRACTION x its value at t = 0
+                             (inf: not settled by T)
+    J_TTT, J_fuel, J_comfort the paper's indices over [0, T] (``UNITS``)
+    diverged                 the rollout left the physical region or the controller's output was not finite
+
+A diverged rollout's measures are +inf (the worst), so that medians and intervals rank it last. Over scenarios
+(``summarise``): the median of each measure with a percentile-bootstrap 95 % interval (``bootstrap_interval``,
+seeded), the failure rates (diverged; not settled by T) with theirs, and, against a reference law run on the same
+scenarios, the median of the per-scenario ratio of ``mean_rho_L2`` with a paired-bootstrap interval.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+SETTLE_FRACTION = 0.1  # settling: the L2 norm stays below this fraction of its initial value
+VEH_PER_KM = 1e3
+JS = ("J_TTT", "J_fuel", "J_comfort")
+UNITS = {"mean_rho_L2": "veh/km", "late_max_rho_L2": "veh/km", "settle_s": "s",
+         "J_TTT": "veh/km·m·s", "J_fuel": "ml/s per vehicle × veh/km·m·s",
+         "J_comfort": "(m/s²)² + (m/s³)² × veh/km·m·s"}
+MEASURES = tuple(UNITS)
+
+
+def settle_times(t: np.ndarray, y: np.ndarray, fraction: float = SETTLE_FRACTION,
+                 threshold: np.ndarray | float | None = None) -> np.ndarray:
+    """Per row of ``y`` ((B, T) norms recorded at times ``t``, (T,)): the first recorded time after which the row
+    stays <= its threshold to the end (t[0] if always; inf if it ends above). The threshold: ``threshold`` ((B,) or
+    a scalar) if given, else ``fraction`` x the row's value at t[0]. NaN counts as above."""
+    y = np.atleast_2d(np.asarray(y, float))
+    thr = fraction * y[:, :1] if threshold is None else np.reshape(np.asarray(threshold, float), (-1, 1))
+    above = ~(y <= thr)
+    last = np.where(above.any(axis=1), y.shape[1] - 1 - np.argmax(above[:, ::-1], axis=1), -1)
+    k = last + 1
+    return np.where(k < y.shape[1], np.asarray(t, float)[np.minimum(k, y.shape[1] - 1)], np.inf)
+
+
+def per_scenario(t: np.ndarray, rho_l2: np.ndarray, diverged: np.ndarray, metrics: dict[str, Any]
+                 ) -> dict[str, np.ndarray]:
+    """The measures of the module docstring, each (B,): ``t`` (T,) s, ``rho_l2`` (B, T) veh/m, ``diverged`` (B,),
+    ``metrics``: the rollouts' J's, each (B,)."""
+    t, y = np.asarray(t, float), np.asarray(rho_l2, float) * VEH_PER_KM
+    div = np.asarray(diverged, bool) | ~np.all(np.isfinite(y), axis=1)
+    late = t >= 0.5 * (t[0] + t[-1])
+    out = {"mean_rho_L2": np.trapezoid(y, t, axis=1) / (t[-1] - t[0]), "late_max_rho_L2": y[:, late].max(axis=1),
+           "settle_s": settle_times(t, y), **{j: np.asarray(metrics[j], float) for j in JS}}
+    out = {k: np.where(div, np.inf, v) for k, v in out.items()}
+    return {**out, "diverged": div, "not_settled": ~np.isfinite(out["settle_s"])}
+
+
+def bootstrap_interval(x: np.ndarray, stat: Callable[..., Any] = np.median, n_boot: int = 2000,
+                       level: float = 0.95, seed: int = 0) -> tuple[float, float]:
+    """The percentile-bootstrap ``level`` interval of ``stat`` over the samples ``x`` (resampled ``n_boot`` times
+    with replacement, seeded: the same call gives the same interval). +inf samples are kept (a failure ranks
+    last)."""
+    x = np.asarray(x, float)
+    if x.ndim != 1 or x.size == 0:
+        raise ValueError(f"bootstrap_interval needs a non-empty 1-d sample, got shape {x.shape}")
+    idx = np.random.default_rng(seed).integers(0, x.size, size=(n_boot, x.size))
+    stats = stat(x[idx], axis=1)
+    q = (1 - level) / 2
+    return float(np.quantile(stats, q, method="inverted_cdf")), float(np.quantile(stats, 1 - q, method="inverted_cdf"))
+
+
+def _median(x: np.ndarray) -> float:
+    return float(np.quantile(np.asarray(x, float), 0.5, method="inverted_cdf"))
+
+
+def _quantile_median(a: np.ndarray, axis: int) -> np.ndarray:  # a median defined with +inf (no inf - inf)
+    return np.quantile(a, 0.5, axis=axis, method="inverted_cdf")
+
+
+def summarise(per: dict[str, np.ndarray], reference: dict[str, np.ndarray] | None = None, seed: int = 0
+              ) -> dict[str, Any]:
+    """The distribution of ``per`` (``per_scenario``) over its scenarios (module docstring); ``reference``: the
+    same scenarios under the reference law (the ratio of ``mean_rho_L2``)."""
+    out: dict[str, Any] = {"n": int(per["diverged"].size)}
+    for m in MEASURES:
+        out[m] = {"median": _median(per[m]), "ci95": bootstrap_interval(per[m], _quantile_median, seed=seed),
+                  "unit": UNITS[m]}
+    for f in ("diverged", "not_settled"):
+        x = per[f].astype(float)
+        out[f"{f}_rate"] = {"value": float(x.mean()), "ci95": bootstrap_interval(x, np.mean, seed=seed)}
+    if reference is not None:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ratio = per["mean_rho_L2"] / reference["mean_rho_L2"]
+        ratio = np.where(np.isnan(ratio), np.inf, ratio)  # inf / inf: both failed, counted as no better
+        out["ratio_mean_rho_L2"] = {"median": _median(ratio), "ci95": bootstrap_interval(ratio, _quantile_median,
+                                                                                         seed=seed)}
+    return out

@@ -89,6 +89,32 @@ KEY_NUMBERS = [("delay4", c, k) for c in ("backstepping", "ppo", "grad_gains", "
                for k in ("final_rho_L2", "J_comfort")]
 
 
+BASELINES = ("open_loop", "lyapunov", "backstepping")
+README_MARK = ("<!-- headline: learned vs backstepping (benchmarks/reproduce.py) -->", "<!-- /headline -->")
+
+
+def headline(out: Path) -> str:
+    """The README's headline ratio, from DIR/plants.json: the learned laws' density L2 at 300 s over
+    backstepping's at D = 4 s on the reference plant, as a range."""
+    ref = json.loads((out / "plants.json").read_text())["delay4"]["reference"]
+    ratios = [v["final_rho_L2"] / ref["backstepping"]["final_rho_L2"] for k, v in ref.items() if k not in BASELINES]
+    return f"density L2 {min(ratios):.2f}-{max(ratios):.2f}x backstepping's at 300 s"
+
+
+def readme_claim(out: Path, write: bool) -> tuple[bool, str]:
+    """Whether the README's marked headline is the one DIR's results give (``write``: make it so)."""
+    readme = ROOT / "README.md"
+    text, want = readme.read_text(), headline(out)
+    a, b = text.find(README_MARK[0]), text.find(README_MARK[1])
+    if a < 0 or b < a:
+        return False, f"no {README_MARK[0]} ... {README_MARK[1]} in README.md"
+    got = text[a + len(README_MARK[0]):b]
+    if write and got != want:
+        readme.write_text(text[:a + len(README_MARK[0])] + want + text[b:])
+        got = want
+    return got == want, f"README says {got!r}; the results give {want!r}"
+
+
 def certificates(out: Path) -> dict[str, tuple[bool, str]]:
     """Each exported learned controller (DIR/runs/NAME/summary.json) is certified at its nominal (D, alpha),
     where the certificate applies (a law it does not model, ``"applies": false``, e.g. the residual on adaptive
@@ -98,8 +124,11 @@ def certificates(out: Path) -> dict[str, tuple[bool, str]]:
         cert = json.loads(run.read_text()).get("certificate") or {}
         if cert.get("applies", True) is False:
             continue
-        res[f"{run.parent.name} certified"] = (bool(cert.get("stable")),
-                                               f"max growth {cert.get('max_growth')} /s at {cert.get('delay')} s")
+        growth = cert.get("max_growth")
+        word = "?" if growth is None else ("certified" if growth <= 0 else "marginal" if cert.get("stable")
+                                           else "not certified")
+        res[f"{run.parent.name} passes the certificate check"] = (
+            bool(cert.get("stable")), f"{word}: max growth {growth} /s at {cert.get('delay')} s")
     return res
 
 
@@ -108,6 +137,7 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=None, help="output directory (default: a temporary one)")
     ap.add_argument("--skip-run", action="store_true", help="only check an existing --out")
     ap.add_argument("--reference", type=Path, default=ROOT / "docs" / "results")
+    ap.add_argument("--write-readme", action="store_true", help="write the README's headline from --out's results")
     args = ap.parse_args()
     out = args.out or Path(tempfile.mkdtemp(prefix="jaxtraffic-reproduce-"))
     if not args.skip_run:
@@ -119,6 +149,8 @@ def main() -> int:
         mr = json.loads((out / "reference" / "metrics.json").read_text())
         results.update({name: check(mr) for name, check in REFERENCE_CLAIMS.items()})
     results.update(certificates(out))
+    if (out / "plants.json").exists():
+        results["the README's headline is the results'"] = readme_claim(out, args.write_readme)
     for name, (ok, detail) in results.items():
         print(f"{'PASS' if ok else 'FAIL'}  {name}: {detail}")
     ref_path = args.reference / "metrics.json"

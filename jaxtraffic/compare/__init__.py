@@ -1,4 +1,4 @@
-"""The fair comparison of control laws (docs/model.md section 19): a distribution of scenarios split into a train
+"""The fair comparison of control laws (docs/model.md section 20): a distribution of scenarios split into a train
 and a test half (``scenarios``), the measures of one rollout over its whole horizon and their distributions with
 bootstrap intervals (``stats``), and the protocol that runs laws over a split on a plant (``protocol``).
 

@@ -1,4 +1,4 @@
-"""Run control laws over a split of scenarios on one plant (docs/model.md section 19).
+"""Run control laws over a split of scenarios on one plant (docs/model.md section 20).
 
 A law is declared by a ``LawSpec``: its name and label, how it is built (a ``Controller`` on its own grid), what it
 is told of each scenario's plant ("nothing", or "delay": ``control.tell_delay`` with the scenario's D) and the grid

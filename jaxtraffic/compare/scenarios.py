@@ -1,4 +1,4 @@
-"""A distribution of scenarios and its train / test split (docs/model.md section 19).
+"""A distribution of scenarios and its train / test split (docs/model.md section 20).
 
 A scenario is a plant (its input delay D, s, and ACC share alpha, drawn over the robustness map's ranges; its
 discretisation is the caller's) and an initial state: a wave around an equilibrium, either the nominal one (alpha

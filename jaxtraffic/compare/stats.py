@@ -1,5 +1,5 @@
 """The measures of a rollout over its whole horizon and their distributions over scenarios (docs/model.md
-section 19).
+section 20).
 
 Per scenario (``per_scenario``), from the density deviation's L2 norm recorded along the rollout:
 

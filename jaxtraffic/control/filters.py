@@ -1,4 +1,4 @@
-"""A measurement filter on any control law (docs/model.md section 19): the law sees the density and speed fields
+"""A measurement filter on any control law (docs/model.md section 20): the law sees the density and speed fields
 through a Gaussian filter of width sigma (m), as the learned laws do (``gain_law``'s ``filter_sigma``), so that a
 model-based law and a learned one can be compared on the same measurements."""
 

@@ -1,0 +1,87 @@
+"""The held-out comparison (docs/model.md section 20): every law on the test split of the scenario distribution
+(``jaxtraffic.compare``), on one plant, over 600 s; prints the distributions (median [bootstrap 95 % interval]) and
+writes them as JSON.
+
+The laws: open loop; Lyapunov (k = 1); backstepping (the paper's: k = 1, pointwise, told each plant's D) and the
+same with the learned laws' 25 m measurement filter; adaptive backstepping (told D) and the same filtered; and,
+with --runs, the committed learned laws as they were trained (on the paper's wave, not on the train split).
+
+    python benchmarks/fair_benchmark.py --plant paper --n 256 --out docs/results/fair/paper.json
+    python benchmarks/fair_benchmark.py --plant muscl --n 256        # the other scheme on the paper grid
+    python benchmarks/fair_benchmark.py --plant reference --n 64      # the converged plant (8x the cost)
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+import jaxtraffic as jt
+from jaxtraffic.compare import LawSpec, ScenarioDistribution, evaluate_laws, sample, summary_table
+from jaxtraffic.control import adaptive_backstepping, measurement_filter, takes_delay
+from jaxtraffic.io.files import write_json
+from jaxtraffic.io.provenance import provenance
+
+PLANTS = {"paper": jt.TrafficParams(), "muscl": jt.TrafficParams(scheme="muscl"),
+          "reference": jt.TrafficParams.reference()}
+FILTER_M = 25.0  # the learned laws' measurement filter (m)
+RUNS = {"ppo": "PPO (paper wave)", "grad_gains": "gradient gains (paper wave)",
+        "grad_network": "gradient network (paper wave)", "grad_robust": "delay schedule (36 plants)",
+        "grad_residual": "residual on adaptive (paper wave)"}
+
+
+def model_based() -> list[LawSpec]:
+    return [LawSpec("open_loop", "open loop", jt.open_loop),
+            LawSpec("lyapunov", "Lyapunov (k 1)", lambda: jt.lyapunov(1.0)),
+            LawSpec("backstepping", "backstepping (paper: k 1, pointwise)", lambda: jt.backstepping(4.0), "delay"),
+            LawSpec("backstepping_f25", "backstepping, 25 m filter",
+                    lambda: measurement_filter(jt.backstepping(4.0), FILTER_M), "delay"),
+            LawSpec("adaptive", "adaptive backstepping", lambda: adaptive_backstepping(4.0), "delay"),
+            LawSpec("adaptive_f25", "adaptive backstepping, 25 m filter",
+                    lambda: measurement_filter(adaptive_backstepping(4.0), FILTER_M), "delay")]
+
+
+def learned(root: Path) -> list[LawSpec]:
+    from jaxtraffic.runs.policy import load_policy, policy_grid
+
+    out = []
+    for name, label in RUNS.items():
+        if (root / name / "config.json").exists():
+            ctrl, config = load_policy(root / name)
+            out.append(LawSpec(name, label, lambda c=ctrl: c, "delay" if takes_delay(ctrl) else "nothing",
+                               policy_grid(config)))
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--plant", choices=sorted(PLANTS), default="paper")
+    ap.add_argument("--n", type=int, default=256, help="test scenarios")
+    ap.add_argument("--seed", type=int, default=0, help="the split's seed")
+    ap.add_argument("--horizon", type=float, default=600.0, help="s")
+    ap.add_argument("--runs", type=Path, default=Path("docs/results/runs"), help="learned runs ('' for none)")
+    ap.add_argument("--out", type=Path, default=None, help="JSON of the distributions and the draws")
+    args = ap.parse_args()
+    base = PLANTS[args.plant]
+    scen = sample(ScenarioDistribution(), "test", args.n, args.seed, base=base)
+    laws = model_based() + (learned(args.runs) if str(args.runs) else [])
+    t0 = time.perf_counter()
+    res = evaluate_laws(laws, scen, base, args.horizon)
+    lines, summ = summary_table(res, {s.name: s.label for s in laws}, reference="backstepping")
+    print(f"{args.plant} plant, {args.n} test scenarios (seed {args.seed}), {args.horizon:g} s, "
+          f"{time.perf_counter() - t0:.0f} s")
+    print("\n".join(lines))
+    if args.out:
+        write_json(args.out, {"plant": args.plant, "horizon_s": args.horizon, "laws": {s.name: s.label for s in laws},
+                              "summary": summ, "per_scenario": {k: {m: np.asarray(v).tolist() for m, v in r.items()}
+                                                                 for k, r in res.items()},
+                              "scenarios": scen.describe(), "provenance": provenance()})
+        (args.out.with_suffix(".md")).write_text("\n".join(lines) + "\n")
+        print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -125,3 +125,35 @@ def test_plants_map_lines_carry_told_and_controllable_counts():
     assert "| adaptive backstepping (alpha estimated online) | D | 7 / 1 of 10 | 7 / 1 of 8 |" in lines
     assert any("(D 8 s, alpha 0.6) at t = 6.9 s" in ln for ln in lines)
     assert any("claim 5 re-judged" in ln and "**reproduced**" in ln for ln in lines)
+
+
+def test_a_law_added_through_the_registry_appears_in_the_maps_and_the_report():
+    """Issue 47, item 1: one registry entry, no other edit: the map runs the law, tells it what its entry says,
+    and REPORT.md's map table and figures label it; its name is then reserved for --controller."""
+    from jaxtraffic.cli import external
+    from jaxtraffic.control import lyapunov
+    from jaxtraffic.paper import laws
+
+    law = laws.register(laws.Law("lyapunov_k3", "Lyapunov, k = 3 (a user's law)", short="Lyapunov k 3",
+                                 style=dict(color="k", ls=":"), build=lambda: lyapunov(3.0), scope="map",
+                                 role="a user's row"))
+    try:
+        cfg = _cfg()
+        ctrls = deploy({"open_loop": open_loop(), **map_controllers()}, {}, cfg)
+        assert "lyapunov_k3" in ctrls and "lyapunov_k3" not in others(ctrls)
+        robust = run_robustness(ctrls, cfg, log=lambda _: None)
+        assert list(robust)[-1] == "lyapunov_k3"
+        table = map_table(robust, {n: told(n, c) for n, c in ctrls.items()}, cfg)
+        assert table["rows"]["lyapunov_k3"] == {**table["rows"]["lyapunov_k3"], "told": "nothing",
+                                                "role": "a user's row"}
+        report = "\n".join(robustness_summary(robust, cfg, table=table))
+        assert "| Lyapunov, k = 3 (a user's law) | nothing |" in report
+        from jaxtraffic.paper.plotting import _style
+        assert _style("Lyapunov k 3") == {"color": "k", "ls": ":"}
+        with pytest.raises(ValueError, match="a registered law"):
+            external.parse(["lyapunov_k3=tests/judge_controller.py:policy"])
+        with pytest.raises(ValueError, match="registered already"):
+            laws.register(law)
+    finally:
+        laws.unregister("lyapunov_k3")
+    assert "lyapunov_k3" not in map_controllers()

@@ -37,6 +37,7 @@ from jaxtraffic import paper
 from jaxtraffic.cli import errors, external, judge, staging
 from jaxtraffic.cli.options import EvaluateOptions, parse_evaluate, program
 from jaxtraffic.model.params import TrafficParams
+from jaxtraffic.paper import laws
 from jaxtraffic.paper.oracle import load_oracle
 from jaxtraffic.paper.recipes import recipe, training_plant
 from jaxtraffic.platform import compile_cache, distributed
@@ -55,12 +56,7 @@ MAX_NOISE_SEEDS = 1_000  # of the alpha-noise scenario (the paper: 8)
 MAX_HORIZON_S = MAX_STEPS * float(TrafficParams().dt)  # a rollout's step bound (learn.config.checks) at the paper's dt
 # the gradient-trained controllers evaluated beside PPO: name -> (run directory under --runs-root and recipe of
 # paper.recipes, its training plant: paper.recipes.training_plant)
-GRADIENT_RUNS = {
-    "grad_gains": ("gradient-gains", "reference"),
-    "grad_network": ("gradient-network", "reference"),
-    "grad_robust": ("gradient-robust", "half"),
-    "grad_residual": ("adaptive-residual", "half"),
-}
+GRADIENT_RUNS = {n: (law.recipe, law.train_plant) for n, law in laws.LAWS.items() if law.recipe}
 
 
 def parse_args(argv: list[str] | None) -> EvaluateOptions:

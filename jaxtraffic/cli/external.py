@@ -32,11 +32,11 @@ import jax
 from jaxtraffic.control.adapter import ControllerGrid
 from jaxtraffic.control.base import Controller
 from jaxtraffic.ecosystem.normalization import applying, load_obs_normalization, normalization_evidence
+from jaxtraffic.paper import laws
 from jaxtraffic.paper.numerics import deploy
-from jaxtraffic.paper.scenarios import BASELINES, EXTRA_LEARNED, MAP_ONLY, EvalConfig
+from jaxtraffic.paper.scenarios import EvalConfig
 from jaxtraffic.sim import initial_state, paper_initial_condition
 
-RESERVED = {*BASELINES, "ppo", *EXTRA_LEARNED, *MAP_ONLY}
 SPEC = re.compile(r"(?P<name>[A-Za-z_][A-Za-z0-9_.-]*)=(?P<source>[^:]+):(?P<function>[A-Za-z_]\w*)(?::(?P<arg>.*))?$")
 
 
@@ -51,7 +51,7 @@ class ControllerSpec(TypedDict):
 
 def parse(specs: Sequence[str]) -> list[ControllerSpec]:
     """Each ``--controller`` value as {name, source, function, arg}; ``ValueError`` for a malformed one, a
-    name taken by a built-in controller or given twice."""
+    name taken by a registered law (``paper.laws``) or given twice."""
     out: list[ControllerSpec] = []
     seen: set[str] = set()
     for spec in specs:
@@ -59,9 +59,9 @@ def parse(specs: Sequence[str]) -> list[ControllerSpec]:
         if m is None:
             raise ValueError(f"--controller {spec!r}: expected NAME=SOURCE:FUNCTION[:ARGUMENT], e.g. "
                              "sb3=examples/sb3_ppo.py:controller:runs/sb3_ppo.zip")
-        if m["name"] in RESERVED or m["name"] in seen:
+        if m["name"] in laws.LAWS or m["name"] in seen:
             raise ValueError(f"--controller {spec!r}: the name {m['name']!r} is "
-                             + ("given twice" if m["name"] in seen else "a built-in controller's"))
+                             + ("given twice" if m["name"] in seen else "a registered law's (paper.laws)"))
         seen.add(m["name"])
         out.append(ControllerSpec(name=m["name"], source=m["source"], function=m["function"], arg=m["arg"]))
     return out

@@ -25,15 +25,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from jaxtraffic.control import adaptive_backstepping, backstepping, lyapunov, open_loop
 from jaxtraffic.io.files import atomic_write_text, to_jsonable
 from jaxtraffic.io.provenance import provenance
+from jaxtraffic.paper import laws
 from jaxtraffic.paper.numerics import deploy
 from jaxtraffic.paper.scenarios import SCENARIOS, EvalConfig, Outcome, initial_norms, run_scenarios
 from jaxtraffic.paper.summaries import UNITS, summarise
 from jaxtraffic.sim.metrics import VEH_PER_KM
 
-CTRL_DELAY = 4.0  # the delay backstepping and the adaptive law assume (as in the main job)
 ADAPTIVE = "adaptive_backstepping"
 _ADAPTIVE_RUN = "adaptive backstepping"  # its name in run_scenarios: one a --controller cannot take (no spaces)
 REFERENCES = {"backstepping": "backstepping", ADAPTIVE: "the adaptive law"}  # what each policy is compared with
@@ -60,8 +59,7 @@ def judge_plants(own: dict[str, Any], grids: dict[str, Any], configs: dict[str, 
     for plant, config in configs.items():
         t0 = time.perf_counter()
         log(f"== {plant} plant: {config.describe()}")
-        ctrls = {"open_loop": open_loop(), "lyapunov": lyapunov(1.0), "backstepping": backstepping(CTRL_DELAY, 1.0),
-                 _ADAPTIVE_RUN: adaptive_backstepping(CTRL_DELAY), **own}
+        ctrls = {**laws.build_model_based("all"), _ADAPTIVE_RUN: laws.LAWS[ADAPTIVE].build(), **own}
         outcomes = run_scenarios(deploy(ctrls, grids, config), config, log)
         outcomes = {s: {ADAPTIVE if c == _ADAPTIVE_RUN else c: o for c, o in per.items()}
                     for s, per in outcomes.items()}
@@ -92,10 +90,10 @@ def legend() -> dict[str, str]:
 
 def l2_figure(path: Path, delay4: dict[str, Outcome], where: str) -> None:
     """The L2 norms of the deviations over time at D = 4 s (``paper.plotting.plot_l2_norms``) at ``path``."""
-    from jaxtraffic.paper.plotting import LABELS, plot_l2_norms
+    from jaxtraffic.paper.plotting import plot_l2_norms
 
     names = {ADAPTIVE: "adaptive backstepping"}
-    series = {LABELS.get(c, names.get(c, c)): (o.rho_L2, o.v_L2) for c, o in delay4.items()}
+    series = {laws.short_label(c) if c in laws.LAWS else names.get(c, c): (o.rho_L2, o.v_L2) for c, o in delay4.items()}
     t = next(iter(delay4.values())).t
     plot_l2_norms(path, t, series, f"L2 norms of the deviations, plant delay D = 4 s: {where}")
 

@@ -19,7 +19,7 @@ from jaxtraffic.control.gain_law import FILTER_SIGMA
 from jaxtraffic.control.stability import GROWTH_TOL, growth_rates, stable_region, verdict, wavenumbers
 from jaxtraffic.io.drawing import new_figure, save_figure
 from jaxtraffic.model.params import TrafficParams
-from jaxtraffic.paper.learned import LEARNED_LABELS
+from jaxtraffic.paper import laws
 
 ETA2 = np.linspace(-3.0, 1.0, 17)
 ETA3 = np.linspace(-4.0, 1.0, 17)
@@ -42,7 +42,7 @@ def plot_certificate(png: Path, certs: dict[str, dict], delay: float = 4.0) -> N
         color = f"C{i}"
         for sigma, ls in ((c["sigma"], "-"), (0.0, ":")):
             s = np.asarray(growth_rates(c["gains"], p.replace(alpha=c["alpha"]), c["delay"], jnp.asarray(k), sigma))
-            ax.plot(wl, s, ls, color=color, label=f"{LEARNED_LABELS.get(name, name)}, sigma {sigma:g} m")
+            ax.plot(wl, s, ls, color=color, label=f"{laws.label(name)}, sigma {sigma:g} m")
     ax.axhline(GROWTH_TOL, color="k", lw=0.8, ls="--", label="tolerance")
     ax.set_xscale("log")
     ax.set_yscale("symlog", linthresh=1e-3)
@@ -58,7 +58,7 @@ def plot_certificate(png: Path, certs: dict[str, dict], delay: float = 4.0) -> N
         ax.contour(ETA3, ETA2, region, levels=[GROWTH_TOL], colors="k", linewidths=1.2)
         for i, (name, c) in enumerate(certs.items()):
             ax.plot(c["gains"][2], c["gains"][1], "o", color=f"C{i}", mec="k",
-                    label=f"{LEARNED_LABELS.get(name, name)} (eta1 {c['gains'][0]:+.2f})")
+                    label=f"{laws.label(name)} (eta1 {c['gains'][0]:+.2f})")
         ax.set_xlabel("eta3 (density gain)")
         ax.set_ylabel("eta2 (speed gain)")
         ax.set_title(f"max growth, D = {delay:g} s, alpha 0.15, eta1 = 0, sigma {sigma:g} m\n(black: {GROWTH_TOL:g}/s)")
@@ -88,7 +88,7 @@ def certificate_section(learned_runs: dict[str, dict], out_dir: str | Path,
              "| controller | gains at equilibrium (eta1, eta2, eta3) | D (s) | alpha | filter sigma (m) "
              "| max growth (1/s) | at wavelength (m) | verdict |", "|---|---|---|---|---|---|---|---|"]
     for name, c in certs.items():
-        lines.append(f"| {LEARNED_LABELS.get(name, name)} | ({', '.join(f'{g:+.3f}' for g in c['gains'])}) | "
+        lines.append(f"| {laws.label(name)} | ({', '.join(f'{g:+.3f}' for g in c['gains'])}) | "
                      f"{c['delay']:g} | {c['alpha']:g} | {c['sigma']:g} | {c['max_growth']:+.2e} | "
                      f"{c['worst_wavelength']:.3g} | **{verdict(c['max_growth'])}** |")
     lines += ["", *_not_applicable(every), "", "![certificate](fig_certificate.png)", ""]
@@ -97,5 +97,5 @@ def certificate_section(learned_runs: dict[str, dict], out_dir: str | Path,
 
 def _not_applicable(certs: dict[str, dict]) -> list[str]:
     """One line per learned law the certificate does not model (its summary says ``"applies": false``), and why."""
-    return [f"- {LEARNED_LABELS.get(name, name)}: no certificate: {c.get('reason', 'it does not apply')}."
+    return [f"- {laws.label(name)}: no certificate: {c.get('reason', 'it does not apply')}."
             for name, c in certs.items() if not c.get("applies", True)]

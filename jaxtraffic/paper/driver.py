@@ -12,11 +12,12 @@ from typing import Any
 
 import jax
 
-from jaxtraffic.control import Controller, backstepping, lyapunov, open_loop
+from jaxtraffic.control import Controller
 from jaxtraffic.control.adapter import ControllerGrid
 from jaxtraffic.io.files import atomic_write_text, to_jsonable
 from jaxtraffic.io.provenance import provenance
 from jaxtraffic.model.params import equilibrium
+from jaxtraffic.paper import laws
 from jaxtraffic.paper.claims import evaluate_claims, paper_like_reading
 from jaxtraffic.paper.figures import FIG7, ROBUSTNESS, make_figures
 from jaxtraffic.paper.learned import comparison_section
@@ -113,8 +114,7 @@ def evaluate_plant(controllers: dict[str, Controller], eval_config: EvalConfig, 
     writer = distributed.is_writer()
     if writer:
         out_dir.mkdir(parents=True, exist_ok=True)
-    ctrls = {"open_loop": open_loop(), "lyapunov": lyapunov(1.0),
-             "backstepping": backstepping(CTRL_DELAY, 1.0)}
+    ctrls = laws.build_model_based("all")  # the registry's model-based laws (paper.laws)
     ctrls.update(controllers)
     grids = grids or {}
     # independent of the rest: its programs compile and run alongside the scenarios' and the map's

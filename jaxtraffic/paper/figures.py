@@ -10,8 +10,9 @@ from typing import Any
 import numpy as np
 
 from jaxtraffic.model.params import equilibrium
+from jaxtraffic.paper import laws
 from jaxtraffic.paper.learned import STABLE_STD
-from jaxtraffic.paper.maps import MAP_LABELS, four_rows, map_table
+from jaxtraffic.paper.maps import four_rows, map_table
 from jaxtraffic.paper.oracle import ORACLE_LABELS
 from jaxtraffic.paper.scenarios import (
     CTRL_DELAY,
@@ -21,7 +22,6 @@ from jaxtraffic.paper.scenarios import (
     Outcome,
     initial_norms,
     learned,
-    others,
 )
 
 # ----------------------------------------------------------------------------- figures
@@ -41,10 +41,8 @@ def make_figures(results: dict[str, dict[str, Outcome]], robust: dict[str, dict[
     robustness map is still running (``FIG7`` and ``ROBUSTNESS`` need later results). ``oracle``: oracle rows
     (``paper.oracle``) drawn as further panels of the waves map. ``table``: the map's counts by what each
     controller is told (``maps.map_table``; default: computed here), for the four controllers side by side."""
-    from jaxtraffic.paper.plotting import LABELS
-
     canvas = _Canvas(out_dir, select or (lambda name: True), log)
-    labels = {**LABELS, **{c: c for c in others(results["delay4"])}}  # a controller brought in: its own name
+    labels = {c: laws.short_label(c) for c in {*laws.LAWS, *results["delay4"]}}  # a name not registered: itself
     _learning_curve_figure(canvas, learning_curve_csv)
     t = results["delay4"]["open_loop"].t
     _reward_figure(canvas, results, t, labels)
@@ -183,7 +181,7 @@ def _robustness_figures(canvas: _Canvas, robust: dict[str, dict[str, np.ndarray]
     """
     from jaxtraffic.paper.plotting import plot_robustness_map
 
-    names = {**MAP_LABELS, "backstepping": "backstepping (assumes the true plant delay)",
+    names = {**{c: laws.label(c) for c in robust}, "backstepping": "backstepping (assumes the true plant delay)",
              "ppo": "PPO (trained D = 4 s)", **{c: labels.get(c, c) for c in learned(robust) if c != "ppo"}}
     delays, alphas = np.asarray(eval_config.robust_delays), np.asarray(eval_config.robust_alphas)
     horizon = replace(eval_config, horizon_s=eval_config.robust_horizon_s).n_steps * eval_config.dt
@@ -211,7 +209,7 @@ def _told_figure(canvas: _Canvas, robust: dict[str, dict[str, np.ndarray]], eval
         return
     delays, alphas = np.asarray(eval_config.robust_delays), np.asarray(eval_config.robust_alphas)
     horizon = replace(eval_config, horizon_s=eval_config.robust_horizon_s).n_steps * eval_config.dt
-    maps = {f"{MAP_LABELS.get(c, c)},\ntold {table['rows'][c]['told']}":
+    maps = {f"{laws.label(c)},\ntold {table['rows'][c]['told']}":
             (robust[c]["final_rho_spatial_std"], robust[c]["diverged"]) for c in rows}
     canvas.draw(ROBUSTNESS[2], plot_robustness_map, delays, alphas, maps,
                 f"Remaining density waves after {horizon:g} s by what each controller is told "

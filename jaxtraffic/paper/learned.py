@@ -16,11 +16,8 @@ from typing import Any
 
 import numpy as np
 
+from jaxtraffic.paper import laws
 from jaxtraffic.sim.metrics import STABLE_STD
-
-LEARNED_LABELS = {"ppo": "PPO", "ppo_robust": "PPO (robust)", "grad_gains": "gradient: 3 constant gains",
-                  "grad_network": "gradient: network", "grad_robust": "gradient: delay schedule (robust)",
-                  "grad_residual": "learned residual on adaptive backstepping"}
 
 
 def stabilised_cells(r: dict[str, np.ndarray]) -> int:
@@ -96,7 +93,7 @@ def comparison_section(metrics: dict, runs: dict[str, dict], robust: dict[str, d
         ratio = m.get("J_comfort") / bs["J_comfort"] if m.get("J_comfort") is not None and bs else None
         t_beat = seconds_to_beat(run.get("curve"), bs["final_rho_L2"], bs["J_comfort"]) if bs else None
         lines.append(
-            f"| {LEARNED_LABELS.get(name, name)} | `{run['run_dir']}` | {_num(s.get('wall_s'), '.1f')} "
+            f"| {laws.label(name)} | `{run['run_dir']}` | {_num(s.get('wall_s'), '.1f')} "
             f"| {_num(s.get('env_steps'), '.3g')} | {_num(t_beat, '.1f')} "
             f"| {_num(1e3 * m['final_rho_L2'] if m else None, '.3f')} | {_num(m.get('J_comfort'), '.4g')} "
             f"| {_num(ratio, '.2f')} | {cells} | {ok_delays} |")

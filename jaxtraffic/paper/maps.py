@@ -19,26 +19,22 @@ from typing import Any
 
 import numpy as np
 
-from jaxtraffic.control import Controller, adaptive_backstepping
-from jaxtraffic.paper.learned import LEARNED_LABELS, STABLE_STD
-from jaxtraffic.paper.scenarios import CTRL_DELAY, EvalConfig, learned
+from jaxtraffic.control import Controller
+from jaxtraffic.paper import laws
+from jaxtraffic.paper.learned import STABLE_STD
+from jaxtraffic.paper.scenarios import EvalConfig, learned
 
 RULE = ("excluded: the open loop diverges before the plant's delay has passed (step < D / dt), i.e. before any "
         "controller's input reaches the plant, so every controller diverges there with it")
-MAP_LABELS = {"open_loop": "open loop", "lyapunov": "Lyapunov", "backstepping": "backstepping",
-              "adaptive_backstepping": "adaptive backstepping (alpha estimated online)",
-              "backstepping_alpha": "backstepping told alpha (information bound)", **LEARNED_LABELS}
-ROLES = {"backstepping_alpha": "information bound",
-         "adaptive_backstepping": "fair model-based competitor of a learned law told D only"}
 FOUR = ("backstepping", "adaptive_backstepping", "best learned", "backstepping_alpha")  # the side-by-side figure
 
 
 def map_controllers() -> dict[str, Controller]:
-    """The map-only model-based rows (``scenarios.MAP_ONLY``), default settings, on the baselines' grid once
-    deployed (``numerics.deploy``): adaptive backstepping (told D, alpha estimated from the nominal's) and
-    backstepping told alpha (the same law, not adapting; ``run_robustness`` tells it each cell's alpha)."""
-    return {"adaptive_backstepping": adaptive_backstepping(CTRL_DELAY),
-            "backstepping_alpha": adaptive_backstepping(CTRL_DELAY, adapt=False)}
+    """The map-only model-based rows (the registry's laws of scope "map", ``paper.laws``), default settings, on
+    the baselines' grid once deployed (``numerics.deploy``): adaptive backstepping (told D, alpha estimated from
+    the nominal's), backstepping told alpha (the same law, not adapting; ``run_robustness`` tells it each cell's
+    alpha) and any law registered so."""
+    return laws.build_model_based("map")
 
 
 def excluded_cells(robust: dict[str, dict[str, np.ndarray]], eval_config: EvalConfig) -> np.ndarray:
@@ -66,7 +62,7 @@ def map_table(robust: dict[str, dict[str, np.ndarray]], told: dict[str, str], ev
     for name, r in robust.items():
         div = np.asarray(r["diverged"], bool)
         stab = ~div & (np.asarray(r["final_rho_spatial_std"]) < STABLE_STD)
-        rows[name] = {"told": told.get(name, "n/a"), "role": ROLES.get(name, ""),
+        rows[name] = {"told": told.get(name, "n/a"), "role": laws.LAWS[name].role if name in laws.LAWS else "",
                       "stabilised": int((stab & ~ex).sum()), "diverged": int((div & ~ex).sum()),
                       "stabilised_all": int(stab.sum()), "diverged_all": int(div.sum())}
     steps = np.asarray(robust["open_loop"]["diverged_step"]) if "open_loop" in robust and ex.any() else None
@@ -117,7 +113,7 @@ def table_lines(table: dict[str, Any]) -> list[str]:
     lines = [f"| controller | told | stabilised (of {n}) | diverged (of {n}) | all {k} cells: stabilised / diverged "
              "| role |", "|---|---|---|---|---|---|"]
     for name, r in table["rows"].items():
-        lines.append(f"| {MAP_LABELS.get(name, name)} | {r['told']} | {r['stabilised']} | {r['diverged']} "
+        lines.append(f"| {laws.label(name)} | {r['told']} | {r['stabilised']} | {r['diverged']} "
                      f"| {r['stabilised_all']} / {r['diverged_all']} | {r['role'] or '-'} |")
     return lines
 
@@ -141,7 +137,7 @@ def rejudge(table: dict[str, Any]) -> dict[str, Any]:
     beats_ad = lr["stabilised"] >= ad["stabilised"] and lr["diverged"] <= ad["diverged"]
     verdict = ("reproduced" if beats_bs and beats_ad else
                "reproduced against backstepping only" if beats_bs else "not reproduced")
-    text = (f"best learned law {MAP_LABELS.get(best, best)} (told {lr['told']}): {lr['stabilised']} stabilised / "
+    text = (f"best learned law {laws.label(best)} (told {lr['told']}): {lr['stabilised']} stabilised / "
             f"{lr['diverged']} diverged; backstepping (told D) {bs['stabilised']} / {bs['diverged']}; adaptive "
             f"backstepping (told D) {ad['stabilised']} / {ad['diverged']}")
     if "backstepping_alpha" in rows:

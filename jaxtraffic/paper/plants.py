@@ -19,8 +19,9 @@ import numpy as np
 
 from jaxtraffic.io.drawing import new_figure, save_figure
 from jaxtraffic.io.files import atomic_write_text, write_json
-from jaxtraffic.paper.learned import LEARNED_LABELS, STABLE_STD
-from jaxtraffic.paper.maps import MAP_LABELS, excluded_text, rejudge
+from jaxtraffic.paper import laws
+from jaxtraffic.paper.learned import STABLE_STD
+from jaxtraffic.paper.maps import excluded_text, rejudge
 from jaxtraffic.paper.scenarios import EXTRA_LEARNED, EvalConfig, learned, others
 from jaxtraffic.paper.summaries import _fmt
 
@@ -81,7 +82,7 @@ def _delay4_lines(table: dict[str, Any], plants: list[str], horizon_s: float) ->
             if bs and c != "backstepping" and bs["final_rho_L2"] and bs["J_comfort"]:
                 l2, jc = me["final_rho_L2"] / bs["final_rho_L2"], me["J_comfort"] / bs["J_comfort"]
                 rel.append(f"{p}: {l2:.2f}x, {jc:.2f}x")
-        lines.append(f"| {LEARNED_LABELS.get(c, c)} | " + " | ".join(_fmt(1e3 * x["final_rho_L2"]) for x in e) + " | "
+        lines.append(f"| {laws.label(c)} | " + " | ".join(_fmt(1e3 * x["final_rho_L2"]) for x in e) + " | "
                      + " | ".join(_fmt(x["J_comfort"]) + (" (diverged)" if x["diverged"] else "") for x in e)
                      + f" | {'; '.join(rel) or '-'} |")
     return lines
@@ -99,7 +100,7 @@ def _numerics_lines(table: dict[str, Any], plants: list[str], results: dict[str,
             if c not in rel.get("refined", {}):
                 continue
             cells = [rel[v][c].get(k) for v in ("refined", "scheme") for k in ("final_rho_L2", "J_comfort")]
-            lines.append(f"| {p} | {LEARNED_LABELS.get(c, c)} | "
+            lines.append(f"| {p} | {laws.label(c)} | "
                          + " | ".join("n/a" if x is None else f"{100 * x:+.1f} %" for x in cells) + " |")
     refined = {p: results[p].get("numerics", {}).get("variants", {}).get("refined", {}) for p in plants}
     lines += ["", "Refined plants: " + "; ".join(f"{p}: {r.get('n_points')} points, {r.get('substeps')} solver steps"
@@ -119,7 +120,7 @@ def _map_lines(robust: dict[str, dict], plants: list[str]) -> list[str]:
     lines = ["| controller | told | " + " | ".join(f"{p}: stabilised / diverged of controllable cells" for p in plants)
              + " |", "|---|---|" + "---|" * len(plants)]
     for c in names:
-        lines.append(f"| {MAP_LABELS.get(c, c)} | {told.get(c, 'n/a')} | "
+        lines.append(f"| {laws.label(c)} | {told.get(c, 'n/a')} | "
                      + " | ".join(f"{counts[p][c][0]} / {counts[p][c][1]} of {counts[p][c][2]}" for p in plants) + " |")
     lines.append("")
     lines += [f"- {p}: {excluded_text(tables[p])}" for p in plants if tables[p].get("rows")]
@@ -145,7 +146,7 @@ def plot_plants(png: Path, table: dict[str, Any], plants: list[str], horizon_s: 
             ax.bar(np.arange(len(names)) + i * width, vals, width, label=p)
         ax.set_yscale("log")
         ax.set_xticks(np.arange(len(names)) + width * (len(plants) - 1) / 2)
-        ax.set_xticklabels([LEARNED_LABELS.get(c, c).replace("gradient: ", "grad. ") for c in names], rotation=20,
+        ax.set_xticklabels([laws.label(c).replace("gradient: ", "grad. ") for c in names], rotation=20,
                            fontsize=8)
         ax.set_ylabel(label)
         ax.grid(axis="y", alpha=0.3)

@@ -33,6 +33,7 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure, SubFigure
 
 from jaxtraffic.io.drawing import finish_figure, new_figure
+from jaxtraffic.paper import laws
 from jaxtraffic.runs.curve import plot_learning_curve, read_learning_curve
 from jaxtraffic.sim.metrics import REWARD_TARGET, VEH_PER_KM
 
@@ -40,27 +41,16 @@ __all__ = ["plot_l2_norms", "plot_l2_panels", "plot_learning_curve", "plot_rewar
            "plot_spacetime", "read_learning_curve"]
 
 
-# fixed colours so a controller looks the same in every figure
-CONTROLLER_STYLE = {
-    "open_loop": dict(color="0.35", ls="-"),
-    "lyapunov": dict(color="tab:orange", ls="-"),
-    "backstepping": dict(color="tab:blue", ls="-"),
-    "ppo": dict(color="tab:green", ls="-"),
-    "grad_gains": dict(color="tab:purple", ls="--"),
-    "grad_network": dict(color="tab:brown", ls="-."),
-    "grad_robust": dict(color="tab:pink", ls=":"),
-    "grad_residual": dict(color="tab:olive", ls="--"),
-}
-LABELS = {"open_loop": "open loop", "lyapunov": "Lyapunov", "backstepping": "backstepping",
-          "ppo": "PPO", "grad_gains": "gradient gains", "grad_network": "gradient network",
-          "grad_robust": "gradient delay schedule (robust)", "grad_residual": "learned residual (adaptive)"}
-
-
 def _style(label: str) -> dict:
-    for key, st in CONTROLLER_STYLE.items():
-        if label.startswith(key) or label.startswith(LABELS[key]):
-            return dict(st)
-    return {}
+    """A registered law's line style (``paper.laws``: the same in every figure), matched by its name or its
+    legend label at the start of ``label`` (the longest match: "Lyapunov k 3" is not "Lyapunov"); {} for any
+    other."""
+    best: tuple[int, dict] = (0, {})
+    for key, law in laws.LAWS.items():
+        for prefix in (key, laws.short_label(key)):
+            if law.style and label.startswith(prefix) and len(prefix) > best[0]:
+                best = (len(prefix), dict(law.style))
+    return best[1]
 
 
 def _mean_band(y: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:

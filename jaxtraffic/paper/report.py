@@ -10,8 +10,9 @@ import numpy as np
 
 from jaxtraffic.io.files import atomic_write_text, from_jsonable
 from jaxtraffic.io.provenance import describe
+from jaxtraffic.paper import laws
 from jaxtraffic.paper.claims import CRITERIA, _t
-from jaxtraffic.paper.maps import MAP_LABELS, counts, excluded_text, map_table, rejudge_lines
+from jaxtraffic.paper.maps import counts, excluded_text, map_table, rejudge_lines
 from jaxtraffic.paper.numerics import NUMERICS_CONTROLLERS, survives
 from jaxtraffic.paper.oracle import ORACLE_LABELS
 from jaxtraffic.paper.scenarios import (
@@ -158,7 +159,7 @@ def robustness_summary(robust: dict[str, dict[str, np.ndarray]], eval_config: Ev
         row = table["rows"][c]
         off = np.abs(np.asarray(r.get("final_rho_offset", np.full(div.shape, np.nan))))[~div]
         offset = f"{1000 * float(np.median(off)):.3g}" if off.size and np.all(np.isfinite(off)) else "n/a"
-        lines.append(f"| {MAP_LABELS.get(c, c)} | {row['told']} | {row['stabilised']}/{ctl} | {row['diverged']}/{ctl} "
+        lines.append(f"| {laws.label(c)} | {row['told']} | {row['stabilised']}/{ctl} | {row['diverged']}/{ctl} "
                      f"| {int(below.sum())}/{n} "
                      f"| {int(calm.sum())}/{n} | {offset} | {at} |")
     for k, r in (oracle or {}).items():

@@ -44,6 +44,8 @@ import numpy as np
 from jaxtraffic.compare.stats import SETTLE_FRACTION  # noqa: F401 (the paper's modules read it here)
 from jaxtraffic.control import Controller, takes_delay, tell_delay
 from jaxtraffic.model.params import TrafficParams, equilibrium, steps_for
+from jaxtraffic.paper import laws
+from jaxtraffic.paper.laws import CTRL_DELAY
 from jaxtraffic.sim.initial import paper_initial_condition
 from jaxtraffic.sim.metrics import l2_deviation
 from jaxtraffic.sim.options import AlphaInput, Memory, Record
@@ -51,7 +53,6 @@ from jaxtraffic.sim.plant import NoiseReading
 from jaxtraffic.sim.rollout import plant_alphas, simulate_batch, stack_params
 from jaxtraffic.sim.sharding import host_mesh
 
-CTRL_DELAY = 4.0  # s, the delay the controllers (backstepping, PPO) are designed / trained for
 NOISE_STD = 0.15  # std of the Gaussian noise on the plant's alpha (alpha_noise scenario)
 MODEL_BASED = ("lyapunov", "backstepping")  # controllers with a model alpha (PPO only normalises by the target)
 
@@ -80,27 +81,25 @@ class Scenario:
         return None if r == NoiseReading() else r
 
 
-# learned controllers beyond the paper's PPO, evaluated wherever PPO is when they are given
-EXTRA_LEARNED = ("grad_gains", "grad_network", "grad_robust", "grad_residual")
-_L = ("ppo", *EXTRA_LEARNED)
-BASELINES = ("open_loop", "lyapunov", "backstepping")
-# model-based controllers evaluated on the robustness map only (issue 38; ``paper.maps``): adaptive
-# backstepping (told D, alpha estimated online) and backstepping told the plant's alpha (the information bound)
-MAP_ONLY = ("adaptive_backstepping", "backstepping_alpha")
-TOLD_ALPHA = ("backstepping_alpha",)  # told each cell's plant alpha as well as its delay
+# the paper's scenarios' laws, from the registry (``paper.laws``): the learned ones beyond the paper's PPO
+# (evaluated wherever PPO is when they are given), the model-based ones, and those on the robustness map only
+_L = laws.names(learned=True)
+EXTRA_LEARNED = tuple(n for n in _L if n != "ppo")
+BASELINES = laws.names(learned=False, scope="all")
+MAP_ONLY = laws.names(scope="map")
 
 
 def others(names) -> tuple[str, ...]:
     """The names among ``names`` that are neither a baseline nor one of jaxtraffic's learned controllers: the
     controllers a user brings (``evaluate.py --controller``, e.g. a policy trained elsewhere), evaluated
     wherever PPO is, in the order given."""
-    return tuple(n for n in names if n not in BASELINES and n not in _L and n not in MAP_ONLY)
+    return tuple(n for n in names if n not in laws.LAWS)
 
 
 def learned(names) -> tuple[str, ...]:
-    """The learned controllers among ``names``: PPO and the ``EXTRA_LEARNED`` (in that order), then ``others``."""
+    """The learned controllers among ``names``: the registry's learned laws (in its order), then ``others``."""
     names = tuple(names)
-    return tuple(n for n in _L if n in names) + others(names)
+    return tuple(n for n in laws.names(learned=True) if n in names) + others(names)
 SCENARIOS = (
     Scenario("delay0", 0.0, 0.0, ("open_loop", "lyapunov", *_L), "plant delay D = 0"),
     Scenario("delay4", 4.0, 0.0, ("open_loop", "lyapunov", "backstepping", *_L), "plant delay D = 4 s"),
@@ -124,7 +123,6 @@ SCENARIOS = (
 )
 SCENARIO_BY_NAME = {s.name: s for s in SCENARIOS}
 NOISE_SCENARIOS = tuple(s.name for s in SCENARIOS if s.seeded)  # the readings of the alpha noise (claim 5)
-ROBUST_CONTROLLERS = ("open_loop", "lyapunov", "backstepping", *MAP_ONLY, "ppo", *EXTRA_LEARNED)
 
 
 @dataclass
@@ -316,10 +314,10 @@ def run_scenarios(controllers: dict[str, Controller], eval_config: EvalConfig,
 
 
 def told(name: str, controller: Controller) -> str:
-    """What ``controller`` (named ``name``) is told on the robustness map: "D, alpha" (``TOLD_ALPHA``), "D" (it
-    takes the delay it compensates, ``control.takes_delay``: backstepping, the adaptive law, a delay schedule)
-    or "nothing" (the open loop, Lyapunov, a law trained at one delay)."""
-    if name in TOLD_ALPHA:
+    """What ``controller`` (named ``name``) is told on the robustness map: "D, alpha" (a law registered so told),
+    "D" (it takes the delay it compensates, ``control.takes_delay``: backstepping, the adaptive law, a delay
+    schedule) or "nothing" (the open loop, Lyapunov, a law trained at one delay)."""
+    if name in laws.LAWS and laws.LAWS[name].told == "delay_alpha":
         return "D, alpha"
     return "D" if takes_delay(controller) else "nothing"
 
@@ -336,8 +334,8 @@ def run_robustness(controllers: dict[str, Controller], eval_config: EvalConfig,
     remaining wave amplitude, blind to a uniform offset from the nominal target;
     final_rho_offset (veh/m) is the final density's mean over x minus the plant's own
     equilibrium density (its alpha, the nominal time gap h_bar: where the open loop would rest);
-    "diverged_step": the plant step at which it diverged (-1: never). A controller named in ``TOLD_ALPHA``
-    (``MAP_ONLY``'s information bound) is also told each cell's plant alpha (its ``alpha0``, not adapted)."""
+    "diverged_step": the plant step at which it diverged (-1: never). A law registered as told "delay_alpha"
+    (the map's information bound) is also told each cell's plant alpha (its ``alpha0``, not adapted)."""
     if not eval_config.robust_delays or not eval_config.robust_alphas:
         return {}
     eval_config = replace(eval_config, horizon_s=eval_config.robust_horizon_s)
@@ -346,17 +344,18 @@ def run_robustness(controllers: dict[str, Controller], eval_config: EvalConfig,
     envs = [nom.replace(delay=float(d), alpha=float(a)) for d, a in zip(dd.ravel(), aa.ravel(), strict=True)]
     own_rho = np.array([float(equilibrium(e)[0]) for e in envs]).reshape(dd.shape)  # veh/m, at h_bar
     out = {}
-    for name in (*ROBUST_CONTROLLERS, *others(controllers)):
+    for name in (*laws.LAWS, *others(controllers)):
         if name not in controllers:
             continue
         ctrl, batched, chunk = controllers[name], False, None
-        if name in ("backstepping", *MAP_ONLY, "grad_residual"):
+        law = laws.LAWS.get(name)
+        if law is not None and law.predictor:
             # the predictor's loop runs to the largest assumed delay of its chunk: one delay per
             # chunk (the batch is delay-major and dealt over the devices), 20 % faster than 64
             chunk = -(-dd.shape[1] // host_mesh().size)
         if takes_delay(ctrl):
             ctrl, batched = tell_delay(ctrl, jnp.asarray(dd.ravel(), jnp.float32)), True
-        if name in TOLD_ALPHA:
+        if law is not None and law.told == "delay_alpha":
             ctrl = ctrl.replace(settings=ctrl.settings.replace(alpha0=jnp.asarray(aa.ravel(), jnp.float32)))
         t0 = time.perf_counter()
         res = run_batch(ctrl, envs, [0] * len(envs), eval_config, record=False, batch_controller=batched,

@@ -17,6 +17,19 @@ from jaxtraffic.io.files import atomic_write_bytes
 __all__ = ["DPI", "figure_format", "finish_figure", "new_figure", "save_figure"]
 
 DPI = 110  # dots per inch of every PNG
+PNG_COLOURS = 256  # a PNG is written with a palette of this many colours: a third of the bytes of full colour
+
+
+def _palette_png(data: bytes) -> bytes:
+    """``data`` (a full-colour PNG) as a PNG with a palette of ``PNG_COLOURS`` (median cut, no dithering):
+    screen resolution, about a third of the size for the space-time fields."""
+    from PIL import Image  # matplotlib's own dependency
+
+    out = io.BytesIO()
+    image = Image.open(io.BytesIO(data)).convert("RGB")
+    image.quantize(colors=PNG_COLOURS, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE).save(
+        out, format="PNG", optimize=True)
+    return out.getvalue()
 
 
 def new_figure(fig: Figure | SubFigure | None = None, **kwargs) -> Figure | SubFigure:
@@ -38,14 +51,15 @@ def figure_format(path: str | Path) -> str:
 
 def save_figure(fig: Figure | SubFigure, png_path: str | Path) -> Path:
     """Write ``fig`` (the whole figure a subfigure belongs to) at ``png_path``, atomically, in the format its
-    suffix names (``figure_format``: PNG at ``DPI`` for ``.png``, a vector PDF for ``.pdf``, ...)."""
+    suffix names (``figure_format``: PNG at ``DPI`` with a palette of ``PNG_COLOURS`` for ``.png``, a vector PDF
+    for ``.pdf``, ...)."""
     png_path = Path(png_path)
     fmt = figure_format(png_path)  # (checked before anything is written)
     png_path.parent.mkdir(parents=True, exist_ok=True)
     buf = io.BytesIO()  # written atomically: replaces a symbolic link at png_path instead of following it
     root = fig.figure if isinstance(fig, SubFigure) else fig
     root.savefig(buf, format=fmt, dpi=DPI, bbox_inches="tight")
-    atomic_write_bytes(png_path, buf.getvalue())
+    atomic_write_bytes(png_path, _palette_png(buf.getvalue()) if fmt == "png" else buf.getvalue())
     return png_path
 
 

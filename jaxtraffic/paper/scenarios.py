@@ -50,6 +50,8 @@ from jaxtraffic.sim.plant import NoiseReading
 from jaxtraffic.sim.rollout import plant_alphas, simulate_batch, stack_params
 from jaxtraffic.sim.sharding import host_mesh
 
+# what the robustness map reads of each rollout (final-state metrics: no running sums in the loop)
+ROBUST_METRICS = ("final_rho_L2", "final_v_L2", "final_reward", "diverged")
 CTRL_DELAY = 4.0  # s, the delay the controllers (backstepping, PPO) are designed / trained for
 NOISE_STD = 0.15  # std of the Gaussian noise on the plant's alpha (alpha_noise scenario)
 SETTLE_FRACTION = 0.1  # settling: L2 norm stays below this fraction of its initial value
@@ -212,12 +214,14 @@ class Outcome:
 
 def run_batch(controller: Controller, envs: list[TrafficParams], keys: list[int], eval_config: EvalConfig,
               record: bool = True, batch_controller: bool = False, noise: NoiseReading | None = None,
-              chunk_size: int | None = None, readings: list[NoiseReading | None] | None = None):
+              chunk_size: int | None = None, readings: list[NoiseReading | None] | None = None,
+              metrics: tuple[str, ...] | None = None):
     """One vmapped rollout of ``controller`` over ``envs`` from the paper's initial condition
     (computed on the nominal equilibrium; ``chunk_size``: see ``simulate_batch``, whose default
     None leaves). ``readings``: per environment, a road-wide reading whose alpha draw it gets
     (``plant_alphas``; ``noise`` then only carries ``model_sees``), so that environments of
-    different holding times share one program. Returns the SimResult with numpy leaves."""
+    different holding times share one program. ``metrics``: the metrics computed (default all; see
+    ``simulate``). Returns the SimResult with numpy leaves."""
     nom = eval_config.nominal()
     rho0, v0 = paper_initial_condition(nom)
     b = len(envs)
@@ -232,7 +236,7 @@ def run_batch(controller: Controller, envs: list[TrafficParams], keys: list[int]
         keys=jnp.stack([jax.random.PRNGKey(k) for k in keys]),
         batch_controller=batch_controller, record=Record(every=eval_config.record_every if record else 0),
         memory=Memory() if chunk_size is None else Memory(chunk_size=chunk_size),
-        alpha_input=AlphaInput(alphas=alphas, noise=noise),
+        alpha_input=AlphaInput(alphas=alphas, noise=noise), metrics=metrics,
     )
     return jax.tree_util.tree_map(np.asarray, res)
 
@@ -360,9 +364,8 @@ def run_robustness(controllers: dict[str, Controller], eval_config: EvalConfig,
             ctrl = ctrl.replace(settings=ctrl.settings.replace(alpha0=jnp.asarray(aa.ravel(), jnp.float32)))
         t0 = time.perf_counter()
         res = run_batch(ctrl, envs, [0] * len(envs), eval_config, record=False, batch_controller=batched,
-                        chunk_size=chunk)
-        out[name] = {k: np.asarray(res.metrics[k]).reshape(dd.shape)
-                     for k in ("final_rho_L2", "final_v_L2", "final_reward", "diverged")}
+                        chunk_size=chunk, metrics=ROBUST_METRICS)
+        out[name] = {k: np.asarray(res.metrics[k]).reshape(dd.shape) for k in ROBUST_METRICS}
         out[name]["diverged_step"] = np.asarray(res.final.diverged_step).reshape(dd.shape)
         out[name]["final_rho_spatial_std"] = np.std(np.asarray(res.final.rho), axis=-1).reshape(dd.shape)
         out[name]["final_rho_offset"] = np.mean(np.asarray(res.final.rho), axis=-1).reshape(dd.shape) - own_rho

@@ -69,7 +69,7 @@ class Memory:
     def __post_init__(self) -> None:
         c = self.chunk_size
         if c is not None and c != "auto" and (not _is_int(c) or c < 0):
-            raise ValueError(f"chunk_size must be None, 'auto' or an int >= 0, got {c!r}")
+            raise ValueError(f"chunk_size must be None or an int >= 0 (or 'auto'), got {c!r}")
 
     def chunk_for(self, platform: str) -> int:
         """The chunk size in effect on devices of ``platform`` ("cpu", "gpu", "tpu", ...; 0: one vmap)."""

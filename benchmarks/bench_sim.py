@@ -54,8 +54,9 @@ def _parse() -> argparse.Namespace:
     ap.add_argument("--devices", type=int, default=0,
                     help="force N XLA host devices (default 0: one per core, as the command lines split)")
     ap.add_argument("--numpy-steps", type=int, default=100, help="steps of each timed numpy rollout")
-    ap.add_argument("--chunk-size", type=int, default=64,
-                    help="simulate_batch chunk_size (environments per sequential chunk; 0: one vmap)")
+    ap.add_argument("--chunk-size", type=lambda s: s if s == "auto" else int(s), default="auto",
+                    help="simulate_batch chunk_size (environments per sequential chunk; 0: one vmap; "
+                         "auto: 64 on a CPU, one vmap on an accelerator)")
     ap.add_argument("--json", action="store_true", help="print JSON instead of a table")
     ap.add_argument("--no-memory", action="store_true", help="skip the 4096-env memory measurement")
     ap.add_argument("--memory-batch", type=int, default=4096)
@@ -68,7 +69,6 @@ ARGS = _parse()
 if ARGS.devices:
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
                                + f" --xla_force_host_platform_device_count={ARGS.devices}")
-os.environ.setdefault("JAX_PLATFORMS", "cpu")
 if not ARGS.devices:
     from jaxtraffic import split_host_devices
 

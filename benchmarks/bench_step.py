@@ -45,7 +45,6 @@ ap.add_argument("--devices", type=int, default=1)
 ap.add_argument("--json", action="store_true")
 ARGS = ap.parse_args()
 os.environ["XLA_FLAGS"] = os.environ.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={ARGS.devices}"
-os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
@@ -97,7 +96,7 @@ def best_of(fn, *args) -> float:
 
 def public_call(p: TrafficParams, ctrl, steps: int):
     return jax.jit(lambda r, v, k: simulate_batch(p, ctrl, n_steps=steps, rho0=r, v0=v, keys=k,
-                                                  memory=Memory(chunk_size=64)).metrics)
+                                                  memory=Memory()).metrics)
 
 
 # ----------------------------------------------------------------------------- numpy table
@@ -213,14 +212,14 @@ def env_rates(batch: int) -> dict:
     modes = {"default": None}
     if hasattr(learn_env, "RESET_ONLY_WHERE_DONE"):
         modes = {"reset where done": True, "select everywhere": False}
-    compiled = {}
+    compiled, before = {}, getattr(learn_env, "RESET_ONLY_WHERE_DONE", None)
     for name, flag in modes.items():
         if flag is not None:
             learn_env.RESET_ONLY_WHERE_DONE = flag
         # a new function object per mode: jit caches traces by function, and the switch is read at trace time
         compiled[name] = jax.jit(lambda s, a: run(s, a)).lower(state, actions).compile()
     if len(modes) > 1:
-        learn_env.RESET_ONLY_WHERE_DONE = True
+        learn_env.RESET_ONLY_WHERE_DONE = before
     times = {name: [] for name in modes}
     for _ in range(ARGS.repeats):
         for name, fn in compiled.items():

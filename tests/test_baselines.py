@@ -279,3 +279,33 @@ def test_recursive_predictor_matches_exact_one():
     rc = simulate(pn, backstepping(4.0, recursive=True), n_steps=600).metrics
     for k in ("final_rho_L2", "final_v_L2", "J_TTT"):
         np.testing.assert_allclose(float(rc[k]), float(ex[k]), rtol=0.05, err_msg=k)
+
+
+def test_bounded_predictor_equals_the_traced_loop():
+    """``predict(bounded=True)`` (the accelerator's form: the buffer's capacity of iterations, those from d on
+    masked) gives the traced-trip-count loop's prediction for every d, batched with different d too, and has no
+    loop whose trip count is traced. (Bit for bit with the library's XLA flags, checked for the issue-48 change;
+    here to float32 rounding: the suite's cheaper flags let two programs differ by an ulp, tests/xla_flags.py.)"""
+    from jaxtraffic.control import baselines as baselines_module
+    from jaxtraffic.model.linear import linearize
+    from jaxtraffic.sim.plant import _plant_step, initial_state
+
+    p = TrafficParams(delay=3.0, max_delay_steps=8, n_points=41, dt=0.5, L=1000.0)
+    lm = linearize(p)
+    st = initial_state(p, *paper_initial_condition(p))
+    for n in range(6):  # a buffer holding a few different sent fields
+        st = _plant_step(st, p.h_bar + 0.05 * jnp.sin(jnp.linspace(0.0, 3.0, p.n_points) + n), p, p.alpha)[0]
+    x = (st.rho - lm.rho_bar, st.v - lm.v_bar)
+
+    def both(d, bounded):
+        return baselines_module.predict(*x, st.sent, d, lm, bounded=bounded)
+
+    ds = jnp.arange(st.sent.size, dtype=jnp.int32)  # 0 .. capacity
+    loop, masked = (jax.jit(jax.vmap(lambda d, b=b: both(d, b)))(ds) for b in (False, True))
+    for a, b in zip(loop, masked, strict=True):
+        a, b = np.asarray(a), np.asarray(b)  # to rounding relative to the field's scale (cancellation near 0)
+        np.testing.assert_allclose(b, a, rtol=0, atol=2e-6 * np.abs(a).max())
+    assert not np.allclose(np.asarray(loop[0][0]), np.asarray(loop[0][-1]))  # the prediction depends on d
+    one = jax.make_jaxpr(lambda d: both(d, True))(jnp.int32(3))
+    assert "while" not in str(one) and "scan" in str(one)
+    assert "while" in str(jax.make_jaxpr(lambda d: both(d, False))(jnp.int32(3)))

@@ -88,3 +88,24 @@ def test_step_env_resets_at_the_horizon_and_runs_on():
     assert bool(np.all(np.asarray(done))) and bool(np.all(np.asarray(state.t) == 0))
     assert np.all(np.isfinite(np.asarray(obs)))
     assert not np.array_equal(np.asarray(obs), np.asarray(info["terminal_obs"]))
+
+
+def test_the_reset_is_chosen_by_backend_unless_set(monkeypatch):
+    """``RESET_ONLY_WHERE_DONE`` None (default): the cond-guarded reset on a CPU, the select on an accelerator
+    (a ``lax.cond`` there waits for the host every step); True/False force either; the step's program follows."""
+    assert E.RESET_ONLY_WHERE_DONE is None
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    assert not E.reset_only_where_done()
+    monkeypatch.setattr(jax, "default_backend", lambda: "cpu")
+    assert E.reset_only_where_done()
+    monkeypatch.setattr(E, "RESET_ONLY_WHERE_DONE", False)
+    assert not E.reset_only_where_done()
+
+    def step_jaxpr() -> str:
+        state = jax.vmap(E.reset_env, (0, None))(jax.random.split(jax.random.PRNGKey(0), B), EP)[1]
+        return str(jax.make_jaxpr(lambda k, s: jax.vmap(E.step_env, (0, 0, 0, None))(k, s, jnp.zeros((B, 3)), EP))(
+            jax.random.split(jax.random.PRNGKey(1), B), state))
+
+    assert " cond[" not in step_jaxpr()
+    monkeypatch.setattr(E, "RESET_ONLY_WHERE_DONE", None)
+    assert " cond[" in step_jaxpr()  # (a CPU: the reset only where done)

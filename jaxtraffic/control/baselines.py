@@ -121,7 +121,7 @@ class BacksteppingSettings:
 
 
 def predict(rho_t: Array, v_t: Array, sent: delay_buffer.DelayBuffer, d: Array,
-            lm: LinearModel) -> tuple[Array, Array]:
+            lm: LinearModel, bounded: bool | None = None) -> tuple[Array, Array]:
     """Deviation state (veh/m, m/s) predicted ``d`` steps ahead by the discrete linear model.
 
     At t_n the buffer holds h^{n-1} (``read(sent, 0)``), h^{n-2}, ...; a plant with delay d
@@ -137,13 +137,28 @@ def predict(rho_t: Array, v_t: Array, sent: delay_buffer.DelayBuffer, d: Array,
     prediction: O(n_points) but it accumulates rounding through the open-loop-unstable model
     and does not correct itself from the measurement) are not better. ``d`` is traced: under
     ``vmap`` with different assumed delays the loop runs max(d) iterations, masked.
+
+    ``bounded`` (static; default: on an accelerator, ``jax.default_backend() != "cpu"``): run the buffer's
+    capacity (``sent.size - 1`` >= d) iterations, those from d on masked (a select), instead of a loop whose
+    trip count is traced (on a GPU each iteration of such a loop waits for the host to read its condition).
+    The same values, bit for bit on a CPU (tests/test_baselines.py); on a CPU the traced trip count is
+    cheaper when d is below the capacity.
     """
     def body(j, carry):
         r, v = carry
         U = delay_buffer.read(sent, d - 1 - j) - lm.h_bar
         return linear_step(r, v, U, lm)
 
-    return jax.lax.fori_loop(0, d, body, (rho_t, v_t))
+    if bounded is None:
+        bounded = jax.default_backend() != "cpu"
+    if not bounded:
+        return jax.lax.fori_loop(0, d, body, (rho_t, v_t))
+
+    def masked(j, carry):
+        new = body(j, carry)
+        return jax.tree.map(lambda x, y: jnp.where(j < d, x, y), new, carry)
+
+    return jax.lax.fori_loop(0, sent.size - 1, masked, (rho_t, v_t))
 
 
 def assumed_delay_steps(delay: Array, sent: delay_buffer.DelayBuffer, nominal: TrafficParams) -> Array:
@@ -206,7 +221,9 @@ def predict_recursive(rho_t: Array, v_t: Array, sent: delay_buffer.DelayBuffer, 
     """
     n = cs.step
     anchor = (n % anchor_every == 0) | (d == 0)
-    exact_r, exact_v = predict(rho_t, v_t, sent, jnp.where(anchor, d, 0), lm)
+    # (a traced trip count: under vmap the environments share the anchor steps, so the loop is skipped at the
+    # others; a bound of the capacity would run it every step)
+    exact_r, exact_v = predict(rho_t, v_t, sent, jnp.where(anchor, d, 0), lm, bounded=False)
     h_bar = lm.h_bar
     r1, v1 = linear_step(cs.pred[0], cs.pred[1], delay_buffer.read(sent, 0) - h_bar, lm)
     m_r, m_v = linear_step(cs.last[0], cs.last[1], delay_buffer.read(sent, d) - h_bar, lm)

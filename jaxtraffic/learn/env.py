@@ -20,7 +20,8 @@ controller's target and the environment's ``gains`` (the applied, filtered gains
   value of ``info["terminal_obs"]``). A plant that leaves the physical region *terminates* with
   reward ``-diverge_penalty``. ``step_env`` resets finished environments itself, reusing the delay
   buffer's storage (``initial_state(..., sent=...)`` and ``select_state``: O(n), not O(capacity n)), and
-  only at the steps where an episode of the batch ended (``auto_reset``, ``RESET_ONLY_WHERE_DONE``).
+  only at the steps where an episode of the batch ended (``auto_reset``, ``RESET_ONLY_WHERE_DONE``; on an
+  accelerator a select of a fresh episode everywhere, ``_select_reset``, which needs no host round trip).
 * Domain randomisation, drawn at each reset: initial amplitude (veh/m), integer wavenumber and
   phase of the cosine perturbation; plant delay (a multiple of dt) and plant alpha (uniform
   ranges); per-step alpha noise (``traffic.alpha_noise``). Metrics stay relative to the nominal
@@ -56,8 +57,16 @@ Array = jax.Array
 # finished (``auto_reset``, 1.7-2x the environment's steps/s); False builds one for every environment at every
 # step and selects it where done (``_select_reset``, the earlier way). The two agree to float rounding: the fresh
 # observation can differ by an ulp (XLA compiles it in another context), so a trained policy is not bit-identical
-# across the switch (docs/model.md section 19.5).
-RESET_ONLY_WHERE_DONE = True
+# across the switch (docs/model.md section 19.5). None (default): by backend, True on a CPU, False on an accelerator
+# (the ``lax.cond`` on any-done would make a GPU wait for the host at every step; a select does not).
+RESET_ONLY_WHERE_DONE: bool | None = None
+
+
+def reset_only_where_done() -> bool:
+    """Whether ``step_env`` resets with ``auto_reset`` (else ``_select_reset``): ``RESET_ONLY_WHERE_DONE``, or
+    when it is None, whether JAX's default backend is the CPU (read when a step is traced)."""
+    flag = RESET_ONLY_WHERE_DONE
+    return jax.default_backend() == "cpu" if flag is None else bool(flag)
 
 
 _C = EnvConfig()  # the defaults, defined there once (with each field's range and help)
@@ -242,7 +251,7 @@ def step_env(key: Array, state: EnvState, action: Array, params: EnvParams):
     done = terminated | truncated
     stepped = EnvState(plant=plant, plant_params=state.plant_params, t=t, gains=gains)
     terminal_obs = observe(stepped, params, eq)
-    reset_fn = auto_reset if RESET_ONLY_WHERE_DONE else _select_reset
+    reset_fn = auto_reset if reset_only_where_done() else _select_reset
     obs, new_state = reset_fn(done, k_reset, stepped, terminal_obs, params, eq)
     info = {"terminal_obs": terminal_obs, "truncated": truncated, "terminated": terminated, "gains": gains,
             "terminal_rho": plant.rho}

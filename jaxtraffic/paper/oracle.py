@@ -65,7 +65,7 @@ def gain_grid_map(eval_config: EvalConfig, triples: Sequence[tuple[float, float,
         b = gains.shape[0]
         res = simulate_batch(params, law.replace(settings=gains), n_steps=n_steps, nominal=nom,
                              rho0=jnp.broadcast_to(rho0, (b, nom.n_points)), v0=jnp.broadcast_to(v0, (b, nom.n_points)),
-                             batch_controller=True)
+                             batch_controller=True, metrics=("diverged",))
         return res.metrics["diverged"], jnp.std(res.final.rho, axis=-1)
 
     div = np.zeros((len(triples), *dd.shape), bool)

@@ -53,6 +53,8 @@ from jaxtraffic.sim.plant import NoiseReading
 from jaxtraffic.sim.rollout import plant_alphas, simulate_batch, stack_params
 from jaxtraffic.sim.sharding import host_mesh
 
+# what the robustness map reads of each rollout (final-state metrics: no running sums in the loop)
+ROBUST_METRICS = ("final_rho_L2", "final_v_L2", "final_reward", "diverged")
 NOISE_STD = 0.15  # std of the Gaussian noise on the plant's alpha (alpha_noise scenario)
 MODEL_BASED = ("lyapunov", "backstepping")  # controllers with a model alpha (PPO only normalises by the target)
 
@@ -100,6 +102,8 @@ def learned(names) -> tuple[str, ...]:
     """The learned controllers among ``names``: the registry's learned laws (in its order), then ``others``."""
     names = tuple(names)
     return tuple(n for n in laws.names(learned=True) if n in names) + others(names)
+
+
 SCENARIOS = (
     Scenario("delay0", 0.0, 0.0, ("open_loop", "lyapunov", *_L), "plant delay D = 0"),
     Scenario("delay4", 4.0, 0.0, ("open_loop", "lyapunov", "backstepping", *_L), "plant delay D = 4 s"),
@@ -210,12 +214,14 @@ class Outcome:
 
 def run_batch(controller: Controller, envs: list[TrafficParams], keys: list[int], eval_config: EvalConfig,
               record: bool = True, batch_controller: bool = False, noise: NoiseReading | None = None,
-              chunk_size: int | None = None, readings: list[NoiseReading | None] | None = None):
+              chunk_size: int | None = None, readings: list[NoiseReading | None] | None = None,
+              metrics: tuple[str, ...] | None = None):
     """One vmapped rollout of ``controller`` over ``envs`` from the paper's initial condition
     (computed on the nominal equilibrium; ``chunk_size``: see ``simulate_batch``, whose default
     None leaves). ``readings``: per environment, a road-wide reading whose alpha draw it gets
     (``plant_alphas``; ``noise`` then only carries ``model_sees``), so that environments of
-    different holding times share one program. Returns the SimResult with numpy leaves."""
+    different holding times share one program. ``metrics``: the metrics computed (default all; see
+    ``simulate``). Returns the SimResult with numpy leaves."""
     nom = eval_config.nominal()
     rho0, v0 = paper_initial_condition(nom)
     b = len(envs)
@@ -230,7 +236,7 @@ def run_batch(controller: Controller, envs: list[TrafficParams], keys: list[int]
         keys=jnp.stack([jax.random.PRNGKey(k) for k in keys]),
         batch_controller=batch_controller, record=Record(every=eval_config.record_every if record else 0),
         memory=Memory() if chunk_size is None else Memory(chunk_size=chunk_size),
-        alpha_input=AlphaInput(alphas=alphas, noise=noise),
+        alpha_input=AlphaInput(alphas=alphas, noise=noise), metrics=metrics,
     )
     return jax.tree_util.tree_map(np.asarray, res)
 
@@ -349,9 +355,10 @@ def run_robustness(controllers: dict[str, Controller], eval_config: EvalConfig,
             continue
         ctrl, batched, chunk = controllers[name], False, None
         law = laws.LAWS.get(name)
-        if law is not None and law.predictor:
+        if law is not None and law.predictor and jax.default_backend() == "cpu":
             # the predictor's loop runs to the largest assumed delay of its chunk: one delay per
-            # chunk (the batch is delay-major and dealt over the devices), 20 % faster than 64
+            # chunk (the batch is delay-major and dealt over the devices), 20 % faster than 64 (on an
+            # accelerator the predictor runs a static bound, masked, and the batch is one vmap: Memory's "auto")
             chunk = -(-dd.shape[1] // host_mesh().size)
         if takes_delay(ctrl):
             ctrl, batched = tell_delay(ctrl, jnp.asarray(dd.ravel(), jnp.float32)), True
@@ -359,9 +366,8 @@ def run_robustness(controllers: dict[str, Controller], eval_config: EvalConfig,
             ctrl = ctrl.replace(settings=ctrl.settings.replace(alpha0=jnp.asarray(aa.ravel(), jnp.float32)))
         t0 = time.perf_counter()
         res = run_batch(ctrl, envs, [0] * len(envs), eval_config, record=False, batch_controller=batched,
-                        chunk_size=chunk)
-        out[name] = {k: np.asarray(res.metrics[k]).reshape(dd.shape)
-                     for k in ("final_rho_L2", "final_v_L2", "final_reward", "diverged")}
+                        chunk_size=chunk, metrics=ROBUST_METRICS)
+        out[name] = {k: np.asarray(res.metrics[k]).reshape(dd.shape) for k in ROBUST_METRICS}
         out[name]["diverged_step"] = np.asarray(res.final.diverged_step).reshape(dd.shape)
         out[name]["final_rho_spatial_std"] = np.std(np.asarray(res.final.rho), axis=-1).reshape(dd.shape)
         out[name]["final_rho_offset"] = np.mean(np.asarray(res.final.rho), axis=-1).reshape(dd.shape) - own_rho

@@ -19,6 +19,7 @@ switch-on spike is defined the same way for every controller and delay.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 import jax
@@ -110,6 +111,7 @@ class MetricsAccumulator:
     J_fuel_kmh: J_fuel with ``fuel_rate_kmh`` (the paper's reading).
     n_active (scalar): number of accumulated (healthy) steps.
     last_bad_step (scalar): last step index whose reward was below REWARD_TARGET (-1: none).
+    A field is None when the rollout's metrics do not read it (``init_metrics(keep=...)``, ``accumulators``).
     """
 
     if TYPE_CHECKING:  # added by flax.struct.dataclass (dataclasses.replace), which its stub omits
@@ -129,13 +131,17 @@ class MetricsAccumulator:
     J_fuel_kmh: Array
 
 
-def init_metrics(n_points: int, dtype=jnp.float32) -> MetricsAccumulator:
+def init_metrics(n_points: int, dtype=jnp.float32, keep: Iterable[str] | None = None) -> MetricsAccumulator:
+    """Zero sums for ``n_points`` nodes; only the fields named in ``keep`` (default: all; see
+    ``accumulators``), the others None, so that ``update_metrics`` neither computes nor carries them."""
     z = jnp.zeros((n_points,), dtype)
-    return MetricsAccumulator(
+    full = dict(
         J_TTT=z, J_fuel=z, J_comfort=z, effort_sq=z, max_cfl=z, a_prev=z,
         n_active=jnp.zeros((), jnp.int32), last_bad_step=jnp.full((), -1, jnp.int32),
         J_comfort_a2=z, J_comfort_at2=z, J_comfort_switch=z, J_fuel_kmh=z,
     )
+    kept = full.keys() if keep is None else set(keep)
+    return MetricsAccumulator(**{k: (v if k in kept else None) for k, v in full.items()})
 
 
 class StepRecord(NamedTuple):
@@ -193,58 +199,113 @@ def update_metrics(acc: MetricsAccumulator, record: StepRecord, target: MetricsT
     rho_bar, v_bar, h_bar, dx, dt, switch_step = target
     inv_dt = 1.0 / dt
     a = material_acceleration(v, v_next, dx, dt)
-    a_prev = jnp.where(step == 0, a, acc.a_prev)
-    a_t = (a - a_prev) * inv_dt
+    a_prev = jnp.where(step == 0, a, acc.a_prev) if acc.a_prev is not None else None
+    a_t = (a - a_prev) * inv_dt if a_prev is not None else None
     w = (dt * VEH_PER_KM) * rho
-    if reward_next is None:
-        r, r_step = reward(rho, v, rho_bar, v_bar, dx), step
-    else:
-        r, r_step = reward_next, step + 1
 
     def add(total, inc):
         return total + jnp.where(active, inc, 0.0)
 
-    at2 = a_t * a_t * w
+    def last_bad():
+        if reward_next is None:
+            r, r_step = reward(rho, v, rho_bar, v_bar, dx), step
+        else:
+            r, r_step = reward_next, step + 1
+        return jnp.where(active & (r < REWARD_TARGET), r_step, acc.last_bad_step)
 
-    return MetricsAccumulator(
-        J_TTT=add(acc.J_TTT, w),
-        J_fuel=add(acc.J_fuel, fuel_rate(v, a) * w),
-        J_comfort=add(acc.J_comfort, (a * a + a_t * a_t) * w),
-        effort_sq=add(acc.effort_sq, (h_sent - h_bar) ** 2),
-        max_cfl=jnp.where(active, jnp.maximum(acc.max_cfl, cfl), acc.max_cfl),
-        a_prev=jnp.where(active, a, acc.a_prev),
-        n_active=acc.n_active + active.astype(jnp.int32),
-        last_bad_step=jnp.where(active & (r < REWARD_TARGET), r_step, acc.last_bad_step),
-        J_comfort_a2=add(acc.J_comfort_a2, a * a * w),
-        J_comfort_at2=add(acc.J_comfort_at2, at2),
-        J_comfort_switch=add(acc.J_comfort_switch, jnp.where(step == switch_step, at2, 0.0)),
-        J_fuel_kmh=add(acc.J_fuel_kmh, fuel_rate_kmh(v, a) * w),
-    )
+    def at2():
+        return a_t * a_t * w
+
+    # each kept field's new value (a field left out of ``init_metrics`` stays None: not computed)
+    new = {
+        "J_TTT": lambda: add(acc.J_TTT, w),
+        "J_fuel": lambda: add(acc.J_fuel, fuel_rate(v, a) * w),
+        "J_comfort": lambda: add(acc.J_comfort, (a * a + a_t * a_t) * w),
+        "effort_sq": lambda: add(acc.effort_sq, (h_sent - h_bar) ** 2),
+        "max_cfl": lambda: jnp.where(active, jnp.maximum(acc.max_cfl, cfl), acc.max_cfl),
+        "a_prev": lambda: jnp.where(active, a, acc.a_prev),
+        "n_active": lambda: acc.n_active + active.astype(jnp.int32),
+        "last_bad_step": last_bad,
+        "J_comfort_a2": lambda: add(acc.J_comfort_a2, a * a * w),
+        "J_comfort_at2": lambda: add(acc.J_comfort_at2, at2()),
+        "J_comfort_switch": lambda: add(acc.J_comfort_switch, jnp.where(step == switch_step, at2(), 0.0)),
+        "J_fuel_kmh": lambda: add(acc.J_fuel_kmh, fuel_rate_kmh(v, a) * w),
+    }
+    return MetricsAccumulator(**{k: (None if getattr(acc, k) is None else f()) for k, f in new.items()})
 
 
 def totals(acc: MetricsAccumulator, dx: Array | float) -> dict[str, Array]:
     """Scalar indices from the per-node sums: J_TTT, J_fuel, J_comfort (trapezoid in space),
     control_effort (RMS of h_sent - h_bar over space and active steps, s) and max_cfl, then
-    the comfort parts and the paper's (km/h) reading (``INDEX_READINGS``)."""
-    a2, at2, sw = (trapezoid(x, dx) for x in (acc.J_comfort_a2, acc.J_comfort_at2, acc.J_comfort_switch))
+    the comfort parts and the paper's (km/h) reading (``EXTRA_INDICES``); only those whose sums
+    ``acc`` keeps (``METRIC_ACCUMULATORS``)."""
+    def trap(name):
+        return lambda: trapezoid(getattr(acc, name), dx)
+
+    a2, at2, sw = trap("J_comfort_a2"), trap("J_comfort_at2"), trap("J_comfort_switch")
     k2 = KMH * KMH
-    return {
-        "J_TTT": trapezoid(acc.J_TTT, dx),
-        "J_fuel": trapezoid(acc.J_fuel, dx),
-        "J_comfort": trapezoid(acc.J_comfort, dx),
-        "control_effort": jnp.sqrt(jnp.mean(acc.effort_sq) / jnp.maximum(acc.n_active, 1)),
-        "max_cfl": jnp.max(acc.max_cfl),
+    table = {
+        "J_TTT": trap("J_TTT"),
+        "J_fuel": trap("J_fuel"),
+        "J_comfort": trap("J_comfort"),
+        "control_effort": lambda: jnp.sqrt(jnp.mean(acc.effort_sq) / jnp.maximum(acc.n_active, 1)),
+        "max_cfl": lambda: jnp.max(acc.max_cfl),
         "J_comfort_a2": a2, "J_comfort_at2": at2, "J_comfort_switch_on": sw,
-        "J_comfort_no_switch_on": a2 + at2 - sw,
-        "J_TTT_kmh": trapezoid(acc.J_TTT, dx),
-        "J_fuel_kmh": trapezoid(acc.J_fuel_kmh, dx),
-        "J_comfort_kmh": k2 * (a2 + at2),
-        "J_comfort_a2_kmh": k2 * a2, "J_comfort_at2_kmh": k2 * at2, "J_comfort_switch_on_kmh": k2 * sw,
-        "J_comfort_no_switch_on_kmh": k2 * (a2 + at2 - sw),
+        "J_comfort_no_switch_on": lambda: a2() + at2() - sw(),
+        "J_TTT_kmh": trap("J_TTT"),
+        "J_fuel_kmh": trap("J_fuel_kmh"),
+        "J_comfort_kmh": lambda: k2 * (a2() + at2()),
+        "J_comfort_a2_kmh": lambda: k2 * a2(), "J_comfort_at2_kmh": lambda: k2 * at2(),
+        "J_comfort_switch_on_kmh": lambda: k2 * sw(),
+        "J_comfort_no_switch_on_kmh": lambda: k2 * (a2() + at2() - sw()),
     }
+    return {k: f() for k, f in table.items() if kept(acc, k)}
+
+
+def kept(acc: MetricsAccumulator, metric: str) -> bool:
+    """Whether ``acc`` keeps every running sum that ``metric`` reads."""
+    return all(getattr(acc, f) is not None for f in METRIC_ACCUMULATORS[metric])
 
 
 # The extra indices of ``totals`` (besides J_TTT, J_fuel, J_comfort, control_effort, max_cfl).
 EXTRA_INDICES = ("J_comfort_a2", "J_comfort_at2", "J_comfort_switch_on", "J_comfort_no_switch_on",
                  "J_TTT_kmh", "J_fuel_kmh", "J_comfort_kmh", "J_comfort_a2_kmh", "J_comfort_at2_kmh",
                  "J_comfort_switch_on_kmh", "J_comfort_no_switch_on_kmh")
+
+
+# Every metric of a rollout (``sim.rollout.finalize_metrics``, in its order) -> the running sums of
+# ``MetricsAccumulator`` it reads (the final-state ones read none).
+_COMFORT3 = ("J_comfort_a2", "J_comfort_at2", "J_comfort_switch")
+METRIC_ACCUMULATORS: dict[str, tuple[str, ...]] = {
+    "J_TTT": ("J_TTT",), "J_fuel": ("J_fuel",), "J_comfort": ("J_comfort",),
+    "final_rho_L2": (), "final_v_L2": (), "final_reward": (), "time_to_reward_target_s": ("last_bad_step",),
+    "diverged": (), "diverged_at_s": (), "diverged_reason": (),
+    "control_effort": ("effort_sq", "n_active"), "max_cfl": ("max_cfl",),
+    "J_comfort_a2": ("J_comfort_a2",), "J_comfort_at2": ("J_comfort_at2",),
+    "J_comfort_switch_on": ("J_comfort_switch",),
+    "J_comfort_no_switch_on": _COMFORT3, "J_TTT_kmh": ("J_TTT",), "J_fuel_kmh": ("J_fuel_kmh",),
+    "J_comfort_kmh": _COMFORT3[:2], "J_comfort_a2_kmh": ("J_comfort_a2",), "J_comfort_at2_kmh": ("J_comfort_at2",),
+    "J_comfort_switch_on_kmh": ("J_comfort_switch",), "J_comfort_no_switch_on_kmh": _COMFORT3,
+}
+METRIC_NAMES: tuple[str, ...] = tuple(METRIC_ACCUMULATORS)
+# the sums that need the previous step's acceleration (a_t)
+_NEED_A_PREV = frozenset(("J_comfort", "J_comfort_at2", "J_comfort_switch"))
+
+
+def select_metrics(names: Iterable[str] | str | None) -> tuple[str, ...]:
+    """The metrics a caller asks for, in ``METRIC_NAMES`` order (a hashable, canonical static argument):
+    None: all of them; a string: that one metric; any other iterable of names (possibly empty: no metrics).
+    Raises ValueError for a name that is not a metric, listing the valid ones."""
+    if names is None:
+        return METRIC_NAMES
+    asked = {names} if isinstance(names, str) else set(names)
+    unknown = sorted(str(n) for n in asked - set(METRIC_NAMES))
+    if unknown:
+        raise ValueError(f"unknown metric(s) {unknown}; the metrics are: {', '.join(METRIC_NAMES)}")
+    return tuple(n for n in METRIC_NAMES if n in asked)
+
+
+def accumulators(names: Iterable[str]) -> frozenset[str]:
+    """The ``MetricsAccumulator`` fields that the metrics ``names`` need (``a_prev`` where a_t is read)."""
+    fields = {f for n in names for f in METRIC_ACCUMULATORS[n]}
+    return frozenset(fields | ({"a_prev"} if fields & _NEED_A_PREV else set()))

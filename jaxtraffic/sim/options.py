@@ -57,17 +57,28 @@ class Memory:
             steps instead of n_steps. Needs ``Record(every > 0)`` (the chunk length).
         chunk_size: ``simulate_batch`` only: a batch larger than this runs as a sequential loop over
             chunks of ``chunk_size`` environments, each vmapped over the whole rollout (``None`` or 0:
-            one vmap over everything). Results do not depend on it beyond rounding.
+            one vmap over everything; "auto", the default: ``CPU_CHUNK`` on a CPU, one vmap on an
+            accelerator, ``chunk_for``). Results do not depend on it beyond rounding.
     Raises:
-        ValueError: on construction, unless ``chunk_size`` is None or an int >= 0.
+        ValueError: on construction, unless ``chunk_size`` is None, "auto" or an int >= 0.
     """
 
     remat: bool = False
-    chunk_size: int | None = 64
+    chunk_size: int | str | None = "auto"
 
     def __post_init__(self) -> None:
-        if self.chunk_size is not None and (not _is_int(self.chunk_size) or self.chunk_size < 0):
-            raise ValueError(f"chunk_size must be None or an int >= 0, got {self.chunk_size!r}")
+        c = self.chunk_size
+        if c is not None and c != "auto" and (not _is_int(c) or c < 0):
+            raise ValueError(f"chunk_size must be None or an int >= 0 (or 'auto'), got {c!r}")
+
+    def chunk_for(self, platform: str) -> int:
+        """The chunk size in effect on devices of ``platform`` ("cpu", "gpu", "tpu", ...; 0: one vmap)."""
+        if self.chunk_size == "auto":
+            return CPU_CHUNK if platform == "cpu" else 0
+        return int(self.chunk_size or 0)
+
+
+CPU_CHUNK = 64  # environments per sequential chunk of a large batch on a CPU (Memory's "auto")
 
 
 @struct.dataclass

@@ -11,6 +11,7 @@ alphas of all steps are drawn at once, before the loop, from the plant's key, an
 from __future__ import annotations
 
 import functools
+from collections.abc import Iterable
 from typing import Any, TypeVar
 
 import jax
@@ -27,6 +28,7 @@ from jaxtraffic.platform.tracing import is_traced
 from jaxtraffic.sim import metrics
 from jaxtraffic.sim.batching import chunked_vmap, stack_params
 from jaxtraffic.sim.initial import equilibrium_state, paper_initial_condition
+from jaxtraffic.sim.metrics import select_metrics
 from jaxtraffic.sim.options import AlphaInput, Memory, Record
 from jaxtraffic.sim.outcome import DivergedError, Divergence, check_outcome
 from jaxtraffic.sim.plant import (
@@ -80,8 +82,9 @@ class SimResult:
 
 
 def finalize_metrics(acc: metrics.MetricsAccumulator, final: PlantState, target: TrafficParams,
-                     n_steps: int, dx: Array | float | None = None) -> dict:
-    """Scalar results of a rollout (``dx``: the plant's grid spacing, default ``target.dx``).
+                     n_steps: int, dx: Array | float | None = None, names: tuple[str, ...] | None = None) -> dict:
+    """Scalar results of a rollout (``dx``: the plant's grid spacing, default ``target.dx``): those of
+    ``names`` (default: all, ``metrics.METRIC_NAMES``) whose running sums ``acc`` keeps, in that order.
 
     J_TTT, J_fuel, J_comfort (rho in veh/km; see ``metrics``), final_rho_L2 (veh/m),
     final_v_L2 (m/s), final_reward, time_to_reward_target_s (time after which the reward stays
@@ -95,25 +98,26 @@ def finalize_metrics(acc: metrics.MetricsAccumulator, final: PlantState, target:
     dx = target.dx if dx is None else dx
     rho_bar, v_bar = equilibrium(target)
     dt = target.dt
-    healthy_to_end = ~final.diverged
-    r_final = metrics.reward(final.rho, final.v, rho_bar, v_bar, dx)
-    reached = healthy_to_end & (acc.last_bad_step < n_steps - 1) & (r_final >= metrics.REWARD_TARGET)
+
+    def r_final():
+        return metrics.reward(final.rho, final.v, rho_bar, v_bar, dx)
+
+    def time_to_target():
+        reached = ~final.diverged & (acc.last_bad_step < n_steps - 1) & (r_final() >= metrics.REWARD_TARGET)
+        return jnp.where(reached, (acc.last_bad_step + 1) * dt, jnp.inf)
+
     tot = metrics.totals(acc, dx)
-    return {
-        "J_TTT": tot["J_TTT"],
-        "J_fuel": tot["J_fuel"],
-        "J_comfort": tot["J_comfort"],
-        "final_rho_L2": metrics.l2_deviation(final.rho, rho_bar),
-        "final_v_L2": metrics.l2_deviation(final.v, v_bar),
+    table = {
+        "final_rho_L2": lambda: metrics.l2_deviation(final.rho, rho_bar),
+        "final_v_L2": lambda: metrics.l2_deviation(final.v, v_bar),
         "final_reward": r_final,
-        "time_to_reward_target_s": jnp.where(reached, (acc.last_bad_step + 1) * dt, jnp.inf),
-        "diverged": final.diverged,
-        "diverged_at_s": jnp.where(final.diverged, final.diverged_step * dt, jnp.inf),
-        "diverged_reason": final.diverged_reason,
-        "control_effort": tot["control_effort"],
-        "max_cfl": tot["max_cfl"],
-        **{k: tot[k] for k in metrics.EXTRA_INDICES},
+        "time_to_reward_target_s": time_to_target,
+        "diverged": lambda: final.diverged,
+        "diverged_at_s": lambda: jnp.where(final.diverged, final.diverged_step * dt, jnp.inf),
+        "diverged_reason": lambda: final.diverged_reason,
     }
+    names = metrics.METRIC_NAMES if names is None else names
+    return {k: tot[k] if k in tot else table[k]() for k in names if k in tot or k in table and metrics.kept(acc, k)}
 
 
 def plant_alphas(params: TrafficParams, key: Array | None, n_steps: int, noise: NoiseReading | None = None,
@@ -129,7 +133,8 @@ def plant_alphas(params: TrafficParams, key: Array | None, n_steps: int, noise: 
 def _simulate(params: TrafficParams, controller: Controller | None, rho0: Array | None,
               v0: Array | None, key: Array | None, nominal: TrafficParams | None,
               n_steps: int, record_every: int, remat: bool = False,
-              noise: NoiseReading | None = None, alphas: Array | None = None) -> SimResult:
+              noise: NoiseReading | None = None, alphas: Array | None = None,
+              names: tuple[str, ...] = metrics.METRIC_NAMES) -> SimResult:
     p = params
     nominal = p if nominal is None else nominal
     controller = open_loop() if controller is None else controller
@@ -141,11 +146,12 @@ def _simulate(params: TrafficParams, controller: Controller | None, rho0: Array 
     rho_bar, v_bar = equilibrium(nominal)
     state = initial_state(p, rho0, v0)
     cstate = controller.init(state.observation(p), nominal)
-    acc = metrics.init_metrics(p.n_points, rho0.dtype)
-    # rewards are tracked for the state after each step (sharing the physicality reduction);
-    # the initial state's is counted here
-    r0 = metrics.reward(rho0, v0, rho_bar, v_bar, p.dx)
-    acc = acc.replace(last_bad_step=jnp.where(r0 < metrics.REWARD_TARGET, 0, -1).astype(jnp.int32))
+    acc = metrics.init_metrics(p.n_points, rho0.dtype, metrics.accumulators(names))  # only the sums `names` read
+    if acc.last_bad_step is not None:
+        # rewards are tracked for the state after each step (sharing the physicality reduction);
+        # the initial state's is counted here
+        r0 = metrics.reward(rho0, v0, rho_bar, v_bar, p.dx)
+        acc = acc.replace(last_bad_step=jnp.where(r0 < metrics.REWARD_TARGET, 0, -1).astype(jnp.int32))
     # the plant's alpha of every step, drawn at once (cheaper than a draw inside the loop), unless given
     alphas = plant_alphas(p, key, n_steps, noise, rho0.dtype) if alphas is None else alphas.astype(rho0.dtype)
     sees = noise is not None and noise.model_sees
@@ -185,11 +191,11 @@ def _simulate(params: TrafficParams, controller: Controller | None, rho0: Array 
     else:
         carry, _ = jax.lax.scan(lambda c, x: (one_step(c, x)[0], None), carry, alphas)
     state, cstate, acc = carry
-    return SimResult(metrics=finalize_metrics(acc, state, nominal, n_steps, p.dx), final=state,
+    return SimResult(metrics=finalize_metrics(acc, state, nominal, n_steps, p.dx, names), final=state,
                      controller_state=cstate, trajectory=traj)
 
 
-_simulate_jit = jax.jit(_simulate, static_argnames=("n_steps", "record_every", "remat", "noise"))
+_simulate_jit = jax.jit(_simulate, static_argnames=("n_steps", "record_every", "remat", "noise", "names"))
 
 
 def _check_alphas(params: TrafficParams, alphas: Array | None, n_steps: int, noise: NoiseReading | None,
@@ -235,7 +241,7 @@ def simulate(
     params: TrafficParams, controller: Controller | None = None, *, n_steps: int,
     rho0: Array | None = None, v0: Array | None = None, key: Array | None = None,
     nominal: TrafficParams | None = None, record: Record | None = None, memory: Memory | None = None,
-    alpha_input: AlphaInput | None = None,
+    alpha_input: AlphaInput | None = None, metrics: Iterable[str] | str | None = None,
 ) -> SimResult:
     """Closed-loop rollout of one freeway for ``n_steps`` steps of ``params.dt``.
 
@@ -255,19 +261,24 @@ def simulate(
         alpha_input: ``AlphaInput(alphas=..., noise=...)``: the plant's alpha of every step, shape
             (n_steps,) or (n_steps, n_points), instead of a draw, and/or the ``NoiseReading`` of the draw
             (default: one road-wide draw per step, plant only).
+        metrics: the names of the metrics to compute (static; ``sim.metrics.METRIC_NAMES``; default all of
+            them): only the running sums they read are carried through the loop, and each one kept has the
+            value it has in the default call. ``()``: none (the bare closed loop).
     Returns:
         A ``SimResult``: scalar metrics (``finalize_metrics``), final plant and controller states, and
         the trajectory (None without ``record``). A diverged rollout is flagged, not raised
         (``metrics["diverged_reason"]``; ``sim.outcome.check_outcome`` raises on it).
     Raises:
-        ValueError: for invalid arguments (steps, nominal grid, initial state, alphas, remat without record).
+        ValueError: for invalid arguments (steps, nominal grid, initial state, alphas, remat without record,
+            an unknown metric name).
     """
+    names = select_metrics(metrics)
     record, memory, alpha_input = _options(record, memory, alpha_input)
     _check_rollout_args(params, n_steps, rho0, v0, nominal, record, memory)
     check_assumed_delay(controller, params)
     _check_alphas(params, alpha_input.alphas, int(n_steps), alpha_input.noise, batched=False)
     return _simulate_jit(params, controller, rho0, v0, key, nominal, int(n_steps), record.every, memory.remat,
-                         alpha_input.noise, alpha_input.alphas)
+                         alpha_input.noise, alpha_input.alphas, names)
 
 
 _Option = TypeVar("_Option", Record, Memory, AlphaInput)
@@ -302,7 +313,7 @@ def simulate_batch(
     params: TrafficParams, controller: Controller | None = None, *, n_steps: int,
     rho0: Array | None = None, v0: Array | None = None, keys: Array | None = None,
     nominal: TrafficParams | None = None, batch_controller: bool = False, record: Record | None = None,
-    memory: Memory | None = None, alpha_input: AlphaInput | None = None,
+    memory: Memory | None = None, alpha_input: AlphaInput | None = None, metrics: Iterable[str] | str | None = None,
 ) -> SimResult:
     """``simulate`` vmapped over a batch; every returned leaf gets a leading batch axis.
 
@@ -313,10 +324,11 @@ def simulate_batch(
 
     Args:
         record: as ``simulate`` (shared by every environment).
-        memory: ``Memory(remat, chunk_size)``. ``chunk_size`` (static, default 64): a batch larger than
-            this runs as a sequential loop over chunks of ``chunk_size`` environments, each chunk vmapped
-            over the whole rollout, so that the working set of a chunk stays in cache (on a CPU this is
-            1.5-3x faster for large batches than one vmap over everything). ``None`` or 0: a single vmap.
+        memory: ``Memory(remat, chunk_size)``. ``chunk_size`` (static; default "auto": 64 on a CPU, none on
+            an accelerator, ``Memory.chunk_for``): a batch larger than this runs as a sequential loop over
+            chunks of ``chunk_size`` environments, each chunk vmapped over the whole rollout, so that the
+            working set of a chunk stays in cache (on a CPU this is 1.5-3x faster for large batches than one
+            vmap over everything; a GPU wants the whole batch at once). ``None`` or 0: a single vmap.
             Results do not depend on it beyond rounding, and every environment stays independent of the
             others. ``remat`` (static, needs ``record``): checkpoint each recording chunk for reverse-mode
             differentiation (``jax.checkpoint``), so that the memory of a gradient grows with
@@ -334,6 +346,7 @@ def simulate_batch(
     concrete inputs in a multi-process run, over every device of every process, each process
     getting the whole result as local arrays (every process must make the same call).
     """
+    names = select_metrics(metrics)
     record, memory, alpha_input = _options(record, memory, alpha_input)
     alphas, noise = alpha_input.alphas, alpha_input.noise
     p_axis = 0 if jnp.ndim(jax.tree_util.tree_leaves(params)[0]) == 1 else None
@@ -350,18 +363,18 @@ def simulate_batch(
     mesh = host_mesh(inputs)  # every process's devices in a multi-process run (sim.sharding)
     across = spans_processes(mesh)
     res = _simulate_batch_jit(*(replicate(inputs, mesh) if across else inputs), int(n_steps), record.every,
-                              (p_axis, c_axis, r_axis, r_axis, k_axis, a_axis), memory.chunk_size or 0, memory.remat,
-                              noise, mesh)
+                              (p_axis, c_axis, r_axis, r_axis, k_axis, a_axis),
+                              memory.chunk_for(mesh.devices.flat[0].platform), memory.remat, noise, mesh, names)
     return local_copy(res) if across else res
 
 
 @functools.partial(jax.jit, static_argnames=("n_steps", "record_every", "axes", "chunk_size", "remat", "noise",
-                                             "mesh"))
+                                             "mesh", "names"))
 def _simulate_batch_jit(params, controller, rho0, v0, keys, nominal, alphas, n_steps: int, record_every: int,
-                        axes: tuple, chunk_size: int = 0, remat: bool = False,
-                        noise: NoiseReading | None = None, mesh: Mesh | None = None) -> SimResult:
+                        axes: tuple, chunk_size: int = 0, remat: bool = False, noise: NoiseReading | None = None,
+                        mesh: Mesh | None = None, names: tuple[str, ...] = metrics.METRIC_NAMES) -> SimResult:
     def one(p, c, r, v, k, a):
-        return _simulate(p, c, r, v, k, nominal, n_steps, record_every, remat, noise, a)
+        return _simulate(p, c, r, v, k, nominal, n_steps, record_every, remat, noise, a, names)
 
     def local(*args):  # this device's block of the batch
         return chunked_vmap(one, args, axes, chunk_size)

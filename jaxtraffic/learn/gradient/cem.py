@@ -72,7 +72,7 @@ def fitness(thetas: Array, grad_config: GradientConfig, base: TrafficParams,
     # every (theta, scenario) pair is one environment; each controller is told its plant's delay
     ctrl = jax.vmap(lambda th, d: make_controller(th, grad_config, base, d))(tiled, params.delay)
     res = simulate_batch(params, ctrl, n_steps=n_steps, nominal=base, rho0=jnp.tile(scen.rho0, (n_p, 1)),
-                         v0=jnp.tile(scen.v0, (n_p, 1)), batch_controller=True)
+                         v0=jnp.tile(scen.v0, (n_p, 1)), batch_controller=True, metrics=("diverged",))
     div = res.metrics["diverged"].reshape(n_p, n_s)
     std = jnp.std(res.final.rho, axis=-1).reshape(n_p, n_s)
     stab = (~div & (std < STABLE_STD)).sum(axis=1)

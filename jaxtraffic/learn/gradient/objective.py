@@ -67,6 +67,9 @@ from jaxtraffic.sim.rollout import simulate
 from jaxtraffic.sim.sharding import batch_mesh, gathered, local_copy, replicate, sharded_batch, spans_processes
 
 Array = jax.Array
+# the rollout metrics the objective computes: J_comfort (its comfort term) and final-state ones, which cost no
+# running sum in the loop (reported per scenario in the training chunk's metrics)
+OBJECTIVE_METRICS = ("J_comfort", "final_rho_L2", "final_reward", "diverged")
 OBS_SCALE = 0.1  # std assumed for the normalised field deviations of the observation (dimensionless)
 # m: the road of every training config (learn.config has no road-length field); the filter's width in nodes
 # is static, so it is computed from this rather than from the traced base.L
@@ -245,7 +248,8 @@ def scenario_objective(theta: Any, params: TrafficParams, rho0: Array, v0: Array
                        ) -> tuple[Array, dict]:
     """(J_s, metrics) of one scenario (plant ``params``, initial fields (n,)); see the module docstring."""
     res = simulate(params, make_controller(theta, grad_config, base, params.delay), n_steps=n_steps, rho0=rho0, v0=v0,
-                   nominal=base, record=Record(every=grad_config.record_every), memory=Memory(remat=remat))
+                   nominal=base, record=Record(every=grad_config.record_every), memory=Memory(remat=remat),
+                   metrics=OBJECTIVE_METRICS)
     tr, m = res.trajectory, res.metrics
     assert tr is not None  # recorded: record_every >= 1
     waves = jnp.log1p(jnp.var(tr.rho * 1000.0, axis=-1) / 100.0 + jnp.var(tr.v, axis=-1))

@@ -43,6 +43,7 @@ from jaxtraffic.sim.options import Record
 from jaxtraffic.sim.rollout import simulate_batch
 
 BAD = 1e6
+SUITE_METRICS = ("final_rho_L2", "J_comfort", "diverged")  # what the suite reads of each rollout
 DEFAULT_ICS = ((0.010, 4.0, 0.0), (0.010, 4.0, math.pi))  # the paper's, and the same shifted by half a wave
 
 
@@ -89,7 +90,8 @@ def make_suite(nominal, steps: int, delays, ics=DEFAULT_ICS, j_slack: float = 1.
     nominal_delay = np.isclose(np.asarray(plants.delay), float(nominal.delay))
     grid = ControllerGrid.of(nominal)
     ref = simulate_batch(plants, adapt(backstepping(float(nominal.delay)), baseline_grid(judge), judge),
-                         n_steps=steps, rho0=rho0, v0=v0, nominal=judge, record=Record(every=steps // 2))
+                         n_steps=steps, rho0=rho0, v0=v0, nominal=judge, record=Record(every=steps // 2),
+                         metrics=SUITE_METRICS)
     ref_half, ref_end, ref_j, ref_div = (np.asarray(x) for x in _half_and_end(ref))
     if ref_div.any():
         raise ValueError("backstepping diverged on the validation suite")
@@ -98,7 +100,8 @@ def make_suite(nominal, steps: int, delays, ics=DEFAULT_ICS, j_slack: float = 1.
         ctrl = adapt(jax.tree.map(lambda x: jnp.repeat(x, n_s, axis=0), controller), grid, judge)  # member-major
         tile = lambda x: jnp.tile(x, (n_members,) + (1,) * (x.ndim - 1))  # noqa: E731
         res = simulate_batch(jax.tree.map(tile, plants), ctrl, n_steps=steps, rho0=tile(rho0), v0=tile(v0),
-                             nominal=judge, record=Record(every=steps // 2), batch_controller=True)
+                             nominal=judge, record=Record(every=steps // 2), batch_controller=True,
+                             metrics=SUITE_METRICS)
         half, end, jc, div = (np.asarray(x).reshape(n_members, n_s) for x in _half_and_end(res))
         with np.errstate(invalid="ignore", over="ignore"):
             ratio = np.maximum(half / ref_half, jc / (j_slack * ref_j))

@@ -47,7 +47,14 @@ import jax.numpy as jnp
 from flax import struct
 
 from jaxtraffic.control.base import Controller
-from jaxtraffic.control.baselines import _check_setting, _checked_gain, _lyapunov_h, assumed_delay_steps, predict
+from jaxtraffic.control.baselines import (
+    _check_setting,
+    _check_share,
+    _checked_gain,
+    assumed_delay_steps,
+    lyapunov_h,
+    predict,
+)
 from jaxtraffic.model import delay as delay_buffer
 from jaxtraffic.model import fundamental as fd
 from jaxtraffic.model.linear import linearize
@@ -82,6 +89,7 @@ class AdaptiveSettings:
     min_info: Array
     hold_target: Array
     resid_scale: Array
+    keep: Array  # share of w's damping the target law keeps, in [0, 1] (``baselines.lyapunov_input``)
 
 
 @struct.dataclass
@@ -163,13 +171,14 @@ def _act(settings: AdaptiveSettings, cs: EstimatorState, obs, nominal: TrafficPa
     cs = estimator_update(settings, cs, obs.rho, obs.v, delay_buffer.read(obs.sent, d), nominal)
     lm = linearize(estimated_model(settings, nominal, cs.alpha_hat))
     r_hat, v_hat = predict(obs.rho - lm.rho_bar, obs.v - lm.v_bar, obs.sent, d, lm)
-    return _lyapunov_h(r_hat, v_hat, _checked_gain(settings), lm), cs
+    return lyapunov_h(r_hat, v_hat, settings, lm, _checked_gain(settings)), cs
 
 
 def adaptive_backstepping(delay: float | Array = 4.0, k: float | Array = 1.0, *, alpha0: float | Array = float("nan"),
                           forgetting: float | Array = 0.99, adapt: bool | Array = True,
                           shock_scale: float | Array = 2e-3, min_info: float | Array = 1e-6,
-                          hold_target: bool | Array = True, resid_scale: float | Array = 0.0) -> Controller:
+                          hold_target: bool | Array = True, resid_scale: float | Array = 0.0,
+                          keep: float | Array = 0.0) -> Controller:
     """Backstepping with its model's ACC share estimated online (module docstring).
 
     Args:
@@ -186,11 +195,14 @@ def adaptive_backstepping(delay: float | Array = 4.0, k: float | Array = 1.0, *,
             cells against 43), instead of the estimated plant's own equilibrium at h_bar.
         resid_scale: residual (m/s) at which a node's weight halves (Cauchy weights, a robust fit; the
             default 0 leaves them out, as measured in docs/model.md section 18.1).
+        keep: the share of w's damping the target law keeps, in [0, 1] (``baselines.lyapunov_input``; 0: the
+            paper's law).
     Returns:
         A ``Controller`` named "adaptive_backstepping"; its state is an ``EstimatorState``.
     """
     _check_setting("assumed delay", delay, minimum=0.0)
     _check_setting("backstepping gain k", k)
+    _check_share(keep)
     for name, value in (("forgetting", forgetting), ("shock_scale", shock_scale), ("min_info", min_info),
                         ("resid_scale", resid_scale)):
         _check_setting(name, value, minimum=0.0)
@@ -198,5 +210,5 @@ def adaptive_backstepping(delay: float | Array = 4.0, k: float | Array = 1.0, *,
     settings = AdaptiveSettings(k=as_f(k), delay=as_f(delay), alpha0=as_f(alpha0), forgetting=as_f(forgetting),
                                 adapt=as_f(adapt),
                                 shock_scale=as_f(shock_scale), min_info=as_f(min_info),
-                                hold_target=as_f(hold_target), resid_scale=as_f(resid_scale))
+                                hold_target=as_f(hold_target), resid_scale=as_f(resid_scale), keep=as_f(keep))
     return Controller(settings=settings, act_fn=_act, init_fn=_init, name="adaptive_backstepping")

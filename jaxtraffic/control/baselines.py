@@ -45,6 +45,13 @@ def _check_setting(name: str, value: float | Array, minimum: float | None = None
         raise ValueError(f"{name} must be >= {minimum}, got {x.tolist()}")
 
 
+def _check_share(keep: float | Array) -> None:
+    """``ValueError`` unless a concrete ``keep`` (the share of w's damping kept) lies in [0, 1]."""
+    _check_setting("keep (share of w's damping kept)", keep, minimum=0.0)
+    if not is_traced(keep) and not np.all(np.asarray(keep, np.float64) <= 1.0):
+        raise ValueError(f"keep (share of w's damping kept) must lie in [0, 1], got {np.asarray(keep).tolist()}")
+
+
 # ----------------------------------------------------------------------------- open loop
 def _open_loop_act(settings, cstate, obs, nominal, key):
     return jnp.full_like(obs.rho, nominal.h_bar), cstate
@@ -59,33 +66,38 @@ def open_loop() -> Controller:
 @struct.dataclass
 class LyapunovSettings:
     k: Array  # decay gain of v~, dimensionless (> 0)
+    keep: Array  # share of w's own damping the law keeps, in [0, 1] (0: the paper's law cancels it)
 
 
-def lyapunov_input(rho_t: Array, v_t: Array, k: Array, lm: LinearModel) -> Array:
-    """The Lyapunov law on deviations: U = (w - k v~)/V_h = ((1 - k) v~ - V_rho rho~)/V_h (s).
+def lyapunov_input(rho_t: Array, v_t: Array, k: Array, lm: LinearModel, keep: Array | float = 0.0) -> Array:
+    """The Lyapunov law on deviations: U = ((1 - keep) w - k v~)/V_h (s); with ``keep`` = 0 (the paper's)
+    U = (w - k v~)/V_h = ((1 - k) v~ - V_rho rho~)/V_h.
 
-    It turns the common source (-w + V_h U)/tau_mix of the linearised model into -k v~/tau_mix.
+    It turns the common source (-w + V_h U)/tau_mix of the linearised model into (-keep w - k v~)/tau_mix:
+    the paper's law cancels w's damping (density then leaves only by transport), ``keep`` > 0 keeps that share
+    of it (docs/model.md section 20: a design parameter the fair comparison tunes).
     """
-    return (riemann_w(rho_t, v_t, lm) - k * v_t) / lm.V_h
+    return ((1 - keep) * riemann_w(rho_t, v_t, lm) - k * v_t) / lm.V_h
 
 
-def lyapunov_law(rho: Array, v: Array, k: Array, lm: LinearModel) -> Array:
+def lyapunov_law(rho: Array, v: Array, k: Array, lm: LinearModel, keep: Array | float = 0.0) -> Array:
     """The Lyapunov law on the fields rho (veh/m), v (m/s): h = h_bar + U (s), unsaturated."""
-    return lm.h_bar + lyapunov_input(rho - lm.rho_bar, v - lm.v_bar, k, lm)
+    return lm.h_bar + lyapunov_input(rho - lm.rho_bar, v - lm.v_bar, k, lm, keep)
 
 
-def _lyapunov_h(rho_t: Array, v_t: Array, k: Array, lm: LinearModel) -> Array:
-    """h = h_bar + U from deviations. The optimisation barrier keeps XLA from fusing the law
-    with whatever produced the deviations and the coefficients, so that ``lyapunov`` and
-    ``backstepping(0)`` compile the law identically and agree bit for bit on CPU (without it
-    they differ by 1 ulp at a few nodes)."""
-    rho_t, v_t, k, lm = jax.lax.optimization_barrier((rho_t, v_t, k, lm))
-    return lm.h_bar + lyapunov_input(rho_t, v_t, k, lm)
+def lyapunov_h(rho_t: Array, v_t: Array, settings, lm: LinearModel, k: Array | None = None) -> Array:
+    """h = h_bar + U from deviations, with the gain ``k`` (default ``settings.k``) and ``settings.keep``. The
+    optimisation barrier keeps XLA from fusing the law with whatever produced the deviations and the
+    coefficients, so that ``lyapunov`` and ``backstepping(0)`` compile the law identically and agree bit for
+    bit on CPU (without it they differ by 1 ulp at a few nodes)."""
+    k = settings.k if k is None else k
+    rho_t, v_t, k, keep, lm = jax.lax.optimization_barrier((rho_t, v_t, k, settings.keep, lm))
+    return lm.h_bar + lyapunov_input(rho_t, v_t, k, lm, keep)
 
 
 def _lyapunov_act(settings, cstate, obs, nominal, key):
     lm = linearize(nominal)
-    return _lyapunov_h(obs.rho - lm.rho_bar, obs.v - lm.v_bar, settings.k, lm), cstate
+    return lyapunov_h(obs.rho - lm.rho_bar, obs.v - lm.v_bar, settings, lm), cstate
 
 
 def _lyapunov_nonlinear_act(settings, cstate, obs, nominal, key):
@@ -98,8 +110,9 @@ def _lyapunov_nonlinear_act(settings, cstate, obs, nominal, key):
     return fd.h_mix_inv(hm, nominal), cstate
 
 
-def lyapunov(k: float | Array = 1.0, nonlinear: bool = False) -> Controller:
-    """Lyapunov in-domain feedback (docs/model.md section 7), gain ``k`` > 0 (dimensionless).
+def lyapunov(k: float | Array = 1.0, nonlinear: bool = False, keep: float | Array = 0.0) -> Controller:
+    """Lyapunov in-domain feedback (docs/model.md section 7), gain ``k`` > 0 (dimensionless); ``keep``: the
+    share of w's damping kept, in [0, 1] (``lyapunov_input``; 0: the paper's law; not with ``nonlinear``).
 
     h = h_bar + ((1 - k) v~ - V_rho rho~)/V_h with the nominal equilibrium coefficients; in the
     linearised closed loop v~ decays at rate k/tau_mix (1/s) along its characteristic.
@@ -108,8 +121,9 @@ def lyapunov(k: float | Array = 1.0, nonlinear: bool = False) -> Controller:
     gap, which the actuator bound turns into h_max).
     """
     _check_setting("lyapunov gain k", k)
+    _check_share(keep)
     act = _lyapunov_nonlinear_act if nonlinear else _lyapunov_act
-    return Controller(settings=LyapunovSettings(k=jnp.asarray(k, float)), act_fn=act,
+    return Controller(settings=LyapunovSettings(k=jnp.asarray(k, float), keep=jnp.asarray(keep, float)), act_fn=act,
                       name="lyapunov_nl" if nonlinear else "lyapunov")
 
 
@@ -118,6 +132,7 @@ def lyapunov(k: float | Array = 1.0, nonlinear: bool = False) -> Controller:
 class BacksteppingSettings:
     k: Array  # Lyapunov gain of the target law, dimensionless
     delay: Array  # assumed input delay D_ctrl, s (may differ from the plant's)
+    keep: Array  # share of w's damping the target law keeps, in [0, 1] (``lyapunov_input``)
 
 
 def predict(rho_t: Array, v_t: Array, sent: delay_buffer.DelayBuffer, d: Array,
@@ -180,7 +195,7 @@ def _backstepping_act(settings, cstate, obs, nominal, key):
     lm = linearize(nominal)
     d = assumed_delay_steps(settings.delay, obs.sent, nominal)
     r_hat, v_hat = predict(obs.rho - lm.rho_bar, obs.v - lm.v_bar, obs.sent, d, lm)
-    return _lyapunov_h(r_hat, v_hat, _checked_gain(settings), lm), cstate
+    return lyapunov_h(r_hat, v_hat, settings, lm, _checked_gain(settings)), cstate
 
 
 # ----------------------------------------------------------------------------- recursive predictor
@@ -237,7 +252,7 @@ def _backstepping_recursive_act(settings, cstate, obs, nominal, key):
     lm = linearize(nominal)
     d = assumed_delay_steps(settings.delay, obs.sent, nominal)
     r_hat, v_hat, cstate = predict_recursive(obs.rho - lm.rho_bar, obs.v - lm.v_bar, obs.sent, d, lm, cstate)
-    return _lyapunov_h(r_hat, v_hat, _checked_gain(settings), lm), cstate
+    return lyapunov_h(r_hat, v_hat, settings, lm, _checked_gain(settings)), cstate
 
 
 def check_assumed_delay(controller: Controller | None, params: TrafficParams) -> None:
@@ -257,7 +272,8 @@ def check_assumed_delay(controller: Controller | None, params: TrafficParams) ->
                          f"{params.max_delay_steps * float(dt):g} s); raise max_delay_steps or lower the delay")
 
 
-def backstepping(delay: float | Array = 4.0, k: float | Array = 1.0, recursive: bool = False) -> Controller:
+def backstepping(delay: float | Array = 4.0, k: float | Array = 1.0, recursive: bool = False,
+                 keep: float | Array = 0.0) -> Controller:
     """Delay-compensated (predictor / backstepping) feedback, docs/model.md section 8.
 
     Applies the Lyapunov law with gain ``k`` to the state predicted ``delay`` seconds (D_ctrl)
@@ -270,10 +286,13 @@ def backstepping(delay: float | Array = 4.0, k: float | Array = 1.0, recursive: 
     ``recursive=True``: the cheaper ``predict_recursive`` (one linear step per control step plus an
     exact re-anchoring every ``ANCHOR_EVERY`` steps) instead of d linear steps per control step;
     equal to the exact predictor on the linear plant and for delay = 0, close to it otherwise.
+    ``keep``: the share of w's damping the target law keeps, in [0, 1] (``lyapunov_input``; 0: the paper's).
     """
     _check_setting("assumed delay", delay, minimum=0.0)
     _check_setting("backstepping gain k", k)
-    settings = BacksteppingSettings(k=jnp.asarray(k, float), delay=jnp.asarray(delay, float))
+    _check_share(keep)
+    settings = BacksteppingSettings(k=jnp.asarray(k, float), delay=jnp.asarray(delay, float),
+                                    keep=jnp.asarray(keep, float))
     if recursive:
         return Controller(settings=settings, act_fn=_backstepping_recursive_act, init_fn=_recursive_init,
                           name="backstepping")

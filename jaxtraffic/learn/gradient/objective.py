@@ -68,7 +68,7 @@ from jaxtraffic.sim.sharding import batch_mesh, gathered, local_copy, replicate,
 
 Array = jax.Array
 OBS_SCALE = 0.1  # std assumed for the normalised field deviations of the observation (dimensionless)
-# m: the road of every training config (learn.config has no road-length field); the filter's width in nodes
+# m: the road of every training config (runs.config has no road-length field); the filter's width in nodes
 # is static, so it is computed from this rather than from the traced base.L
 ROAD_LENGTH = float(TrafficParams().L)
 

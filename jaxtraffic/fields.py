@@ -2,7 +2,7 @@
 
 ``lr: float = hyper(1e-3, lo=0.0, lo_open=True)`` declares the field, its default and its range once, in the
 dataclass that uses it (``model.params.TrafficParams``, ``learn.env.EnvParams``, ``learn.ppo.PPOConfig``,
-``learn.gradient.GradientConfig``); the run's config and the struct itself both check it against that metadata,
+``learn.gradient.config.GradientConfig``); the run's config and the struct itself both check it against that metadata,
 with one message naming the field, e.g. ``gamma = 5.0: must lie in (0.0, 1.0]``. A field's ``help`` (one line)
 is its flag's help text on the command line. This module imports nothing from jaxtraffic (the ground floor).
 """

@@ -132,3 +132,119 @@ def test_code_cites_existing_model_sections_not_benchmarks():
 def test_cited_sections_parser():
     text = "see docs/model.md sections 7-9 and 13.8, and docs/model.md section 16; docs/model.md sections 4, 5, 10"
     assert cited_sections(text) == {"7", "8", "9", "13.8", "16", "4", "5", "10"}
+
+
+# --- the module names the docs and docstrings write ------------------------------------------------------------
+
+PACKAGE = ROOT / "jaxtraffic"
+# jaxtraffic's subpackages and top-level modules: a dotted name starting with one is read as ``jaxtraffic.<name>``
+LAYERS = sorted(p.stem if p.suffix == ".py" else p.name for p in PACKAGE.iterdir()
+                if not p.name.startswith("_") and (p.suffix == ".py" or (p / "__init__.py").exists()))
+FULL_NAME = re.compile(r"\bjaxtraffic(?:\.[A-Za-z_]\w*)+")
+# `runs.loop`, ``paper.maps.x``: a backticked short form; and the same unquoted (not part of a path, a longer dotted
+# name or a call like ``model.predict(obs)`` of a variable that happens to share a layer's name)
+_LAYER = "|".join(LAYERS)
+SHORT_NAME = re.compile(rf"`((?:{_LAYER})(?:\.[A-Za-z_]\w*)+)")
+BARE_NAME = re.compile(rf"(?<![\w./`-])((?:{_LAYER})(?:\.[A-Za-z_]\w*)+)(?![\w(])")
+FILE_SUFFIXES = {"md", "py", "toml", "json", "csv", "png", "txt", "yml", "yaml", "msgpack", "html", "sh", "lock"}
+
+
+def dotted_names(text: str) -> set[str]:
+    """The ``jaxtraffic.x.y`` names of a text, short forms (``runs.loop``) made full; file names (``model.md``)
+    are not module names."""
+    names = set(FULL_NAME.findall(text))
+    names |= {f"jaxtraffic.{n}" for n in SHORT_NAME.findall(text) + BARE_NAME.findall(text)}
+    return {n for n in names if n.rsplit(".", 1)[1] not in FILE_SUFFIXES}
+
+
+def prose_of(path: Path) -> str:
+    """A Python file's docstrings and comments (its code imports what it names, or fails elsewhere)."""
+    import ast
+    import io
+    import tokenize
+
+    source = path.read_text(encoding="utf-8")
+    parts = [t.string for t in tokenize.generate_tokens(io.StringIO(source).readline) if t.type == tokenize.COMMENT]
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Module | ast.ClassDef | ast.FunctionDef | ast.AsyncFunctionDef):
+            parts.append(ast.get_docstring(node, clean=False) or "")
+    return "\n".join(parts)
+
+
+def top_level_names(module_file: Path) -> set[str]:
+    """The names a module file defines or imports at its top level (read without importing it)."""
+    import ast
+
+    names: set[str] = set()
+    for node in ast.parse(module_file.read_text(encoding="utf-8")).body:
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef):
+            names.add(node.name)
+        elif isinstance(node, ast.Assign | ast.AnnAssign):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            names |= {t.id for t in targets if isinstance(t, ast.Name)}
+        elif isinstance(node, ast.Import | ast.ImportFrom):
+            names |= {(a.asname or a.name).split(".")[0] for a in node.names}
+    return names
+
+
+def module_file(dotted: str) -> Path | None:
+    """The source file of module ``jaxtraffic.x.y`` in this tree, or None."""
+    base = ROOT.joinpath(*dotted.split("."))
+    for candidate in (base.with_suffix(".py"), base / "__init__.py"):
+        if candidate.exists():
+            return candidate
+    return None
+
+
+def name_resolves(name: str) -> bool:
+    """``name`` is a module of the tree, or an attribute (a chain of them) of its longest module prefix; a module
+    whose optional dependency is missing (gymnasium, SB3) is read instead of imported."""
+    import importlib
+
+    parts = name.split(".")
+    for i in range(len(parts), 0, -1):
+        path = module_file(".".join(parts[:i]))
+        if path is None:
+            continue
+        rest = parts[i:]
+        if not rest:
+            return True
+        try:
+            obj = importlib.import_module(".".join(parts[:i]))
+        except ModuleNotFoundError as error:
+            if error.name and error.name.split(".")[0] == "jaxtraffic":
+                raise
+            return rest[0] in top_level_names(path)  # an optional dependency is missing here
+        for attribute in rest:
+            if not hasattr(obj, attribute):
+                return False
+            obj = getattr(obj, attribute)
+        return True
+    return False
+
+
+def test_dotted_names_parser_and_resolver():
+    text = ("`runs.loop` and ``paper.maps.run_maps`` and jaxtraffic.learn.env.EnvParams, see model.md, "
+            "learn.config.TrainConfig; `lambda o: model.predict(o)`; docs/runs.md; io/files.py")
+    assert dotted_names(text) == {"jaxtraffic.runs.loop", "jaxtraffic.paper.maps.run_maps",
+                                  "jaxtraffic.learn.env.EnvParams", "jaxtraffic.learn.config.TrainConfig"}
+    assert name_resolves("jaxtraffic.runs.loop") and name_resolves("jaxtraffic.learn.env.EnvParams")
+    assert name_resolves("jaxtraffic.model")  # a package
+    assert not name_resolves("jaxtraffic.learn.config.TrainConfig")  # a module that moved
+    assert not name_resolves("jaxtraffic.runs.loop.no_such_function")  # an attribute its module lacks
+
+
+def test_docs_and_docstrings_name_modules_that_exist():
+    """Every dotted name of the README, docs/ (BENCHMARKS.md included; not the CHANGELOG, which is history) and
+    the package's docstrings and comments imports: as a module, or as an attribute of its parent module."""
+    pages = [README, ROOT / "BENCHMARKS.md", *sorted((ROOT / "docs").rglob("*.md"))]
+    texts = [(p, p.read_text(encoding="utf-8")) for p in pages]
+    texts += [(p, prose_of(p)) for p in sorted(PACKAGE.rglob("*.py"))]
+    checked, stale = 0, []
+    for path, text in texts:
+        for name in sorted(dotted_names(text)):
+            checked += 1
+            if not name_resolves(name):
+                stale.append(f"{path.relative_to(ROOT)}: {name}")
+    assert checked > 100, f"only {checked} names found: is the parser reading the files?"
+    assert not stale, f"names of modules or attributes that do not exist: {stale}"

@@ -53,7 +53,7 @@ PLANTS = ("paper", "reference")
 PROG = program("evaluate.py")  # in messages: the program the user typed
 MAX_CELLS = 10_000  # of a robustness map (the paper's is 17 x 12 = 204)
 MAX_NOISE_SEEDS = 1_000  # of the alpha-noise scenario (the paper: 8)
-MAX_HORIZON_S = MAX_STEPS * float(TrafficParams().dt)  # a rollout's step bound (learn.config.checks) at the paper's dt
+MAX_HORIZON_S = MAX_STEPS * float(TrafficParams().dt)  # a rollout's step bound (runs.config.checks) at the paper's dt
 # the gradient-trained controllers evaluated beside PPO: name -> (run directory under --runs-root and recipe of
 # paper.recipes, its training plant: paper.recipes.training_plant)
 GRADIENT_RUNS = {n: (law.recipe, law.train_plant) for n, law in laws.LAWS.items() if law.recipe}

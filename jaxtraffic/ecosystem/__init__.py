@@ -15,7 +15,7 @@
 * ``ecosystem.sb3.SB3VecEnv`` (``[sb3]``): the vector environment as a Stable-Baselines3 ``VecEnv``.
 * ``policy_as_controller(fn, **config)``: a policy trained on the environment elsewhere, as a ``Controller``
   judged like jaxtraffic's own (``simulate``, ``evaluate.py --controller``); and the other way round,
-  ``learn.ppo.export.load_predict(run_dir)``: a trained run's policy as a plain ``predict(obs) -> a``.
+  ``runs.ppo.export.load_predict(run_dir)``: a trained run's policy as a plain ``predict(obs) -> a``.
 
 Common to all of them:
 
@@ -27,7 +27,7 @@ Common to all of them:
   truncation (``horizon`` steps) are ``learn.env.step_env``'s; so is the automatic reset, which
   reuses the delay buffer's storage (O(n), not the O(capacity n) of a fresh reset).
 * Configuration: ``env_params=`` an ``EnvParams``, or keyword arguments naming fields of the
-  training config tree (``learn.config.TrainConfig``: ``n_points``, ``delay``, ``horizon_s``,
+  training config tree (``runs.config.TrainConfig``: ``n_points``, ``delay``, ``horizon_s``,
   ``delay_spread``, ``gain_max``, ...), so an environment built here is the one ``jaxtraffic-train``
   trains on with the same flags. No arguments: the training defaults (201 points, D = 4 s +- 1 s).
 """

@@ -38,7 +38,7 @@ class GainGymnaxEnv(environment.Environment[learn_env.EnvState, learn_env.EnvPar
     """gymnax view of ``learn.env`` (state ``EnvState``, params ``EnvParams``).
 
     ``GainGymnaxEnv(env_params=None, raw_actions=False, **config)``: ``config`` names fields of
-    ``learn.config.TrainConfig`` (``n_points=21``, ``horizon_s=10``, ...), see ``jaxtraffic.ecosystem``.
+    ``runs.config.TrainConfig`` (``n_points=21``, ``horizon_s=10``, ...), see ``jaxtraffic.ecosystem``.
     """
 
     def __init__(self, env_params: learn_env.EnvParams | None = None, raw_actions: bool = False, **config: Any):

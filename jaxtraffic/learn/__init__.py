@@ -1,7 +1,7 @@
 """The learning algorithms a library user calls (imports ``model``, ``control``, ``sim``):
 
     env.py       the gymnax-style environment (``TrafficEnv``, ``EnvParams``)
-    fields.py    hyper(): a field with its range in its metadata; check_fields()
+    env_config.py  the environment's config as a user writes it (``EnvConfig``)
     ppo/         pure-JAX PPO: the algorithm (``make_train``, ``PPOConfig``) and its losses
     gradient/    gradient-based and CEM training of gain laws: settings, rollout objective, CEM
 

@@ -15,7 +15,7 @@ controller's target and the environment's ``gains`` (the applied, filtered gains
 * Reward: the paper's r = -sum_i [(rho~_i/rho_bar)^2 + (v~_i/v_bar)^2] of the state after the
   step (dimensionless), minus ``h_rate_weight`` times ``h_rate_cost`` and ``wave_weight`` times
   ``backward_wave_cost`` of the applied gains (both weights 0: the paper's reward).
-  The defaults of ``EnvParams`` are the training defaults (``learn.config``, ``train.py``).
+  The defaults of ``EnvParams`` are the training defaults (``runs.config``, ``train.py``).
 * Episodes last ``horizon`` steps and end by *truncation* (``info["truncated"]``: bootstrap the
   value of ``info["terminal_obs"]``). A plant that leaves the physical region *terminates* with
   reward ``-diverge_penalty``. ``step_env`` resets finished environments itself, reusing the delay

@@ -2,7 +2,7 @@
 other scheme, and the relative change of every index.
 
 Every controller acts on its own grid (the baselines on the paper's, ``control.adapter.baseline_grid``;
-a learned policy on its training grid, ``learn.runs.checkpoint.policy_grid``) through ``control.adapter``:
+a learned policy on its training grid, ``runs.policy.policy_grid``) through ``control.adapter``:
 only the plant is refined (twice the points and twice the solver steps, so the CFL bound stays) or
 changes scheme.
 """

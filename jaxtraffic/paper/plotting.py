@@ -12,7 +12,7 @@ use a diverging colour map centred on the equilibrium value with symmetric, robu
 and the controllers are comparable.
 
 Functions:
-    plot_learning_curve(csv_path, png_path=None)     -- paper fig. 3a (from learn.runs.curve)
+    plot_learning_curve(csv_path, png_path=None)     -- paper fig. 3a (from runs.curve)
     plot_reward(png_path, t, series, ...)            -- paper fig. 3b (reward over time)
     plot_spacetime(png_path, t, x, rows, ...)        -- paper figs. 4, 5, 7 (rho, v, h over x, t)
     plot_l2_norms(png_path, t, series, ...)          -- paper figs. 6, 8 (L2 norms over time)

@@ -186,7 +186,7 @@ def report_text(out_dir: Path, claims: list[dict[str, Any]], metrics: dict, meta
     """REPORT.md's text: each claim, the checks with measured values and verdicts, the figures embedded;
     ``sections``: further markdown lines (e.g. the robustness summary) before the other figures; tables are read
     from ``out_dir``.
-    ``metrics`` may be the JSON form (``learn.runs.checkpoint.to_jsonable``: NaN as "nan")."""
+    ``metrics`` may be the JSON form (``io.files.to_jsonable``: NaN as "nan")."""
     metrics = from_jsonable(metrics)
     lines = ["# Reproduction report: PPO control of congested freeway traffic (paper section 4)", ""]
     pol = meta["policy"]

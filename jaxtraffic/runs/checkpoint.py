@@ -5,7 +5,7 @@ A checkpoint file is a msgpack map ``{"format": "jaxtraffic-checkpoint", "versio
 <hex digest of payload>, "payload": <bytes>}`` whose payload is the flax-msgpack encoding of
 ``{"runner": <state dict of the PPO Runner>, "meta": <progress>}``; a PPO run's best.msgpack
 (same format) holds each member's best-scoring policy (``params``, observation ``mean`` / ``var``,
-``score``, ``env_steps``; ``learn.selection``), which ``load_policy`` loads by default. The loaders
+``score``, ``env_steps``; ``runs.ppo.selection``), which ``load_policy`` loads by default. The loaders
 check the digest, so a truncated, empty or corrupted file is an error naming it, never a silent load (files
 written before the checksum, a bare payload, still load). Every file is written whole or not at
 all (``jaxtraffic.io.files``: atomic writes, JSON with non-finite numbers).

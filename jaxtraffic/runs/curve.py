@@ -116,7 +116,7 @@ def plot_learning_curve(csv_path: str | Path, png_path: str | Path | None = None
             ax.plot(data[xk][ok], data[yk][ok], color=col, lw=1.5, marker="." if ok.sum() < 60 else None,
                     label=ylab)
         reward_axis(ax, allv)
-        if "restarts" in data:  # a member re-initialised after the row before (learn.ppo.trainer random restarts)
+        if "restarts" in data:  # a member re-initialised after the row before (runs.ppo.trainer random restarts)
             count = np.nan_to_num(data["restarts"])
             for i, x in enumerate(data[xk][1:][np.diff(count) > 0]):
                 ax.axvline(x, color="0.5", ls=":", lw=1, label="random restart" if i == 0 else None)

@@ -16,7 +16,7 @@ mean's own fitness is known), rolls every one out on every scenario (one batched
 ``SIGMA_MIN`` keeps it searching; a residual's rows below ``residual_alpha_floor`` are not sampled: they stay
 zero). The policy (``CemState.theta``) is the best parameter set evaluated so far.
 Deterministic for a given key. ``make_train`` has the signature of ``objective.make_train``, so the same
-host loop (``learn.runs.loop``, through ``gradient.trainer``) runs, checkpoints and resumes it.
+host loop (``runs.loop``, through ``runs.gradient.trainer``) runs, checkpoints and resumes it.
 """
 
 from __future__ import annotations

@@ -71,7 +71,7 @@ Array = jax.Array
 # running sum in the loop (reported per scenario in the training chunk's metrics)
 OBJECTIVE_METRICS = ("J_comfort", "final_rho_L2", "final_reward", "diverged")
 OBS_SCALE = 0.1  # std assumed for the normalised field deviations of the observation (dimensionless)
-# m: the road of every training config (learn.config has no road-length field); the filter's width in nodes
+# m: the road of every training config (runs.config has no road-length field); the filter's width in nodes
 # is static, so it is computed from this rather than from the traced base.L
 ROAD_LENGTH = float(TrafficParams().L)
 

@@ -1,4 +1,4 @@
-"""Validation of the training config tree (``learn.config.TrainConfig``), in one place.
+"""Validation of the training config tree (``runs.config.TrainConfig``), in one place.
 
 ``check_config(config)`` runs when a ``TrainConfig`` is built (its ``__post_init__``), so a bad value
 fails before any directory is created or anything compiles, with a message naming the field, its
@@ -63,7 +63,7 @@ def _scalar(name: str, kind: str, value: Any) -> Any:
 
 
 def _typed(name: str, annotation: str, value: Any) -> Any:
-    """``value`` checked against the field's annotation (as written in ``learn.config``)."""
+    """``value`` checked against the field's annotation (as written in ``runs.config.tree``)."""
     kind = annotation.replace(" ", "")
     if kind.endswith("|None"):
         if value is None:

@@ -3,7 +3,7 @@
     plant  model.params.TrafficParams    the nominal training plant and its grid
     env    learn.env_config.EnvConfig    episodes, domain randomisation, reward shaping, observation
     ppo    learn.ppo.PPOConfig           PPO (num_seeds: the population)
-    grad   learn.gradient.GradientConfig the gradient and CEM trainers
+    grad   learn.gradient.config.GradientConfig the gradient and CEM trainers
     run    RunConfig (here)              where, how long, the stop rule
 
 Each setting is a field of the one dataclass that uses it, with its default, range and help text there; a
@@ -74,7 +74,7 @@ class RunConfig:
     # a member that has not met the stop rule this many env steps after its start is re-initialised from a new
     # key (its best checkpoint is kept); 0: never (also with keep_going)
     restart_steps: int = hyper(1_500_000, help="restart a member after these steps (0: never)", lo=0, algo="ppo")
-    # validation suite (learn.ppo.selection): each member's policy on 2 initial states x 3 training delays, scored
+    # validation suite (runs.ppo.selection): each member's policy on 2 initial states x 3 training delays, scored
     # against backstepping; each member's best checkpoint is kept (best.msgpack), the best member is the policy
     val_horizon_s: float = hyper(600.0, help="validation suite length, s (0: none)", lo=0.0, algo="ppo")
     # the plant the validation suite runs on: reference (TrafficParams.reference: MUSCL, 801 points, 2 solver

@@ -36,7 +36,7 @@ def own_grid_controller(theta, grad_config: GradientConfig, plant: TrafficParams
 def load_gradient_policy(run_dir: str | Path, config: TrainConfig, seed: int | None = None,
                          checkpoint: str = "best") -> Controller:
     """The controller saved in a gradient-trained run directory (``config``: its ``load_config``), on its own
-    grid (``learn.policy.policy_grid``). ``seed`` and ``checkpoint`` are accepted for ``learn.policy.LOADERS``'
+    grid (``runs.policy.policy_grid``). ``seed`` and ``checkpoint`` are accepted for ``runs.policy.LOADERS``'
     common signature and ignored: such a run has one policy, its last state."""
     grad_config, plant = gradient_setup(config)
     state, _ = ckpt.load_checkpoint(run_dir)

@@ -2,7 +2,7 @@
 
 A chunk is ``steps_per_chunk`` Adam steps of ``objective.make_train`` (or CEM generations of ``cem.make_train``,
 ``grad_method = "cem"``). The run directory has the same files as a PPO run (config.json with the same config
-tree, checkpoint.msgpack, learning_curve.csv/.png, summary.json) and loads with ``learn.load_policy``. After every
+tree, checkpoint.msgpack, learning_curve.csv/.png, summary.json) and loads with ``runs.load_policy``. After every
 chunk the deterministic controller is evaluated on the paper's initial condition with the nominal plant
 (``eval_horizon_s``) next to the delay-compensated baseline ``backstepping(delay)``; the summary records when it
 first met the paper's stop rule and when it first beat backstepping on both final density L2 and J_comfort. The

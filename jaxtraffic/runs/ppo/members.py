@@ -2,7 +2,7 @@
 
 ``replicated`` reads the leaves every device shares (parameters, optimiser state, statistics) as
 host arrays; ``restart_members`` replaces some members (seeds) by those of a fresh runner. Both
-work with a runner sharded over a mesh that spans several processes (``learn.ppo.train_mesh``):
+work with a runner sharded over a mesh that spans several processes (``learn.ppo.algorithm.train_mesh``):
 every process calls them at the same point.
 """
 

@@ -32,7 +32,7 @@ class SavedPolicy:
 
 
 def load_run(run_dir: str | Path, checkpoint: str = "best") -> tuple[dict, SavedPolicy, dict]:
-    """(config.json content, saved policy, summary or {}) of a run directory (``learn.config.load_config``
+    """(config.json content, saved policy, summary or {}) of a run directory (``runs.config.load_config``
     turns the first into a ``TrainConfig``). ``checkpoint``: "best" (each member's best-scoring
     checkpoint, best.msgpack, when the run has one; else the last) or "last" (the state training
     stopped in, checkpoint.msgpack)."""
@@ -91,7 +91,7 @@ def load_ppo_policy(run_dir: Path, config: TrainConfig, seed: int | None = None,
                          f"observation of {expected} values) but the checkpoint holds an observation of {got} values"
                          + (f" ({got // 3 - 1} per field)" if got % 3 == 0 else "")
                          + ": the two files do not belong together")
-    dx = float(TrafficParams().L) / (config.plant.n_points - 1)  # the training road (learn.config has no length)
+    dx = float(TrafficParams().L) / (config.plant.n_points - 1)  # the training road (runs.config has no length)
     return policy_controller(
         jax.tree.map(lambda x: jnp.asarray(x[seed]), saved.params), saved.obs_mean[seed], saved.obs_var[seed],
         config.env.gain_max, hidden=tuple(config.ppo.hidden), init_sigma=config.ppo.init_sigma,

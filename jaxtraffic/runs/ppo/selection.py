@@ -20,7 +20,7 @@ plant does not diverge and is still converging.
 
 The trainer's checkpoint selection (below): ``scores`` of one evaluation per member, and the best
 checkpoint kept per member (``BestCheckpoints``; saved as best.msgpack by
-``learn.runs.checkpoint``). Not to be confused with ``learn.config.checks``, which checks config values.
+``runs.checkpoint``). Not to be confused with ``runs.config.checks``, which checks config values.
 """
 
 from __future__ import annotations

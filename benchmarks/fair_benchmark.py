@@ -22,7 +22,7 @@ import numpy as np
 import jaxtraffic as jt
 from jaxtraffic.compare import LawSpec, ScenarioDistribution, evaluate_laws, sample, summary_table
 from jaxtraffic.control import adaptive_backstepping, measurement_filter, takes_delay
-from jaxtraffic.io.files import write_json
+from jaxtraffic.io.files import read_json, write_json
 from jaxtraffic.io.provenance import provenance
 
 PLANTS = {"paper": jt.TrafficParams(), "muscl": jt.TrafficParams(scheme="muscl"),
@@ -44,6 +44,19 @@ def model_based() -> list[LawSpec]:
                     lambda: measurement_filter(adaptive_backstepping(4.0), FILTER_M), "delay")]
 
 
+def tuned(path: Path) -> list[LawSpec]:
+    """The model-based laws with their parameters tuned on the train split (``benchmarks/tune_baselines.py``)."""
+    from jaxtraffic.paper.laws import TUNABLE
+
+    out = []
+    for name, entry in read_json(path)["laws"].items():
+        p = entry["best"]
+        label = f"{name.replace('_', ' ')}, tuned (k {p['k']:.2f}, keep {p['keep']:.2f}, 25 m filter)"
+        out.append(LawSpec(f"{name}_tuned", label,
+                           lambda t=TUNABLE[name], p=p: t.build(4.0, *(p[n] for n in t.names)), "delay"))
+    return out
+
+
 def learned(root: Path) -> list[LawSpec]:
     from jaxtraffic.runs.policy import load_policy, policy_grid
 
@@ -63,11 +76,12 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0, help="the split's seed")
     ap.add_argument("--horizon", type=float, default=600.0, help="s")
     ap.add_argument("--runs", type=Path, default=Path("docs/results/runs"), help="learned runs ('' for none)")
+    ap.add_argument("--tuned", type=Path, default=None, help="tuned parameters (benchmarks/tune_baselines.py)")
     ap.add_argument("--out", type=Path, default=None, help="JSON of the distributions and the draws")
     args = ap.parse_args()
     base = PLANTS[args.plant]
     scen = sample(ScenarioDistribution(), "test", args.n, args.seed, base=base)
-    laws = model_based() + (learned(args.runs) if str(args.runs) else [])
+    laws = model_based() + (tuned(args.tuned) if args.tuned else []) + (learned(args.runs) if str(args.runs) else [])
     t0 = time.perf_counter()
     res = evaluate_laws(laws, scen, base, args.horizon)
     lines, summ = summary_table(res, {s.name: s.label for s in laws}, reference="backstepping")

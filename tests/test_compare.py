@@ -127,3 +127,19 @@ def test_on_held_out_scenarios_the_laws_do_what_their_theory_says():
     assert lines[0].startswith("| law | mean_rho_L2 (veh/km)") and len(lines) == 2 + 3
     with pytest.raises(ValueError, match="told must be one of"):
         LawSpec("x", "x", jt.open_loop, told="alpha")
+
+
+def test_tuning_searches_the_train_split_within_bounds_and_never_loses_the_start():
+    from jaxtraffic.compare.tuning import tune
+    from jaxtraffic.paper.laws import TUNABLE
+
+    scen = sample(DIST, "train", 6, seed=0, base=TINY)
+    got = tune(TUNABLE["backstepping"], scen, TINY, horizon_s=60.0, population=4, generations=2,
+               log=lambda s: None)
+    assert set(got["best"]) == {"k", "keep"} and 0.05 <= got["best"]["k"] <= 3.0 and 0 <= got["best"]["keep"] <= 1
+    assert [h["generation"] for h in got["history"]] == [0, 1]
+    hist = [h["best_mean_rho_L2"] for h in got["history"]]
+    assert hist[1] <= hist[0] and got["fitness"] == -hist[-1]  # the best so far is kept
+    assert got["budget"] == {"population": 4, "generations": 2, "scenarios": 6, "horizon_s": 60.0}
+    with pytest.raises(ValueError, match="train split"):
+        tune(TUNABLE["backstepping"], sample(DIST, "test", 4, base=TINY), TINY, log=lambda s: None)

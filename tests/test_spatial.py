@@ -49,3 +49,15 @@ def test_smooth_keeps_constants_and_damps_a_mode_like_a_gaussian():
         inner = slice(100, -100)
         gain = np.dot(out[inner], u[inner]) / np.dot(u[inner], u[inner])
         assert gain == pytest.approx(np.exp(-0.5 * (k * sigma) ** 2), abs=5e-3)  # the kernel is cut at 3 sigma
+
+
+@pytest.mark.parametrize("sigma_nodes", [2.0, 5.0, 20.0])
+def test_smooth_with_a_kernel_wider_than_the_road_is_the_normalised_sum(sigma_nodes):
+    """A filter wider than a coarse road (25 m on a 50 m grid of 21 nodes is fine; 250 m is not) keeps the
+    road's length and is the normalised Gaussian sum over the nodes inside it (the oracle, in float64)."""
+    u = np.random.default_rng(0).normal(size=21)
+    got = np.asarray(smooth(jnp.asarray(u, jnp.float32), sigma_nodes))
+    half = int(np.ceil(3 * sigma_nodes))
+    j = np.arange(21)
+    w = np.exp(-0.5 * ((j[None, :] - j[:, None]) / sigma_nodes) ** 2) * (np.abs(j[None, :] - j[:, None]) <= half)
+    np.testing.assert_allclose(got, (w @ u) / w.sum(axis=1), atol=2e-6)

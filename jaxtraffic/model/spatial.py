@@ -56,5 +56,11 @@ def smooth(u: Array, sigma_nodes: float) -> Array:
     if not sigma_nodes > 0:
         raise ValueError(f"filter width must be >= 0, got {sigma_nodes}")
     w = _gaussian_weights(float(sigma_nodes))
-    mass = np.convolve(np.ones(u.shape[0]), w, mode="same")
+    n = u.shape[0]
+    if w.size > n:  # a kernel wider than the road: "same" would return the kernel's length; the centred n
+        half = (w.size - 1) // 2
+        full = np.convolve(np.ones(n), w, mode="full")[half: half + n]
+        return jnp.convolve(u, jnp.asarray(w, u.dtype), mode="full")[half: half + n] * jnp.asarray(1.0 / full,
+                                                                                                   u.dtype)
+    mass = np.convolve(np.ones(n), w, mode="same")
     return jnp.convolve(u, jnp.asarray(w, u.dtype), mode="same") * jnp.asarray(1.0 / mass, u.dtype)

@@ -16,9 +16,11 @@ import dataclasses
 from collections.abc import Callable
 from typing import Any
 
-from jaxtraffic.control import Controller, adaptive_backstepping, backstepping, lyapunov, open_loop
+from jaxtraffic.compare.tuning import Tunable
+from jaxtraffic.control import Controller, adaptive_backstepping, backstepping, lyapunov, measurement_filter, open_loop
 
 CTRL_DELAY = 4.0  # s: the delay the model-based laws assume in the paper's scenarios (as the paper)
+FILTER_M = 25.0  # m: the learned laws' measurement filter, given to the tuned model-based laws too
 TOLD = ("nothing", "delay", "delay_alpha")
 TOLD_TEXT = {"nothing": "nothing", "delay": "D", "delay_alpha": "D, alpha"}
 
@@ -112,3 +114,15 @@ def names(*, learned: bool | None = None, scope: str | None = None) -> tuple[str
 def build_model_based(scope: str) -> dict[str, Controller]:
     """Every model-based law of ``scope`` built (on the paper's grid, default settings)."""
     return {n: LAWS[n].build() for n in names(learned=False, scope=scope)}  # type: ignore[misc]
+
+
+# the model-based laws' design parameters, tuned on the train split (``compare.tuning``): the gain k and the share
+# of w's damping kept, seeing the learned laws' 25 m measurements
+BOUNDS = ((0.05, 3.0), (0.0, 1.0))
+TUNABLE = {
+    "backstepping": Tunable("backstepping", lambda d, k, keep: measurement_filter(backstepping(d, k, keep=keep),
+                                                                                  FILTER_M),
+                            ("k", "keep"), (1.0, 0.0), BOUNDS),
+    "adaptive_backstepping": Tunable("adaptive_backstepping", lambda d, k, keep: measurement_filter(
+        adaptive_backstepping(d, k, keep=keep), FILTER_M), ("k", "keep"), (1.0, 0.0), BOUNDS),
+}

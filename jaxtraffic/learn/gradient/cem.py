@@ -81,19 +81,31 @@ def fitness(thetas: Array, grad_config: GradientConfig, base: TrafficParams,
     return stab - DIVERGED_COST * n_div - grad_config.cem_tie_weight * tie, stab, n_div
 
 
+def sample_population(key: Array, mean: Array, sigma: Array, population: int, mask: Array | float = 1.0) -> Array:
+    """``population`` parameter sets drawn from the diagonal Gaussian (``mean``, ``sigma``), entries where
+    ``mask`` is 0 held at the mean; the first set is the mean itself (its fitness is then known)."""
+    noise = jax.random.normal(key, (population, *mean.shape), mean.dtype)
+    return (mean + sigma * noise * mask).at[0].set(mean)
+
+
+def refit(pop: Array, fit: Array) -> tuple[Array, Array, Array]:
+    """(index of the fittest set, the new mean, the new sigma): the Gaussian refitted to the elites, the best
+    population / ``ELITE_FRACTION`` (at least 2), sigma floored at ``SIGMA_MIN``."""
+    order = jnp.argsort(-fit)
+    elites = pop[order[:max(2, round(pop.shape[0] / ELITE_FRACTION))]]
+    return order[0], elites.mean(axis=0), jnp.maximum(elites.std(axis=0), SIGMA_MIN)
+
+
 def _generation(state: CemState, grad_config: GradientConfig, base: TrafficParams,
                 n_steps: int) -> tuple[CemState, dict]:
     key, sub = jax.random.split(state.key)
-    noise = jax.random.normal(sub, (grad_config.cem_population, *state.mean.shape), state.mean.dtype)
-    pop = (state.mean + state.sigma * noise * trainable(grad_config, state.mean)).at[0].set(state.mean)
+    pop = sample_population(sub, state.mean, state.sigma, grad_config.cem_population,
+                            trainable(grad_config, state.mean))
     fit, stab, n_div = fitness(pop, grad_config, base, n_steps)
-    order = jnp.argsort(-fit)
-    elites = pop[order[:max(2, round(grad_config.cem_population / ELITE_FRACTION))]]
-    top = order[0]
+    top, mean, sigma = refit(pop, fit)
     better = fit[top] > state.fitness
     new = CemState(theta=jnp.where(better, pop[top], state.theta), fitness=jnp.where(better, fit[top], state.fitness),
-                   mean=elites.mean(axis=0), sigma=jnp.maximum(elites.std(axis=0), SIGMA_MIN), key=key,
-                   update=state.update + 1)
+                   mean=mean, sigma=sigma, key=key, update=state.update + 1)
     return new, {"objective": -new.fitness, "grad_norm": jnp.sqrt(jnp.sum(new.sigma**2)),
                  "stabilised": stab[top], "diverged": n_div[top], "mean_stabilised": stab[0],
                  "mean_diverged": n_div[0]}

@@ -1,0 +1,104 @@
+"""The model-based laws' design parameters tuned on the train split (docs/model.md section 20), with the
+optimiser and the budget of the learned residual (``learn.gradient.cem``: the cross-entropy method, a population
+of 12 over 10 generations, sigma 0.3 to start).
+
+A ``Tunable`` is a family of laws indexed by a few continuous parameters (backstepping's gain ``k`` and the share
+``keep`` of w's damping it keeps; the adaptive law's), each within its bounds, seeing the learned laws' 25 m
+measurements. ``tune`` rolls every candidate out on every train scenario (one batched ``simulate_batch`` per
+generation, every law told its plant's delay) and ranks candidates by the time-averaged density L2 over the
+horizon (``stats.per_scenario``), averaged over the scenarios with a diverged or larger one counted as
+``CAP`` veh/km: lower is fitter. The result is the fittest parameter set evaluated.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxtraffic.compare import stats
+from jaxtraffic.compare.scenarios import Scenarios
+from jaxtraffic.control.adapter import adapt, baseline_grid
+from jaxtraffic.control.base import Controller
+from jaxtraffic.learn.gradient.cem import refit, sample_population
+from jaxtraffic.model.params import TrafficParams
+from jaxtraffic.sim.options import Record
+from jaxtraffic.sim.rollout import simulate_batch
+
+MEASURED = ("diverged", "final_rho_L2", *stats.JS)  # what the fitness reads of a rollout
+CAP = 50.0  # veh/km: a diverged scenario's (or a larger) time-averaged L2 in the fitness (a jam-scale wave)
+
+
+@dataclasses.dataclass(frozen=True)
+class Tunable:
+    """A family of laws: ``build(delay, *params)`` (arrays of one shape: a batch of laws, each told its delay,
+    s) and its parameters' ``names``, ``init``ial values and ``bounds``."""
+
+    name: str
+    build: Callable[..., Controller]
+    names: tuple[str, ...]
+    init: tuple[float, ...]
+    bounds: tuple[tuple[float, float], ...]
+
+    def __post_init__(self) -> None:
+        if not len(self.names) == len(self.init) == len(self.bounds):
+            raise ValueError(f"tunable {self.name}: names, init and bounds must have one entry per parameter")
+
+
+def _batched(ctrl: Controller, n: int) -> Controller:
+    """``ctrl`` with every setting given a leading axis of ``n`` (scalars broadcast)."""
+    return ctrl.replace(settings=jax.tree.map(
+        lambda x: x if jnp.ndim(x) and jnp.shape(x)[0] == n else jnp.broadcast_to(x, (n, *jnp.shape(x))),
+        ctrl.settings))
+
+
+def fitness(t: Tunable, pop: np.ndarray, scen: Scenarios, nominal: TrafficParams, n_steps: int, every: int
+            ) -> np.ndarray:
+    """(P,): minus the mean over ``scen`` of each candidate's time-averaged L2 (veh/km, capped at ``CAP``)."""
+    n_p, n_s = pop.shape[0], len(scen)
+    delays = np.tile(np.asarray(scen.plants.delay, np.float32), n_p)
+    params = [np.repeat(pop[:, i].astype(np.float32), n_s) for i in range(pop.shape[1])]
+    ctrl = adapt(_batched(t.build(delays, *params), n_p * n_s), baseline_grid(nominal), nominal)
+    plants = jax.tree.map(lambda x: np.tile(x, n_p) if np.ndim(x) else x, scen.plants)
+    res = simulate_batch(plants, ctrl, n_steps=n_steps, rho0=np.tile(scen.rho0, (n_p, 1)).astype(np.float32),
+                         v0=np.tile(scen.v0, (n_p, 1)).astype(np.float32), nominal=nominal, batch_controller=True,
+                         record=Record(every=every), metrics=MEASURED)
+    t_rec = np.append(np.asarray(res.trajectory.t)[0], n_steps * float(nominal.dt))
+    l2 = np.concatenate([np.asarray(res.trajectory.rho_L2), np.asarray(res.metrics["final_rho_L2"])[:, None]], 1)
+    per = stats.per_scenario(t_rec, l2, np.asarray(res.metrics["diverged"]), res.metrics)
+    return -np.minimum(per["mean_rho_L2"], CAP).reshape(n_p, n_s).mean(axis=1)
+
+
+def tune(t: Tunable, scen: Scenarios, nominal: TrafficParams, horizon_s: float = 300.0, population: int = 12,
+         generations: int = 10, sigma: float = 0.3, seed: int = 0, record_every_s: float = 5.0,
+         log: Callable[[str], None] = print) -> dict[str, Any]:
+    """CEM over ``t``'s parameters on ``scen`` (module docstring): the fittest set (``best``, by name), its
+    fitness (minus the capped mean time-averaged L2, veh/km) and the generations' history."""
+    if scen.split != "train":
+        raise ValueError(f"tune on the train split, not {scen.split!r}: the test split is for the comparison")
+    dt = float(nominal.dt)
+    every = max(1, round(record_every_s / dt))
+    n_steps = every * max(1, math.ceil(horizon_s / (every * dt) - 1e-9))
+    lo, hi = (np.array([b[i] for b in t.bounds], np.float32) for i in (0, 1))
+    key = jax.random.key(seed)
+    mean, sd = jnp.asarray(t.init, jnp.float32), jnp.full((len(t.init),), sigma, jnp.float32)
+    best, best_fit, history = None, -np.inf, []
+    for g in range(generations):
+        key, sub = jax.random.split(key)
+        pop = np.clip(np.asarray(sample_population(sub, mean, sd, population)), lo, hi)
+        fit = fitness(t, pop, scen, nominal, n_steps, every)
+        top, mean, sd = refit(jnp.asarray(pop), jnp.asarray(fit))
+        if fit[int(top)] > best_fit:
+            best, best_fit = pop[int(top)], float(fit[int(top)])
+        history.append({"generation": g, "best_mean_rho_L2": -best_fit, "mean_of_population": float(-fit.mean())})
+        log(f"   {t.name} generation {g + 1}/{generations}: best time-averaged L2 {-best_fit:.3g} veh/km "
+            f"({', '.join(f'{n} {v:.3g}' for n, v in zip(t.names, best, strict=True))})")
+    assert best is not None
+    return {"best": {n: float(v) for n, v in zip(t.names, best, strict=True)}, "fitness": best_fit,
+            "history": history, "budget": {"population": population, "generations": generations,
+                                           "scenarios": len(scen), "horizon_s": n_steps * dt}}

@@ -1,0 +1,44 @@
+"""Tune the model-based laws' design parameters on the train split (docs/model.md section 20): backstepping's and
+the adaptive law's gain k and share of w's damping kept, with the learned laws' 25 m measurements, by the learned
+residual's optimiser and budget (CEM, a population of 12 over 10 generations, on 36 scenarios of 300 s: as many as
+the residual's training plants), on the paper's grid. Writes the tuned parameters as JSON for
+``benchmarks/fair_benchmark.py --tuned``.
+
+    python benchmarks/tune_baselines.py --out docs/results/fair/tuned.json     # about 10 minutes on 2 cores
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import jaxtraffic as jt
+from jaxtraffic.compare import ScenarioDistribution, sample
+from jaxtraffic.compare.tuning import tune
+from jaxtraffic.io.files import write_json
+from jaxtraffic.io.provenance import provenance
+from jaxtraffic.paper.laws import TUNABLE
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--n", type=int, default=36, help="train scenarios")
+    ap.add_argument("--horizon", type=float, default=300.0, help="s")
+    ap.add_argument("--seed", type=int, default=0, help="the split's seed (the same as the benchmark's)")
+    ap.add_argument("--out", type=Path, required=True)
+    args = ap.parse_args()
+    base = jt.TrafficParams()
+    scen = sample(ScenarioDistribution(), "train", args.n, args.seed, base=base)
+    out = {"scenarios": scen.describe(), "provenance": provenance(), "laws": {}}
+    for name, t in TUNABLE.items():
+        t0 = time.perf_counter()
+        out["laws"][name] = {**tune(t, scen, base, horizon_s=args.horizon, seed=args.seed),
+                             "wall_s": time.perf_counter() - t0}
+        print(f"{name}: {out['laws'][name]['best']} in {out['laws'][name]['wall_s']:.0f} s", flush=True)
+    write_json(args.out, out)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -77,3 +77,49 @@ def test_real_gymnax_makes_the_env_in_either_import_order(order):
     made = _python(f"{order}; env, p = gymnax.make('jaxtraffic/Gain-v0', n_points=21); "
                    "print(type(env).__name__, int(p.horizon))")
     assert made == "GainGymnaxEnv 1000"  # the default 100 s horizon, dt 0.1 s
+
+
+# ----------------------------------------------------------------------------- the committed notebook
+NOTEBOOK = REPO / "examples" / "quickstart.ipynb"
+
+
+def _outputs() -> list[list[dict]]:
+    import json
+
+    nb = json.loads(NOTEBOOK.read_text())
+    return [c["outputs"] for c in nb["cells"] if c["cell_type"] == "code"]
+
+
+def test_the_committed_notebook_shows_its_outputs_small_and_plain():
+    outputs = _outputs()
+    assert all(outputs[1:]), "a code cell without output: execute the notebook before committing it"
+    assert not [o for o in outputs[0] if o["output_type"] == "execute_result"]  # no stray value (the device count)
+    texts = ["".join(o.get("text", "")) + str(o.get("data", {}).get("text/plain", "")) for c in outputs for o in c]
+    assert not any("np.float" in t or "Traceback" in t for t in texts)
+    batch = "".join(texts)
+    assert "plant delay D = 4 s: final density L2" in batch and "veh/km" in batch
+    images = [o["data"]["image/png"] for c in outputs for o in c if "image/png" in o.get("data", {})]
+    assert 2 <= len(images) <= 3 and sum(map(len, images)) < 400_000  # (base64 characters)
+    assert NOTEBOOK.stat().st_size < 500_000
+
+
+def test_the_gymnasium_cell_says_when_gym_is_missing(monkeypatch, capsys):
+    """Without gymnasium the cell prints how to install it (and shows nothing else)."""
+    import builtins
+    import json
+
+    nb = json.loads(NOTEBOOK.read_text())
+    cell = next("".join(c["source"]) for c in nb["cells"] if c["cell_type"] == "code"
+                and "gymnasium.make" in "".join(c["source"]))
+    real_import = builtins.__import__
+
+    def no_gym(name, *args, **kwargs):
+        if name.startswith("gymnasium"):
+            raise ImportError("no gymnasium")
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_gym)
+    namespace: dict = {"N_POINTS": 41}
+    exec(compile(cell, "quickstart.ipynb gymnasium cell", "exec"), namespace)  # noqa: S102
+    assert namespace["frame_fig"] is None
+    assert 'Gymnasium is not installed' in capsys.readouterr().out and '[gym]' in cell

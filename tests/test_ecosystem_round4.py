@@ -123,3 +123,94 @@ def test_the_gymnasium_cell_says_when_gym_is_missing(monkeypatch, capsys):
     exec(compile(cell, "quickstart.ipynb gymnasium cell", "exec"), namespace)  # noqa: S102
     assert namespace["frame_fig"] is None
     assert 'Gymnasium is not installed' in capsys.readouterr().out and '[gym]' in cell
+
+
+# ----------------------------------------------------------------------------- trackers and ETAs
+def test_each_run_has_its_own_tensorboard_folder_and_a_resume_continues_it(tmp_path):
+    from jaxtraffic.runs.tracking import RUN_MARK, board_dir
+
+    logs, run = tmp_path / "tb", tmp_path / "runs" / "default"
+    first = board_dir(logs, run, resume=False)
+    assert first.parent == logs and first.name.startswith("default_") and first.is_dir()
+    assert (first / RUN_MARK).read_text().strip() == str(run.resolve())
+    again = board_dir(logs, run, resume=False)  # a new run in the same directory (--overwrite): a new folder
+    assert again != first and again.name.startswith(first.name)
+    other = board_dir(logs, tmp_path / "elsewhere" / "default", resume=False)  # the same name, another run
+    assert board_dir(logs, run, resume=True) == again  # the newest folder of this run, not the other's
+    assert board_dir(logs, tmp_path / "elsewhere" / "default", resume=True) == other
+    assert board_dir(logs, tmp_path / "new", resume=True).name.startswith("new_")  # nothing to continue: new
+    assert len(list(logs.iterdir())) == 4
+
+
+def test_eta_text_is_the_remaining_work_at_the_rate():
+    from jaxtraffic.runs.session import eta_text
+
+    assert eta_text(600, 2.0) == "ETA 5m00s" and eta_text(-5, 2.0) == "ETA 0m00s"
+    assert eta_text(600, float("nan")) == eta_text(600, 0.0) == "ETA ?"  # a first, compiling chunk
+
+
+def test_the_gradient_trainer_and_the_evaluation_show_an_eta(tmp_path, capsys):
+    from jaxtraffic import backstepping, lyapunov
+    from jaxtraffic.paper.scenarios import EvalConfig, run_robustness
+    from jaxtraffic.runs.config import TrainConfig
+    from jaxtraffic.runs.gradient.trainer import train_gradient
+
+    config = TrainConfig.make(run={"algo": "gradient", "out_dir": str(tmp_path / "g"), "eval_horizon_s": 2.0},
+                              plant={"n_points": 21},
+                              grad={"train_horizon_s": 2.0, "steps_per_chunk": 1, "grad_steps": 3,
+                                    "train_delays": (4.0,)})
+    train_gradient(config)
+    lines = [x for x in capsys.readouterr().out.splitlines() if x.startswith("[update")]
+    assert len(lines) == 3 and lines[0].endswith("ETA ?")  # the first chunk compiles: no rate yet
+    assert "| ETA 0m0" in lines[1]  # one chunk left, well under a minute
+    assert lines[2].endswith("ETA 0m00s")
+    said: list[str] = []
+    eval_config = EvalConfig(n_points=21, horizon_s=1.0, robust_delays=(2.0, 4.0), robust_alphas=(0.15,),
+                             robust_horizon_s=1.0)
+    run_robustness({"lyapunov": lyapunov(1.0), "backstepping": backstepping(4.0, 1.0)}, eval_config, said.append)
+    assert len(said) == 2 and all(" | ETA " in s for s in said) and said[-1].endswith("ETA 0m00s")
+
+
+def test_train_py_takes_mlflow_and_an_older_config_json_without_it_still_loads(tmp_path):
+    from jaxtraffic.cli.train import config_from_args
+    from jaxtraffic.runs.config import TrainConfig, config_json
+    from jaxtraffic.runs.config.tree import config_from_json
+
+    cfg = config_from_args(["ppo", "--mlflow", str(tmp_path / "ml"), "--tensorboard", str(tmp_path / "tb")])
+    assert cfg.run.mlflow == str(tmp_path / "ml") and cfg.run.tensorboard == str(tmp_path / "tb")
+    saved = config_json(TrainConfig.make(run={"out_dir": str(tmp_path / "r")}))
+    del saved["config"]["run"]["mlflow"]  # a run of the same config version from before the flag
+    assert config_from_json(saved).run.mlflow is None
+    del saved["config"]["run"]["tensorboard"]  # any other missing field is still an older layout
+    with pytest.raises(ValueError, match="lacks tensorboard"):
+        config_from_json(saved)
+
+
+@pytest.mark.skipif(not (available("tensorboardX") and available("mlflow")), reason="needs [tb] and [mlflow]")
+def test_a_run_logs_to_its_own_tensorboard_folder_with_its_config_and_to_mlflow(tmp_path):
+    from mlflow import MlflowClient
+    from test_loop import Counting
+
+    from jaxtraffic.runs.config import TrainConfig, config_json
+    from jaxtraffic.runs.loop import prepare, run_training
+
+    def run(resume: bool) -> None:
+        config = TrainConfig.make(run={"out_dir": str(tmp_path / "run"), "quiet": True, "resume": resume,
+                                       "tensorboard": str(tmp_path / "tb"), "mlflow": str(tmp_path / "ml")})
+        config, run_dir, saved = prepare(config)
+        run_training(config, run_dir, saved, lambda: Counting(total=3 if not resume else 5, checkpoint_every=1),
+                     lambda: config_json(config))
+
+    run(resume=False)
+    folders = list((tmp_path / "tb").iterdir())
+    assert len(folders) == 1 and folders[0].name.startswith("run_")  # the run's own folder
+    events = b"".join(p.read_bytes() for p in folders[0].glob("events.out.tfevents.*"))
+    assert b"train/value" in events and b"config" in events and b"[run]" in events  # the scalars and config.toml
+    run(resume=True)
+    assert list((tmp_path / "tb").iterdir()) == folders  # a resume continues the run's folder
+    client = MlflowClient(f"sqlite:///{(tmp_path / 'ml' / 'mlflow.db').absolute()}")
+    runs = client.search_runs([client.get_experiment_by_name("jaxtraffic").experiment_id])
+    assert len(runs) == 2 and {r.info.status for r in runs} == {"FINISHED"}
+    first = min(runs, key=lambda r: r.info.start_time)
+    assert first.info.run_name.startswith("run_") and first.data.params["run.tensorboard"] == str(tmp_path / "tb")
+    assert [m.value for m in client.get_metric_history(first.info.run_id, "value")] == [1.0, 2.0, 3.0]

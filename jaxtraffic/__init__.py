@@ -64,7 +64,7 @@ from jaxtraffic.sim import (
 )
 
 register_gymnasium()  # gymnasium.make("jaxtraffic/Gain-v0") when gymnasium is installed (_registration)
-register_gymnax()  # gymnax.make("jaxtraffic/Gain-v0") when gymnax is already imported (never imports it)
+register_gymnax()  # gymnax.make("jaxtraffic/Gain-v0"), gymnax imported before or after (never imports it)
 
 __all__ = [
     "__version__", "AlphaInput", "Controller", "Divergence", "Memory", "Observation", "Record", "SimResult",

@@ -15,8 +15,10 @@ its files (``tiny_runs.wait_*``), and gw0 waits for the training to end before i
 
 from __future__ import annotations
 
+import gc
 import os
 import shutil
+import signal
 import subprocess
 import tempfile
 from pathlib import Path
@@ -149,6 +151,23 @@ def pytest_sessionfinish(session, exitstatus):
         shutil.rmtree(_OWN_ROOT, ignore_errors=True)
     if _OWN_CACHE:
         shutil.rmtree(_OWN_CACHE, ignore_errors=True)
+    if _WORKER is not None:
+        _quiet_worker_exit()
+
+
+def _quiet_worker_exit() -> None:
+    """An xdist worker's last steps, made short and uninterruptible (issue 50, item 10).
+
+    After this hook the worker reports "finished" and pytest then runs 5 garbage collections (its
+    unraisable-exception check), each calling jax's GC callback over every compiled program the worker's
+    tests left: many seconds on a loaded machine. execnet gives a worker 5 s once the controller closes it,
+    then sends it SIGINT; the KeyboardInterrupt landed in jax's GC callback and the README's test command
+    ended with a PytestUnraisableExceptionWarning. No test sends that signal: so jax's caches are dropped and
+    collected here, before "finished", and the late SIGINT is ignored (the controller has every result;
+    execnet still ends a worker that has not exited 10 s later)."""
+    jax.clear_caches()
+    gc.collect()
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 @pytest.fixture(scope="session")

@@ -46,6 +46,7 @@ from jaxtraffic.control import Controller, takes_delay, tell_delay
 from jaxtraffic.model.params import TrafficParams, equilibrium, steps_for
 from jaxtraffic.paper import laws
 from jaxtraffic.paper.laws import CTRL_DELAY
+from jaxtraffic.runs.session import eta_text
 from jaxtraffic.sim.initial import paper_initial_condition
 from jaxtraffic.sim.metrics import l2_deviation
 from jaxtraffic.sim.options import AlphaInput, Memory, Record
@@ -287,6 +288,7 @@ def run_scenarios(controllers: dict[str, Controller], eval_config: EvalConfig,
             groups.setdefault(gid, []).extend((sc.name, s) for s in seeds)
     nom = eval_config.nominal()
     results: dict[str, dict[str, Outcome]] = {sc.name: {} for sc in SCENARIOS}
+    total, done, t_start = sum(map(len, groups.values())), 0, time.perf_counter()  # (rollouts)
     for (name, override_scenario, reading), members in groups.items():
         ctrl = overrides[(override_scenario, name)] if override_scenario else controllers[name]
         envs = [nom.replace(delay=SCENARIO_BY_NAME[s].plant_delay,
@@ -297,8 +299,9 @@ def run_scenarios(controllers: dict[str, Controller], eval_config: EvalConfig,
         res = run_batch(ctrl, envs, [seed for _, seed in members], eval_config, noise=reading,
                         readings=readings if shared else None)
         scen = sorted({s for s, _ in members}, key=[x.name for x in SCENARIOS].index)
+        done += len(envs)
         log(f"  {name:<13s} {len(envs):3d} envs x {eval_config.n_steps} steps ({', '.join(scen)})"
-            f"  {time.perf_counter() - t0:6.1f} s")
+            f"  {time.perf_counter() - t0:6.1f} s | {_eta(total - done, done, t_start)}")
         tr, fin, met = res.trajectory, res.final, res.metrics
 
         def cat(rec, last):  # append the final state (t = T) to the recorded series
@@ -317,6 +320,12 @@ def run_scenarios(controllers: dict[str, Controller], eval_config: EvalConfig,
             )
     return {s: {n: results[s][n] for n in (*SCENARIO_BY_NAME[s].controllers, *others(controllers)) if n in results[s]}
             for s in results}
+
+
+def _eta(remaining: int, done: int, t_start: float) -> str:
+    """The ETA of this step's ``remaining`` rollouts (or batches) at the rate of the ``done`` ones since
+    ``t_start`` (``time.perf_counter``; compilation included: each controller compiles its own program)."""
+    return eta_text(remaining, done / max(1e-9, time.perf_counter() - t_start))
 
 
 def told(name: str, controller: Controller) -> str:
@@ -350,9 +359,9 @@ def run_robustness(controllers: dict[str, Controller], eval_config: EvalConfig,
     envs = [nom.replace(delay=float(d), alpha=float(a)) for d, a in zip(dd.ravel(), aa.ravel(), strict=True)]
     own_rho = np.array([float(equilibrium(e)[0]) for e in envs]).reshape(dd.shape)  # veh/m, at h_bar
     out = {}
-    for name in (*laws.LAWS, *others(controllers)):
-        if name not in controllers:
-            continue
+    names = [n for n in (*laws.LAWS, *others(controllers)) if n in controllers]
+    t_start = time.perf_counter()
+    for i, name in enumerate(names):
         ctrl, batched, chunk = controllers[name], False, None
         law = laws.LAWS.get(name)
         if law is not None and law.predictor and jax.default_backend() == "cpu":
@@ -372,6 +381,6 @@ def run_robustness(controllers: dict[str, Controller], eval_config: EvalConfig,
         out[name]["final_rho_spatial_std"] = np.std(np.asarray(res.final.rho), axis=-1).reshape(dd.shape)
         out[name]["final_rho_offset"] = np.mean(np.asarray(res.final.rho), axis=-1).reshape(dd.shape) - own_rho
         log(f"  robustness {name:<13s} {len(envs):3d} envs x {eval_config.n_steps} steps"
-            f"  {time.perf_counter() - t0:6.1f} s")
+            f"  {time.perf_counter() - t0:6.1f} s | {_eta(len(names) - i - 1, i + 1, t_start)}")
     return out
 

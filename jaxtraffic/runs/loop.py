@@ -29,7 +29,7 @@ from jaxtraffic.io.provenance import provenance
 from jaxtraffic.platform import distributed
 from jaxtraffic.runs import checkpoint as ckpt
 from jaxtraffic.runs.config import TrainConfig, load_config
-from jaxtraffic.runs.config.toml import CONFIG_TOML, write_config
+from jaxtraffic.runs.config.toml import CONFIG_TOML, config_toml, write_config
 from jaxtraffic.runs.config.tree import run_control
 from jaxtraffic.runs.curve import append_curve, plot_learning_curve, write_curve
 from jaxtraffic.runs.session import (
@@ -44,7 +44,7 @@ from jaxtraffic.runs.session import (
     print_or_drop,
     report_interruption,
 )
-from jaxtraffic.runs.tracking import TensorBoardWriter, as_callback
+from jaxtraffic.runs.tracking import MLflowTracker, TensorBoardWriter, as_callback, board_dir, run_name
 
 __all__ = ["Algorithm", "Clock", "Progress", "run_training"]
 
@@ -199,13 +199,14 @@ def run_training(config: TrainConfig, run_dir: Path, saved: tuple[Any, dict] | N
 
     ``config``, ``run_dir``, ``saved``: from ``prepare``. ``config_file()``: config.json's content.
     ``callbacks``: each learning-curve row (a dict) as soon as its chunk is evaluated (a ``tracking.Tracker``:
-    ``tracking.as_callback``); ``run.tensorboard`` adds a ``TensorBoardWriter``, closed at the end."""
+    ``tracking.as_callback``); ``run.tensorboard`` adds a ``TensorBoardWriter`` (in the run's own folder, the
+    config as text) and ``run.mlflow`` an ``MLflowTracker`` (the config's fields as parameters), closed at the end."""
     writer = distributed.is_writer()  # process 0 prints and writes; the others only compute
     # (a closed stdout stops the printing only: print_or_drop)
     say = (lambda *a: None) if config.run.quiet or not writer else print_or_drop
     # (on resume: the steps logged after the checkpoint by the interrupted session are dropped, not drawn twice)
     purge = int(saved[1]["env_steps"]) + 1 if saved is not None else None
-    owned = [TensorBoardWriter(config.run.tensorboard, purge)] if config.run.tensorboard and writer else []
+    owned = _trackers(config, run_dir, purge) if writer else []
     try:
         with own_run_dir(run_dir, config.run.resume, config.run.overwrite, writer, say), finish_together(name), \
                 StopSignals(say) as stop:
@@ -214,6 +215,17 @@ def run_training(config: TrainConfig, run_dir: Path, saved: tuple[Any, dict] | N
     finally:
         for board in owned:
             board.close()
+
+
+def _trackers(config: TrainConfig, run_dir: Path, purge: int | None) -> list:
+    """The trackers ``config.run`` asks for (``run.tensorboard``, ``run.mlflow``), opened."""
+    owned: list = []
+    if config.run.tensorboard:
+        owned.append(TensorBoardWriter(board_dir(config.run.tensorboard, run_dir, config.run.resume), purge,
+                                       config_toml(config)))
+    if config.run.mlflow:
+        owned.append(MLflowTracker(config.run.mlflow, run_name=run_name(run_dir), params=config.tables()))
+    return owned
 
 
 def _loop(config: TrainConfig, run_dir: Path, saved, make_algorithm, config_file, callbacks: list, say,

@@ -130,10 +130,17 @@ def check_out_dir(run_dir: Path) -> None:
 
 
 def fmt_time(sec: float) -> str:
+    """``sec`` seconds as ``<m>m<ss>s``; ``?`` when not finite."""
     if not math.isfinite(sec):
         return "?"
     m, s = divmod(int(sec), 60)
     return f"{m}m{s:02d}s"
+
+
+def eta_text(remaining: float, rate: float) -> str:
+    """The progress lines' ``ETA <m>m<ss>s``: ``remaining`` work at ``rate`` (work per second; NaN or 0 while
+    unknown, e.g. at a first, compiling chunk: ``ETA ?``)."""
+    return f"ETA {fmt_time(max(0.0, remaining) / rate if rate > 0 else math.nan)}"
 
 
 def check_resumable(run_dir: Path) -> None:

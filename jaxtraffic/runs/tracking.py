@@ -5,26 +5,35 @@ turns a ``Tracker`` into such a callback: it receives the row's numeric, finite 
 row's ``env_steps``. Two trackers, each an optional extra, work offline:
 
 * ``TensorBoardWriter(logdir)``: scalars ``train/<field>`` (tensorboardX, ``pip install 'jaxtraffic[tb]'``,
-  which brings the viewer too: ``tensorboard --logdir DIR``); ``jaxtraffic-train --tensorboard DIR`` opens one.
+  which brings the viewer too: ``tensorboard --logdir DIR``); ``jaxtraffic-train --tensorboard DIR`` opens one
+  in the run's own folder ``DIR/<run directory's name>_<UTC start time>`` (``board_dir``: TensorBoard lists each
+  folder as a run; a resumed run continues its folder), with the run's config.toml as the text ``config``.
   A resumed run continues from its checkpoint, which may be older than the last rows the interrupted session
   logged: ``purge_step`` (the first step the new session logs; ``run_training`` passes the checkpoint's
   env_steps + 1) makes TensorBoard drop the old session's events from that step on, so no step is drawn twice.
 * ``MLflowTracker(store)``: an MLflow run (``pip install 'jaxtraffic[mlflow]'``: mlflow-skinny and the SQLite
   store's sqlalchemy/alembic; no server). ``store``: a directory (its ``mlflow.db``, created) or any MLflow
-  tracking URI. From Python: ``train(config, callbacks=[as_callback(tracker)])``, then ``tracker.close()``.
+  tracking URI. ``jaxtraffic-train --mlflow STORE`` opens one (named like the TensorBoard folder, the config's
+  fields as its parameters); from Python: ``train(config, callbacks=[as_callback(tracker)])``, then
+  ``tracker.close()``.
 
 A tracker of your own needs only ``log(step, scalars)`` and ``close()``.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any, Protocol
 
-__all__ = ["MLflowTracker", "TensorBoardWriter", "Tracker", "as_callback", "scalars"]
+from jaxtraffic.io.files import atomic_write_text
+
+__all__ = ["MLflowTracker", "TensorBoardWriter", "Tracker", "as_callback", "board_dir", "run_name", "scalars"]
+
+RUN_MARK = "jaxtraffic_run.txt"  # in each of board_dir's folders: the run directory it logs (absolute path)
 
 
 class Tracker(Protocol):
@@ -50,16 +59,48 @@ def as_callback(tracker: Tracker) -> Callable[[dict], None]:
     return lambda row: tracker.log(int(row["env_steps"]), scalars(row))
 
 
-class TensorBoardWriter:
-    """A ``Tracker`` writing TensorBoard scalars ``train/<name>`` (tensorboardX)."""
+def run_name(run_dir: str | Path) -> str:
+    """A run's name in the trackers: its directory's name and the UTC time now, ``default_20261205-163000``."""
+    return f"{Path(run_dir).resolve().name}_{time.strftime('%Y%m%d-%H%M%S', time.gmtime())}"
 
-    def __init__(self, logdir: str | Path, purge_step: int | None = None):
+
+def board_dir(logdir: str | Path, run_dir: str | Path, resume: bool) -> Path:
+    """The run's own TensorBoard folder under ``logdir`` (created): ``logdir/<run_name>`` (``-1``, ``-2``, ... if
+    taken), marked with the run directory it logs (``RUN_MARK``); on ``resume``, the newest folder marked with
+    ``run_dir``, if any, so that a resumed run continues its curves."""
+    logdir, run = Path(logdir), str(Path(run_dir).resolve())
+    if resume and logdir.is_dir():
+        mine = sorted(p for p in logdir.iterdir() if (p / RUN_MARK).is_file()
+                      and (p / RUN_MARK).read_text(errors="replace").strip() == run)
+        if mine:
+            return mine[-1]
+    name = run_name(run)
+    for k in itertools.count():
+        path = logdir / (name if k == 0 else f"{name}-{k}")
+        try:
+            path.mkdir(parents=True)
+            break
+        except FileExistsError:
+            continue
+    atomic_write_text(path / RUN_MARK, run + "\n")
+    return path
+
+
+class TensorBoardWriter:
+    """A ``Tracker`` writing TensorBoard scalars ``train/<name>`` (tensorboardX) into ``logdir`` itself (see
+    ``board_dir`` for a run's own folder); ``config_text`` (e.g. the run's config.toml) is logged once as the
+    text ``config`` at ``purge_step`` (0 if None)."""
+
+    def __init__(self, logdir: str | Path, purge_step: int | None = None, config_text: str | None = None):
         try:
             from tensorboardX import SummaryWriter
         except ImportError as err:
             raise ValueError("--tensorboard needs tensorboardX: pip install 'jaxtraffic[tb]'") from err
         self.logdir = Path(logdir)
         self._writer = SummaryWriter(str(self.logdir), purge_step=purge_step)
+        if config_text is not None:  # (markdown: a code block keeps the TOML's layout)
+            self._writer.add_text("config", f"```toml\n{config_text}\n```", purge_step or 0)
+            self._writer.flush()
 
     def log(self, step: int, values: Mapping[str, float]) -> None:
         for name, value in values.items():

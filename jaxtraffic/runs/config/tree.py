@@ -89,10 +89,13 @@ class RunConfig:
     quiet: bool = hyper(False, help="no progress lines")
     # also write the learning-curve rows as TensorBoard scalars (needs tensorboardX: pip install 'jaxtraffic[tb]')
     tensorboard: str | None = hyper(None, help="TensorBoard log directory")
+    # also log the learning-curve rows and the config to an MLflow run (needs mlflow: pip install 'jaxtraffic[mlflow]'):
+    # a directory (its SQLite store mlflow.db, offline) or an MLflow tracking URI
+    mlflow: str | None = hyper(None, help="MLflow tracking store: a directory or a URI")
 
 
 RUN_CONTROL = ("out_dir", "total_steps", "max_wall_s", "keep_going", "resume", "overwrite", "quiet", "stop_patience",
-               "target_reward", "min_wave_speed", "require_certificate", "tensorboard", "val_target",
+               "target_reward", "min_wave_speed", "require_certificate", "tensorboard", "mlflow", "val_target",
                "checkpoint_every")
 
 
@@ -215,6 +218,10 @@ def config_json(config: TrainConfig, **extra: Any) -> dict[str, Any]:
     return {"version": CONFIG_VERSION, "config": dataclasses.asdict(config), **extra}
 
 
+# fields added within CONFIG_VERSION 4 that a saved config.json may lack: run control, None (off) when absent
+LATER = (("run", "mlflow"),)
+
+
 def _from_json(f: dataclasses.Field, v: Any) -> Any:
     """A field's value as JSON holds it: a list is a tuple; a null float that cannot be None is inf (JSON has no
     inf: max_wall_s, val_target)."""
@@ -251,12 +258,12 @@ def config_from_json(data: dict[str, Any], where: str = "config.json") -> TrainC
         section = tree.get(s)
         saved: dict[str, Any] = section if isinstance(section, dict) else {}
         own = leaf_fields(s)
-        missing = [f.name for f in own if f.name not in saved]
+        missing = [f.name for f in own if f.name not in saved and (s, f.name) not in LATER]
         if missing:
             raise ValueError(f"{where} was written by an older jaxtraffic (its [{s}] lacks {', '.join(missing)}): "
                              f"{OLD}")
-        tables[s] = {f.name: _from_json(f, saved[f.name]) for f in own
-                     if saved[f.name] is not None or "None" in str(f.type) or str(f.type) == "float"}
+        tables[s] = {f.name: _from_json(f, saved[f.name]) for f in own if f.name in saved
+                     and (saved[f.name] is not None or "None" in str(f.type) or str(f.type) == "float")}
     try:
         return TrainConfig.make(**tables)
     except (TypeError, ValueError) as err:

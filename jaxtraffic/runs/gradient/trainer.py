@@ -42,7 +42,7 @@ from jaxtraffic.runs.config.checks import CARRY_COPIES, NETWORK_COPIES, refuse_m
 from jaxtraffic.runs.gradient.policy import gradient_setup, own_grid_controller
 from jaxtraffic.runs.loop import Clock, Progress, prepare, run_training, summary_base
 from jaxtraffic.runs.policy import policy_certificate
-from jaxtraffic.runs.session import check_finite, check_total, fmt_time
+from jaxtraffic.runs.session import check_finite, check_total, eta_text, fmt_time
 from jaxtraffic.sim.metrics import REWARD_TARGET
 from jaxtraffic.sim.rollout import simulate
 
@@ -154,7 +154,8 @@ class GradientTraining:
         line = (f"[update {prog.updates:>4d}] objective {row['objective']:.4f} | {spread} {row['grad_norm']:.3g} | "
                 f"eval reward {row['eval_reward']:.4f} | rho L2 {row['eval_rho_L2_veh_km']:.3f} veh/km | "
                 f"J_comfort {row['eval_J_comfort']:.4g} | gains ({g[0]:+.2f}, {g[1]:+.2f}, {g[2]:+.2f}) | "
-                f"{fmt_time(prog.wall_s)} ({prog.wall_s - t_prev:.1f} s/chunk)"
+                f"{fmt_time(prog.wall_s)} ({prog.wall_s - t_prev:.1f} s/chunk) | "
+                f"{eta_text(self.total - prog.updates, clock.rate(prog.updates))}"
                 + (" | beats backstepping" if better else ""))
         return row, line
 

@@ -56,7 +56,7 @@ from jaxtraffic.runs.curve import CURVE_FIELDS
 from jaxtraffic.runs.loop import Clock, Progress, prepare, run_training, summary_base
 from jaxtraffic.runs.policy import load_policy, policy_certificate
 from jaxtraffic.runs.ppo import members, selection
-from jaxtraffic.runs.session import check_finite, check_total, fmt_time, rounding_note
+from jaxtraffic.runs.session import check_finite, check_total, eta_text, fmt_time, rounding_note
 from jaxtraffic.sim.initial import paper_initial_condition
 from jaxtraffic.sim.metrics import VEH_PER_KM
 from jaxtraffic.sim.rollout import simulate_batch
@@ -252,13 +252,12 @@ class PPOTraining:
         row["restarts"] = len(self.members.restarts)
         prog.own = self.members.to_own()
         rate = clock.rate(prog.env_steps)
-        eta = max(0, run.total_steps - prog.env_steps) / rate if rate > 0 else math.nan
         rate_txt = f"{rate:8.0f}" if math.isfinite(rate) else "       ?"
         line = (f"[{prog.env_steps:>9d} steps] {rate_txt} steps/s | reward {row['mean_reward']:9.3f} | "
                 f"eval {row['eval_reward']:9.4f} (min {row['eval_reward_min']:.4f}) | gains "
                 f"({row['eta1']:+.2f}, {row['eta2']:+.2f}, {row['eta3']:+.2f}) | s {row['eval_wave_speed']:+.2f} m/s | "
                 f"val {selection.format_scores(score)} | {fmt_time(prog.wall_s)} | "
-                f"ETA {fmt_time(eta)}" + (" | stop rule reached" if ok.any() else ""))
+                f"{eta_text(run.total_steps - prog.env_steps, rate)}" + (" | stop rule reached" if ok.any() else ""))
         return row, line
 
     def _row(self, m: dict, ev: dict, score: np.ndarray) -> dict:

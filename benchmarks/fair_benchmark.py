@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 import jaxtraffic as jt
-from jaxtraffic.compare import LawSpec, ScenarioDistribution, evaluate_laws, sample, summary_table
+from jaxtraffic.compare import LawSpec, ScenarioDistribution, bootstrap_interval, evaluate_laws, sample, summary_table
 from jaxtraffic.control import adaptive_backstepping, measurement_filter, takes_delay
 from jaxtraffic.io.files import read_json, write_json
 from jaxtraffic.io.provenance import provenance
@@ -69,6 +69,45 @@ def learned(root: Path) -> list[LawSpec]:
     return out
 
 
+BASES = {"grad_residual": "adaptive"}  # a learned law built on a model-based one: held-out, it must not lose to it
+FRONTIER = 0.8  # issue 47: a learned law's median time-averaged L2 at most 0.8x the best model-based law's
+
+
+def _median_ci(x: np.ndarray) -> tuple[float, tuple[float, float]]:
+    med = float(np.quantile(x, 0.5, method="inverted_cdf"))
+    return med, bootstrap_interval(x, lambda a, axis: np.quantile(a, 0.5, axis=axis, method="inverted_cdf"))
+
+
+def verdicts(res: dict, labels: dict[str, str], learned_names: list[str]) -> tuple[list[str], dict]:
+    """The held-out checks: each learned law built on a base law against it (settled and diverged counts), and
+    the best learned law against the best model-based one (the paired ratio of time-averaged L2)."""
+    lines, out = ["", "Held-out checks:", ""], {}
+    for law, base in BASES.items():
+        if law in res and base in res:
+            a, b = res[law], res[base]
+            ok = (~a["not_settled"]).sum() >= (~b["not_settled"]).sum() and a["diverged"].sum() <= b["diverged"].sum()
+            out[f"{law}_vs_{base}"] = bool(ok)
+            lines.append(f"- {labels[law]} against its base, {labels[base]}: settled {(~a['not_settled']).sum()} vs "
+                         f"{(~b['not_settled']).sum()} of {a['diverged'].size}, diverged {a['diverged'].sum()} vs "
+                         f"{b['diverged'].sum()}: **{'holds' if ok else 'fails'}**")
+    med = {k: float(np.quantile(r["mean_rho_L2"], 0.5, method="inverted_cdf")) for k, r in res.items()}
+    model = [k for k in res if k not in learned_names]
+    best_m, best_l = min(model, key=med.get), min(learned_names, key=med.get) if learned_names else None
+    if best_l is not None:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ratio = res[best_l]["mean_rho_L2"] / res[best_m]["mean_rho_L2"]
+        r, (lo, hi) = _median_ci(np.where(np.isnan(ratio), np.inf, ratio))
+        fails = (res[best_l]["diverged"].sum(), res[best_m]["diverged"].sum())
+        reached = hi < FRONTIER and fails[0] <= fails[1]
+        out.update(best_model_based=best_m, best_learned=best_l, ratio=r, ratio_ci95=[lo, hi], frontier=reached)
+        lines.append(f"- The best learned law, {labels[best_l]} (median time-averaged L2 {med[best_l]:.3g} veh/km), "
+                     f"against the best model-based law, {labels[best_m]} ({med[best_m]:.3g} veh/km): median "
+                     f"per-scenario ratio {r:.3g} [{lo:.3g}, {hi:.3g}], diverged {fails[0]} vs {fails[1]}: the "
+                     f"frontier (at most {FRONTIER}x, interval below it, no more failures) is "
+                     f"**{'reached' if reached else 'not reached'}**")
+    return lines, out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--plant", choices=sorted(PLANTS), default="paper")
@@ -84,15 +123,18 @@ def main() -> None:
     laws = model_based() + (tuned(args.tuned) if args.tuned else []) + (learned(args.runs) if str(args.runs) else [])
     t0 = time.perf_counter()
     res = evaluate_laws(laws, scen, base, args.horizon)
-    lines, summ = summary_table(res, {s.name: s.label for s in laws}, reference="backstepping")
+    labels = {s.name: s.label for s in laws}
+    lines, summ = summary_table(res, labels, reference="backstepping")
+    more, checks = verdicts(res, labels, [s.name for s in laws if s.name in RUNS])
+    lines += more
     print(f"{args.plant} plant, {args.n} test scenarios (seed {args.seed}), {args.horizon:g} s, "
           f"{time.perf_counter() - t0:.0f} s")
     print("\n".join(lines))
     if args.out:
-        write_json(args.out, {"plant": args.plant, "horizon_s": args.horizon, "laws": {s.name: s.label for s in laws},
-                              "summary": summ, "per_scenario": {k: {m: np.asarray(v).tolist() for m, v in r.items()}
-                                                                 for k, r in res.items()},
-                              "scenarios": scen.describe(), "provenance": provenance()})
+        per = {k: {m: np.asarray(v).tolist() for m, v in r.items()} for k, r in res.items()}
+        write_json(args.out, {"plant": args.plant, "horizon_s": args.horizon, "laws": labels, "summary": summ,
+                              "checks": checks, "per_scenario": per, "scenarios": scen.describe(),
+                              "provenance": provenance()})
         (args.out.with_suffix(".md")).write_text("\n".join(lines) + "\n")
         print(f"wrote {args.out}")
 

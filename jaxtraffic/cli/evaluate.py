@@ -2,18 +2,14 @@
 
     python evaluate.py [--run RUN_DIR] [--run-delay0 RUN_DIR] [--out results/]
 
-Without ``--run`` it uses ``runs/default`` if that holds a trained run (config.json and
-checkpoint.msgpack), else trains it first from its recipe (``jaxtraffic/paper/recipes/ppo.toml``, through
-``runs.train_run``); likewise the gradient-trained runs (``GRADIENT_RUNS``: the gains and the network trained on the
-reference plant, the robust delay schedule on MUSCL at 401 points; their recipes are in the same folder).
-Every experiment runs on two plants (``--plants``): the paper's grid (upwind, the PPO run's points; outputs in
-``--out``) and the reference plant (``TrafficParams.reference``: MUSCL, 801 points, 2 solver steps per 0.1 s; outputs in
-``--out``/reference), each controller acting on its own grid (``control.adapter``); ``plants.md`` and
-REPORT.md then say, claim by claim, which conclusions survive on the reference plant. Outputs per plant:
-metrics.json, robustness.json, claims.json, table2.md, table2.csv, the figures (PNG) and REPORT.md.
-Small flags for tests: ``--n-points``, ``--horizon``, ``--noise-seeds``, ``--robust-grid``, ``--reference-grid``.
-Table 2's scenario is rerun on each plant refined twice and with the other scheme unless
-``--no-numerics-check``.
+Without ``--run`` it uses ``runs/default`` if that holds a trained run, else trains it first from its recipe
+(``paper/recipes/ppo.toml``, ``runs.train_run``); likewise the gradient-trained runs (``GRADIENT_RUNS``: the
+registry's learned laws with a recipe, ``paper.laws``). Every experiment runs on two plants (``--plants``): the
+paper's grid (outputs in ``--out``) and the reference plant (``TrafficParams.reference``; outputs in
+``--out``/reference), each controller acting on its own grid (``control.adapter``); ``plants.md`` and REPORT.md
+say, claim by claim, which conclusions survive there. Outputs per plant: metrics.json, robustness.json,
+claims.json, table2.md/.csv, the figures and REPORT.md; Table 2's scenario is rerun on each plant refined twice
+and with the other scheme unless ``--no-numerics-check``.
 The same command runs as N cooperating processes with ``--coordinator-address HOST:PORT
 --num-processes N --process-id I`` or the ``JAX_*`` variables (``jaxtraffic.platform.distributed``;
 docs/tutorials/cluster.md): the batched rollouts (and any training the job starts) are split over

@@ -52,7 +52,7 @@ MAX_NOISE_SEEDS = 1_000  # of the alpha-noise scenario (the paper: 8)
 MAX_HORIZON_S = MAX_STEPS * float(TrafficParams().dt)  # a rollout's step bound (runs.config.checks) at the paper's dt
 # the gradient-trained controllers evaluated beside PPO: name -> (run directory under --runs-root and recipe of
 # paper.recipes, its training plant: paper.recipes.training_plant)
-GRADIENT_RUNS = {n: (law.recipe, law.train_plant) for n, law in laws.LAWS.items() if law.recipe}
+GRADIENT_RUNS = laws.recipes()
 
 
 def parse_args(argv: list[str] | None) -> EvaluateOptions:

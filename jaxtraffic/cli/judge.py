@@ -59,7 +59,7 @@ def judge_plants(own: dict[str, Any], grids: dict[str, Any], configs: dict[str, 
     for plant, config in configs.items():
         t0 = time.perf_counter()
         log(f"== {plant} plant: {config.describe()}")
-        ctrls = {**laws.build_model_based("all"), _ADAPTIVE_RUN: laws.LAWS[ADAPTIVE].build(), **own}
+        ctrls = {**laws.build_model_based("all"), _ADAPTIVE_RUN: laws.build_model_based("map")[ADAPTIVE], **own}
         outcomes = run_scenarios(deploy(ctrls, grids, config), config, log)
         outcomes = {s: {ADAPTIVE if c == _ADAPTIVE_RUN else c: o for c, o in per.items()}
                     for s, per in outcomes.items()}

@@ -15,6 +15,7 @@ from collections.abc import Callable
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from jaxtraffic.compare import stats
@@ -54,11 +55,13 @@ def _run(spec: LawSpec, plants: TrafficParams, rho0: np.ndarray, v0: np.ndarray,
     ctrl = spec.build()
     told = spec.told == "delay"
     if told:
-        ctrl = tell_delay(ctrl, np.asarray(plants.delay))
+        ctrl = tell_delay(ctrl, jnp.asarray(plants.delay))
     ctrl = adapt(ctrl, spec.grid or baseline_grid(nominal), nominal)
-    res = simulate_batch(plants, ctrl, n_steps=n_steps, rho0=rho0.astype(np.float32), v0=v0.astype(np.float32),
-                         nominal=nominal, batch_controller=told, record=Record(every=every))
+    res = simulate_batch(plants, ctrl, n_steps=n_steps, rho0=jnp.asarray(rho0, jnp.float32),
+                         v0=jnp.asarray(v0, jnp.float32), nominal=nominal, batch_controller=told,
+                         record=Record(every=every))
     tr, met = res.trajectory, {k: np.asarray(v) for k, v in res.metrics.items()}
+    assert tr is not None  # (recorded)
     t = np.append(np.asarray(tr.t)[0], n_steps * float(nominal.dt))
     l2 = np.concatenate([np.asarray(tr.rho_L2), met["final_rho_L2"][:, None]], axis=1)
     return stats.per_scenario(t, l2, met["diverged"], met)

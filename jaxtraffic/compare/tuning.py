@@ -65,9 +65,10 @@ def fitness(t: Tunable, pop: np.ndarray, scen: Scenarios, nominal: TrafficParams
     params = [np.repeat(pop[:, i].astype(np.float32), n_s) for i in range(pop.shape[1])]
     ctrl = adapt(_batched(t.build(delays, *params), n_p * n_s), baseline_grid(nominal), nominal)
     plants = jax.tree.map(lambda x: np.tile(x, n_p) if np.ndim(x) else x, scen.plants)
-    res = simulate_batch(plants, ctrl, n_steps=n_steps, rho0=np.tile(scen.rho0, (n_p, 1)).astype(np.float32),
-                         v0=np.tile(scen.v0, (n_p, 1)).astype(np.float32), nominal=nominal, batch_controller=True,
-                         record=Record(every=every), metrics=MEASURED)
+    res = simulate_batch(plants, ctrl, n_steps=n_steps, rho0=jnp.asarray(np.tile(scen.rho0, (n_p, 1)), jnp.float32),
+                         v0=jnp.asarray(np.tile(scen.v0, (n_p, 1)), jnp.float32), nominal=nominal,
+                         batch_controller=True, record=Record(every=every), metrics=MEASURED)
+    assert res.trajectory is not None  # (recorded)
     t_rec = np.append(np.asarray(res.trajectory.t)[0], n_steps * float(nominal.dt))
     l2 = np.concatenate([np.asarray(res.trajectory.rho_L2), np.asarray(res.metrics["final_rho_L2"])[:, None]], 1)
     per = stats.per_scenario(t_rec, l2, np.asarray(res.metrics["diverged"]), res.metrics)
@@ -93,12 +94,14 @@ def tune(t: Tunable, scen: Scenarios, nominal: TrafficParams, horizon_s: float =
         pop = np.clip(np.asarray(sample_population(sub, mean, sd, population)), lo, hi)
         fit = fitness(t, pop, scen, nominal, n_steps, every)
         top, mean, sd = refit(jnp.asarray(pop), jnp.asarray(fit))
-        if fit[int(top)] > best_fit:
+        if best is None or fit[int(top)] > best_fit:
             best, best_fit = pop[int(top)], float(fit[int(top)])
+        assert best is not None
         history.append({"generation": g, "best_mean_rho_L2": -best_fit, "mean_of_population": float(-fit.mean())})
         log(f"   {t.name} generation {g + 1}/{generations}: best time-averaged L2 {-best_fit:.3g} veh/km "
             f"({', '.join(f'{n} {v:.3g}' for n, v in zip(t.names, best, strict=True))})")
-    assert best is not None
+    if best is None:
+        raise ValueError(f"generations must be >= 1, got {generations}")
     return {"best": {n: float(v) for n, v in zip(t.names, best, strict=True)}, "fitness": best_fit,
             "history": history, "budget": {"population": population, "generations": generations,
                                            "scenarios": len(scen), "horizon_s": n_steps * dt}}

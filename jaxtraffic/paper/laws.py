@@ -111,6 +111,11 @@ def names(*, learned: bool | None = None, scope: str | None = None) -> tuple[str
                  and (scope is None or law.scope == scope))
 
 
+def recipes() -> dict[str, tuple[str, str]]:
+    """The learned laws trained from a recipe: name -> (recipe, the plant it trains on)."""
+    return {n: (law.recipe, law.train_plant or "paper") for n, law in LAWS.items() if law.recipe is not None}
+
+
 def build_model_based(scope: str) -> dict[str, Controller]:
     """Every model-based law of ``scope`` built (on the paper's grid, default settings)."""
     return {n: LAWS[n].build() for n in names(learned=False, scope=scope)}  # type: ignore[misc]

@@ -20,7 +20,7 @@ switch-on spike is defined the same way for every controller and delay.
 from __future__ import annotations
 
 from collections.abc import Iterable
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple, cast
 
 import jax
 import jax.numpy as jnp
@@ -141,7 +141,7 @@ def init_metrics(n_points: int, dtype=jnp.float32, keep: Iterable[str] | None = 
         J_comfort_a2=z, J_comfort_at2=z, J_comfort_switch=z, J_fuel_kmh=z,
     )
     kept = full.keys() if keep is None else set(keep)
-    return MetricsAccumulator(**{k: (v if k in kept else None) for k, v in full.items()})
+    return MetricsAccumulator(**cast(dict[str, Any], {k: (v if k in kept else None) for k, v in full.items()}))
 
 
 class StepRecord(NamedTuple):
@@ -231,7 +231,8 @@ def update_metrics(acc: MetricsAccumulator, record: StepRecord, target: MetricsT
         "J_comfort_switch": lambda: add(acc.J_comfort_switch, jnp.where(step == switch_step, at2(), 0.0)),
         "J_fuel_kmh": lambda: add(acc.J_fuel_kmh, fuel_rate_kmh(v, a) * w),
     }
-    return MetricsAccumulator(**{k: (None if getattr(acc, k) is None else f()) for k, f in new.items()})
+    return MetricsAccumulator(**cast(dict[str, Any], {k: (None if getattr(acc, k) is None else f())
+                                                      for k, f in new.items()}))
 
 
 def totals(acc: MetricsAccumulator, dx: Array | float) -> dict[str, Array]:

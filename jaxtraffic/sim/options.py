@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import numbers
+from typing import cast
 
 import jax
 from flax import struct
@@ -68,7 +69,7 @@ class Memory:
 
     def __post_init__(self) -> None:
         c = self.chunk_size
-        if c is not None and c != "auto" and (not _is_int(c) or c < 0):
+        if c is not None and c != "auto" and (not _is_int(c) or int(cast(int, c)) < 0):
             raise ValueError(f"chunk_size must be None or an int >= 0 (or 'auto'), got {c!r}")
 
     def chunk_for(self, platform: str) -> int:

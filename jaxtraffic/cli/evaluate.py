@@ -36,6 +36,7 @@ from typing import Any
 from jaxtraffic import paper
 from jaxtraffic.cli import errors, external, judge, staging
 from jaxtraffic.cli.options import EvaluateOptions, parse_evaluate, program
+from jaxtraffic.io.files import read_json
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.paper.oracle import load_oracle
 from jaxtraffic.paper.recipes import recipe, training_plant
@@ -119,7 +120,7 @@ def gradient_controllers(mode: str, root: Path, controller_points: int, referenc
             train_run(config)
         ctrl, config = load_policy(run_dir)
         ctrls[name], grids[name] = ctrl, policy_grid(config)
-        runs[name] = {"run_dir": str(run_dir), "summary": json.loads((run_dir / "summary.json").read_text()),
+        runs[name] = {"run_dir": str(run_dir), "summary": read_json(run_dir / "summary.json"),
                       "curve": _curve(run_dir / "learning_curve.csv")}
     return ctrls, grids, runs
 
@@ -339,7 +340,7 @@ def _main(args: EvaluateOptions, argv: list[str] | None, t0: float, nd: int, na:
     grids.update(own_grids)
     lc = run_dir / "learning_curve.csv"
     learned_runs = {"ppo": {"run_dir": str(run_dir), "curve": _curve(lc),
-                            "summary": json.loads((run_dir / "summary.json").read_text())
+                            "summary": read_json(run_dir / "summary.json")
                             if (run_dir / "summary.json").exists() else {}}, **grad_runs,
                     **{name: {"run_dir": f"--controller {name}", "summary": {}, "curve": None} for name in own}}
     common: dict[str, Any] = {"dt": dt, "horizon_s": args.horizon, "seeds": tuple(range(args.noise_seeds)),

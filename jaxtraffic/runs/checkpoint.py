@@ -23,7 +23,7 @@ import msgpack
 import numpy as np
 from flax import serialization
 
-from jaxtraffic.io.files import atomic_write_bytes, to_jsonable
+from jaxtraffic.io.files import atomic_write_bytes, read_regular, to_jsonable
 from jaxtraffic.runs.config import TrainConfig
 from jaxtraffic.runs.config.tree import run_control
 
@@ -31,6 +31,7 @@ CHECKPOINT = "checkpoint.msgpack"
 CONFIG = "config.json"
 SUMMARY = "summary.json"
 BEST = "best.msgpack"
+CHECKPOINT_LIMIT = 2**31  # bytes: a checkpoint holds a population's networks and optimiser states
 _BEST_ARRAYS = ("mean", "var", "score", "env_steps")
 FORMAT = "jaxtraffic-checkpoint"
 FORMAT_VERSION = 1
@@ -72,7 +73,7 @@ def load_checkpoint(run_dir: str | Path) -> tuple[dict, dict]:
 def _read_checked(path: Path, legacy_key: str) -> Any:
     """The state dict of a file in the checksummed format (or, written before the checksum, a bare
     payload holding ``legacy_key``); ``ValueError`` naming the file if it is broken."""
-    data = path.read_bytes()
+    data = read_regular(path, CHECKPOINT_LIMIT)  # a regular file only
     if not data:
         raise _broken(path, "empty file")
     try:

@@ -28,7 +28,10 @@ def recipe(name: str) -> TrainConfig:
         raise ValueError(f"no recipe {name!r}; the recipes are {NAMES}")
     where = f"jaxtraffic/paper/recipes/{name}.toml"
     text = resources.files(__package__).joinpath(f"{name}.toml").read_text()
-    return TrainConfig.make(**tables_of_toml(tomllib.loads(text), where))
+    try:
+        return TrainConfig.make(**tables_of_toml(tomllib.loads(text), where))
+    except (TypeError, ValueError) as err:  # (a message of tables_of_toml names the file already)
+        raise ValueError(err if str(err).startswith(where) else f"{where}: {err}") from None
 
 
 def training_plant(kind: str, controller_points: int, reference: tuple[int, int]) -> dict[str, dict]:

@@ -19,7 +19,6 @@ so: such a run is retrained, not guessed at.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -27,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from jaxtraffic.fields import hyper
+from jaxtraffic.io.files import read_json
 from jaxtraffic.learn.env import PLANT, EnvParams, env_params
 from jaxtraffic.learn.env_config import EnvConfig
 from jaxtraffic.learn.gradient.config import GradientConfig
@@ -268,8 +268,4 @@ def load_config(run_dir: str | Path) -> TrainConfig:
     path = Path(run_dir) / "config.json"
     if not path.exists():
         raise FileNotFoundError(f"{run_dir} is not a run directory (no config.json)")
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as err:
-        raise ValueError(f"{path}: unreadable or not valid JSON ({type(err).__name__}: {err})") from None
-    return config_from_json(data, str(path))
+    return config_from_json(read_json(path), str(path))  # a regular file of at most CONFIG_LIMIT

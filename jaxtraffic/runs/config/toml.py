@@ -58,6 +58,9 @@ def tables_of_toml(data: dict[str, Any], where: str) -> dict[str, dict[str, Any]
         for k, v in table.items():
             if k not in names:
                 raise ValueError(f"{where}: [{s}] has no field {k!r}")
+            if s == "run" and k in ACTIONS:  # what a command does to a run directory: the command line's alone
+                raise ValueError(f"{where}: [run] {k} is an action on the run directory, not a setting; give "
+                                 f"--{k} on the command line instead")
             tables.setdefault(s, {})[k] = (None if k == "min_wave_speed" and v == -math.inf
                                            else tuple(v) if isinstance(v, list) else v)
     return tables

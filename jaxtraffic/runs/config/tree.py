@@ -235,6 +235,9 @@ def config_from_json(data: dict[str, Any], where: str = "config.json") -> TrainC
     if isinstance(tree, dict) and "algo" in tree and "ppo" not in tree:
         raise ValueError(f"{where} was written by an older jaxtraffic (an 'algo' section; PPO's settings are "
                          f"now the 'ppo' section, PPOConfig as it is): {OLD}")
+    if data.get("version") not in (3, CONFIG_VERSION) or isinstance(data.get("version"), bool):
+        raise ValueError(f"{where}: config version {data.get('version')!r}; this jaxtraffic reads versions 3 and "
+                         f"{CONFIG_VERSION} (a newer jaxtraffic wrote it, or it was edited)")
     required = ("plant", "env", "ppo", "run")  # (sections added later default when absent)
     if not isinstance(tree, dict) or not all(isinstance(tree.get(s), dict) for s in required):
         have = sorted(tree) if isinstance(tree, dict) else type(tree).__name__

@@ -247,10 +247,11 @@ def check_paths(args: EvaluateOptions, argv: list[str] | None) -> None:
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     """Run the evaluation (exit statuses: ``cli.errors``; 2 for bad flags, 74 for an OS error, 128+N on a
     signal; ``--out`` is replaced whole or left as it was, ``cli.staging``)."""
-    args = parse_args(argv)
-    t0 = time.perf_counter()
-    nd, na = check_args(args)
-    check_paths(args, argv)
+    with errors.interrupt_is_130(PROG):  # Ctrl-C before the job: one line, no traceback
+        args = parse_args(argv)
+        t0 = time.perf_counter()
+        nd, na = check_args(args)
+        check_paths(args, argv)
     try:
         distributed.initialize(*args.cluster.values())  # before any computation
     except ValueError as err:

@@ -187,7 +187,10 @@ def parse(argv: list[str] | None = None) -> tuple[TrainConfig, Cluster, dict[str
     from_file = read_tables(config_file) if (config_file := _value_of(argv, "--config")) else {}
     if not argv or argv[0] not in (*ALGOS, *HELP):
         argv.insert(0, _default_algo(argv, from_file))
-    bases = {a: _base(a, from_file) for a in ALGOS}
+    try:  # the file's values are checked here first: an error names the file
+        bases = {a: _base(a, from_file) for a in ALGOS}
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{config_file}: {err}" if config_file else str(err)) from None
     classes = {a: flags_class(a, bases[a]) for a in ALGOS}
     algo = argv[0] if argv[0] in ALGOS else "ppo"
     names = {f.name for f in dataclasses.fields(classes[algo])} - {"config", "cluster"}
@@ -255,7 +258,8 @@ def main(argv: list[str] | None = None) -> Path:
     runs on a device), train, return the run directory. Exit status 2 for invalid flags or a broken
     run directory, 74 for an OS error (``cli.errors``), 130 / 143 after SIGINT / SIGTERM (``runs.ppo.trainer``)."""
     try:
-        config, cluster, given = parse(argv)
+        with errors.interrupt_is_130(PROG):
+            config, cluster, given = parse(argv)
         distributed.initialize(*cluster.values())
         compile_cache.enable()  # before the first compilation (jaxtraffic.platform.compile_cache)
         if config.run.resume:

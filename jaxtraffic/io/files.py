@@ -90,13 +90,17 @@ def read_regular(path: str | Path, limit: int = CONFIG_LIMIT, follow: bool = Tru
         if err.filename is None:
             raise type(err)(err.errno, err.strerror, str(path)) from None
         raise
-    with os.fdopen(fd, "rb") as f:
+    try:
         st = os.fstat(fd)
         if not stat.S_ISREG(st.st_mode):
             kind = KINDS.get(stat.S_IFMT(st.st_mode), "not a regular file")
             raise ValueError(f"{path}: {kind}, not a regular file (refused)")
         if st.st_size > limit:
             raise ValueError(f"{path}: {st.st_size} bytes, more than the {limit} bytes such a file may hold")
+    except BaseException:
+        os.close(fd)
+        raise
+    with os.fdopen(fd, "rb") as f:
         data = f.read(limit + 1)
     if len(data) > limit:  # it grew while being read
         raise ValueError(f"{path}: more than the {limit} bytes such a file may hold")

@@ -139,7 +139,7 @@ def cases(tmp: Path) -> list[tuple[str, str, list, dict, int, str]]:
          "must lie in [0, 1000000]"),
         ("6", "evaluate.py --horizon 1e30", [E + ["--horizon", "1e30", "--out", str(tmp / "eo3")]], {}, 2,
          "--horizon must be a number of seconds in (0, 1e+07]"),
-        ("6", "--num-envs 2147483648", [T + ["--num-envs", "2147483648"] + r("o5")], {}, 2, "the rollouts alone need"),
+        ("6", "--num-envs 2147483648", [T + ["--num-envs", "2147483648"] + r("o5")], {}, 2, "must fit int32"),
         ("6", "--num-steps 1000000000", [T + ["--num-steps", "1000000000"] + r("o6")], {}, 2,
          "the rollouts alone need"),
         ("6", "train.py ... | head -1", [[str(REPO / "train.py"), *GRAD[:-1], "--grad-steps", "3"] + r("p")],

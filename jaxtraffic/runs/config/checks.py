@@ -48,8 +48,8 @@ def _scalar(name: str, kind: str, value: Any, int_max: int = INT32_MAX) -> Any:
         if not _is_int(value):
             raise fail(name, value, "must be an integer")
         if abs(int(value)) > int_max:
-            raise fail(name, value, f"must fit {'int32' if int_max == INT32_MAX else 'its integer type'} "
-                        f"in (|x| <= {int_max})")
+            raise fail(name, value, f"must fit {'int32' if int_max == INT32_MAX else 'its integer type'}"
+                        f" (|x| <= {int_max})")
         return int(value)
     if kind == "float":
         if not _is_real(value):
@@ -116,7 +116,12 @@ def _checked(f: dataclasses.Field, value: Any) -> Any:
     """``value`` of the field ``f`` checked (type, choices, range, pair bounds) and normalised."""
     rule = f.metadata.get("range")
     wide = rule[2] if rule is not None and rule[2] is not None and rule[2] > INT32_MAX else INT32_MAX  # (the seed)
-    typed = _typed(f.name, str(f.type), value, int(wide))
+    try:
+        typed = _typed(f.name, str(f.type), value, int(wide))
+    except ValueError:  # the field's own range says more than the dtype's (max_delay_steps: [0, 1000000])
+        if rule is not None and rule[2] is not None and _is_int(value):
+            check_value(f.name, value, rule)
+        raise
     choices = f.metadata.get("choices")
     if choices and typed is not None and typed not in choices:
         raise fail(f.name, typed, f"must be one of {tuple(choices)}")

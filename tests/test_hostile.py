@@ -858,3 +858,25 @@ def test_a_recipe_error_names_the_recipe(monkeypatch):
     monkeypatch.setattr(recipes, "tables_of_toml", lambda data, where: {**real(data, where), "ppo": {"lr": -1.0}})
     with pytest.raises(ValueError, match=r"^jaxtraffic/paper/recipes/ppo.toml: lr = -1.0: must be > 0"):
         recipes.recipe("ppo")
+
+
+@pytest.mark.parametrize("junk", [{"env_steps": -5}, {"env_steps": 2**62}, {"env_steps": True},
+                                  {"env_steps": 64, "wall_s": "soon"}, {"env_steps": 64, "updates": 1.5},
+                                  {"env_steps": 64, "stopped": "no"}, {"env_steps": 64, "rows": [1, 2]},
+                                  {"env_steps": 64, "seconds_to_stop_rule": -1.0},
+                                  {"env_steps": 64, "config_problem": "{not json"}])
+def test_a_checkpoint_with_a_valid_checksum_and_junk_progress_is_refused(junk, tmp_path, capsys):
+    """A crafted checkpoint (written by save_checkpoint: the checksum is right) whose progress is junk: one line,
+    status 2, before anything in the run directory is rewritten."""
+    from jaxtraffic.runs import checkpoint
+
+    run = _saved_run(tmp_path / "r")
+    checkpoint.save_checkpoint(run, {"update": np.zeros(1)}, junk)
+    with pytest.raises(ValueError, match="its progress is not what a run writes"):
+        checkpoint.load_checkpoint(run)
+    before = checksum(tmp_path)
+    code, err = _train(["--resume", "--out-dir", str(run)], capsys)
+    assert code == 2 and "checkpoint.msgpack: its progress is not what a run writes" in err
+    assert checksum(tmp_path) == before
+    checkpoint.save_checkpoint(run, {"update": np.zeros(1)}, {"env_steps": 64, "seconds_to_stop_rule": None})
+    assert checkpoint.load_checkpoint(run)[1]["env_steps"] == 64  # what a run writes is accepted

@@ -67,7 +67,39 @@ def load_checkpoint(run_dir: str | Path) -> tuple[dict, dict]:
     if not (isinstance(state, dict) and isinstance(state.get("runner"), dict) and isinstance(state.get("meta"), dict)
             and isinstance(state["meta"].get("env_steps"), int)):
         raise _broken(path, "not a jaxtraffic checkpoint (no runner state and progress)")
+    _check_meta(path, state["meta"])
     return state["runner"], state["meta"]
+
+
+def _count(x: Any) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool) and 0 <= x < 2**62
+
+
+def _seconds(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and 0 <= x < float("inf")
+
+
+def _problem(x: Any) -> bool:
+    try:
+        return x is None or isinstance(json.loads(x), dict)
+    except (TypeError, ValueError, RecursionError):
+        return False
+
+
+def _check_meta(path: Path, meta: dict) -> None:
+    """``_broken`` unless the checkpoint's progress (``loop.Progress.to_meta``) holds what a run writes: counts
+    (int >= 0), seconds (finite >= 0 or null), a flag, rows and the trained problem: a crafted file with a valid
+    checksum is refused before anything is rewritten."""
+    rules = {"env_steps": _count, "updates": _count, "wall_s": _seconds, "stopped": lambda x: isinstance(x, bool),
+             "rows": lambda x: isinstance(x, list) and all(isinstance(r, dict) for r in x), PROBLEM: _problem}
+    for key, value in meta.items():
+        ok = rules.get(key)
+        if ok is None and key.startswith("seconds_to_"):
+            ok = lambda x: x is None or _seconds(x)  # noqa: E731
+        elif ok is None and key.startswith(("env_steps_to_", "updates_to_")):
+            ok = lambda x: x is None or _count(x)  # noqa: E731
+        if ok is not None and not ok(value):
+            raise _broken(path, f"its progress is not what a run writes ({key} = {str(value)[:60]!r})")
 
 
 def _read_checked(path: Path, legacy_key: str) -> Any:

@@ -231,7 +231,8 @@ def resumed_config(config: TrainConfig, given: set[str] | dict) -> TrainConfig:
     control = run_control(saved.run.algo)
     new, old = config.tables(), saved.tables()
     section = flag_sections(saved.run.algo)
-    where = given if isinstance(given, dict) else {}
+    where = {k: v for k, v in given.items() if isinstance(v, str) and v.startswith(("--", f"{k} in "))} \
+        if isinstance(given, dict) else {}  # (parse's origins; a dict of values says only which were given)
     owners = {k: section.get(k) or next(s for s in new if k in new[s]) for k in given  # in the order given
               if k in section or where.get(k, "--").count(" in ")}  # (a file may set fields without a flag)
     changed = [f"{_label(k, where)} {new[s][k]!r} (the run's value: {old[s][k]!r})" for k, s in owners.items()

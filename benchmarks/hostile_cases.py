@@ -139,7 +139,7 @@ def cases(tmp: Path) -> list[tuple[str, str, list, dict, int, str]]:
          "must lie in [0, 1000000]"),
         ("6", "evaluate.py --horizon 1e30", [E + ["--horizon", "1e30", "--out", str(tmp / "eo3")]], {}, 2,
          "--horizon must be a number of seconds in (0, 1e+07]"),
-        ("6", "--num-envs 2147483648", [T + ["--num-envs", "2147483648"] + r("o5")], {}, 2, "the rollouts alone need"),
+        ("6", "--num-envs 2147483648", [T + ["--num-envs", "2147483648"] + r("o5")], {}, 2, "must fit int32"),
         ("6", "--num-steps 1000000000", [T + ["--num-steps", "1000000000"] + r("o6")], {}, 2,
          "the rollouts alone need"),
         ("6", "train.py ... | head -1", [[str(REPO / "train.py"), *GRAD[:-1], "--grad-steps", "3"] + r("p")],
@@ -201,12 +201,38 @@ def cases(tmp: Path) -> list[tuple[str, str, list, dict, int, str]]:
         ("9", "evaluate.py --controller <missing file>", [E + ["--out", str(tmp / "c9"), "--controller",
                                                               f"mine={tmp / 'nope.py'}:make"]], {}, 2,
          "--controller mine: no file"),
+        # round four (issue 50): overflows, unbounded reads, config files that do what flags may not
+        ("10", "--wavenumber-range 1000000000000 (x2)", [T + ["--wavenumber-range", "1000000000000", "1000000000000"]
+                                                        + r("w1")], {}, 2, "must fit int32"),
+        ("10", "a wavenumber of 1e9 on 21 points", [T + ["--wavenumber-range", "1000000000", "1000000000"] + r("w2")],
+         {}, 2, "Nyquist limit"),
+        ("10", "[run] total_steps = 2**63-1 in --config", [
+            ["-c", f"open('{tmp / 'ts.toml'}', 'w').write('[run]\\ntotal_steps = 9223372036854775807\\n')"],
+            T + ["--config", str(tmp / "ts.toml")] + r("w3")], {}, 2, "must fit int32"),
+        ("10", "--config /dev/zero", [T + ["--config", "/dev/zero"] + r("z1")], {}, 2, "a character device"),
+        ("10", "--config a FIFO", [["-c", f"import os; os.mkfifo('{tmp / 'fifo.toml'}')"],
+                                   T + ["--config", str(tmp / "fifo.toml")] + r("z2")], {}, 2, "a FIFO (named pipe)"),
+        ("10", "overwrite = true in a --config file", [
+            T + ["--total-steps", "64"] + r("ow"),
+            ["-c", f"open('{tmp / 'ow.toml'}', 'w').write('[run]\\noverwrite = true\\n')"],
+            T + ["--config", str(tmp / "ow.toml")] + r("ow")], {}, 2, "an action on the run directory"),
+        ("10", "hidden = [0] in a --config file", [
+            ["-c", f"open('{tmp / 'h.toml'}', 'w').write('[ppo]\\nhidden = [0]\\n')"],
+            T + ["--config", str(tmp / "h.toml")] + r("h0")], {}, 2, "h.toml: hidden = 0: must be >= 1"),
+        ("10", "config.json version 99, then --resume", [
+            T + ["--total-steps", "64"] + r("v9"),
+            ["-c", f"import json; p = '{tmp / 'v9' / 'config.json'}'; c = json.load(open(p)); c['version'] = 99; "
+                   "json.dump(c, open(p, 'w'))"],
+            [str(REPO / "train.py"), "--resume"] + r("v9")], {}, 2, "config version 99"),
+        ("10", "adaptive_backstepping(alpha0=5)", [
+            ["-c", "import sys; from jaxtraffic.control import adaptive_backstepping as a\ntry:\n    a(alpha0=5)\n"
+                   "except ValueError as e:\n    sys.exit(str(e))"]], {}, 1, "alpha0 must lie in [0, 1]"),
     ]
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--only", default="", help="comma-separated case numbers (1-9)")
+    ap.add_argument("--only", default="", help="comma-separated case numbers (1-10)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     only = set(filter(None, args.only.split(",")))

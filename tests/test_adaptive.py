@@ -94,7 +94,9 @@ def test_projection_keeps_the_estimate_in_unit_interval(alpha, alpha0):
     [ALPHA_MIN, 1] (the law needs alpha > 0), the plant never refused a control, and the estimate
     reaches the end the plant is at (or the plant's alpha)."""
     plant = NOMINAL.replace(alpha=alpha)
-    ctrl = adaptive_backstepping(delay=2.0, alpha0=alpha0)
+    ctrl = adaptive_backstepping(delay=2.0, alpha0=min(max(alpha0, 0.0), 1.0))
+    # a concrete alpha0 outside [0, 1] is refused (issue 50); a traced one (settings built in a jit) is projected
+    ctrl = ctrl.replace(settings=ctrl.settings.replace(alpha0=jnp.float32(alpha0)))
     rho0, v0 = paper_initial_condition(NOMINAL)
     for n in (1, 2, 50):
         res = simulate(plant, ctrl, n_steps=n, rho0=rho0, v0=v0, nominal=NOMINAL)

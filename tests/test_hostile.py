@@ -8,6 +8,7 @@ Exit statuses (``jaxtraffic.cli.errors``): 2 bad input, 74 an OS error, 128 + N 
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import hashlib
 import json
@@ -24,6 +25,7 @@ import jaxtraffic as jt
 from jaxtraffic.cli import errors, staging
 from jaxtraffic.cli import evaluate as evaluate_cli
 from jaxtraffic.cli import train as train_cli
+from jaxtraffic.control.adaptive import adaptive_backstepping
 
 ROOT_ONLY = pytest.mark.skipif(os.geteuid() != 0, reason="needs a second uid: root can hand a folder to one (chown)")
 OTHER_UID = 65534  # nobody
@@ -569,3 +571,347 @@ def test_a_signal_during_the_move_waits_for_it(tmp_path, monkeypatch, capsys):
         stage.publish()
     assert sorted(p.name for p in out.iterdir()) == [staging.MARKER, "a", "b", "c"]
     assert "SIGTERM received while the report was moved" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- round four (issue 50)
+def _train(argv: list[str], capsys) -> tuple[int, str]:
+    """``train.py argv``: its exit status and stderr, which must be one line and no traceback."""
+    with pytest.raises(SystemExit) as exc:
+        train_cli.main(argv)
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and err.count("\n") == 1, err
+    return exc.value.code, err
+
+
+def _numeric_fields() -> list[tuple[str, str, str]]:
+    """(section, field, scalar kind) of every int and float field of every config section, walking the dataclasses
+    (a tuple field by its element type)."""
+    from jaxtraffic.runs.config.tree import SECTIONS, leaf_fields
+
+    out = []
+    for s in SECTIONS:
+        for f in leaf_fields(s):
+            kind = str(f.type).replace(" ", "")
+            scalar = "float" if kind.startswith("float") or "tuple[float" in kind else \
+                "int" if kind.startswith("int") or "tuple[int" in kind else None
+            if scalar is not None:
+                out.append((s, f.name, scalar))
+    return out
+
+
+def _shaped(default, x):
+    """``x`` in the shape of the field's default (a scalar, a LO,HI pair or a tuple of one)."""
+    return x if not isinstance(default, tuple) else (x,) * (len(default) if len(default) in (2, 3) else 1)
+
+
+NUMERIC = _numeric_fields()
+
+
+def test_the_walk_finds_every_section_and_both_kinds():
+    sections = {s for s, _, _ in NUMERIC}
+    assert sections == {"plant", "env", "ppo", "grad", "run"}
+    names = {n for _, n, _ in NUMERIC}
+    assert {"substeps", "total_steps", "wavenumber_range", "hidden", "lr", "L", "train_wavenumbers"} <= names
+
+
+@pytest.mark.parametrize("section, name, kind", NUMERIC, ids=[f"{s}.{n}" for s, n, _ in NUMERIC])
+def test_every_numeric_field_is_refused_beyond_its_dtype(section, name, kind):
+    """Issue 50 item 6: each int field past int32 (the seed past its uint32 range), each float field past
+    float32's largest and below its smallest normal magnitude: a one-line ValueError naming the field, never an
+    OverflowError from the tracing."""
+    from jaxtraffic.runs.config import SECTIONS, TrainConfig
+    from jaxtraffic.runs.config.checks import INT32_MAX
+
+    f = next(f for f in dataclasses.fields(SECTIONS[section]) if f.name == name)
+    default = f.default
+    rule = f.metadata.get("range")
+    if kind == "int":
+        top = rule[2] if rule is not None and rule[2] is not None and rule[2] > INT32_MAX else INT32_MAX
+        bad = [top + 1, 2**63 - 1, -(2**63)]
+    else:
+        bad = [1e39, -1e39, 1e-39]
+    for x in bad:
+        with pytest.raises(ValueError, match=rf"^{name} = ") as err:
+            TrainConfig.make(**{section: {name: _shaped(default, x)}})
+        assert "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("table, match", [
+    ({"env": {"wavenumber_range": (10**12, 10**12)}}, r"wavenumber_range = 1000000000000: must fit int32"),
+    ({"plant": {"substeps": 10**9}}, r"substeps = 1000000000: .* must be at most 1e\+08 solver steps"),
+    ({"run": {"total_steps": 2**63 - 1}}, r"total_steps = 9223372036854775807: must fit int32"),
+    ({"plant": {"n_points": 21}, "env": {"wavenumber_range": (10**9, 10**9)}}, r"Nyquist limit .* = 10 periods"),
+    ({"plant": {"n_points": 21}, "env": {"wavenumber_range": (4, 11)}}, r"Nyquist limit"),
+    ({"run": {"algo": "gradient"}, "plant": {"n_points": 21}, "grad": {"train_wavenumbers": (4, 12)}},
+     r"train_wavenumbers = \(4, 12\): must be at most the grid's Nyquist limit"),
+    ({"run": {"seed": 2**32}}, r"seed = 4294967296: must lie in \[0, 4294967295\]"),
+    ({"ppo": {"lr": 1e-40}}, r"lr = 1e-40: must be 0 or at least 1.18e-38"),
+])
+def test_the_issue_overflows_are_refused(table, match):
+    from jaxtraffic.runs.config import TrainConfig
+
+    with pytest.raises(ValueError, match=match):
+        TrainConfig.make(**table)
+
+
+def test_limits_that_are_not_overflows_are_accepted():
+    from jaxtraffic.runs.config import TrainConfig
+
+    c = TrainConfig.make(plant={"n_points": 21}, env={"wavenumber_range": (10, 10)}, run={"seed": 2**32 - 1})
+    assert c.env.wavenumber_range == (10, 10) and c.run.seed == 2**32 - 1
+    assert TrainConfig.make(plant={"substeps": 2}).plant.substeps == 2
+
+
+def test_overflowing_flags_and_config_values_are_refused_before_any_file(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "r"
+    code, err = _train(["--wavenumber-range", "1000000000000", "1000000000000", "--out-dir", str(out)], capsys)
+    assert code == 2 and "must fit int32" in err
+    code, err = _train(["--n-points", "21", "--wavenumber-range", "1000000000", "1000000000", "--out-dir", str(out)],
+                       capsys)
+    assert code == 2 and "Nyquist limit" in err
+    for text, what in (("[plant]\nsubsteps = 1000000000\n", "solver steps"),
+                       ("[run]\ntotal_steps = 9223372036854775807\n", "must fit int32")):
+        (tmp_path / "c.toml").write_text(text)
+        code, err = _train(["--config", "c.toml", "--out-dir", str(out)], capsys)
+        assert code == 2 and what in err and "c.toml: " in err  # the message names the file
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.toml"]
+
+
+# item 16: unbounded reads
+def _fifo(where: Path) -> Path:
+    os.mkfifo(where)
+    return where
+
+
+@pytest.mark.parametrize("make, match", [
+    (lambda d: Path("/dev/zero"), "a character device, not a regular file"),
+    (lambda d: _fifo(d / "fifo.toml"), "a FIFO (named pipe), not a regular file"),
+    (lambda d: (d / "zero.toml").symlink_to("/dev/zero") or d / "zero.toml", "a character device"),
+    (lambda d: d, "a directory, not a regular file"),
+    (lambda d: (d / "big.toml").write_bytes(b"#" * (2**20 + 1)) and d / "big.toml",
+     "1048577 bytes, more than the 1048576 bytes"),
+])
+def test_config_that_is_no_regular_file_is_refused_without_blocking(make, match, tmp_path, capsys, monkeypatch):
+    import signal
+
+    monkeypatch.chdir(tmp_path)
+    path = make(tmp_path)
+    before = checksum(tmp_path)
+    signal.alarm(30)  # a FIFO opened for reading would wait for a writer forever: fail instead
+    try:
+        code, err = _train(["--config", str(path), "--out-dir", str(tmp_path / "r")], capsys)
+    finally:
+        signal.alarm(0)
+    assert code == 2 and match in err and str(path) in err
+    assert checksum(tmp_path) == before
+
+
+def test_read_regular_limits_and_run_files(tmp_path):
+    from jaxtraffic.io import files
+    from jaxtraffic.runs import checkpoint
+    from jaxtraffic.runs.config import load_config
+
+    (tmp_path / "ok").write_bytes(b"x" * 10)
+    assert files.read_regular(tmp_path / "ok", limit=10) == b"x" * 10
+    with pytest.raises(ValueError, match="11 bytes, more than the 10"):
+        (tmp_path / "ok").write_bytes(b"x" * 11)
+        files.read_regular(tmp_path / "ok", limit=10)
+    (tmp_path / "link").symlink_to(tmp_path / "ok")
+    assert files.read_regular(tmp_path / "link", limit=20) == b"x" * 11
+    with pytest.raises(ValueError, match="a symbolic link"):
+        files.read_regular(tmp_path / "link", follow=False)
+    with pytest.raises(FileNotFoundError):
+        files.read_regular(tmp_path / "missing")
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").symlink_to("/dev/zero")  # run files that are links to devices
+    with pytest.raises(ValueError, match="config.json: a character device"):
+        load_config(run)
+    _fifo(run / "checkpoint.msgpack")
+    with pytest.raises(ValueError, match=r"checkpoint.msgpack: a FIFO"):
+        checkpoint.load_checkpoint(run)
+
+
+# item 17: config files that do what flags may not
+def _saved_run(where: Path, **tables) -> Path:
+    """A run directory holding only the config.json a fresh run would write (enough for the resume's checks)."""
+    from jaxtraffic.io.files import write_json
+    from jaxtraffic.runs.config import TrainConfig, config_json
+
+    where.mkdir(parents=True)
+    config = TrainConfig.make(plant={"n_points": 21}, run={"out_dir": str(where)}, **tables)
+    write_json(where / "config.json", config_json(config))
+    (where / "checkpoint.msgpack").write_bytes(b"precious")
+    return where
+
+
+@pytest.mark.parametrize("key", ["overwrite", "resume"])
+def test_run_actions_in_a_config_file_are_refused(key, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    run = _saved_run(tmp_path / "r")
+    (tmp_path / "c.toml").write_text(f"[run]\n{key} = true\n")
+    before = checksum(tmp_path)
+    code, err = _train(["--config", "c.toml", "--out-dir", str(run)], capsys)
+    assert code == 2 and f"c.toml: [run] {key} is an action on the run directory" in err and f"--{key}" in err
+    assert checksum(tmp_path) == before
+
+
+def test_config_with_resume_honours_run_control_and_refuses_the_rest(tmp_path):
+    run = _saved_run(tmp_path / "r")
+    (tmp_path / "lr.toml").write_text("[ppo]\nlr = 0.5\n")
+    (tmp_path / "tau.toml").write_text("[plant]\ntau_acc = 2.5\n")  # a field without a flag
+    (tmp_path / "steps.toml").write_text("[run]\ntotal_steps = 1234\nquiet = true\n")
+    for name, match in (("lr.toml", r"these settings would change it: lr in .*lr.toml = 0.5 \(the run's value: "
+                                    r"0.001\)"), ("tau.toml", r"tau_acc in .*tau.toml = 2.5")):
+        config, _, given = train_cli.parse(["--resume", "--out-dir", str(run), "--config", str(tmp_path / name)])
+        with pytest.raises(ValueError, match=match):
+            train_cli.resumed_config(config, given)
+    config, _, given = train_cli.parse(["--resume", "--out-dir", str(run), "--config", str(tmp_path / "steps.toml"),
+                                        "--no-quiet"])
+    resumed = train_cli.resumed_config(config, given)
+    assert resumed.run.total_steps == 1234 and resumed.run.quiet is False and resumed.run.resume
+    assert resumed.ppo.lr == 1e-3 and resumed.plant.n_points == 21  # the run's own
+
+
+def test_boolean_flags_work_both_ways_when_the_file_sets_them(tmp_path):
+    (tmp_path / "q.toml").write_text("[run]\nquiet = true\nrequire_certificate = false\n")
+    q = str(tmp_path / "q.toml")
+    assert train_cli.config_from_args(["--config", q, "--quiet"]).run.quiet is True
+    assert train_cli.config_from_args(["--config", q, "--no-quiet"]).run.quiet is False
+    assert train_cli.config_from_args(["--config", q]).run.quiet is True
+    assert train_cli.config_from_args(["--config", q, "--require-certificate"]).run.require_certificate is True
+    assert train_cli.config_from_args(["--quiet"]).run.quiet is True  # without a file: as before
+    with pytest.raises(ValueError, match="unrecognized arguments: --no-quiet"):
+        train_cli.config_from_args(["--no-quiet"])
+
+
+@pytest.mark.parametrize("version", [99, None, "four", True, 2])
+def test_config_json_version_is_checked(version, tmp_path, capsys):
+    from jaxtraffic.io.files import read_json, write_json
+
+    run = _saved_run(tmp_path / "r")
+    data = read_json(run / "config.json")
+    write_json(run / "config.json", {**data, "version": version})
+    before = checksum(tmp_path)
+    code, err = _train(["--resume", "--out-dir", str(run)], capsys)
+    assert code == 2 and f"config.json: config version {version!r}; this jaxtraffic reads versions 3 and 4" in err
+    assert checksum(tmp_path) == before
+
+
+# item 19: the smaller list
+def test_hidden_zero_is_refused_before_any_file(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "h.toml").write_text("[ppo]\nhidden = [0]\n")
+    code, err = _train(["--config", "h.toml", "--out-dir", "r"], capsys)
+    assert code == 2 and "h.toml: hidden = 0: must be >= 1" in err
+    code, err = _train(["--hidden", "64", "0", "--out-dir", "r"], capsys)
+    assert code == 2 and "hidden = 0: must be >= 1" in err
+    assert [p.name for p in tmp_path.iterdir()] == ["h.toml"]
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"alpha0": 5.0}, r"alpha0 must lie in \[0, 1\], got \[5.0\]"),
+    ({"alpha0": -0.1}, r"alpha0 must lie in \[0, 1\]"),
+    ({"forgetting": 0.0}, r"forgetting must lie in \(0, 1\]"),
+    ({"forgetting": 1.5}, r"forgetting must lie in \(0, 1\]"),
+    ({"min_info": 0.0}, r"min_info must lie in \(0, inf\) \(m/s\)\^2"),
+    ({"shock_scale": 0.0}, r"shock_scale must lie in \(0, inf\) veh/m"),
+    ({"delay": 1e9}, r"assumed delay must lie in \[0, 3600\] s, got 1000000000.0"),
+    ({"delay": -1.0}, r"assumed delay must lie in \[0, 3600\] s"),
+    ({"forgetting": float("nan")}, "forgetting must be finite"),
+])
+def test_adaptive_backstepping_refuses_settings_out_of_range(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        adaptive_backstepping(**kwargs)
+
+
+def test_adaptive_backstepping_accepts_its_range_and_traced_settings():
+    import jax
+
+    assert adaptive_backstepping(4.0, alpha0=1.0, forgetting=1.0, min_info=1e-9).name == "adaptive_backstepping"
+    assert adaptive_backstepping().settings.alpha0 != adaptive_backstepping().settings.alpha0  # NaN default
+    jax.jit(lambda d: adaptive_backstepping(d).settings.delay)(1e9)  # traced: not checked (no jnp ops there)
+
+
+def test_ctrl_c_while_parsing_is_one_line_and_130(capsys, monkeypatch):
+    def interrupted(argv=None):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(train_cli, "parse", interrupted)
+    code, err = _train([], capsys)
+    assert code == 130 and "interrupted (Ctrl-C) before the job started" in err
+    monkeypatch.setattr(evaluate_cli, "parse_args", interrupted)
+    code, err = _evaluate([], capsys)
+    assert code == 130 and err.startswith("evaluate.py: error: interrupted")
+
+
+@pytest.mark.parametrize("kw, match", [({"lr": 0.1}, r"'lr' is a setting of the training \(\[ppo\]\)"),
+                                       ({"out_dir": "x"}, r"'out_dir' is a setting of the training \(\[run\]\)"),
+                                       ({"total_steps": 5}, "not of the environment")])
+def test_environment_refuses_training_keywords(kw, match):
+    from jaxtraffic.ecosystem import resolve_env_params
+
+    with pytest.raises(TypeError, match=match):
+        resolve_env_params(n_points=21, **kw)
+    assert resolve_env_params(n_points=21, horizon_s=2.0).traffic.n_points == 21
+
+
+def test_gym_env_refuses_complex_and_non_numeric_actions():
+    pytest.importorskip("gymnasium")
+    from jaxtraffic.ecosystem.gym_env import GainEnv
+
+    env = GainEnv(n_points=21, horizon_s=2.0, delay=0.5, max_delay_steps=20)
+    env.reset(seed=0)
+    for action in (np.array([1j, 0.0, 0.0]), np.array([True, False, True]), np.array(["a", "b", "c"])):
+        with pytest.raises(ValueError, match="the action must be real numbers"):
+            env.step(action)
+    assert np.isfinite(env.step(np.zeros(3))[0]).all()
+
+
+def test_library_misuse_messages_say_what_is_expected():
+    import jax
+    import jax.numpy as jnp
+
+    p = jt.TrafficParams(n_points=21)
+    with pytest.raises(ValueError, match="batch_controller=True needs a controller whose settings carry a leading "
+                                         "batch axis"):
+        jt.simulate_batch(p, jt.backstepping(1.0), n_steps=3, batch_controller=True)
+    with pytest.raises(ValueError, match="batch_controller=True needs a controller"):
+        jt.simulate_batch(p, None, n_steps=3, batch_controller=True)
+    for bad in ("backstepping", jt.backstepping, 3.0):
+        with pytest.raises(TypeError, match=r"controller must be a jaxtraffic Controller .* got "):
+            jt.simulate(p, bad, n_steps=3)
+    res = jt.simulate_batch(p, jax.vmap(jt.backstepping)(jnp.array([1.0, 2.0])), n_steps=3, batch_controller=True)
+    assert res.metrics["diverged_reason"].shape == (2,)
+
+
+def test_a_recipe_error_names_the_recipe(monkeypatch):
+    from jaxtraffic.paper import recipes
+
+    real = recipes.tables_of_toml
+    monkeypatch.setattr(recipes, "tables_of_toml", lambda data, where: {**real(data, where), "ppo": {"lr": -1.0}})
+    with pytest.raises(ValueError, match=r"^jaxtraffic/paper/recipes/ppo.toml: lr = -1.0: must be > 0"):
+        recipes.recipe("ppo")
+
+
+@pytest.mark.parametrize("junk", [{"env_steps": -5}, {"env_steps": 2**62}, {"env_steps": True},
+                                  {"env_steps": 64, "wall_s": "soon"}, {"env_steps": 64, "updates": 1.5},
+                                  {"env_steps": 64, "stopped": "no"}, {"env_steps": 64, "rows": [1, 2]},
+                                  {"env_steps": 64, "seconds_to_stop_rule": -1.0},
+                                  {"env_steps": 64, "config_problem": "{not json"}])
+def test_a_checkpoint_with_a_valid_checksum_and_junk_progress_is_refused(junk, tmp_path, capsys):
+    """A crafted checkpoint (written by save_checkpoint: the checksum is right) whose progress is junk: one line,
+    status 2, before anything in the run directory is rewritten."""
+    from jaxtraffic.runs import checkpoint
+
+    run = _saved_run(tmp_path / "r")
+    checkpoint.save_checkpoint(run, {"update": np.zeros(1)}, junk)
+    with pytest.raises(ValueError, match="its progress is not what a run writes"):
+        checkpoint.load_checkpoint(run)
+    before = checksum(tmp_path)
+    code, err = _train(["--resume", "--out-dir", str(run)], capsys)
+    assert code == 2 and "checkpoint.msgpack: its progress is not what a run writes" in err
+    assert checksum(tmp_path) == before
+    checkpoint.save_checkpoint(run, {"update": np.zeros(1)}, {"env_steps": 64, "seconds_to_stop_rule": None})
+    assert checkpoint.load_checkpoint(run)[1]["env_steps"] == 64  # what a run writes is accepted

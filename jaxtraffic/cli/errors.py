@@ -72,6 +72,17 @@ def report(prog: str, err: BaseException) -> int | None:
 
 
 @contextlib.contextmanager
+def interrupt_is_130(prog: str) -> Iterator[None]:
+    """Ctrl-C before the job starts (parsing the flags, checking the paths: nothing to save yet): one line and
+    exit status 130, no traceback."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        _say(prog, "interrupted (Ctrl-C) before the job started; nothing was written")
+        raise SystemExit(130) from None
+
+
+@contextlib.contextmanager
 def exit_codes(prog: str) -> Iterator[None]:
     """Turn the failures of the table above into one line on stderr and ``SystemExit(status)``."""
     try:

@@ -32,6 +32,7 @@ from typing import Any
 from jaxtraffic import paper
 from jaxtraffic.cli import errors, external, judge, staging
 from jaxtraffic.cli.options import EvaluateOptions, parse_evaluate, program
+from jaxtraffic.io.files import read_json
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.paper import laws
 from jaxtraffic.paper.oracle import load_oracle
@@ -111,7 +112,7 @@ def gradient_controllers(mode: str, root: Path, controller_points: int, referenc
             train_run(config)
         ctrl, config = load_policy(run_dir)
         ctrls[name], grids[name] = ctrl, policy_grid(config)
-        runs[name] = {"run_dir": str(run_dir), "summary": json.loads((run_dir / "summary.json").read_text()),
+        runs[name] = {"run_dir": str(run_dir), "summary": read_json(run_dir / "summary.json"),
                       "curve": _curve(run_dir / "learning_curve.csv")}
     return ctrls, grids, runs
 
@@ -244,11 +245,11 @@ def check_paths(args: EvaluateOptions, argv: list[str] | None) -> None:
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     """Run the evaluation (exit statuses: ``cli.errors``; 2 for bad flags, 74 for an OS error, 128+N on a
     signal; ``--out`` is replaced whole or left as it was, ``cli.staging``)."""
-    with errors.exit_codes(PROG):  # `evaluate.py --help | head`: one line, not a traceback (as train.py)
+    with errors.exit_codes(PROG), errors.interrupt_is_130(PROG):  # `--help | head`, Ctrl-C: one line
         args = parse_args(argv)
-    t0 = time.perf_counter()
-    nd, na = check_args(args)
-    check_paths(args, argv)
+        t0 = time.perf_counter()
+        nd, na = check_args(args)
+        check_paths(args, argv)
     try:
         distributed.initialize(*args.cluster.values())  # before any computation
     except ValueError as err:
@@ -369,7 +370,7 @@ def _main(args: EvaluateOptions, argv: list[str] | None, t0: float, nd: int, na:
     grids.update(own_grids)
     lc = run_dir / "learning_curve.csv"
     learned_runs = {"ppo": {"run_dir": str(run_dir), "curve": _curve(lc),
-                            "summary": json.loads((run_dir / "summary.json").read_text())
+                            "summary": read_json(run_dir / "summary.json")
                             if (run_dir / "summary.json").exists() else {}}, **grad_runs,
                     **{name: {"run_dir": f"--controller {name}", "summary": {}, "curve": None} for name in own}}
     meta = {"policy": policy, "policy_delay0": policy0, "argv": list(sys.argv[1:] if argv is None else argv)}

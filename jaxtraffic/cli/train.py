@@ -54,7 +54,7 @@ def flags_class(algo: str, base: TrainConfig) -> type:
     cluster's flags."""
     hints = {s: typing.get_type_hints(cls) for s, cls in SECTIONS.items()}
     values = base.tables()
-    leaves = [(f.name, Literal[tuple(f.metadata["choices"])] if "choices" in f.metadata else hints[s][f.name],
+    leaves = [(f.name, _flag_type(hints[s][f.name], f, values[s][f.name]),
                dataclasses.field(default=values[s][f.name], metadata={"help": f.metadata.get("help")}))
               for s, f in fields_for(algo)]
     cls = dataclasses.make_dataclass(algo, [*leaves, (
@@ -67,6 +67,17 @@ def flags_class(algo: str, base: TrainConfig) -> type:
         frozen=True)
     cls.__doc__ = ABOUT[algo]
     return cls
+
+
+def _flag_type(hint: Any, f: dataclasses.Field, value: Any) -> Any:
+    """The type tyro parses a field's flag as: its choices, or its type; a boolean is one flag (``--quiet``,
+    ``--no-require-certificate``: the opposite of its default), but both when a --config file changed it (so
+    ``--quiet`` still works when the file says ``quiet = true``)."""
+    if "choices" in f.metadata:
+        return Literal[tuple(f.metadata["choices"])]
+    if hint is bool and value == f.default:
+        return Annotated[bool, tyro.conf.FlagCreatePairsOff]
+    return hint
 
 
 def _value_of(argv: list[str], flag: str) -> str | None:
@@ -178,16 +189,22 @@ def _one_line(event: Any, algo: str, owner: dict[str, str]) -> None:
         raise ValueError(where + " ".join(event.message.split(" Got errors:")[0].split()))
 
 
-def parse(argv: list[str] | None = None) -> tuple[TrainConfig, Cluster, set[str]]:
+def parse(argv: list[str] | None = None) -> tuple[TrainConfig, Cluster, dict[str, str]]:
     """The training configuration of the command line ``argv`` (default ``sys.argv[1:]``), its cluster flags,
-    and the fields its flags set."""
+    and the fields its flags and its --config file set, each with where (``--lr``, ``lr in FILE``)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     _refuse_removed(argv)
     exit_on_version(argv, PROG)
     from_file = _start_tables(argv)
+    recipe_name = _value_of(argv, "--recipe")
+    config_file = _value_of(argv, "--config") or (f"jaxtraffic/paper/recipes/{recipe_name}.toml" if recipe_name
+                                                   else None)
     if not argv or argv[0] not in (*ALGOS, *HELP):
         argv.insert(0, _default_algo(argv, from_file))
-    bases = {a: _base(a, from_file) for a in ALGOS}
+    try:  # the file's values are checked here first: an error names the file
+        bases = {a: _base(a, from_file) for a in ALGOS}
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{config_file}: {err}" if config_file else str(err)) from None
     classes = {a: flags_class(a, bases[a]) for a in ALGOS}
     algo = argv[0] if argv[0] in ALGOS else "ppo"
     names = {f.name for f in dataclasses.fields(classes[algo])} - {"config", "recipe", "cluster"}
@@ -198,16 +215,18 @@ def parse(argv: list[str] | None = None) -> tuple[TrainConfig, Cluster, set[str]
                                 for a in ALGOS)]
     owner = {"--" + f.name.replace("_", "-"): a for a in reversed(ALGOS) for f in dataclasses.fields(classes[a])}
     with tyro_errors.on_parse_error(lambda event: _one_line(event, algo, owner)):
-        flags = tyro.cli(commands, args=argv, prog=PROG, config=(tyro.conf.FlagCreatePairsOff,), compact_help=True,
+        flags = tyro.cli(commands, args=argv, prog=PROG, compact_help=True,
                          default=classes["ppo"](), description=DESCRIPTION)
     given = _given(argv[1:], names)
     values = {k: getattr(flags, k) for k in given}
+    origin = {k: f"{k} in {config_file}" for t in from_file.values() for k in t if k != "algo"}
+    origin.update({k: "--" + k.replace("_", "-") for k in given})
     if values.get("min_wave_speed") == -math.inf:  # the paper's rule alone (stored as null in the JSON outputs)
         values["min_wave_speed"] = None
     tables: Tables = {s: dict(t) for s, t in from_file.items()}  # the file's, then the flags over them
     for s, t in flag_tables(algo, values).items():
         tables[s] = {**tables.get(s, {}), **t}
-    return TrainConfig.make(**_with_run(tables, algo)), flags.cluster, given
+    return TrainConfig.make(**_with_run(tables, algo)), flags.cluster, origin
 
 
 def config_from_args(argv: list[str] | None = None) -> TrainConfig:
@@ -216,9 +235,9 @@ def config_from_args(argv: list[str] | None = None) -> TrainConfig:
 
 
 def resumed_config(config: TrainConfig, given: set[str] | dict) -> TrainConfig:
-    """On --resume: the run's saved configuration, with the run-control flags given on the command line
-    (``tree.run_control``) applied, and recorded in the
-    run's config.json; a flag that would change the trained problem is an error."""
+    """On --resume: the run's saved configuration, with the run-control fields given (``tree.run_control``, by
+    flags or a --config file; ``given`` maps each to where it was given, ``parse``) applied, and recorded in the
+    run's config.json; a field that would change the trained problem is an error."""
     saved = load_config(config.run.out_dir)
     if saved.run.algo != config.run.algo:
         raise ValueError(f"{config.run.out_dir} holds a {saved.run.algo} run: resume it with "
@@ -226,14 +245,27 @@ def resumed_config(config: TrainConfig, given: set[str] | dict) -> TrainConfig:
     control = run_control(saved.run.algo)
     new, old = config.tables(), saved.tables()
     section = flag_sections(saved.run.algo)
-    owners = {k: section[k] for k in given if k in section}  # in the order the flags were given
-    changed = [f"--{k.replace('_', '-')} {new[s][k]!r} (the run's value: {old[s][k]!r})" for k, s in owners.items()
+    where = {k: v for k, v in given.items() if isinstance(v, str) and v.startswith(("--", f"{k} in "))} \
+        if isinstance(given, dict) else {}  # (parse's origins; a dict of values says only which were given)
+    owners = {k: section.get(k) or next(s for s in new if k in new[s]) for k in given  # in the order given
+              if k in section or where.get(k, "--").count(" in ")}  # (a file may set fields without a flag)
+    changed = [f"{_label(k, where)} {new[s][k]!r} (the run's value: {old[s][k]!r})" for k, s in owners.items()
                if k not in control.get(s, ()) and new[s][k] != old[s][k]]
     if changed:
-        raise ValueError("--resume continues the run with its saved configuration; these flags would change it: "
+        flags = "these flags" if all(_label(k, where).startswith("--") for k in owners) else "these settings"
+        raise ValueError(f"--resume continues the run with its saved configuration; {flags} would change it: "
                          + ", ".join(changed) + "; drop them, or start a new run (--overwrite clears this one)")
-    kept = flag_tables(saved.run.algo, {k: new[s][k] for k, s in owners.items() if k in control.get(s, ())})
+    kept: dict[str, dict[str, Any]] = {}
+    for k, s in owners.items():
+        if k in control.get(s, ()):
+            kept.setdefault(s, {})[k] = new[s][k]
     return saved.updated(**{**kept, "run": {**kept.get("run", {}), "resume": True, "out_dir": config.run.out_dir}})
+
+
+def _label(name: str, where: dict[str, str]) -> str:
+    """How a resumed field was given: ``--lr`` (a flag), ``lr in FILE =`` (a --config file)."""
+    origin = where.get(name, "--" + name.replace("_", "-"))
+    return origin if origin.startswith("--") else origin + " ="
 
 
 def main(argv: list[str] | None = None) -> Path:
@@ -241,7 +273,8 @@ def main(argv: list[str] | None = None) -> Path:
     runs on a device), train, return the run directory. Exit status 2 for invalid flags or a broken
     run directory, 74 for an OS error (``cli.errors``), 130 / 143 after SIGINT / SIGTERM (``runs.ppo.trainer``)."""
     try:
-        config, cluster, given = parse(argv)
+        with errors.interrupt_is_130(PROG):
+            config, cluster, given = parse(argv)
         distributed.initialize(*cluster.values())
         compile_cache.enable()  # before the first compilation (jaxtraffic.platform.compile_cache)
         if config.run.resume:

@@ -44,6 +44,7 @@ from typing import TYPE_CHECKING, Any, cast
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from jaxtraffic.control.base import Controller
@@ -60,9 +61,33 @@ from jaxtraffic.model import fundamental as fd
 from jaxtraffic.model.linear import linearize
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.model.solver import arz_step
+from jaxtraffic.platform.tracing import is_traced
 
 Array = jax.Array
 ALPHA_MIN = 0.01  # lower end of the projection: at alpha = 0 the input has no effect (V_h = 0)
+MAX_DELAY_S = 3600.0  # s: an assumed delay beyond an hour is no vehicle's (the paper's are a few seconds)
+# each setting's valid range: (lo, lo included, hi, hi included); NaN alpha0: the nominal's alpha
+RANGES = {"assumed delay": (0.0, True, MAX_DELAY_S, True), "alpha0": (0.0, True, 1.0, True),
+          "forgetting": (0.0, False, 1.0, True), "shock_scale": (0.0, False, None, True),
+          "min_info": (0.0, False, None, True), "resid_scale": (0.0, True, None, True)}
+UNITS = {"assumed delay": " s", "shock_scale": " veh/m", "min_info": " (m/s)^2", "resid_scale": " m/s"}
+
+
+def _check_range(name: str, value: float | Array) -> None:
+    """``ValueError`` with the valid range (``RANGES``) unless a concrete setting lies in it (NaN alpha0: the
+    default); a traced one is not checked (``_check_setting``)."""
+    if is_traced(value):
+        return
+    if name != "alpha0" or not np.all(np.isnan(np.asarray(value, np.float64))):
+        _check_setting(name, value)
+    lo, lo_in, hi, hi_in = RANGES[name]
+    x = np.asarray(value, np.float64)
+    x = x[~np.isnan(x)] if name == "alpha0" else x
+    ok = np.all(x >= lo if lo_in else x > lo) and (hi is None or np.all(x <= hi if hi_in else x < hi))
+    if not ok:
+        close = "]" if hi_in and hi is not None else ")"
+        span = f"{'[' if lo_in else '('}{lo:g}, {'inf' if hi is None else f'{hi:g}'}{close}{UNITS.get(name, '')}"
+        raise ValueError(f"adaptive_backstepping: {name} must lie in {span}, got {x.tolist()}")
 
 
 @struct.dataclass
@@ -186,6 +211,7 @@ def adaptive_backstepping(delay: float | Array = 4.0, k: float | Array = 1.0, *,
         k: Lyapunov gain (dimensionless).
         alpha0: initial estimate in [0, 1] (default NaN: the nominal's alpha).
         forgetting: forgetting factor lam in (0, 1] per control step (memory ~ 1/(1 - lam) steps).
+        (Each setting is checked against its range, ``RANGES``: the delay in [0, 3600] s, the scales > 0.)
         adapt: False keeps alpha0 (then, told alpha0 = the nominal's alpha and hold_target=False, it equals
             ``backstepping`` to rounding).
         shock_scale: density difference across a node (veh/m) at which its weight halves (> 0).
@@ -200,12 +226,11 @@ def adaptive_backstepping(delay: float | Array = 4.0, k: float | Array = 1.0, *,
     Returns:
         A ``Controller`` named "adaptive_backstepping"; its state is an ``EstimatorState``.
     """
-    _check_setting("assumed delay", delay, minimum=0.0)
     _check_setting("backstepping gain k", k)
     _check_share(keep)
-    for name, value in (("forgetting", forgetting), ("shock_scale", shock_scale), ("min_info", min_info),
-                        ("resid_scale", resid_scale)):
-        _check_setting(name, value, minimum=0.0)
+    for name, value in (("assumed delay", delay), ("alpha0", alpha0), ("forgetting", forgetting),
+                        ("shock_scale", shock_scale), ("min_info", min_info), ("resid_scale", resid_scale)):
+        _check_range(name, value)
     as_f = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
     settings = AdaptiveSettings(k=as_f(k), delay=as_f(delay), alpha0=as_f(alpha0), forgetting=as_f(forgetting),
                                 adapt=as_f(adapt),

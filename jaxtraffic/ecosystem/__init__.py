@@ -53,6 +53,9 @@ __all__ = ["ACTION_EPS", "ENV_ID", "N_GAINS", "controller_grid", "resolve_env_pa
            "policy_as_controller", "register_gymnasium"]
 
 
+ENV_SECTIONS = ("plant", "env")  # the config sections an environment reads
+
+
 def resolve_env_params(env_params: learn_env.EnvParams | None = None, **config: Any) -> learn_env.EnvParams:
     """``env_params`` itself, or the environment that ``train.py ppo`` with the flags ``config`` trains on
     (keywords named as its flags: ``n_points=21, horizon_s=1.0``; the training defaults for the fields not given,
@@ -62,9 +65,15 @@ def resolve_env_params(env_params: learn_env.EnvParams | None = None, **config: 
             raise TypeError(f"give env_params or config fields, not both (got {sorted(config)})")
         return env_params
     try:
-        train_config = TrainConfig.make(**flag_tables("ppo", config))
+        tables = flag_tables("ppo", config)
     except TypeError as err:
         raise TypeError(f"unknown environment config field: {err} (the fields are train.py ppo's flags)") from None
+    other = sorted((k, s) for s, t in tables.items() if s not in ENV_SECTIONS for k in t)
+    if other:  # (lr, out_dir, total_steps: the training's, which the environment never reads)
+        name, section = other[0]
+        raise TypeError(f"{name!r} is a setting of the training ([{section}]), not of the environment: its keywords "
+                        f"are the fields of {' and '.join(ENV_SECTIONS)}")
+    train_config = TrainConfig.make(**tables)
     env_params = train_config.env_params()
     check_initial_amplitudes(train_config, env_params.traffic)
     return env_params

@@ -106,6 +106,9 @@ def _check_seed(seed: Any, what: str = "seed") -> None:
 def _action(action: Any, shape: tuple[int, ...]) -> jax.Array:
     """The action as float32 of ``shape``; ValueError for a NaN or infinite entry (it would poison the state and
     every observation after it): a finite action outside [-1, 1] is clipped to the action space by the step."""
+    if np.iscomplexobj(action) or not np.issubdtype(np.asarray(action).dtype, np.number):
+        raise ValueError(f"the action must be real numbers, got {np.asarray(action).tolist()!r} (dtype "
+                         f"{np.asarray(action).dtype}); the action space is Box(-1, 1)")
     a = np.asarray(action, np.float32).reshape(shape)
     if not np.all(np.isfinite(a)):
         raise ValueError(f"the action must be finite, got {np.asarray(action).tolist()!r} (NaN or inf; a policy "

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from jaxtraffic.io.files import atomic_write_text
+from jaxtraffic.io.files import atomic_write_text, read_text
 
 __all__ = ["ObsNormalization", "active", "applying", "export_obs_normalization", "load_obs_normalization",
            "normalization_evidence", "normalized_policy"]
@@ -58,7 +58,7 @@ def load_obs_normalization(path: str | Path) -> ObsNormalization | None:
     observations, ``norm_obs`` false); ``ValueError`` naming the file for anything else."""
     path = Path(path)
     try:
-        doc = json.loads(path.read_text())
+        doc = json.loads(read_text(path))
         if doc.get("format") != FORMAT:
             raise ValueError(f"format {doc.get('format')!r}, expected {FORMAT!r}")
         mean, var = np.asarray(doc["mean"], dtype=float), np.asarray(doc["var"], dtype=float)

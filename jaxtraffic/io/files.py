@@ -5,6 +5,10 @@ file), is flushed and fsynced, then ``os.replace``d over the target, so an inter
 half-written file; a temporary file left by a killed process (``.*.tmp``) is removed by
 ``clean_stale_tmp``.
 
+Every config and run file is read by ``read_regular`` (``read_text``, ``read_json``): a regular file only (a FIFO
+is opened without blocking, then refused, like a device or a directory), at most ``limit`` bytes; a bad one is a
+``ValueError`` naming it.
+
 JSON outputs (``to_jsonable``): ``null`` means "never" / "none" / unbounded (+inf: a time that is
 never reached, no wall-clock limit); a value that could not be computed, NaN, is the string
 ``"nan"``, and -inf is ``"-inf"``. ``from_jsonable`` reads them back as floats.
@@ -27,8 +31,12 @@ from typing import Any
 import jax
 import numpy as np
 
-__all__ = ["atomic_write_bytes", "atomic_write_text", "clean_stale_tmp", "from_jsonable", "read_json",
-           "to_jsonable", "write_json"]
+__all__ = ["CONFIG_LIMIT", "atomic_write_bytes", "atomic_write_text", "clean_stale_tmp", "from_jsonable",
+           "read_json", "read_regular", "read_text", "to_jsonable", "write_json"]
+
+CONFIG_LIMIT = 2**20  # bytes: a config file (TOML, config.json), a summary: a few kB in practice
+KINDS = {stat.S_IFIFO: "a FIFO (named pipe)", stat.S_IFCHR: "a character device", stat.S_IFBLK: "a block device",
+         stat.S_IFDIR: "a directory", stat.S_IFSOCK: "a socket"}
 
 
 def _umask() -> int:
@@ -74,6 +82,45 @@ def clean_stale_tmp(run_dir: str | Path, names: Iterable[str]) -> list[Path]:
     return stale
 
 
+def read_regular(path: str | Path, limit: int = CONFIG_LIMIT, follow: bool = True) -> bytes:
+    """The bytes of ``path`` if it is a regular file of at most ``limit`` bytes; ``ValueError`` naming it
+    otherwise (a FIFO, a device, a directory, too large), ``OSError`` if it cannot be opened. ``follow``
+    False: a symbolic link is refused too (a run's own files)."""
+    flags = os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC | (0 if follow else os.O_NOFOLLOW)
+    try:
+        fd = os.open(path, flags)  # O_NONBLOCK: opening a FIFO does not wait for a writer
+    except OSError as err:
+        if not follow and os.path.islink(path):
+            raise ValueError(f"{path}: a symbolic link, not a regular file (refused)") from None
+        if err.filename is None:
+            raise type(err)(err.errno, err.strerror, str(path)) from None
+        raise
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            kind = KINDS.get(stat.S_IFMT(st.st_mode), "not a regular file")
+            raise ValueError(f"{path}: {kind}, not a regular file (refused)")
+        if st.st_size > limit:
+            raise ValueError(f"{path}: {st.st_size} bytes, more than the {limit} bytes such a file may hold")
+    except BaseException:
+        os.close(fd)
+        raise
+    with os.fdopen(fd, "rb") as f:
+        data = f.read(limit + 1)
+    if len(data) > limit:  # it grew while being read
+        raise ValueError(f"{path}: more than the {limit} bytes such a file may hold")
+    return data
+
+
+def read_text(path: str | Path, limit: int = CONFIG_LIMIT, follow: bool = True) -> str:
+    """``read_regular`` decoded as UTF-8 (``ValueError`` naming the file if it is not)."""
+    data = read_regular(path, limit, follow)
+    try:
+        return data.decode()
+    except UnicodeDecodeError as err:
+        raise ValueError(f"{path}: not UTF-8 text ({err})") from None
+
+
 def to_jsonable(x: Any) -> Any:
     """Convert numpy/jax scalars and arrays to JSON types. +inf becomes None (null: "never",
     unbounded), NaN the string "nan" (not computable: kept distinct from null), -inf "-inf"."""
@@ -108,9 +155,9 @@ def write_json(path: str | Path, obj: Any) -> None:
     atomic_write_text(path, json.dumps(to_jsonable(obj), indent=2, sort_keys=False, allow_nan=False) + "\n")
 
 
-def read_json(path: Path) -> Any:
-    """The JSON content of ``path``; ``ValueError`` naming it if it is unreadable or not JSON."""
+def read_json(path: str | Path, limit: int = CONFIG_LIMIT, follow: bool = True) -> Any:
+    """The JSON content of ``path`` (``read_text``); ``ValueError`` naming it if it is unreadable or not JSON."""
     try:
-        return json.loads(path.read_text())
+        return json.loads(read_text(path, limit, follow))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as err:
         raise ValueError(f"{path}: unreadable or not valid JSON ({type(err).__name__}: {err})") from None

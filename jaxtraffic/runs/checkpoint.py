@@ -23,7 +23,7 @@ import msgpack
 import numpy as np
 from flax import serialization
 
-from jaxtraffic.io.files import atomic_write_bytes, to_jsonable
+from jaxtraffic.io.files import atomic_write_bytes, read_regular, to_jsonable
 from jaxtraffic.runs.config import TrainConfig
 from jaxtraffic.runs.config.tree import run_control
 
@@ -31,6 +31,7 @@ CHECKPOINT = "checkpoint.msgpack"
 CONFIG = "config.json"
 SUMMARY = "summary.json"
 BEST = "best.msgpack"
+CHECKPOINT_LIMIT = 2**31  # bytes: a checkpoint holds a population's networks and optimiser states
 _BEST_ARRAYS = ("mean", "var", "score", "env_steps")
 FORMAT = "jaxtraffic-checkpoint"
 FORMAT_VERSION = 1
@@ -66,13 +67,45 @@ def load_checkpoint(run_dir: str | Path) -> tuple[dict, dict]:
     if not (isinstance(state, dict) and isinstance(state.get("runner"), dict) and isinstance(state.get("meta"), dict)
             and isinstance(state["meta"].get("env_steps"), int)):
         raise _broken(path, "not a jaxtraffic checkpoint (no runner state and progress)")
+    _check_meta(path, state["meta"])
     return state["runner"], state["meta"]
+
+
+def _count(x: Any) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool) and 0 <= x < 2**62
+
+
+def _seconds(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and 0 <= x < float("inf")
+
+
+def _problem(x: Any) -> bool:
+    try:
+        return x is None or isinstance(json.loads(x), dict)
+    except (TypeError, ValueError, RecursionError):
+        return False
+
+
+def _check_meta(path: Path, meta: dict) -> None:
+    """``_broken`` unless the checkpoint's progress (``loop.Progress.to_meta``) holds what a run writes: counts
+    (int >= 0), seconds (finite >= 0 or null), a flag, rows and the trained problem: a crafted file with a valid
+    checksum is refused before anything is rewritten."""
+    rules = {"env_steps": _count, "updates": _count, "wall_s": _seconds, "stopped": lambda x: isinstance(x, bool),
+             "rows": lambda x: isinstance(x, list) and all(isinstance(r, dict) for r in x), PROBLEM: _problem}
+    for key, value in meta.items():
+        ok = rules.get(key)
+        if ok is None and key.startswith("seconds_to_"):
+            ok = lambda x: x is None or _seconds(x)  # noqa: E731
+        elif ok is None and key.startswith(("env_steps_to_", "updates_to_")):
+            ok = lambda x: x is None or _count(x)  # noqa: E731
+        if ok is not None and not ok(value):
+            raise _broken(path, f"its progress is not what a run writes ({key} = {str(value)[:60]!r})")
 
 
 def _read_checked(path: Path, legacy_key: str) -> Any:
     """The state dict of a file in the checksummed format (or, written before the checksum, a bare
     payload holding ``legacy_key``); ``ValueError`` naming the file if it is broken."""
-    data = path.read_bytes()
+    data = read_regular(path, CHECKPOINT_LIMIT)  # a regular file only
     if not data:
         raise _broken(path, "empty file")
     try:

@@ -21,7 +21,7 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure, SubFigure
 
 from jaxtraffic.io.drawing import finish_figure, new_figure
-from jaxtraffic.io.files import atomic_write_text
+from jaxtraffic.io.files import atomic_write_text, read_text
 from jaxtraffic.sim.metrics import REWARD_TARGET
 
 CURVE_FIELDS = ["update", "env_steps", "wall_s", "mean_reward", "eval_reward", "eval_reward_min",
@@ -29,6 +29,7 @@ CURVE_FIELDS = ["update", "env_steps", "wall_s", "mean_reward", "eval_reward", "
                 "best_val_score", "eta1", "eta2", "eta3", "entropy", "approx_kl", "value_loss", "restarts"]
 # columns renamed since: old name -> new name (rows of a resumed older run, older CSV files)
 RENAMED_FIELDS = {"eval_rho_L2": "eval_rho_L2_veh_km"}
+CURVE_LIMIT = 2**28  # bytes: a learning curve has one short row per update
 
 
 def write_curve(path: Path, rows: list[dict], fields: list[str] = CURVE_FIELDS) -> None:
@@ -60,8 +61,7 @@ def append_curve(path: Path, row: dict, fields: list[str] = CURVE_FIELDS) -> Non
 def read_learning_curve(csv_path: str | Path) -> dict[str, np.ndarray]:
     """Columns of a learning_curve.csv as float arrays (empty cells become NaN; renamed columns of
     older files under their current names, ``RENAMED_FIELDS``)."""
-    with open(csv_path, newline="") as f:
-        rows = list(csv.DictReader(f))
+    rows = list(csv.DictReader(io.StringIO(read_text(csv_path, CURVE_LIMIT), newline="")))
     if not rows:
         raise ValueError(f"{csv_path}: no rows")
     out = {}

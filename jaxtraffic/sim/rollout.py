@@ -275,6 +275,7 @@ def simulate(
     names = select_metrics(metrics)
     record, memory, alpha_input = _options(record, memory, alpha_input)
     _check_rollout_args(params, n_steps, rho0, v0, nominal, record, memory)
+    _check_controller(controller, batched=False)
     check_assumed_delay(controller, params)
     _check_alphas(params, alpha_input.alphas, int(n_steps), alpha_input.noise, batched=False)
     return _simulate_jit(params, controller, rho0, v0, key, nominal, int(n_steps), record.every, memory.remat,
@@ -307,6 +308,21 @@ def _check_rollout_args(params, n_steps, rho0, v0, nominal, record: Record, memo
     check_steps(n_steps, record.every)
     check_nominal(params, nominal)
     _check_initial_condition(params, rho0, v0)
+
+
+def _check_controller(controller: object, batched: bool) -> None:
+    """``TypeError`` unless ``controller`` is a ``Controller`` (or None: the open loop); with ``batched``
+    (``batch_controller=True``) ``ValueError`` unless every leaf of its settings has a leading batch axis."""
+    if controller is not None and not isinstance(controller, Controller):
+        raise TypeError(f"controller must be a jaxtraffic Controller (jt.backstepping(4.0), jt.lyapunov(1.0), "
+                        f"control.base.Controller(...)) or None for the open loop, got {type(controller).__name__}")
+    if not batched:
+        return
+    leaves = [] if controller is None else jax.tree_util.tree_leaves(controller.settings)
+    if not leaves or any(jnp.ndim(x) == 0 for x in leaves):
+        raise ValueError("batch_controller=True needs a controller whose settings carry a leading batch axis "
+                         "(e.g. jax.vmap(jt.backstepping)(delays)); this one's are unbatched (a scalar setting, or "
+                         "none): give batch_controller=False to share it")
 
 
 def simulate_batch(
@@ -357,6 +373,7 @@ def simulate_batch(
     if (p_axis, r_axis, k_axis, c_axis, a_axis) == (None,) * 5:
         raise ValueError("simulate_batch: nothing is batched; use simulate")
     _check_rollout_args(params, n_steps, rho0, v0, nominal, record, memory)
+    _check_controller(controller, batched=batch_controller)
     check_assumed_delay(controller, params)
     _check_alphas(params, alphas, int(n_steps), noise, batched=True)
     inputs = (params, controller, rho0, v0, keys, nominal, alphas)

@@ -54,7 +54,8 @@ class PPOConfig:
     updates_per_chunk: int = hyper(3, lo=1, static=True, help="updates per jit-compiled chunk")
     num_seeds: int = hyper(1, lo=1, static=True, help="independent seeds (population members) trained at once")
     # (algo "both": a run's gradient trainer takes its network from here, ``runs.config``)
-    hidden: tuple[int, ...] = hyper(SMALL_HIDDEN, static=True, algo="both", help="hidden layer sizes (actor, critic)")
+    hidden: tuple[int, ...] = hyper(SMALL_HIDDEN, lo=1, static=True, algo="both",
+                                    help="hidden layer sizes (actor, critic)")
     init_sigma: float = hyper(0.3, lo=0.0, lo_open=True, static=True, help="initial action std (pre-tanh)")
     lr: float = hyper(1e-3, lo=0.0, lo_open=True, help="Adam learning rate")
     gamma: float = hyper(0.995, lo=0.0, lo_open=True, hi=1.0, help="discount per step (dt)")

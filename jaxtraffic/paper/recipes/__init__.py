@@ -33,8 +33,13 @@ def recipe_tables(name: str) -> dict[str, dict[str, Any]]:
 
 
 def recipe(name: str) -> TrainConfig:
-    """The configuration of the main job's run ``name`` (one of ``NAMES``)."""
-    return TrainConfig.make(**recipe_tables(name))
+    """The configuration of the main job's run ``name`` (one of ``NAMES``); an error names its file."""
+    where = f"jaxtraffic/paper/recipes/{name}.toml"
+    tables = recipe_tables(name)
+    try:
+        return TrainConfig.make(**tables)
+    except (TypeError, ValueError) as err:  # (a message of tables_of_toml names the file already)
+        raise ValueError(err if str(err).startswith(where) else f"{where}: {err}") from None
 
 
 def training_plant(kind: str, controller_points: int, reference: tuple[int, int]) -> dict[str, dict]:

@@ -21,8 +21,12 @@ from typing import Any
 
 from jaxtraffic.fields import check_value, fail
 
-# Every float must be finite unless listed in ALLOW_INF.
+# Every value must survive its conversion to the dtype it is traced as: an int to int32 (unless its own range
+# declares a wider one: the seed's uint32), a float to float32 (finite unless listed in ALLOW_INF, and not a
+# nonzero value that would round to 0).
 FLOAT32_MAX = 3.4028234663852886e38
+FLOAT32_TINY = 1.1754943508222875e-38  # the smallest normal float32
+INT32_MAX = 2**31 - 1
 MAX_STEPS = 10**8  # time steps of one rollout (a longer one would not fit the step counters, nor finish)
 ALLOW_INF = {"max_wall_s", "val_target"}  # inf: no wall-clock limit / no validation condition
 PAIR_RULES = {"delay_range": (0.0, None), "alpha_range": (0.0, 1.0), "amp_range": (0.0, None),
@@ -37,11 +41,15 @@ def _is_real(x: Any) -> bool:
     return isinstance(x, numbers.Real) and not isinstance(x, bool) and type(x).__name__ != "bool_"
 
 
-def _scalar(name: str, kind: str, value: Any) -> Any:
-    """``value`` checked against the scalar type ``kind`` ("int", "float", "bool", "str") and normalised."""
+def _scalar(name: str, kind: str, value: Any, int_max: int = INT32_MAX) -> Any:
+    """``value`` checked against the scalar type ``kind`` ("int", "float", "bool", "str") and normalised; an
+    integer's magnitude at most ``int_max`` (int32's, or the field's own wider range)."""
     if kind == "int":
         if not _is_int(value):
             raise fail(name, value, "must be an integer")
+        if abs(int(value)) > int_max:
+            raise fail(name, value, f"must fit {'int32' if int_max == INT32_MAX else 'its integer type'}"
+                        f" (|x| <= {int_max})")
         return int(value)
     if kind == "float":
         if not _is_real(value):
@@ -51,6 +59,8 @@ def _scalar(name: str, kind: str, value: Any) -> Any:
             raise fail(name, value, "must be finite")
         if math.isfinite(value) and abs(value) > FLOAT32_MAX:  # the programs compute in float32: it would be inf
             raise fail(name, value, f"must be finite in float32 (|x| <= {FLOAT32_MAX:.3g})")
+        if value != 0.0 and abs(value) < FLOAT32_TINY:  # float32 would make it 0 (or a denormal)
+            raise fail(name, value, f"must be 0 or at least {FLOAT32_TINY:.3g} in magnitude (float32)")
         return value
     if kind == "bool":
         if not isinstance(value, bool) and type(value).__name__ != "bool_":
@@ -62,8 +72,9 @@ def _scalar(name: str, kind: str, value: Any) -> Any:
     return value
 
 
-def _typed(name: str, annotation: str, value: Any) -> Any:
-    """``value`` checked against the field's annotation (as written in ``runs.config.tree``)."""
+def _typed(name: str, annotation: str, value: Any, int_max: int = INT32_MAX) -> Any:
+    """``value`` checked against the field's annotation (as written in ``runs.config.tree``); ``int_max``: the
+    largest integer magnitude (``_scalar``)."""
     kind = annotation.replace(" ", "")
     if kind.endswith("|None"):
         if value is None:
@@ -79,13 +90,13 @@ def _typed(name: str, annotation: str, value: Any) -> Any:
         if inner[-1] == "...":  # any length >= 1
             if len(value) < 1:
                 raise fail(name, value, f"must hold at least one {inner[0]}")
-            return tuple(_scalar(name, inner[0], v) for v in value)
+            return tuple(_scalar(name, inner[0], v, int_max) for v in value)
         if len(value) != len(inner):
             raise fail(name, value, f"must be a pair LO,HI of {inner[0]}s" if len(inner) == 2
                         else f"must be {'one value or ' if one else ''}{len(inner)} {inner[0]}s")
-        return tuple(_scalar(name, k, v) for k, v in zip(inner, value, strict=True))
+        return tuple(_scalar(name, k, v, int_max) for k, v in zip(inner, value, strict=True))
     if kind in ("int", "float", "bool", "str"):
-        return _scalar(name, kind, value)
+        return _scalar(name, kind, value, int_max)
     return value  # an annotation this module does not know: left to its owner
 
 
@@ -103,11 +114,17 @@ def _check_pair(name: str, value: tuple | None) -> None:
 
 def _checked(f: dataclasses.Field, value: Any) -> Any:
     """``value`` of the field ``f`` checked (type, choices, range, pair bounds) and normalised."""
-    typed = _typed(f.name, str(f.type), value)
+    rule = f.metadata.get("range")
+    wide = rule[2] if rule is not None and rule[2] is not None and rule[2] > INT32_MAX else INT32_MAX  # (the seed)
+    try:
+        typed = _typed(f.name, str(f.type), value, int(wide))
+    except ValueError:  # the field's own range says more than the dtype's (max_delay_steps: [0, 1000000])
+        if rule is not None and rule[2] is not None and _is_int(value):
+            check_value(f.name, value, rule)
+        raise
     choices = f.metadata.get("choices")
     if choices and typed is not None and typed not in choices:
         raise fail(f.name, typed, f"must be one of {tuple(choices)}")
-    rule = f.metadata.get("range")
     if isinstance(typed, tuple) and rule is None:  # LO,HI pairs
         _check_pair(f.name, typed)
     else:  # a number, or each element of a tuple (gain_max, the scenario grids)
@@ -162,6 +179,25 @@ def check_config(config: Any) -> None:
                           ("train_horizon_s", config.grad)):
         if (getattr(section, name) or 0.0) / pl.dt > MAX_STEPS:
             raise fail(name, getattr(section, name), f"must be at most {MAX_STEPS:.0e} time steps of dt = {pl.dt} s")
+    _check_grid(config)
+
+
+def _check_grid(config: Any) -> None:
+    """Values absurd for the plant's grid: an initial wavenumber above its Nyquist limit ((n_points - 1) / 2
+    periods on the road: the cosine would alias), a rollout of more than ``MAX_STEPS`` solver steps
+    (time steps x ``substeps``)."""
+    pl, ppo = config.plant, config.run.algo == "ppo"  # (only the algorithm's own fields: the others' defaults
+    nyquist = (pl.n_points - 1) // 2                   # need not suit a coarse grid)
+    name, values = (("wavenumber_range", config.env.wavenumber_range) if ppo
+                    else ("train_wavenumbers", config.grad.train_wavenumbers))
+    if any(abs(k) > nyquist for k in values):
+        raise fail(name, tuple(values), f"must be at most the grid's Nyquist limit (n_points - 1) / 2 = "
+                    f"{nyquist} periods on the road (n_points {pl.n_points})")
+    horizons = (config.env.horizon_s, config.run.val_horizon_s) if ppo else (config.grad.train_horizon_s,)
+    steps = max(config.run.eval_horizon_s, *horizons) / pl.dt
+    if pl.substeps > 1 and steps * pl.substeps > MAX_STEPS:
+        raise fail("substeps", pl.substeps, f"{steps:.0f} time steps of the longest rollout x substeps must be at "
+                    f"most {MAX_STEPS:.0e} solver steps")
 
 
 def _check_reference_validation(pl: Any) -> None:

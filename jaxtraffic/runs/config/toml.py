@@ -17,7 +17,7 @@ from typing import Any
 
 import tomli_w
 
-from jaxtraffic.io.files import atomic_write_text
+from jaxtraffic.io.files import atomic_write_text, read_text
 from jaxtraffic.runs.config.tree import SECTIONS, TrainConfig, leaf_fields
 
 CONFIG_TOML = "config.toml"
@@ -58,6 +58,9 @@ def tables_of_toml(data: dict[str, Any], where: str) -> dict[str, dict[str, Any]
         for k, v in table.items():
             if k not in names:
                 raise ValueError(f"{where}: [{s}] has no field {k!r}")
+            if s == "run" and k in ACTIONS:  # what a command does to a run directory: the command line's alone
+                raise ValueError(f"{where}: [run] {k} is an action on the run directory, not a setting; give "
+                                 f"--{k} on the command line instead")
             tables.setdefault(s, {})[k] = (None if k == "min_wave_speed" and v == -math.inf
                                            else tuple(v) if isinstance(v, list) else v)
     return tables
@@ -66,8 +69,8 @@ def tables_of_toml(data: dict[str, Any], where: str) -> dict[str, dict[str, Any]
 def read_tables(path: str | Path) -> dict[str, dict[str, Any]]:
     """The fields a TOML config file gives, by table."""
     try:
-        data = tomllib.loads(Path(path).read_text())
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as err:
+        data = tomllib.loads(read_text(path))  # a regular file of at most CONFIG_LIMIT bytes
+    except (OSError, tomllib.TOMLDecodeError) as err:
         raise ValueError(f"{path}: unreadable or not valid TOML ({type(err).__name__}: {err})") from None
     return tables_of_toml(data, str(path))
 

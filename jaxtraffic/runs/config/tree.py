@@ -19,7 +19,6 @@ so: such a run is retrained, not guessed at.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -27,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from jaxtraffic.fields import hyper
+from jaxtraffic.io.files import read_json
 from jaxtraffic.learn.env import PLANT, EnvParams, env_params
 from jaxtraffic.learn.env_config import EnvConfig
 from jaxtraffic.learn.gradient.config import GradientConfig
@@ -242,6 +242,9 @@ def config_from_json(data: dict[str, Any], where: str = "config.json") -> TrainC
     if isinstance(tree, dict) and "algo" in tree and "ppo" not in tree:
         raise ValueError(f"{where} was written by an older jaxtraffic (an 'algo' section; PPO's settings are "
                          f"now the 'ppo' section, PPOConfig as it is): {OLD}")
+    if data.get("version") not in (3, CONFIG_VERSION) or isinstance(data.get("version"), bool):
+        raise ValueError(f"{where}: config version {data.get('version')!r}; this jaxtraffic reads versions 3 and "
+                         f"{CONFIG_VERSION} (a newer jaxtraffic wrote it, or it was edited)")
     required = ("plant", "env", "ppo", "run")  # (sections added later default when absent)
     if not isinstance(tree, dict) or not all(isinstance(tree.get(s), dict) for s in required):
         have = sorted(tree) if isinstance(tree, dict) else type(tree).__name__
@@ -275,8 +278,4 @@ def load_config(run_dir: str | Path) -> TrainConfig:
     path = Path(run_dir) / "config.json"
     if not path.exists():
         raise FileNotFoundError(f"{run_dir} is not a run directory (no config.json)")
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as err:
-        raise ValueError(f"{path}: unreadable or not valid JSON ({type(err).__name__}: {err})") from None
-    return config_from_json(data, str(path))
+    return config_from_json(read_json(path), str(path))  # a regular file of at most CONFIG_LIMIT

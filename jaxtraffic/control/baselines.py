@@ -123,7 +123,8 @@ def lyapunov(k: float | Array = 1.0, nonlinear: bool = False, keep: float | Arra
     _check_setting("lyapunov gain k", k)
     _check_share(keep)
     act = _lyapunov_nonlinear_act if nonlinear else _lyapunov_act
-    return Controller(settings=LyapunovSettings(k=jnp.asarray(k, float), keep=jnp.asarray(keep, float)), act_fn=act,
+    k, keep = jnp.broadcast_arrays(jnp.asarray(k, float), jnp.asarray(keep, float))  # a batch of k: keep's too
+    return Controller(settings=LyapunovSettings(k=k, keep=keep), act_fn=act,
                       name="lyapunov_nl" if nonlinear else "lyapunov")
 
 
@@ -291,8 +292,9 @@ def backstepping(delay: float | Array = 4.0, k: float | Array = 1.0, recursive: 
     _check_setting("assumed delay", delay, minimum=0.0)
     _check_setting("backstepping gain k", k)
     _check_share(keep)
+    shape = jnp.broadcast_shapes(jnp.shape(k), jnp.shape(delay), jnp.shape(keep))  # keep follows a batch
     settings = BacksteppingSettings(k=jnp.asarray(k, float), delay=jnp.asarray(delay, float),
-                                    keep=jnp.asarray(keep, float))
+                                    keep=jnp.broadcast_to(jnp.asarray(keep, float), shape))
     if recursive:
         return Controller(settings=settings, act_fn=_backstepping_recursive_act, init_fn=_recursive_init,
                           name="backstepping")

@@ -108,6 +108,24 @@ def verdicts(res: dict, labels: dict[str, str], learned_names: list[str]) -> tup
     return lines, out
 
 
+def _tables(res: dict, labels: dict[str, str]) -> tuple[list[str], dict, dict]:
+    lines, summ = summary_table(res, labels, reference="backstepping")
+    more, checks = verdicts(res, labels, [k for k in res if k in RUNS])
+    return lines + more, summ, checks
+
+
+def resummarise(path: Path) -> None:
+    """Rewrite the summaries, checks and table of an earlier run's JSON from its per-scenario measures (no
+    simulation; its provenance is kept)."""
+    d = read_json(path)
+    res = {k: {m: np.asarray([np.inf if x is None else x for x in v], float) if m not in ("diverged", "not_settled")
+               else np.asarray(v, bool) for m, v in r.items()} for k, r in d["per_scenario"].items()}
+    lines, d["summary"], d["checks"] = _tables(res, d["laws"])
+    write_json(path, d)
+    path.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--plant", choices=sorted(PLANTS), default="paper")
@@ -117,16 +135,17 @@ def main() -> None:
     ap.add_argument("--runs", type=Path, default=Path("docs/results/runs"), help="learned runs ('' for none)")
     ap.add_argument("--tuned", type=Path, default=None, help="tuned parameters (benchmarks/tune_baselines.py)")
     ap.add_argument("--out", type=Path, default=None, help="JSON of the distributions and the draws")
+    ap.add_argument("--resummarise", type=Path, default=None, help="only rewrite this JSON's tables and checks")
     args = ap.parse_args()
+    if args.resummarise:
+        return resummarise(args.resummarise)
     base = PLANTS[args.plant]
     scen = sample(ScenarioDistribution(), "test", args.n, args.seed, base=base)
     laws = model_based() + (tuned(args.tuned) if args.tuned else []) + (learned(args.runs) if str(args.runs) else [])
     t0 = time.perf_counter()
     res = evaluate_laws(laws, scen, base, args.horizon)
     labels = {s.name: s.label for s in laws}
-    lines, summ = summary_table(res, labels, reference="backstepping")
-    more, checks = verdicts(res, labels, [s.name for s in laws if s.name in RUNS])
-    lines += more
+    lines, summ, checks = _tables(res, labels)
     print(f"{args.plant} plant, {args.n} test scenarios (seed {args.seed}), {args.horizon:g} s, "
           f"{time.perf_counter() - t0:.0f} s")
     print("\n".join(lines))

@@ -130,7 +130,7 @@ def test_a_schedule_run_trains_saves_and_loads(tmp_path):
 
     train_gradient(config)
     if config.run.tensorboard:  # the gradient trainer writes its curve's rows as TensorBoard scalars too
-        events = list((tmp_path / "tb").glob("events.out.tfevents.*"))
+        events = list((tmp_path / "tb").glob("*/events.out.tfevents.*"))  # (a folder per run)
         assert len(events) == 1 and b"train/objective" in events[0].read_bytes()
     check_told_delay_run(out, "schedule")
     assert '"knots_s"' in (out / "summary.json").read_text()

@@ -318,11 +318,12 @@ def _check_controller(controller: object, batched: bool) -> None:
                         f"control.base.Controller(...)) or None for the open loop, got {type(controller).__name__}")
     if not batched:
         return
-    leaves = [] if controller is None else jax.tree_util.tree_leaves(controller.settings)
-    if not leaves or any(jnp.ndim(x) == 0 for x in leaves):
+    leaves = jax.tree_util.tree_leaves(controller.settings) if isinstance(controller, Controller) else []
+    # (a controller without settings, the open loop's, has nothing to batch: accepted)
+    if controller is None or any(jnp.ndim(x) == 0 for x in leaves):
         raise ValueError("batch_controller=True needs a controller whose settings carry a leading batch axis "
                          "(e.g. jax.vmap(jt.backstepping)(delays)); this one's are unbatched (a scalar setting, or "
-                         "none): give batch_controller=False to share it")
+                         "no controller): give batch_controller=False to share it")
 
 
 def simulate_batch(

@@ -34,7 +34,10 @@ def _walk_numbers(obj):
 
 
 @pytest.mark.slow
-def test_evaluate_end_to_end(tiny_run, tmp_path):
+def test_evaluate_end_to_end(tiny_run, tmp_path, monkeypatch):
+    from jaxtraffic.paper import fair
+
+    monkeypatch.setattr(fair, "HORIZON_S", 20.0)  # the held-out comparison's horizon (600 s in the main job)
     out = tmp_path / "results"
     # the tiny gradient-trained gains run is where evaluate.py looks for it (the other gradient runs are absent)
     runs_root = tiny_run.parent / GRADIENT_ROOT
@@ -52,7 +55,7 @@ def test_evaluate_end_to_end(tiny_run, tmp_path):
     metrics = evaluate.main(["--run", str(tiny_run), "--out", str(out), "--horizon", "6", "--noise-seeds", "2",
                              "--robust-grid", "2x2", "--gradient", "existing", "--runs-root", str(runs_root),
                              "--reference-grid", "41x1", "--reference-robust-grid", "2x1",
-                             "--oracle-dir", str(tmp_path / "oracle"),
+                             "--oracle-dir", str(tmp_path / "oracle"), "--fair", "3",
                              "--controller", f"ppo_predict={REPO / 'tests' / 'external_controller.py'}:"
                              f"predict_controller:{tiny_run}"])
     on_disk = json.loads((out / "metrics.json").read_text())
@@ -77,6 +80,11 @@ def test_evaluate_end_to_end(tiny_run, tmp_path):
             t = entry["time_to_reward_-0.1_s"]
             assert t is None or (isinstance(t, float) and 0 <= t <= 6.0)
     assert all(math.isfinite(x) for x in _walk_numbers(on_disk))  # JSON holds no NaN/inf
+    # the held-out comparison (issue 47, item 8): every registered law and the user's on 3 test scenarios
+    held = json.loads((out / "fair" / "paper.json").read_text())
+    assert {"open_loop", "backstepping", "backstepping_f25", "adaptive_backstepping", "ppo", "grad_residual",
+            "ppo_predict"} <= set(held["laws"]) and held["scenarios"]["n"] == 3 and held["scenarios"]["split"] == "test"
+    assert "## Held-out comparison (the test split)" in (out / "REPORT.md").read_text()
     assert set(metrics) >= set(expected)
     for name in ("table2.md", "table2.csv", "REPORT.md", "fig3a_learning_curve.png", "fig3b_reward.png",
                  "fig5_spacetime_delay4.png", "fig6_l2_delay4.png", "robustness_map.png"):

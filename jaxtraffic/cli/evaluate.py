@@ -35,6 +35,7 @@ from jaxtraffic.cli.options import EvaluateOptions, parse_evaluate, program
 from jaxtraffic.io.files import read_json
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.paper import laws
+from jaxtraffic.paper.fair import FairStage
 from jaxtraffic.paper.oracle import load_oracle
 from jaxtraffic.paper.recipes import recipe, training_plant
 from jaxtraffic.platform import compile_cache, distributed
@@ -51,9 +52,7 @@ PROG = program("evaluate.py")  # in messages: the program the user typed
 MAX_CELLS = 10_000  # of a robustness map (the paper's is 17 x 12 = 204)
 MAX_NOISE_SEEDS = 1_000  # of the alpha-noise scenario (the paper: 8)
 MAX_HORIZON_S = MAX_STEPS * float(TrafficParams().dt)  # a rollout's step bound (runs.config.checks) at the paper's dt
-# the gradient-trained controllers evaluated beside PPO: name -> (run directory under --runs-root and recipe of
-# paper.recipes, its training plant: paper.recipes.training_plant)
-GRADIENT_RUNS = laws.recipes()
+GRADIENT_RUNS = laws.recipes()  # the learned laws beside PPO: name -> (its recipe and run folder, training plant)
 
 
 def parse_args(argv: list[str] | None) -> EvaluateOptions:
@@ -343,6 +342,7 @@ def _main(args: EvaluateOptions, argv: list[str] | None, t0: float, nd: int, na:
         planned = policy_grid(planned_config(args))
         with external.blamed(args.controller):
             external.check_grids(own, own_grids, plant_configs(args, planned.n_points, planned.dt, nd, na))
+    fair_stage = FairStage.from_paths(args.fair, args.tuned, args.split_runs)  # (checked before any training)
     run_dir = find_or_train_run(args.run, args.n_points)
     ppo, config = load_policy(run_dir)
     for flag, value in (("--horizon", args.horizon), ("--robust-horizon", args.robust_horizon)):
@@ -388,7 +388,7 @@ def _main(args: EvaluateOptions, argv: list[str] | None, t0: float, nd: int, na:
     with external.blamed(args.controller):
         results = paper.evaluate_plants({"ppo": ppo, **grad, **own}, configs, args.out, meta, oracles=oracles,
                                         log=_log, ppo_delay0=ppo0, learning_curve_csv=lc, learned_runs=learned_runs,
-                                        grids=grids)
+                                        grids=grids, fair_stage=fair_stage)
     if distributed.is_writer():
         export_runs(learned_runs, args.out / "runs")
     metrics = results[plants[0]]

@@ -68,6 +68,12 @@ class EvaluateOptions:
     """the reference plant (MUSCL), POINTSxSUBSTEPS; also the gradient runs' training plant"""
     reference_robust_grid: str = "9x6"
     """robustness map on the reference plant, DELAYSxALPHAS"""
+    fair: int = 256
+    """test scenarios of the held-out comparison of every law on the first plant, 600 s (0: skip it)"""
+    tuned: Path = Path("docs/results/fair/tuned.json")
+    """the model-based laws' parameters tuned on the train split (tune_baselines.py; absent: no tuned rows)"""
+    split_runs: Path | None = None
+    """learned runs trained on the train split over seeds to add to the comparison (benchmarks/train_split_sweep.py)"""
     oracle_dir: Path = Path("docs/results/oracle")
     """oracle rows of the maps (PLANT.json of benchmarks/gain_oracle.py); a missing file leaves them out"""
     controller: tuple[str, ...] = ()

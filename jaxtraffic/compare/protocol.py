@@ -26,13 +26,15 @@ from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.sim.options import Record
 from jaxtraffic.sim.rollout import simulate_batch
 
-TOLD = ("nothing", "delay")
+TOLD = ("nothing", "delay", "delay_alpha")
+MEASURED = ("diverged", "final_rho_L2", *stats.JS)  # what ``stats.per_scenario`` reads of a rollout
 
 
 @dataclasses.dataclass(frozen=True)
 class LawSpec:
     """A control law in the comparison: ``build()`` gives its ``Controller`` on ``grid`` (None: ``baseline_grid``
-    of the plant); ``told``: what it learns of each scenario's plant ("nothing" or "delay")."""
+    of the plant); ``told``: what it learns of each scenario's plant ("nothing", "delay", or "delay_alpha": D and
+    the plant's alpha as its ``alpha0``, the information bound of the adaptive law)."""
 
     name: str
     label: str
@@ -53,13 +55,15 @@ def _run(spec: LawSpec, plants: TrafficParams, rho0: np.ndarray, v0: np.ndarray,
          n_steps: int, every: int) -> dict[str, np.ndarray]:
     """One chunk of scenarios under one law: its per-scenario measures."""
     ctrl = spec.build()
-    told = spec.told == "delay"
+    told = spec.told != "nothing"
     if told:
         ctrl = tell_delay(ctrl, jnp.asarray(plants.delay))
+    if spec.told == "delay_alpha":
+        ctrl = ctrl.replace(settings=ctrl.settings.replace(alpha0=jnp.asarray(plants.alpha, jnp.float32)))
     ctrl = adapt(ctrl, spec.grid or baseline_grid(nominal), nominal)
     res = simulate_batch(plants, ctrl, n_steps=n_steps, rho0=jnp.asarray(rho0, jnp.float32),
                          v0=jnp.asarray(v0, jnp.float32), nominal=nominal, batch_controller=told,
-                         record=Record(every=every))
+                         record=Record(every=every), metrics=MEASURED)
     tr, met = res.trajectory, {k: np.asarray(v) for k, v in res.metrics.items()}
     assert tr is not None  # (recorded)
     t = np.append(np.asarray(tr.t)[0], n_steps * float(nominal.dt))

@@ -17,7 +17,9 @@ import dataclasses
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
+from flax import struct
 
 from jaxtraffic.model.params import TrafficParams, equilibrium
 from jaxtraffic.sim.batching import stack_params
@@ -138,3 +140,23 @@ def sample(dist: ScenarioDistribution, split: str, n: int, seed: int = 0,
     plants = stack_params(*(base.replace(delay=float(dl), alpha=float(al)) for dl, al in zip(d["delay"], d["alpha"],
                                                                                            strict=True)))
     return Scenarios(split=split, seed=seed, plants=plants, rho0=rho0, v0=v0, draws=d)
+
+
+@struct.dataclass
+class EpisodePool:
+    """A finite set of training episodes (``EnvConfig.train_split``: the scenario distribution's train split): per
+    scenario the plant's delay D (s) and ACC share alpha, shapes (P,), and the initial density (veh/m) and speed
+    (m/s), shapes (P, n_points). A reset draws one uniformly."""
+
+    delay: jax.Array
+    alpha: jax.Array
+    rho0: jax.Array
+    v0: jax.Array
+
+    @classmethod
+    def train_split(cls, n: int, traffic: TrafficParams) -> EpisodePool:
+        """``n`` scenarios of the train split (``compare.scenarios.sample``, seed 0) on ``traffic``'s grid."""
+        scen = sample(ScenarioDistribution(), "train", n, 0, base=traffic.replace(alpha_noise=0.0))
+        dtype = jnp.result_type(float)
+        return cls(delay=jnp.asarray(scen.draws["delay"], dtype), alpha=jnp.asarray(scen.draws["alpha"], dtype),
+                   rho0=jnp.asarray(scen.rho0, dtype), v0=jnp.asarray(scen.v0, dtype))

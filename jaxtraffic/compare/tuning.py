@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxtraffic.compare import stats
+from jaxtraffic.compare.protocol import MEASURED
 from jaxtraffic.compare.scenarios import Scenarios
 from jaxtraffic.control.adapter import adapt, baseline_grid
 from jaxtraffic.control.base import Controller
@@ -30,7 +31,6 @@ from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.sim.options import Record
 from jaxtraffic.sim.rollout import simulate_batch
 
-MEASURED = ("diverged", "final_rho_L2", *stats.JS)  # what the fitness reads of a rollout
 CAP = 50.0  # veh/km: a diverged scenario's (or a larger) time-averaged L2 in the fitness (a jam-scale wave)
 
 

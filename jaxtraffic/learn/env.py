@@ -41,6 +41,7 @@ import numpy as np
 from flax import struct
 from jax.custom_batching import custom_vmap
 
+from jaxtraffic.compare.scenarios import EpisodePool
 from jaxtraffic.control import gain_policy as gp
 from jaxtraffic.control.gain_law import sigma_nodes
 from jaxtraffic.fields import check_value, fail, range_of
@@ -106,6 +107,8 @@ class EnvParams:
     # the gain law's Gaussian filter of the observed rho~, v~, in node spacings of ``traffic``'s grid
     # (``control.gain_law``; make_env_params sets it from a width in m); 0: the paper's pointwise law
     filter_nodes: float = struct.field(pytree_node=False, default=0.0)
+    # episodes drawn from a finite set (``EnvConfig.train_split``) instead of the ranges above; None: the ranges
+    pool: EpisodePool | None = None
 
 
 @struct.dataclass
@@ -133,7 +136,8 @@ def env_params(config: EnvConfig, traffic: TrafficParams) -> EnvParams:
         wavenumber_max=int(config.wavenumber_range[1]), phase_max=config.phase_max, delay_min=d_lo, delay_max=d_hi,
         alpha_min=a_lo, alpha_max=a_hi, gain_filter=config.gain_filter, h_rate_weight=config.h_rate_weight,
         wave_weight=config.wave_weight, wave_speed_min=config.wave_speed_min, obs_segments=config.obs_segments,
-        diverge_penalty=config.diverge_penalty, filter_sigma=config.filter_sigma)
+        diverge_penalty=config.diverge_penalty, filter_sigma=config.filter_sigma,
+        pool=EpisodePool.train_split(config.train_split, traffic) if config.train_split else None)
 
 
 def make_env_params(traffic: TrafficParams | None = None, filter_sigma: float = _C.filter_sigma,
@@ -215,8 +219,12 @@ def _new_episode(key: Array, params: EnvParams, rho_bar: Array,
     d_hi = jnp.round(params.delay_max / tp.dt).astype(jnp.int32)
     delay = jax.random.randint(k_d, (), d_lo, d_hi + 1) * tp.dt
     alpha = jax.random.uniform(k_a, minval=params.alpha_min, maxval=params.alpha_max)
-    plant_params = tp.replace(delay=delay, alpha=alpha)
     rho0, v0 = paper_initial_condition(tp, amp, wn.astype(jnp.float32), phase, rho_bar=rho_bar)
+    if params.pool is not None:  # one scenario of the finite set (the ranges' draws above unused)
+        i = jax.random.randint(k_amp, (), 0, params.pool.delay.shape[0])
+        pool = params.pool
+        delay, alpha, rho0, v0 = (x[i].astype(rho0.dtype) for x in (pool.delay, pool.alpha, pool.rho0, pool.v0))
+    plant_params = tp.replace(delay=delay, alpha=alpha)
     return EnvState(plant=initial_state(plant_params, rho0, v0, sent=sent), plant_params=plant_params,
                     t=jnp.zeros((), jnp.int32), gains=jnp.zeros((gp.N_GAINS,), rho0.dtype))
 

@@ -16,6 +16,7 @@ from jaxtraffic.control.base import Controller
 from jaxtraffic.io.files import atomic_write_text
 from jaxtraffic.paper.certificate import certificate_section
 from jaxtraffic.paper.driver import evaluate_plant
+from jaxtraffic.paper.fair import FairStage
 from jaxtraffic.paper.plants import compare_plants
 from jaxtraffic.paper.scenarios import EvalConfig
 from jaxtraffic.platform import distributed
@@ -23,10 +24,13 @@ from jaxtraffic.platform import distributed
 
 def evaluate_plants(controllers: dict[str, Controller], configs: dict[str, EvalConfig], out_dir: str | Path,
                     meta: dict[str, Any], oracles: dict[str, dict | None] | None = None,
-                    log: Callable[[str], None] = print, **options: Any) -> dict[str, dict[str, Any]]:
-    """``evaluate_plant`` on each plant of ``configs`` (in order; the first is the main one), then every report
+                    log: Callable[[str], None] = print, fair_stage: FairStage | None = None,
+                    **options: Any) -> dict[str, dict[str, Any]]:
+    """``evaluate_plant`` on each plant of ``configs`` (in order; the first is the main one), then the held-out
+    comparison (``fair_stage``, on the first plant's nominal; outputs in ``out_dir/fair``), then every report
     written once; returns plant -> metrics. ``options``: ``evaluate_plant``'s keyword arguments
-    (``learned_runs`` also feeds the certificate section); ``oracles``: plant -> its map's oracle rows."""
+    (``learned_runs`` also feeds the certificate section, ``grids`` the comparison); ``oracles``: plant -> its
+    map's oracle rows."""
     out_dir = Path(out_dir)
     first = next(iter(configs))
     results, reports = {}, {}
@@ -38,13 +42,17 @@ def evaluate_plants(controllers: dict[str, Controller], configs: dict[str, EvalC
             oracle=(oracles or {}).get(plant), **options)
         if plant != first and distributed.is_writer():
             atomic_write_text(out / "REPORT.md", reports[plant])
+    fair_text = fair_stage.section(controllers, options.get("grids") or {}, first, configs[first].nominal(),
+                                   out_dir / "fair" if distributed.is_writer() else None,
+                                   log) if fair_stage is not None and fair_stage.n else []
     if distributed.is_writer():
         report = reports[first]
         if len(results) > 1:
             _, plants_text = compare_plants(results, configs, out_dir, log=log)
             report = report.rstrip() + "\n\n" + plants_text
         section = certificate_section(options.get("learned_runs") or {}, out_dir, log=log)
-        if section:
-            report = report.rstrip() + "\n\n" + "\n".join(section)
+        for part in (section, fair_text):
+            if part:
+                report = report.rstrip() + "\n\n" + "\n".join(part)
         atomic_write_text(out_dir / "REPORT.md", report)
     return results

@@ -28,11 +28,13 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from jaxtraffic.compare.scenarios import EpisodePool
 from jaxtraffic.learn.gradient.config import GradientConfig
 from jaxtraffic.learn.gradient.objective import (
     horizon_steps,
     init_theta,
     make_controller,
+    train_pool,
     trainable,
     training_scenarios,
 )
@@ -62,10 +64,10 @@ class CemState:
 
 
 def fitness(thetas: Array, grad_config: GradientConfig, base: TrafficParams,
-            n_steps: int) -> tuple[Array, Array, Array]:
+            n_steps: int, pool: EpisodePool | None = None) -> tuple[Array, Array, Array]:
     """(fitness, stabilised count, diverged count), each (P,), of P parameter sets ``thetas`` (P, ...) on the
     training scenarios of ``grad_config`` (module docstring)."""
-    scen = training_scenarios(grad_config, base)
+    scen = training_scenarios(grad_config, base, pool)
     n_p, n_s = thetas.shape[0], scen.rho0.shape[0]
     params = jax.tree.map(lambda x: jnp.tile(x, n_p), scen.params)
     tiled = jnp.repeat(thetas, n_s, axis=0)
@@ -97,11 +99,11 @@ def refit(pop: Array, fit: Array) -> tuple[Array, Array, Array]:
 
 
 def _generation(state: CemState, grad_config: GradientConfig, base: TrafficParams,
-                n_steps: int) -> tuple[CemState, dict]:
+                n_steps: int, pool: EpisodePool | None) -> tuple[CemState, dict]:
     key, sub = jax.random.split(state.key)
     pop = sample_population(sub, state.mean, state.sigma, grad_config.cem_population,
                             trainable(grad_config, state.mean))
-    fit, stab, n_div = fitness(pop, grad_config, base, n_steps)
+    fit, stab, n_div = fitness(pop, grad_config, base, n_steps, pool)
     top, mean, sigma = refit(pop, fit)
     better = fit[top] > state.fitness
     new = CemState(theta=jnp.where(better, pop[top], state.theta), fitness=jnp.where(better, fit[top], state.fitness),
@@ -113,8 +115,8 @@ def _generation(state: CemState, grad_config: GradientConfig, base: TrafficParam
 
 @functools.partial(jax.jit, static_argnames=("grad_config", "n_steps"))
 def _train_chunk(state: CemState, base: TrafficParams, grad_config: GradientConfig,
-                 n_steps: int) -> tuple[CemState, dict]:
-    return jax.lax.scan(lambda s, _: _generation(s, grad_config, base, n_steps), state, None,
+                 n_steps: int, pool: EpisodePool | None = None) -> tuple[CemState, dict]:
+    return jax.lax.scan(lambda s, _: _generation(s, grad_config, base, n_steps, pool), state, None,
                         length=grad_config.steps_per_chunk)
 
 
@@ -130,6 +132,7 @@ def make_train(grad_config: GradientConfig, base: TrafficParams, devices: list |
     if grad_config.policy not in ("gains", "schedule", "residual"):
         raise ValueError(f"method 'cem' trains the gains, schedule or residual policy, not {grad_config.policy!r}")
     n_steps = horizon_steps(grad_config, base.dt)
+    pool = train_pool(grad_config, base)
 
     def init(key: Array) -> CemState:
         theta = init_theta(grad_config, base, key)
@@ -137,6 +140,6 @@ def make_train(grad_config: GradientConfig, base: TrafficParams, devices: list |
                         sigma=jnp.full_like(theta, grad_config.cem_sigma), key=key, update=jnp.zeros((), jnp.int32))
 
     def train_chunk(state: CemState) -> tuple[CemState, dict[str, Any]]:
-        return _train_chunk(state, base, grad_config, n_steps)
+        return _train_chunk(state, base, grad_config, n_steps, pool)
 
     return init, train_chunk

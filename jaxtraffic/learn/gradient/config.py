@@ -28,7 +28,8 @@ class GradientConfig:
 
     The training scenarios are the Cartesian product of ``train_delays`` (s, multiples of dt) x
     ``train_alphas`` x ``train_amplitudes`` (veh/m) x ``train_wavenumbers`` x ``train_phases`` (rad) of the
-    initial cosine perturbation (``sim.initial.paper_initial_condition``).
+    initial cosine perturbation (``sim.initial.paper_initial_condition``), or with ``train_split`` > 0 that many
+    scenarios of the scenario distribution's train split (``compare.scenarios``).
     """
 
     policy: str = hyper("gains", help="gains: three constant gains; network: the actor network PPO trains; "
@@ -56,6 +57,9 @@ class GradientConfig:
     grad_steps: int = hyper(40, lo=1, help="Adam steps (cem: generations)")
     scenario_clip: float = hyper(0.0, lo=0.0, help="> 0: clip each scenario's gradient to this norm; 0: off")
     filter_sigma: float = hyper(FILTER_SIGMA, lo=0.0)  # m, the gain law's Gaussian filter; 0: pointwise
+    # > 0: the scenarios are this many of the scenario distribution's train split instead of the grid above (a run:
+    # EnvConfig.train_split)
+    train_split: int = hyper(0, lo=0)
     # the controller's own grid (``control.adapter``; the plant's n_points must refine it by an integer factor)
     controller_points: int = hyper(0, lo=0, help="controller's grid points (0: the plant's)")
     schedule_knots: tuple[float, ...] = hyper((0.0, 2.0, 4.0, 6.0, 8.0), help="schedule policy: its knot delays, s")
@@ -97,6 +101,8 @@ class GradientConfig:
 
     @property
     def n_scenarios(self) -> int:
+        if self.train_split:
+            return self.train_split
         return (len(self.train_delays) * len(self.train_alphas) * len(self.train_amplitudes)
                 * len(self.train_wavenumbers) * len(self.train_phases))
 

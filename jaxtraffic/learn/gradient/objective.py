@@ -49,6 +49,7 @@ import optax
 from flax import struct
 from jax.sharding import Mesh
 
+from jaxtraffic.compare.scenarios import EpisodePool
 from jaxtraffic.control.adapter import ControllerGrid, on_grid
 from jaxtraffic.control.adaptive_residual import ALPHA_KNOTS, adaptive_residual, residual_gains
 from jaxtraffic.control.base import Controller
@@ -103,8 +104,15 @@ class GradState:
     update: Array
 
 
-def training_scenarios(grad_config: GradientConfig, base: TrafficParams) -> Scenarios:
-    """The scenario grid of ``grad_config`` on the grid of ``base`` (alpha noise off)."""
+def training_scenarios(grad_config: GradientConfig, base: TrafficParams, pool: EpisodePool | None = None
+                       ) -> Scenarios:
+    """The scenario grid of ``grad_config`` on the grid of ``base`` (alpha noise off), or its ``train_split``
+    scenarios of the train split: ``pool`` (``train_pool``), drawn here when None (``base`` concrete)."""
+    if grad_config.train_split:
+        pool = train_pool(grad_config, base) if pool is None else pool
+        batched = jax.tree.map(lambda x: jnp.broadcast_to(jnp.asarray(x, pool.rho0.dtype), pool.delay.shape),
+                               base.replace(alpha_noise=0.0))
+        return Scenarios(params=batched.replace(delay=pool.delay, alpha=pool.alpha), rho0=pool.rho0, v0=pool.v0)
     grid = list(itertools.product(grad_config.train_delays, grad_config.train_alphas, grad_config.train_amplitudes,
                                   grad_config.train_wavenumbers,
                                   grad_config.train_phases))
@@ -115,6 +123,12 @@ def training_scenarios(grad_config: GradientConfig, base: TrafficParams) -> Scen
     params = batched.replace(delay=jnp.round(delays / base.dt) * base.dt, alpha=alphas)
     rho0, v0 = jax.vmap(lambda a, k, ph: paper_initial_condition(base, a, k, ph, dtype))(amps, wns, phases)
     return Scenarios(params=params, rho0=rho0, v0=v0)
+
+
+def train_pool(grad_config: GradientConfig, base: TrafficParams) -> EpisodePool | None:
+    """The train-split scenarios of ``grad_config`` on ``base``'s grid (``base`` concrete: drawn on the host, then
+    passed traced to the compiled training), or None for the scenario grid (built inside the compiled program)."""
+    return EpisodePool.train_split(grad_config.train_split, base) if grad_config.train_split else None
 
 
 def _network(grad_config: GradientConfig) -> ActorCritic:
@@ -327,8 +341,8 @@ def _one_step(state: GradState, scen: Scenarios, w: Weights, grad_config: Gradie
 
 @functools.partial(jax.jit, static_argnames=("grad_config", "n_steps", "mesh"))
 def _train_chunk(state: GradState, base: TrafficParams, grad_config: GradientConfig, n_steps: int,
-                 mesh: Mesh) -> tuple[GradState, dict]:
-    scen, w = training_scenarios(grad_config, base), weights_of(grad_config)
+                 mesh: Mesh, pool: EpisodePool | None = None) -> tuple[GradState, dict]:
+    scen, w = training_scenarios(grad_config, base, pool), weights_of(grad_config)
     out = jax.lax.scan(lambda s, _: _one_step(s, scen, w, grad_config, base, n_steps, mesh), state, None,
                        length=grad_config.steps_per_chunk)
     return gathered(out, mesh)  # the per-scenario metrics whole on every process
@@ -357,13 +371,14 @@ def make_train(grad_config: GradientConfig, base: TrafficParams, devices: list |
     n_steps = horizon_steps(grad_config, base.dt)
     mesh = batch_mesh(list(jax.devices()) if devices is None else list(devices))
     across = spans_processes(mesh)
+    pool = train_pool(grad_config, base)
 
     def init(key: Array) -> GradState:
         return _init(key, base, grad_config)
 
     def train_chunk(state: GradState) -> tuple[GradState, dict]:
         # placed whole on every device, as the chunk returns it: one compiled program for every chunk
-        out = _train_chunk(replicate(state, mesh), base, grad_config, n_steps, mesh)
+        out = _train_chunk(replicate(state, mesh), base, grad_config, n_steps, mesh, pool)
         return local_copy(out) if across else out
 
     return init, train_chunk

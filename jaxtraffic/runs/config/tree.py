@@ -122,7 +122,7 @@ class TrainConfig:
         # the gradient trainer's filter and network are the environment's and PPO's (one value each)
         object.__setattr__(self, "grad", dataclasses.replace(
             self.grad, hidden=tuple(self.ppo.hidden), gain_filter=self.env.gain_filter,
-            filter_sigma=self.env.filter_sigma))
+            filter_sigma=self.env.filter_sigma, train_split=self.env.train_split))
 
     @classmethod
     def make(cls, **tables: Mapping[str, Any]) -> TrainConfig:
@@ -163,7 +163,7 @@ class TrainConfig:
 SECTIONS = {"plant": TrafficParams, "env": EnvConfig, "ppo": PPOConfig, "grad": GradientConfig, "run": RunConfig}
 # GradientConfig's fields that a run sets from other sections (``TrainConfig.__post_init__``), or not at all
 # (max_grad_norm: PPO's field of that name is the flag's)
-BORROWED = ("hidden", "gain_filter", "filter_sigma", "max_grad_norm")
+BORROWED = ("hidden", "gain_filter", "filter_sigma", "max_grad_norm", "train_split")
 
 
 def leaf_fields(section: str) -> list[dataclasses.Field]:
@@ -219,7 +219,7 @@ def config_json(config: TrainConfig, **extra: Any) -> dict[str, Any]:
 
 
 # fields added within CONFIG_VERSION 4 that a saved config.json may lack: run control, None (off) when absent
-LATER = (("run", "mlflow"),)
+LATER = (("run", "mlflow"), ("env", "train_split"))
 
 
 def _from_json(f: dataclasses.Field, v: Any) -> Any:

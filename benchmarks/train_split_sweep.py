@@ -1,0 +1,58 @@
+"""Train every registered learned law on the scenario distribution's train split, over seeds (issue 47 item 5;
+docs/model.md section 20): each law's recipe (``paper.recipes``) with ``--train-split N`` (its episodes or
+scenarios drawn from N train-split scenarios, seed 0, instead of the paper's wave) and ``--seed S``, one run folder
+per law and seed, ``OUT/<law>/seed<S>``. The CEM-trained laws (delay schedule, residual) get the tuned baselines'
+budget (a population of 12 over 10 generations, 36 scenarios of 300 s: ``benchmarks/tune_baselines.py``); the
+Adam-trained gains and network their recipes' steps on 12 scenarios (an Adam step sees every scenario); PPO its
+recipe's budget. Then ``fair_benchmark.py --split-runs OUT`` judges them on the test split.
+
+    python benchmarks/train_split_sweep.py --out runs-split --seeds 0 1 2      # about 45 min on 2 cores
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from jaxtraffic.paper import laws
+
+ROOT = Path(__file__).resolve().parents[1]
+# law -> (train.py subcommand, recipe, extra flags); PPO is registered without a recipe (the main job trains it)
+PLAN: dict[str, tuple[str, str, tuple[str, ...]]] = {
+    "ppo": ("ppo", "ppo", ("--train-split", "36")),
+    "grad_gains": ("gradient", "gradient-gains", ("--train-split", "12")),
+    "grad_network": ("gradient", "gradient-network", ("--train-split", "12")),
+    "grad_robust": ("gradient", "gradient-robust", ("--train-split", "36", "--cem-population", "12",
+                                                    "--train-horizon-s", "300")),
+    "grad_residual": ("gradient", "adaptive-residual", ("--train-split", "36")),
+}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", type=Path, required=True, help="the runs' root folder")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    ap.add_argument("--laws", nargs="+", default=list(PLAN), choices=list(PLAN))
+    args = ap.parse_args()
+    missing = [n for n in laws.names(learned=True) if n not in PLAN]
+    if missing:
+        print(f"note: registered learned laws without a sweep entry (not trained here): {missing}")
+    for seed in args.seeds:
+        for name in args.laws:
+            algo, recipe, extra = PLAN[name]
+            out = args.out / name / f"seed{seed}"
+            if (out / "summary.json").exists():
+                print(f"{name} seed {seed}: done already ({out})", flush=True)
+                continue
+            cmd = [sys.executable, str(ROOT / "train.py"), algo, "--recipe", recipe, *extra, "--seed", str(seed),
+                   "--out-dir", str(out), "--quiet", *(["--resume"] if out.exists() else [])]
+            t0 = time.perf_counter()
+            rc = subprocess.call(cmd, cwd=ROOT)
+            print(f"{name} seed {seed}: rc {rc} in {time.perf_counter() - t0:.0f} s ({' '.join(cmd[2:])})", flush=True)
+
+
+if __name__ == "__main__":
+    main()

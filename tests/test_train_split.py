@@ -1,0 +1,87 @@
+"""Issue 47, item 5: the learned laws train on the scenario distribution's train split (``EnvConfig.train_split``:
+PPO's episodes, the gradient trainers' scenarios) and the held-out verdicts over seeds (``compare.verdicts``)."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+
+import jaxtraffic as jt
+from jaxtraffic.compare import ScenarioDistribution, sample, verdicts
+from jaxtraffic.compare.scenarios import EpisodePool
+from jaxtraffic.learn.env import env_params, reset_env
+from jaxtraffic.learn.env_config import EnvConfig
+from jaxtraffic.learn.gradient import cem, objective
+from jaxtraffic.learn.gradient.config import GradientConfig
+from jaxtraffic.runs.config import TrainConfig
+
+PLANT = jt.TrafficParams(n_points=21, delay=4.0)
+
+
+def test_the_pool_is_the_train_split_and_shares_nothing_with_the_test_split():
+    pool = EpisodePool.train_split(12, PLANT)
+    train = sample(ScenarioDistribution(), "train", 12, 0, base=PLANT)
+    test = sample(ScenarioDistribution(), "test", 256, 0, base=PLANT)
+    np.testing.assert_allclose(np.asarray(pool.rho0), train.rho0, rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(pool.delay), train.draws["delay"], rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(pool.alpha), train.draws["alpha"], rtol=1e-6)
+    # no initial state of the pool is one of the test split's
+    dist = np.abs(np.asarray(pool.rho0)[:, None, :] - test.rho0[None]).max(axis=-1)
+    assert dist.min() > 1e-4
+
+
+def test_ppo_episodes_are_drawn_from_the_pool_and_the_default_keeps_the_ranges():
+    ep = env_params(EnvConfig(train_split=5), PLANT)
+    assert ep.pool is not None and ep.pool.rho0.shape == (5, 21)
+    _, state = jax.vmap(reset_env, (0, None))(jax.random.split(jax.random.key(3), 64), ep)
+    rho0 = np.asarray(state.plant.rho)
+    # every episode starts at one of the pool's scenarios: its plant and its initial density
+    match = np.abs(rho0[:, None, :] - np.asarray(ep.pool.rho0)[None]).max(axis=-1).argmin(axis=1)
+    np.testing.assert_allclose(rho0, np.asarray(ep.pool.rho0)[match], rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(state.plant_params.delay), np.asarray(ep.pool.delay)[match], rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(state.plant_params.alpha), np.asarray(ep.pool.alpha)[match], rtol=1e-6)
+    assert len(set(match.tolist())) == 5  # 64 draws reach all five
+    assert env_params(EnvConfig(), PLANT).pool is None  # the default: the ranges, as before
+
+
+def test_the_gradient_trainers_read_the_same_split_through_the_run_config():
+    config = TrainConfig.make(plant={"n_points": 21}, env={"train_split": 4})
+    assert config.grad.train_split == 4 and config.grad.n_scenarios == 4
+    scen = objective.training_scenarios(config.grad, config.plant)
+    pool = EpisodePool.train_split(4, config.plant)
+    np.testing.assert_array_equal(np.asarray(scen.rho0), np.asarray(pool.rho0))
+    np.testing.assert_array_equal(np.asarray(scen.params.delay), np.asarray(pool.delay))
+    # the CEM trainer runs compiled on them (the pool drawn on the host, passed traced)
+    grad = GradientConfig.for_policy("schedule", train_split=4, grad_steps=1, steps_per_chunk=1, cem_population=2,
+                                     train_horizon_s=2.0, record_every=1)
+    init, chunk = cem.make_train(grad, config.plant)
+    state, metrics = chunk(init(jax.random.key(0)))
+    assert int(state.update) == 1 and 0 <= int(metrics["stabilised"][0]) <= 4
+
+
+def _rows(med: dict[str, float], n: int = 40, diverged: dict[str, int] | None = None) -> dict:
+    rng = np.random.default_rng(0)
+    out = {}
+    for k, m in med.items():
+        x = m * np.exp(0.05 * rng.standard_normal(n))
+        div = np.zeros(n, bool)
+        div[:(diverged or {}).get(k, 0)] = True
+        x = np.where(div, np.inf, x)
+        out[k] = {"mean_rho_L2": x, "diverged": div, "not_settled": div.copy()}
+    return out
+
+
+def test_the_verdicts_take_the_median_seed_and_judge_the_frontier_paired():
+    res = _rows({"base": 2.0, "law_s0": 1.0, "law_s1": 3.0, "law_s2": 1.4, "wave": 1.2}, diverged={"law_s1": 2})
+    groups = verdicts.seed_groups(list(res), "_s")
+    assert groups == {"law": ["law_s0", "law_s1", "law_s2"]}
+    assert verdicts.median_seed(res, groups["law"]) == "law_s2"
+    lines, over = verdicts.seed_lines(res, groups, str)
+    assert over["law"]["diverged"] == [0, 2, 0] and over["law"]["spread"][0] == pytest.approx(1.0, rel=0.05)
+    _, best = verdicts.frontier(res, ["law_s2"], ["base"], str)
+    assert best["ratio"] == pytest.approx(0.7, rel=0.1) and best["ratio_ci95"][1] < 0.8 and best["frontier"]
+    _, worse = verdicts.frontier(res, ["law_s1"], ["base"], str)  # 1.5x and two failures more: not reached
+    assert worse["ratio"] > 1 and not worse["frontier"]
+    _, checks = verdicts.base_checks(res, {"law": "base"}, lambda r: r.split("_s")[0], str)
+    assert checks == {"law_s0_vs_base": True, "law_s1_vs_base": False, "law_s2_vs_base": True}

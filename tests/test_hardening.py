@@ -316,6 +316,8 @@ def test_out_dir_not_writable(tmp_path, capsys):
     (["--reference-grid", "801"], "--reference-grid must look like AxB"),
     (["--reference-grid", "2x1"], "--reference-grid needs >= 3 points"),
     (["--n-points", "2"], "--n-points must be >= 3"),
+    (["--fair", "-1"], "--fair must be >= 0 test scenarios"),
+    (["--split-runs", "no/such/folder"], "--split-runs no/such/folder: not a folder"),
 ])
 def test_bad_evaluation_flags(argv, match, tmp_path, capsys):
     out = tmp_path / "results"

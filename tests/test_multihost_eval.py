@@ -36,7 +36,8 @@ grad = ["gradient", "--policy", "network", "--n-points", "21", "--train-delays",
 train.main(grad + cluster + ["--out-dir", first, "--grad-steps", "2"])
 train.main(grad + cluster + ["--out-dir", run, "--grad-steps", "4", "--resume"])
 evaluate.main(cluster + ["--run", run, "--out", out, "--horizon", "4", "--noise-seeds", "2", "--robust-grid", "3x2",
-                         "--robust-horizon", "4", "--gradient", "none", "--plants", "paper", "--no-numerics-check"])
+                         "--robust-horizon", "4", "--gradient", "none", "--plants", "paper", "--no-numerics-check",
+                         "--fair", "0"])
 import jax, numpy as np
 from jaxtraffic.sim.sharding import host_mesh, spans_processes
 mesh = host_mesh(np.zeros(2))  # what a host-level batched call splits over

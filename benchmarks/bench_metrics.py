@@ -8,6 +8,11 @@ process's (``time.process_time``: the machine is shared, wall time is noisier), 
 
     python benchmarks/bench_metrics.py                   # batch 64 and 1024, 300 steps
     python benchmarks/bench_metrics.py --batch-sizes 64 --steps 100 --repeats 2 --json
+    python benchmarks/bench_metrics.py --singles         # also each running sum alone: its marginal cost
+
+``--singles`` adds one variant per running sum (a metric that reads only it: J_TTT, J_fuel, max_cfl,
+control_effort, J_comfort_a2, J_comfort, J_comfort_at2, J_comfort_switch_on, J_fuel_kmh), so that the
+cost of each pass over the batch that the default call makes for its sums can be read off.
 """
 
 from __future__ import annotations
@@ -26,6 +31,8 @@ from jaxtraffic.runs.ppo.selection import SUITE_METRICS
 
 VARIANTS = {"default (all metrics)": None, "PPO suite's selection": SUITE_METRICS,
             "robustness map's selection": ROBUST_METRICS, "no metrics": ()}
+SINGLES = ("J_TTT", "J_fuel", "max_cfl", "control_effort", "J_comfort_a2", "J_comfort", "J_comfort_at2",
+           "J_comfort_switch_on", "J_fuel_kmh")  # each reads one running sum (and a_prev for the comfort ones)
 D = 4.0  # s, the plant's delay (the delay line is part of the closed loop)
 
 
@@ -34,6 +41,7 @@ def _args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--batch-sizes", default="64,1024")
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--singles", action="store_true", help="also each running sum alone (SINGLES)")
     ap.add_argument("--json", action="store_true")
     return ap.parse_args(argv)
 
@@ -44,12 +52,13 @@ def _call(p: TrafficParams, steps: int, names):
     return jax.jit(lambda r, v, k: simulate_batch(p, ctrl, n_steps=steps, rho0=r, v0=v, keys=k, metrics=names))
 
 
-def measure(batch: int, steps: int, repeats: int) -> dict[str, dict[str, float]]:
+def measure(batch: int, steps: int, repeats: int, singles: bool = False) -> dict[str, dict[str, float]]:
     """name -> {cpu_ns, wall_ns} per cell update (best of ``repeats``), the variants interleaved."""
     p = TrafficParams(delay=D)
     rho0, v0 = jax.vmap(lambda a: paper_initial_condition(p, amplitude=a))(jnp.linspace(0.005, 0.015, batch))
     keys = jax.random.split(jax.random.PRNGKey(0), batch)
-    fns = {name: _call(p, steps, names) for name, names in VARIANTS.items()}
+    variants = {**VARIANTS, **({f"{k} alone": (k,) for k in SINGLES} if singles else {})}
+    fns = {name: _call(p, steps, names) for name, names in variants.items()}
     for fn in fns.values():
         jax.block_until_ready(fn(rho0, v0, keys))  # compile
     best = {name: [float("inf"), float("inf")] for name in fns}
@@ -68,7 +77,7 @@ def main(argv: list[str] | None = None) -> dict:
     out = {"machine": cpu_model(), "load_before": load(), "devices": [str(d) for d in jax.devices()],
            "steps": args.steps, "controller": f"lyapunov, D = {D:g} s, paper grid", "batches": {}}
     for b in (int(x) for x in args.batch_sizes.split(",")):
-        out["batches"][b] = measure(b, args.steps, args.repeats)
+        out["batches"][b] = measure(b, args.steps, args.repeats, args.singles)
     out["load_after"] = load()
     if args.json:
         print(json.dumps(out, indent=1))

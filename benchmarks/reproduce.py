@@ -92,6 +92,7 @@ KEY_NUMBERS = [("delay4", c, k) for c in ("backstepping", "ppo", "grad_gains", "
 BASELINES = ("open_loop", "lyapunov", "backstepping")
 README_MARK = ("<!-- headline: learned vs backstepping (benchmarks/reproduce.py) -->", "<!-- /headline -->")
 FAIR_MARK = ("<!-- headline: fair comparison (benchmarks/reproduce.py) -->", "<!-- /headline -->")
+MAP_MARK = ("<!-- headline: robustness maps (benchmarks/reproduce.py) -->", "<!-- /headline -->")
 
 
 def headline(out: Path) -> str:
@@ -103,14 +104,39 @@ def headline(out: Path) -> str:
 
 
 def fair_headline(out: Path) -> str:
-    """The README's headline of the held-out comparison, from DIR/fair/paper.json (benchmarks/fair_benchmark.py)."""
-    d = json.loads((out / "fair" / "paper.json").read_text())
+    """The README's headline of the held-out comparison, from DIR/fair/split/paper.json (benchmarks/fair_benchmark.py
+    with the learned laws trained on the train split over seeds)."""
+    d = json.loads((out / "fair" / "split" / "paper.json").read_text())
     c, labels, n = d["checks"], d["laws"], d["scenarios"]["n"]
     lo, hi = c["ratio_ci95"]
-    return (f"on {n} held-out scenarios (paper grid, {d['horizon_s']:g} s) the best learned law, "
-            f"{labels[c['best_learned']]}, has {c['ratio']:.2f}x [{lo:.2f}, {hi:.2f}] the time-averaged density L2 "
-            f"of the best model-based law, {labels[c['best_model_based']]} (median per-scenario ratio, 95 % "
-            f"interval): the frontier of 0.8x is {'reached' if c['frontier'] else 'not reached'}")
+    seeds = c.get("seeds") or {}
+    n_seeds = sorted({len(v["seeds"]) for v in seeds.values()})
+    base = [v for k, v in c.items() if k.endswith("_vs_adaptive_backstepping")]
+    return (f"on {n} held-out scenarios (paper grid, {d['horizon_s']:g} s), with every learned law trained on the "
+            f"train split ({'-'.join(map(str, n_seeds)) or 'no'} seeds), the best learned law, "
+            f"{labels[c['best_learned']]} (its median seed), has {c['ratio']:.2f}x [{lo:.2f}, {hi:.2f}] the "
+            f"time-averaged density L2 of the best model-based law, {labels[c['best_model_based']]} (median "
+            f"per-scenario ratio, 95 % interval): the frontier of 0.8x is "
+            f"{'reached' if c['frontier'] else 'not reached'}; the learned residual's held-out check against its "
+            f"base, the adaptive law, holds for {sum(base)} of {len(base)} seeds")
+
+
+def map_headline(out: Path) -> str:
+    """The README's robustness-map counts, from DIR/robustness.json and DIR/reference/robustness.json: the cells
+    that stay stabilised (and those that diverge) of the controllable ones, for backstepping, the adaptive law and
+    the best learned law."""
+    parts = []
+    for plant, path in (("the paper grid", out / "robustness.json"), ("the reference plant",
+                                                                     out / "reference" / "robustness.json")):
+        t = json.loads(path.read_text())["table"]
+        rows, n, key = t["rows"], t["controllable"], "stays_stabilised"
+        learned = [k for k in rows if k.startswith(("ppo", "grad_"))]
+        best = max(learned, key=lambda k: (rows[k][key], -rows[k]["diverged"]))
+        text = ", ".join(f"{name} {rows[k][key]} ({rows[k]['diverged']} diverged)" for name, k in
+                         (("backstepping", "backstepping"), ("adaptive backstepping", "adaptive_backstepping"),
+                          (f"the best learned law ({best})", best)))
+        parts.append(f"on {plant}, of {n} controllable cells: {text}")
+    return "cells that stay stabilised over the last 150 s of 600 s " + "; ".join(parts)
 
 
 def readme_claim(out: Path, write: bool, mark: tuple[str, str] = README_MARK,
@@ -165,9 +191,12 @@ def main() -> int:
     results.update(certificates(out))
     if (out / "plants.json").exists():
         results["the README's headline is the results'"] = readme_claim(out, args.write_readme)
-    if (out / "fair" / "paper.json").exists():
+    if (out / "fair" / "split" / "paper.json").exists():
         results["the README's fair-comparison headline is the results'"] = readme_claim(
             out, args.write_readme, FAIR_MARK, fair_headline)
+    if (out / "reference" / "robustness.json").exists():
+        results["the README's map headline is the results'"] = readme_claim(out, args.write_readme, MAP_MARK,
+                                                                            map_headline)
     for name, (ok, detail) in results.items():
         print(f"{'PASS' if ok else 'FAIL'}  {name}: {detail}")
     ref_path = args.reference / "metrics.json"

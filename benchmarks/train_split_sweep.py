@@ -3,8 +3,9 @@ docs/model.md section 20): each law's recipe (``paper.recipes``) with ``--train-
 scenarios drawn from N train-split scenarios, seed 0, instead of the paper's wave) and ``--seed S``, one run folder
 per law and seed, ``OUT/<law>/seed<S>``. The CEM-trained laws (delay schedule, residual) get the tuned baselines'
 budget (a population of 12 over 10 generations, 36 scenarios of 300 s: ``benchmarks/tune_baselines.py``); the
-Adam-trained gains and network their recipes' steps on 12 scenarios (an Adam step sees every scenario); PPO its
-recipe's budget. Then ``fair_benchmark.py --split-runs OUT`` judges them on the test split.
+Adam-trained gains and network their recipes' steps on 12 scenarios (an Adam step sees every scenario); PPO 5
+million environment steps whatever its stop rule says (``--keep-going``: the rule reads the paper's wave, not the
+train split). Then ``fair_benchmark.py --split-runs OUT`` judges them on the test split.
 
     python benchmarks/train_split_sweep.py --out runs-split --seeds 0 1 2      # about 45 min on 2 cores
 """
@@ -22,7 +23,7 @@ from jaxtraffic.paper import laws
 ROOT = Path(__file__).resolve().parents[1]
 # law -> (train.py subcommand, recipe, extra flags); PPO is registered without a recipe (the main job trains it)
 PLAN: dict[str, tuple[str, str, tuple[str, ...]]] = {
-    "ppo": ("ppo", "ppo", ("--train-split", "36")),
+    "ppo": ("ppo", "ppo", ("--train-split", "36", "--keep-going", "--total-steps", "5000000", "--max-wall-s", "1800")),
     "grad_gains": ("gradient", "gradient-gains", ("--train-split", "12")),
     "grad_network": ("gradient", "gradient-network", ("--train-split", "12")),
     "grad_robust": ("gradient", "gradient-robust", ("--train-split", "36", "--cem-population", "12",

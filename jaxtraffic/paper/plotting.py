@@ -12,12 +12,12 @@ use a diverging colour map centred on the equilibrium value with symmetric, robu
 colours), so the stop-and-go waves are visible and the controllers are comparable.
 
 Functions:
-    plot_learning_curve(csv_path, png_path=None)     -- paper fig. 3a (from runs.curve)
-    plot_reward(png_path, t, series, ...)            -- paper fig. 3b (reward over time)
-    plot_spacetime(png_path, t, x, rows, ...)        -- paper figs. 4, 5, 7 (rho, v, h over x, t)
-    plot_l2_norms(png_path, t, series, ...)          -- paper figs. 6, 8 (L2 norms over time)
-    plot_l2_panels(png_path, t, panels, ...)         -- several L2 comparisons side by side
-    plot_robustness_map(png_path, delays, alphas, maps, ...) -- final density L2 heatmaps
+    plot_learning_curve: paper fig. 3a (from ``runs.curve``).
+    plot_reward: paper fig. 3b (reward over time).
+    plot_spacetime: paper figs. 4, 5, 7 (rho, v, h over x, t).
+    plot_l2_norms: paper figs. 6, 8 (L2 norms over time).
+    plot_l2_panels: several L2 comparisons side by side.
+    plot_robustness_map: final density L2 heatmaps.
 """
 
 from __future__ import annotations

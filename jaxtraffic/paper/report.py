@@ -24,6 +24,7 @@ from jaxtraffic.paper.scenarios import (
     others,
 )
 from jaxtraffic.paper.summaries import INDICES, PAPER_TABLE2, _fmt
+from jaxtraffic.sim.units import labelled
 
 
 def readings_summary(claims: list[dict[str, Any]], metrics: dict, eval_config: EvalConfig) -> list[str]:
@@ -221,7 +222,8 @@ def report_text(out_dir: Path, claims: list[dict[str, Any]], metrics: dict, meta
             if f in figures:
                 lines += [f"![{f}]({f})", ""]
     lines += ["## Key numbers per scenario", "",
-              "| scenario | controller | J_TTT | J_fuel | J_comfort | final rho L2 (veh/km) "
+              f"| scenario | controller | {labelled('J_TTT')} | {labelled('J_fuel')} | {labelled('J_comfort')} "
+              "| final rho L2 (veh/km) "
               "| final v L2 (m/s) | final reward | reward >= -0.1 from | t_settle rho | t_settle v "
               "| effort (s) | diverged |",
               "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]

@@ -35,6 +35,7 @@ from jaxtraffic.model.params import equilibrium
 from jaxtraffic.paper.scenarios import EvalConfig, run_batch
 from jaxtraffic.sim.initial import paper_initial_condition
 from jaxtraffic.sim.plant import closed_loop_step, initial_state
+from jaxtraffic.sim.units import INDEX_UNITS
 
 DELAYS = tuple(float(d) for d in range(9))  # s
 ALPHAS = tuple(float(a) for a in np.round(np.linspace(0.05, 0.6, 6), 6))
@@ -211,8 +212,8 @@ def nominal_point(cfg: EvalConfig) -> None:
                     ("adaptive_hold", adaptive_backstepping(4.0, hold_target=True))):
         res = run_batch(adapt(c, baseline_grid(nom), nom), env, [0], cfg300, record=False)
         m = res.metrics
-        print(f"  nominal point (D 4 s, alpha 0.15), {name:<13s} rho L2 at 300 s {float(m['final_rho_L2'][0]):.4e}"
-              f" veh/m  J_comfort {float(m['J_comfort'][0]):.5g}")
+        print(f"  nominal point (D 4 s, alpha 0.15), {name:<13s} rho L2 300 s {1e3 * float(m['final_rho_L2'][0]):.4f}"
+              f" veh/km  J_comfort {float(m['J_comfort'][0]):.5g} {INDEX_UNITS['J_comfort']}")
 
 
 def main() -> None:

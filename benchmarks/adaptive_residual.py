@@ -30,6 +30,7 @@ from jaxtraffic.control import backstepping, open_loop, tell_delay  # noqa: E402
 from jaxtraffic.control.adapter import adapt, baseline_grid  # noqa: E402
 from jaxtraffic.control.adaptive_residual import ALPHA_KNOTS, DELAY_KNOTS, adaptive_residual  # noqa: E402
 from jaxtraffic.paper.scenarios import EvalConfig, run_batch  # noqa: E402
+from jaxtraffic.sim.units import INDEX_UNITS  # noqa: E402
 
 HELD_OUT_DELAYS = (0.3, 1.7, 3.3, 4.7, 6.3, 7.7)  # s: the recipe's training delays (offset from the maps' cells)
 HELD_OUT_ALPHAS = (0.125, 0.225, 0.325, 0.425, 0.525, 0.575)
@@ -118,7 +119,7 @@ def nominal(labels, tables) -> dict:
     bs = run_batch(adapt(backstepping(4.0), baseline_grid(nom), nom), [nom.replace(delay=4.0)], [0], cfg, record=False)
     ref = (float(bs.metrics["final_rho_L2"][0]), float(bs.metrics["J_comfort"][0]))
     print(f"nominal point (reference plant, D 4 s, alpha 0.15, 300 s): backstepping rho L2 {ref[0] * 1e3:.4f} veh/km, "
-          f"J_comfort {ref[1]:.1f}")
+          f"J_comfort {ref[1]:.1f} {INDEX_UNITS['J_comfort']}")
     r = run_cells(cfg, tables, [4.0], [0.15])
     out = {"backstepping": ref}
     for i, lab in enumerate(labels):

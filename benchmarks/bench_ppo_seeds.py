@@ -4,7 +4,7 @@
 For every seed of ``--seeds`` (e.g. ``0-9`` or ``0,3,5``) it runs ``python train.py --seed S
 --out-dir ROOT/seedS`` with the defaults plus any extra flags given after the script's own
 (sequentially, one process per seed), then evaluates the run's saved policy
-(``jaxtraffic.learn.load_policy``: the best checkpoint, deterministic gains, acting on its own grid) on
+(``jaxtraffic.runs.policy.load_policy``: the best checkpoint, deterministic gains, acting on its own grid) on
 the nonlinear plant ``--judge`` (the reference plant by default, else the paper's grid), paper initial
 condition, plant delay D = 4 s, over 3000 steps (300 s) and 6000 steps (600 s), with
 ``backstepping(4.0)`` (on the paper's grid) over 300 s as the reference. A seed passes when

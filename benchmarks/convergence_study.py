@@ -107,11 +107,17 @@ def table(data: dict, controllers: list[str], metric: str, schemes: tuple[str, .
     return lines
 
 
-def plot(path: Path, data: dict, controllers: list[str], schemes: tuple[str, ...]) -> None:
-    import matplotlib.pyplot as plt
+UNIT = {"rho_L2_300": "veh/km", "rho_L2_600": "veh/km", "J_TTT": "veh/km·m·s", "t_reward": "s",
+        "J_comfort": "(m²/s⁴ + m²/s⁶)·veh/km·m·s", "J_comfort_a2": "m²/s⁴·veh/km·m·s"}  # the panels' units
 
-    metrics = ("rho_L2_300", "rho_L2_600", "J_TTT", "t_reward", "J_comfort", "J_comfort_a2")
-    fig, axes = plt.subplots(2, 3, figsize=(14, 7.5))
+
+def plot(path: Path, data: dict, controllers: list[str], schemes: tuple[str, ...]) -> None:
+    """The metrics against the plant's dx, one panel each (``UNIT``), written as a palette PNG at ``path``."""
+    from jaxtraffic.io.drawing import new_figure, save_figure
+
+    metrics = tuple(UNIT)
+    fig = new_figure(figsize=(13, 7))
+    axes = fig.subplots(2, 3)
     dx = [1000.0 / (n - 1) for n, _ in LEVELS]
     for ax, k in zip(axes.ravel(), metrics, strict=True):
         for i, c in enumerate(controllers):
@@ -124,13 +130,11 @@ def plot(path: Path, data: dict, controllers: list[str], schemes: tuple[str, ...
         ax.set_yscale("log" if k != "J_TTT" else "linear")
         ax.invert_xaxis()
         ax.set_xlabel("plant dx (m)")
-        ax.set_title(k)
+        ax.set_title(f"{k} ({UNIT[k]})", fontsize=10)
         ax.grid(alpha=0.3)
     axes[0, 0].legend(fontsize=6, ncol=2)
     fig.suptitle("Closed loop under plant refinement (controllers on their own grids)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def main() -> None:

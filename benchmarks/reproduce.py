@@ -37,7 +37,7 @@ def _beats_backstepping(c: str, j_ratio: float = 1.0) -> Callable[[dict], tuple[
         ok = ((not x["diverged"]) and x["final_rho_L2"] < b["final_rho_L2"]
               and x["J_comfort"] < j_ratio * b["J_comfort"])
         return ok, (f"rho L2 {1e3 * x['final_rho_L2']:.3f} vs {1e3 * b['final_rho_L2']:.3f} veh/km, "
-                    f"J_comfort {x['J_comfort']:.4g} vs {b['J_comfort']:.4g}")
+                    f"J_comfort {x['J_comfort']:.4g} vs {b['J_comfort']:.4g} (m²/s⁴ + m²/s⁶)·veh/km·m·s")
     return check
 
 

@@ -236,10 +236,13 @@ def test_dotted_names_parser_and_resolver():
 
 def test_docs_and_docstrings_name_modules_that_exist():
     """Every dotted name of the README, docs/ (BENCHMARKS.md included; not the CHANGELOG, which is history) and
-    the package's docstrings and comments imports: as a module, or as an attribute of its parent module."""
+    the docstrings and comments of the package, the benchmarks, the examples and the two root scripts imports: as a
+    module, or as an attribute of its parent module."""
     pages = [README, ROOT / "BENCHMARKS.md", *sorted((ROOT / "docs").rglob("*.md"))]
     texts = [(p, p.read_text(encoding="utf-8")) for p in pages]
-    texts += [(p, prose_of(p)) for p in sorted(PACKAGE.rglob("*.py"))]
+    scripts = [*sorted(PACKAGE.rglob("*.py")), *sorted((ROOT / "benchmarks").glob("*.py")),
+               *sorted((ROOT / "examples").glob("*.py")), ROOT / "train.py", ROOT / "evaluate.py"]
+    texts += [(p, prose_of(p)) for p in scripts]
     checked, stale = 0, []
     for path, text in texts:
         for name in sorted(dotted_names(text)):

@@ -195,6 +195,21 @@ def test_json_distinguishes_nan_from_never(tmp_path):
     assert np.isnan(back["final_reward"]) and back["time_to_reward_target_s"] is None and back["low"] == -np.inf
 
 
+def test_json_lists_of_scalars_on_one_line(tmp_path):
+    """``write_json`` puts a list of numbers, booleans and nulls on one line (the recorded series: a third of the
+    bytes), keeps nested lists, dicts and strings (a string that looks like a list included) as they are, and reads
+    back equal."""
+    obj = {"series": np.array([1.5, -2e-07, 3.0]), "flags": [True, False, None], "nested": [[1, 2], [3]],
+           "text": "[1,\n 2]", "mixed": [1, "nan"], "empty": [], "rows": [{"x": [0.25, 4]}]}
+    files.write_json(tmp_path / "x.json", obj)
+    text = (tmp_path / "x.json").read_text()
+    for line in ('"series": [1.5, -2e-07, 3.0]', '"flags": [true, false, null]', '  [1, 2],', '"x": [0.25, 4]',
+                 '"text": "[1,\\n 2]"', '"empty": []'):
+        assert line in text, line
+    assert '"mixed": [\n' in text and text.endswith("}\n")
+    assert json.loads(text) == files.to_jsonable(obj)
+
+
 def test_report_reads_nan_strings(tmp_path):
     from jaxtraffic.paper.report import write_report
     entry = {k: "nan" for k in ("J_TTT", "J_fuel", "J_comfort", "final_rho_L2", "final_v_L2", "final_reward",

@@ -182,3 +182,22 @@ def test_the_suffix_names_the_format_written(tmp_path, series):
         with pytest.raises(ValueError, match=why):
             plotting.plot_reward(tmp_path / "new" / bad, t, {"a": -decay})
     assert not (tmp_path / "new").exists()
+
+
+def test_spacetime_png_is_screen_sized(tmp_path):
+    """A space-time figure at the paper's grid (3 001 recordings x 201 cells) is written at screen resolution:
+    one colour bar per column, ``COLOUR_LEVELS`` colours a map, at most 1 300 pixels wide and a few tens of kB a
+    row (docs/results holds ten of them; with the smoothing filter and a continuous map: 125 kB a row)."""
+    from PIL import Image
+
+    t, x = np.linspace(0.0, 300.0, 3001), np.linspace(2.5, 997.5, 201)
+    wave = np.sin(2 * np.pi * (x[None, :] + 3.0 * t[:, None]) / 166.0) * np.exp(-t / 60.0)[:, None]
+    rows = {f"law {k}": (RHO_BAR + 0.01 * wave / (k + 1), V_BAR - 0.4 * wave / (k + 1), H_BAR + 0.3 * wave / (k + 1))
+            for k in range(3)}
+    fig = plotting.plot_spacetime(tmp_path / "st.png", t, x, rows, (RHO_BAR, V_BAR, H_BAR), "paper grid")
+    images = [a for ax in fig.axes for a in ax.get_images()]
+    assert len(images) == 9 and all(im.get_cmap().N == plotting.COLOUR_LEVELS for im in images)
+    assert len(fig.axes) == 9 + 3  # the panels and one colour bar per column
+    with Image.open(tmp_path / "st.png") as png:
+        assert png.mode == "P" and png.size[0] <= 1300
+    assert (tmp_path / "st.png").stat().st_size < 40_000 * len(rows)

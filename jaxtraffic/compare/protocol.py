@@ -104,7 +104,7 @@ def summary_table(results: dict[str, dict[str, np.ndarray]], labels: dict[str, s
     rates, and the median ratio of mean_rho_L2 to ``reference``'s on the same scenarios."""
     summ = {k: stats.summarise(v, results.get(reference), seed) for k, v in results.items()}
     cols = ("mean_rho_L2", "late_max_rho_L2", "settle_s", "J_comfort")
-    head = ["law", *(f"{c} ({stats.UNITS[c]})" if c != "J_comfort" else "J_comfort" for c in cols),
+    head = ["law", *(f"{c} ({stats.UNITS[c]})" for c in cols),
             f"mean_rho_L2 / {labels.get(reference, reference)}", "diverged", "not settled"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for k, s in summ.items():

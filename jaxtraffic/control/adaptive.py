@@ -204,14 +204,14 @@ def adaptive_backstepping(delay: float | Array = 4.0, k: float | Array = 1.0, *,
                           shock_scale: float | Array = 2e-3, min_info: float | Array = 1e-6,
                           hold_target: bool | Array = True, resid_scale: float | Array = 0.0,
                           keep: float | Array = 0.0) -> Controller:
-    """Backstepping with its model's ACC share estimated online (module docstring).
+    """Backstepping with its model's ACC share estimated online (module docstring). Each setting is checked
+    against its range, ``RANGES``: the delay in [0, 3600] s, the scales > 0.
 
     Args:
         delay: the delay it is told (s), as ``backstepping``'s (``control.tell_delay`` sets it).
         k: Lyapunov gain (dimensionless).
         alpha0: initial estimate in [0, 1] (default NaN: the nominal's alpha).
         forgetting: forgetting factor lam in (0, 1] per control step (memory ~ 1/(1 - lam) steps).
-        (Each setting is checked against its range, ``RANGES``: the delay in [0, 3600] s, the scales > 0.)
         adapt: False keeps alpha0 (then, told alpha0 = the nominal's alpha and hold_target=False, it equals
             ``backstepping`` to rounding).
         shock_scale: density difference across a node (veh/m) at which its weight halves (> 0).

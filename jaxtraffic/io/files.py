@@ -31,7 +31,7 @@ from typing import Any
 import jax
 import numpy as np
 
-__all__ = ["CONFIG_LIMIT", "atomic_write_bytes", "atomic_write_text", "clean_stale_tmp", "from_jsonable",
+__all__ = ["CONFIG_LIMIT", "atomic_write_bytes", "atomic_write_text", "clean_stale_tmp", "dumps_json", "from_jsonable",
            "read_json", "read_regular", "read_text", "to_jsonable", "write_json"]
 
 CONFIG_LIMIT = 2**20  # bytes: a config file (TOML, config.json), a summary: a few kB in practice
@@ -150,9 +150,23 @@ def from_jsonable(x: Any) -> Any:
     return x
 
 
+# an indented list of numbers, booleans and nulls only: "[" then a newline (never inside a JSON string, whose
+# newlines are escaped), the scalars one a line, then "]"
+_SCALAR = r"(?:-?\d[\d.eE+-]*|true|false|null)"
+_SCALAR_LIST = re.compile(r"\[\n\s*" + _SCALAR + r"(?:,\n\s*" + _SCALAR + r")*\n\s*\]")
+
+
+def dumps_json(obj: Any) -> str:
+    """``obj`` as strict JSON text (``to_jsonable``), indented, each list of scalars on one line (a third of the
+    bytes of one number a line for the recorded series), ending in a newline."""
+    text = json.dumps(to_jsonable(obj), indent=1, sort_keys=False, allow_nan=False)
+    return _SCALAR_LIST.sub(lambda m: "[" + ", ".join(v.strip() for v in m.group(0)[1:-1].split(",")) + "]",
+                            text) + "\n"
+
+
 def write_json(path: str | Path, obj: Any) -> None:
-    """``obj`` as strict JSON (``to_jsonable``), indented, written atomically."""
-    atomic_write_text(path, json.dumps(to_jsonable(obj), indent=2, sort_keys=False, allow_nan=False) + "\n")
+    """``obj`` as strict JSON (``dumps_json``: indented, lists of scalars on one line), written atomically."""
+    atomic_write_text(path, dumps_json(obj))
 
 
 def read_json(path: str | Path, limit: int = CONFIG_LIMIT, follow: bool = True) -> Any:

@@ -26,7 +26,8 @@ def minmod(a: Array, b: Array) -> Array:
     """Minmod limiter: the smaller-magnitude argument if both have the same sign, else 0.
 
     Args:
-        a, b: arrays of the same shape (any units, the same for both).
+        a: an array (any units).
+        b: an array of the shape and units of ``a``.
     Returns:
         The limited value, elementwise, shape and units of ``a``.
     """

@@ -58,7 +58,9 @@ def rhs(rho: Array, v: Array, h: Array, alpha: Array | float, p: TrafficParams, 
     """Semi-discrete right-hand side of ``scheme``'s spatial discretisation and boundary conditions.
 
     Args:
-        rho, v, h: density (veh/m), speed (m/s), applied time gap (s), shapes (n_points,).
+        rho: density (veh/m), shape (n_points,).
+        v: speed (m/s), shape (n_points,).
+        h: applied time gap (s), shape (n_points,).
         alpha: plant penetration rate (scalar or per node).
         p: parameters (dx and the physical constants).
         scheme: the composed scheme (``model.schemes.get_scheme``).
@@ -113,7 +115,9 @@ def arz_step(
     over the step, in ``p.substeps`` solver steps of dt / substeps.
 
     Args:
-        rho, v, h: fields of shape (n_points,).
+        rho: density (veh/m), shape (n_points,).
+        v: speed (m/s), shape (n_points,).
+        h: applied time gap (s), shape (n_points,).
         p: parameters (scheme, dx, dt, substeps, physical constants).
         alpha: plant penetration rate for this step (defaults to ``p.alpha``).
     Returns:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import json
 import threading
 import time
 from collections.abc import Callable
@@ -14,7 +13,7 @@ import jax
 
 from jaxtraffic.control import Controller
 from jaxtraffic.control.adapter import ControllerGrid
-from jaxtraffic.io.files import atomic_write_text, to_jsonable
+from jaxtraffic.io.files import atomic_write_text, to_jsonable, write_json
 from jaxtraffic.io.provenance import provenance
 from jaxtraffic.model.params import equilibrium
 from jaxtraffic.paper import laws
@@ -263,8 +262,8 @@ def _write(out_dir: Path, claims: list, metrics: dict, meta: dict, figures: list
            eval_config: EvalConfig, numerics: dict | None, lc_data: Any, learned_runs: dict | None,
            oracle: dict[str, dict] | None, table: dict[str, Any] | None = None) -> str:
     """robustness.json, metrics.json and claims.json; returns REPORT.md's text."""
-    (out_dir / "robustness.json").write_text(json.dumps(to_jsonable(robust_json), indent=1, allow_nan=False))
-    (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=1, allow_nan=False))
+    write_json(out_dir / "robustness.json", robust_json)
+    write_json(out_dir / "metrics.json", metrics)
     notes = []
     if lc_data is None:
         notes.append("- No learning curve was available, so figure 3a is missing.")
@@ -273,7 +272,6 @@ def _write(out_dir: Path, claims: list, metrics: dict, meta: dict, figures: list
         metrics, learned_runs or {}, robust, tuple(eval_config.robust_alphas), tuple(eval_config.robust_delays),
         eval_config.horizon_s, table)
     report = report_text(out_dir, claims, metrics, meta, figures, notes, sections=sections)
-    (out_dir / "claims.json").write_text(json.dumps(to_jsonable(
-        [{**{k: v for k, v in c.items() if k != "checks"},
-          "checks": [ch.__dict__ for ch in c["checks"]]} for c in claims]), indent=1, allow_nan=False))
+    write_json(out_dir / "claims.json", [{**{k: v for k, v in c.items() if k != "checks"},
+                                          "checks": [ch.__dict__ for ch in c["checks"]]} for c in claims])
     return report

@@ -18,6 +18,7 @@ import numpy as np
 
 from jaxtraffic.paper import laws
 from jaxtraffic.sim.metrics import STABLE_STD
+from jaxtraffic.sim.units import INDEX_UNITS, labelled
 
 
 def stabilised_cells(r: dict[str, np.ndarray]) -> int:
@@ -70,12 +71,14 @@ def comparison_section(metrics: dict, runs: dict[str, dict], robust: dict[str, d
              "below backstepping's); quality figures "
              f"from this evaluation (paper initial condition, D = 4 s, {horizon_s:g} s, backstepping for reference: "
              f"final rho L2 {_num(1e3 * bs['final_rho_L2'], '.3f') if bs else 'n/a'} veh/km, J_comfort "
-             f"{_num(bs.get('J_comfort'), '.4g')}). *Map* = stabilised cells of the robustness map (not "
+             f"{_num(bs.get('J_comfort'), '.4g')} {INDEX_UNITS['J_comfort']}). *Map* = stabilised cells of the "
+             "robustness map (not "
              f"diverged, final std_x(rho) < {STABLE_STD * 1e3:g} veh/km; of the controllable cells, and what each "
              "controller is told, when the map's table is given); *delays* = plant delays of the map "
              "at alpha = 0.15 where it is stabilised.", "",
              "| controller | run | training wall s | env steps | s to beat backstepping | final rho L2 (veh/km) "
-             "| J_comfort | J_comfort / backstepping | map | delays (s) |", "|---|---|---|---|---|---|---|---|---|---|"]
+             f"| {labelled('J_comfort')} | J_comfort / backstepping | map | delays (s) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for name, run in runs.items():
         s, m = run["summary"], d4.get(name, {})
         r = robust.get(name)

@@ -18,6 +18,7 @@ import numpy as np
 from jaxtraffic.control import Controller
 from jaxtraffic.control.adapter import ControllerGrid, adapt, baseline_grid
 from jaxtraffic.paper.scenarios import CTRL_DELAY, EXTRA_LEARNED, EvalConfig, others, run_batch
+from jaxtraffic.sim.units import INDEX_UNITS
 
 NUMERICS_CONTROLLERS = ("open_loop", "backstepping", "ppo", *EXTRA_LEARNED)
 NUMERICS_INDICES = ("J_TTT", "J_fuel", "J_comfort", "J_comfort_a2", "J_comfort_at2", "J_comfort_no_switch_on",
@@ -76,7 +77,8 @@ def run_numerics(controllers: dict[str, Controller], grids: dict[str, Controller
             res = run_batch(ctrl, [nom], [0], vcfg, record=False)
             out["delay4"][vname][c] = {k: float(np.asarray(res.metrics[k])[0]) for k in NUMERICS_INDICES}
         log(f"  numerics {vname:<8s} ({vcfg.describe()}): "
-            + ", ".join(f"{c} J_comfort {v['J_comfort']:.4g}" for c, v in out["delay4"][vname].items()))
+            + ", ".join(f"{c} J_comfort {v['J_comfort']:.4g}" for c, v in out["delay4"][vname].items())
+            + f" ({INDEX_UNITS['J_comfort']})")
     return out
 
 

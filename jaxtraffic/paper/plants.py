@@ -24,6 +24,7 @@ from jaxtraffic.paper.learned import STABLE_STD
 from jaxtraffic.paper.maps import excluded_text, rejudge
 from jaxtraffic.paper.scenarios import EXTRA_LEARNED, EvalConfig, learned, others
 from jaxtraffic.paper.summaries import _fmt
+from jaxtraffic.sim.units import labelled
 
 CLAIMS = {1: "learning curve; PPO converges, the open loop does not", 2: "D = 0: PPO vs Lyapunov",
           3: "D = 4 s: Lyapunov fails, backstepping and PPO stabilise", 4: "Table 2 (300 s, D = 4 s)",
@@ -70,7 +71,8 @@ def _claims_lines(table: dict[str, Any], plants: list[str]) -> list[str]:
 
 def _delay4_lines(table: dict[str, Any], plants: list[str], horizon_s: float) -> list[str]:
     lines = ["| controller | " + " | ".join(f"rho L2 {horizon_s:g} s (veh/km), {p}" for p in plants) + " | "
-             + " | ".join(f"J_comfort, {p}" for p in plants) + " | vs backstepping (L2, J_comfort) on each |",
+             + " | ".join(f"{labelled('J_comfort')}, {p}" for p in plants)
+             + " | vs backstepping (L2, J_comfort) on each |",
              "|---|" + "---|" * (2 * len(plants) + 1)]
     for c in (*DELAY4, *others(next(iter(table["delay4"].values())))):
         if not all(c in table["delay4"][p] for p in plants):

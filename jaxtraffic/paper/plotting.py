@@ -8,16 +8,16 @@ of yours, the multi-panel ones into a ``fig=`` (a ``Figure`` or a ``SubFigure``,
 
 Units on the axes: x in m, t in s, density in veh/km, speed in m/s, time gap in s. Space-time maps
 use a diverging colour map centred on the equilibrium value with symmetric, robust limits (the
-99.5th percentile of |deviation| over all panels of a column), so the stop-and-go waves are visible
-and the controllers are comparable.
+99.5th percentile of |deviation| over all panels of a column; one colour bar per column, ``COLOUR_LEVELS``
+colours), so the stop-and-go waves are visible and the controllers are comparable.
 
 Functions:
-    plot_learning_curve(csv_path, png_path=None)     -- paper fig. 3a (from runs.curve)
-    plot_reward(png_path, t, series, ...)            -- paper fig. 3b (reward over time)
-    plot_spacetime(png_path, t, x, rows, ...)        -- paper figs. 4, 5, 7 (rho, v, h over x, t)
-    plot_l2_norms(png_path, t, series, ...)          -- paper figs. 6, 8 (L2 norms over time)
-    plot_l2_panels(png_path, t, panels, ...)         -- several L2 comparisons side by side
-    plot_robustness_map(png_path, delays, alphas, maps, ...) -- final density L2 heatmaps
+    plot_learning_curve: paper fig. 3a (from ``runs.curve``).
+    plot_reward: paper fig. 3b (reward over time).
+    plot_spacetime: paper figs. 4, 5, 7 (rho, v, h over x, t).
+    plot_l2_norms: paper figs. 6, 8 (L2 norms over time).
+    plot_l2_panels: several L2 comparisons side by side.
+    plot_robustness_map: final density L2 heatmaps.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
-from matplotlib import colors, ticker
+from matplotlib import colormaps, colors, ticker
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure, SubFigure
 
@@ -39,6 +39,10 @@ from jaxtraffic.sim.metrics import REWARD_TARGET, VEH_PER_KM
 
 __all__ = ["plot_l2_norms", "plot_l2_panels", "plot_learning_curve", "plot_reward", "plot_robustness_map",
            "plot_spacetime", "read_learning_curve"]
+
+# colours of each space-time colour map: steps of 1/32 of a column's half range, finer than the eye reads on
+# a screen, and flat bands that a PNG stores in a third of the bytes of a continuous map
+COLOUR_LEVELS = 64
 
 
 def _style(label: str) -> dict:
@@ -111,14 +115,15 @@ def _sym_limit(values: Sequence[np.ndarray], center: float, q: float = 99.5) -> 
 def _field_image(ax, t: np.ndarray, x: np.ndarray, f: np.ndarray, **kw):
     """``f`` (T, N) drawn with time along x and position along y, each value a cell centred on its
     (t, x). On uniform grids (the rollouts' recordings) an image: an order of magnitude cheaper to
-    draw than a mesh of T x N quads at paper resolution (3 001 x 201), and resampled smoothly."""
+    draw than a mesh of T x N quads at paper resolution (3 001 x 201), sampled at the nearest recorded
+    value (the waves are smooth on the grid: no smoothing filter, whose gradients would triple the PNG)."""
     t, x = np.asarray(t, float), np.asarray(x, float)
     # uniform to well under a pixel (recorded times are float32: their spacing varies by ~1e-5 s)
     uniform = all(len(a) > 1 and np.allclose(np.diff(a), a[1] - a[0], rtol=1e-3, atol=0.0) for a in (t, x))
     if not uniform:
         return ax.pcolormesh(t, x, f.T, shading="nearest", rasterized=True, **kw)
     dt, dx = t[1] - t[0], x[1] - x[0]
-    return ax.imshow(f.T, origin="lower", aspect="auto", interpolation="antialiased",
+    return ax.imshow(f.T, origin="lower", aspect="auto", interpolation="nearest",
                      extent=(t[0] - dt / 2, t[-1] + dt / 2, x[0] - dx / 2, x[-1] + dx / 2), **kw)
 
 
@@ -136,12 +141,12 @@ def plot_spacetime(
     ``diverged_at``: label -> time (s) after which that run was frozen (drawn as a dashed line).
     """
     rho_bar, v_bar, h_bar = equilibrium
-    cols = [("density rho (veh/km)", VEH_PER_KM, rho_bar * VEH_PER_KM, "RdBu_r"),
-            ("speed v (m/s)", 1.0, v_bar, "RdBu_r"),
-            ("ACC time gap h (s)", 1.0, h_bar, "PuOr_r")]
+    cols = [("density rho (veh/km)", VEH_PER_KM, rho_bar * VEH_PER_KM, colormaps["RdBu_r"].resampled(COLOUR_LEVELS)),
+            ("speed v (m/s)", 1.0, v_bar, colormaps["RdBu_r"].resampled(COLOUR_LEVELS)),
+            ("ACC time gap h (s)", 1.0, h_bar, colormaps["PuOr_r"].resampled(COLOUR_LEVELS))]
     n = len(rows)
-    fig = new_figure(fig, figsize=(15, 2.9 * n + 0.6))
-    axes = fig.subplots(n, 3, squeeze=False)
+    fig = new_figure(fig, figsize=(12, 2.0 * n + 1.0))
+    axes = fig.subplots(n, 3, squeeze=False, sharex=True, sharey=True)
     labels = list(rows)
     for j, (cname, scale, center, cmap) in enumerate(cols):
         fields = [np.asarray(rows[lab][j], float) * scale for lab in labels]
@@ -151,20 +156,22 @@ def plot_spacetime(
             ax = axes[i, j]
             f = fields[i]
             mesh = _field_image(ax, t, x, f, cmap=cmap, norm=norm)
-            cb = fig.colorbar(mesh, ax=ax, pad=0.01, extend="both")
-            cb.set_label(cname, fontsize=8)
-            cb.ax.tick_params(labelsize=7)
-            ax.set_title(f"{lab}: {cname.split(' (')[0]}", fontsize=10)
-            ax.set_xlabel("time t (s)")
-            ax.set_ylabel("position x (m)")
+            ax.set_title(f"{lab}: {cname.split(' (')[0]}", fontsize=9)
             if np.nanmax(np.abs(f - center)) < 1e-9 * max(abs(center), 1.0):
                 ax.text(0.5, 0.5, f"constant = {center:.3g} (no control action)", transform=ax.transAxes,
-                        ha="center", va="center", fontsize=9, bbox=dict(fc="white", alpha=0.8))
+                        ha="center", va="center", fontsize=8, bbox=dict(fc="white", alpha=0.8))
             td = (diverged_at or {}).get(lab)
             if td is not None and np.isfinite(td):
                 ax.axvline(td, color="k", ls="--", lw=1.2)
                 ax.text(td, x[-1], f" diverged at {td:.0f} s; frozen after", fontsize=7, va="top",
                         ha="right" if td > 0.6 * t[-1] else "left")
+        # one colour bar per column (the limits are the column's), above it
+        cb = fig.colorbar(mesh, ax=axes[:, j].tolist(), location="top", extend="both", aspect=40, pad=0.01)
+        cb.set_label(cname, fontsize=9)
+        cb.ax.tick_params(labelsize=8)
+        axes[-1, j].set_xlabel("time t (s)")
+    for i in range(n):
+        axes[i, 0].set_ylabel("position x (m)")
     fig.suptitle(textwrap.fill(title, 150), fontsize=12)  # a long title would widen the saved figure
     return finish_figure(fig, png_path)
 

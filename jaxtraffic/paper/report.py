@@ -24,6 +24,7 @@ from jaxtraffic.paper.scenarios import (
     others,
 )
 from jaxtraffic.paper.summaries import INDICES, PAPER_TABLE2, _fmt
+from jaxtraffic.sim.units import INDEX_UNITS, labelled
 
 
 def readings_summary(claims: list[dict[str, Any]], metrics: dict, eval_config: EvalConfig) -> list[str]:
@@ -197,7 +198,9 @@ def report_text(out_dir: Path, claims: list[dict[str, Any]], metrics: dict, meta
               f"- grid: {meta['grid']['n_points']} points (dx = {meta['grid']['dx_m']:g} m), dt = "
               f"{meta['grid']['dt_s']:g} s, horizon {meta['grid']['horizon_s']:g} s, trajectories recorded "
               f"every {meta['grid']['record_every']} steps; noise seeds {meta['seeds']}",
-              f"- runtime: {meta.get('runtime_s', float('nan')):.1f} s", ""]
+              f"- runtime: {meta.get('runtime_s', float('nan')):.1f} s",
+              "- units: densities and their L2 norms in veh/km, speeds in m/s, times in s; "
+              + ", ".join(labelled(k) for k in INDEX_UNITS) + " (J_TTT / 1000: the total travel time in veh·s)", ""]
     lines += extra_notes + ([""] if extra_notes else [])
     lines += ["## Summary", "", "| # | claim | verdict |", "|---|---|---|"]
     for c in claims:
@@ -221,7 +224,8 @@ def report_text(out_dir: Path, claims: list[dict[str, Any]], metrics: dict, meta
             if f in figures:
                 lines += [f"![{f}]({f})", ""]
     lines += ["## Key numbers per scenario", "",
-              "| scenario | controller | J_TTT | J_fuel | J_comfort | final rho L2 (veh/km) "
+              f"| scenario | controller | {labelled('J_TTT')} | {labelled('J_fuel')} | {labelled('J_comfort')} "
+              "| final rho L2 (veh/km) "
               "| final v L2 (m/s) | final reward | reward >= -0.1 from | t_settle rho | t_settle v "
               "| effort (s) | diverged |",
               "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]

@@ -19,6 +19,7 @@ from jaxtraffic.paper.summaries import (
     equilibrium_indices,
     improvement,
 )
+from jaxtraffic.sim.units import INDEX_UNITS, labelled
 
 READINGS = {"SI": "", "km/h": "_kmh"}  # reading -> suffix of the metrics.json key
 
@@ -113,7 +114,9 @@ def write_table2(rows: list[dict[str, Any]], out_dir: Path, horizon_s: float, me
         "",
         "Two readings of the integrands (docs/model.md section 10): **SI** (speeds in m/s, the library's own) "
         "and **km/h** (the paper's: speeds in km/h inside the integrands, a in km/h/s, xi(3.6 v, 3.6 a)); rho in "
-        "veh/km, x in m, t in s in both. **Paper** = Table 2 as printed (2 significant digits), next to the "
+        "veh/km, x in m, t in s in both. Units (SI): " + ", ".join(labelled(k) for k in INDEX_UNITS)
+        + " (J_TTT / 1000 is the total travel time in veh·s; the km/h reading's J_fuel and J_comfort put km/h "
+        "for m/s). **Paper** = Table 2 as printed (2 significant digits), next to the "
         "reading closest to it (matching reading)." + var + " Improvement = (J_open_loop - J) / J_open_loop.",
         "",
         "| index | controller | SI | Delta refined | Delta scheme | km/h | Delta refined | Delta scheme "

@@ -249,7 +249,8 @@ def simulate(
         params: the plant (its alpha, alpha_noise and delay are the true ones).
         controller: a ``Controller`` (default: open loop).
         n_steps: number of steps (static).
-        rho0, v0: initial fields, veh/m and m/s, shape (n_points,) (default: the paper's initial condition).
+        rho0: initial density (veh/m), shape (n_points,) (default: the paper's initial condition).
+        v0: initial speed (m/s), shape (n_points,) (default: the paper's initial condition).
         key: PRNG key for alpha noise and stochastic controllers (default PRNGKey(0)).
         nominal: the parameters the controller and the metrics use as model and target
             (default: ``params``). docs/model.md section 12: keep the nominal target when the
@@ -338,6 +339,7 @@ def simulate_batch(
     them with ``stack_params``), ``rho0``/``v0`` of shape (B, n_points), ``keys`` of shape (B, 2).
     The controller is batched only when ``batch_controller`` is set (its settings then carry
     a leading batch axis). ``nominal`` is shared (not batched). At least one input must be batched.
+    The arguments not below are ``simulate``'s (``keys`` instead of ``key``).
 
     Args:
         record: as ``simulate`` (shared by every environment).
@@ -353,7 +355,6 @@ def simulate_batch(
         alpha_input: its ``noise`` reading is shared by every environment; its ``alphas``, if given, are
             every environment's plant alphas, shape (B, n_steps) or (B, n_steps, n_points) (environments
             whose alpha sequences come from different road-wide readings can so share one program).
-        The other arguments: as ``simulate`` (``keys`` instead of ``key``).
     Returns:
         A ``SimResult`` whose every leaf has a leading batch axis B.
     Raises:

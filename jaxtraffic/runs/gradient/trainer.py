@@ -45,6 +45,7 @@ from jaxtraffic.runs.policy import policy_certificate
 from jaxtraffic.runs.session import check_finite, check_total, eta_text, fmt_time
 from jaxtraffic.sim.metrics import REWARD_TARGET
 from jaxtraffic.sim.rollout import simulate
+from jaxtraffic.sim.units import INDEX_UNITS
 
 __all__ = ["CURVE_FIELDS", "beats", "evaluation", "policy_evaluation", "train_gradient"]
 
@@ -126,7 +127,7 @@ class GradientTraining:
         return (f"training by {'CEM' if cem_run else 'gradient'} ({grad_config.policy}): {grad_config.n_scenarios} "
                 f"scenarios x {n_steps} steps per {step}, {grad_config.steps_per_chunk} steps/chunk, plant D = "
                 f"{config.plant.delay:g} s; backstepping reference: rho L2 {self.ref['final_rho_L2'] * 1e3:.3f} "
-                f"veh/km, J_comfort {self.ref['J_comfort']:.4g}")
+                f"veh/km, J_comfort {self.ref['J_comfort']:.4g} {INDEX_UNITS['J_comfort']}")
 
     def chunk(self, clock: Clock) -> tuple[dict, str]:
         prog, grad_config = self.progress, self.grad_config
@@ -153,7 +154,8 @@ class GradientTraining:
         spread = "|grad|" if grad_config.grad_method == "adam" else "spread"
         line = (f"[update {prog.updates:>4d}] objective {row['objective']:.4f} | {spread} {row['grad_norm']:.3g} | "
                 f"eval reward {row['eval_reward']:.4f} | rho L2 {row['eval_rho_L2_veh_km']:.3f} veh/km | "
-                f"J_comfort {row['eval_J_comfort']:.4g} | gains ({g[0]:+.2f}, {g[1]:+.2f}, {g[2]:+.2f}) | "
+                f"J_comfort {row['eval_J_comfort']:.4g} {INDEX_UNITS['J_comfort']} | "
+                f"gains ({g[0]:+.2f}, {g[1]:+.2f}, {g[2]:+.2f}) | "
                 f"{fmt_time(prog.wall_s)} ({prog.wall_s - t_prev:.1f} s/chunk) | "
                 f"{eta_text(self.total - prog.updates, clock.rate(prog.updates))}"
                 + (" | beats backstepping" if better else ""))
@@ -193,7 +195,7 @@ class GradientTraining:
         beat = prog.seconds_to("beat_backstepping")
         steps = "Adam steps" if grad_config.grad_method == "adam" else "CEM generations"
         return (f"done: {prog.updates} {steps} in {prog.wall_s:.1f} s; final rho L2 {ev['final_rho_L2'] * 1e3:.3f} "
-                f"veh/km, J_comfort {ev['J_comfort']:.4g}; "
+                f"veh/km, J_comfort {ev['J_comfort']:.4g} {INDEX_UNITS['J_comfort']}; "
                 + (f"first beat backstepping after {beat:.1f} s" if beat is not None else "never beat backstepping")
                 + f"; outputs in {run_dir}")
 

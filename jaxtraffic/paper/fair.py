@@ -34,6 +34,16 @@ HORIZON_S = 600.0  # s, the comparison's horizon (the paper's 300 s snapshot is 
 N_TEST = 256  # test scenarios per plant
 
 
+def _given(ctrl: Controller) -> Callable[[], Controller]:
+    """A builder that returns ``ctrl``."""
+    return lambda: ctrl
+
+
+def _filtered(build: Callable[[], Controller]) -> Callable[[], Controller]:
+    """A builder of ``build``'s law acting on the learned laws' 25 m filtered measurement."""
+    return lambda: measurement_filter(build(), laws.FILTER_M)
+
+
 def model_based(tuned: dict[str, Any] | None = None) -> list[LawSpec]:
     """The registry's model-based laws, the predictor laws with the 25 m filter, and the tuned ones (``tuned``:
     ``tune_baselines.py``'s JSON)."""
@@ -44,12 +54,12 @@ def model_based(tuned: dict[str, Any] | None = None) -> list[LawSpec]:
         specs.append(LawSpec(name, law.label, law.build, law.told))
         if law.predictor and law.told == "delay":
             specs.append(LawSpec(f"{name}_f25", f"{law.label}, {laws.FILTER_M:g} m filter",
-                                 lambda b=law.build: measurement_filter(b(), laws.FILTER_M), law.told))
+                                 _filtered(law.build), law.told))
     for name, entry in ((tuned or {}).get("laws") or {}).items():
         t, p = laws.TUNABLE[name], entry["best"]
         text = ", ".join(f"{n} {p[n]:.2f}" for n in t.names)
         specs.append(LawSpec(f"{name}_tuned", f"{laws.label(name)}, tuned ({text}, {laws.FILTER_M:g} m filter)",
-                             lambda t=t, p=p: t.build(laws.CTRL_DELAY, *(p[n] for n in t.names)), "delay"))
+                             _given(t.build(laws.CTRL_DELAY, *(p[n] for n in t.names))), "delay"))
     return specs
 
 
@@ -58,7 +68,7 @@ def learned(controllers: dict[str, Controller], grids: dict[str, ControllerGrid]
     """The main job's learned laws (``controllers`` by registry name, acting on ``grids``), then the controllers
     the registry does not know (a user's ``--controller``), under their own names."""
     names = [n for n in laws.names(learned=True) if n in controllers] + [n for n in controllers if n not in laws.LAWS]
-    return [LawSpec(n, f"{laws.short_label(n)}{suffix if n in laws.LAWS else ''}", lambda c=controllers[n]: c,
+    return [LawSpec(n, f"{laws.short_label(n)}{suffix if n in laws.LAWS else ''}", _given(controllers[n]),
                     "delay" if takes_delay(controllers[n]) else "nothing", grids.get(n)) for n in names]
 
 
@@ -72,7 +82,7 @@ def split_runs(root: Path) -> list[LawSpec]:
             if (run / "summary.json").exists():
                 ctrl, config = load_policy(run)
                 out.append(LawSpec(f"{n}{SPLIT}{run.name[4:]}", f"{laws.short_label(n)}, train split, seed "
-                                   f"{run.name[4:]}", lambda c=ctrl: c, "delay" if takes_delay(ctrl) else "nothing",
+                                   f"{run.name[4:]}", _given(ctrl), "delay" if takes_delay(ctrl) else "nothing",
                                    policy_grid(config)))
     return out
 

@@ -110,6 +110,7 @@ def training_scenarios(grad_config: GradientConfig, base: TrafficParams, pool: E
     scenarios of the train split: ``pool`` (``train_pool``), drawn here when None (``base`` concrete)."""
     if grad_config.train_split:
         pool = train_pool(grad_config, base) if pool is None else pool
+        assert pool is not None
         batched = jax.tree.map(lambda x: jnp.broadcast_to(jnp.asarray(x, pool.rho0.dtype), pool.delay.shape),
                                base.replace(alpha_noise=0.0))
         return Scenarios(params=batched.replace(delay=pool.delay, alpha=pool.alpha), rho0=pool.rho0, v0=pool.v0)

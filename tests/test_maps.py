@@ -278,4 +278,4 @@ def test_claim_5_reads_the_cells_that_stay_stabilised():
     assert best_learned(t2) == "ppo"  # the most cells that stay stabilised, not the most at one instant
     r = rejudge(t2)
     assert r["verdict"] == "reproduced against backstepping only" and r["learned"] == "ppo"
-    assert r["text"].startswith("stays stabilised (every step of the last 150 s of 600 s) / diverged")
+    assert r["text"].startswith("stays stabilised over every step of the last 150 s of 600 s / diverged")

@@ -109,7 +109,7 @@ def judge_key(table: dict[str, Any]) -> str:
 
 def _stays_words(horizons: dict[str, float]) -> str:
     end = f" of {horizons['map_s']:g} s" if "map_s" in horizons else ""
-    return f"stays stabilised (every step of the last {horizons.get('late_window_s', LATE_WINDOW_S):g} s{end})"
+    return f"stays stabilised over every step of the last {horizons.get('late_window_s', LATE_WINDOW_S):g} s{end}"
 
 
 def judge_label(table: dict[str, Any]) -> str:

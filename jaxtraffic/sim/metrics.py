@@ -175,7 +175,7 @@ class MetricsTarget(NamedTuple):
     """The constants of a rollout's metrics: the target equilibrium rho_bar (veh/m), v_bar (m/s) and
     h_bar (s), the grid spacing dx (m), the time step dt (s) and the switch-on step ``switch_step``
     (the plant's delay in steps: the step whose a_t^2 is the switch-on spike); ``late_step``: the first step of
-    the late window of ``late_max_rho_std`` (``late_step``; 0: every step)."""
+    the late window of ``late_max_rho_std`` (n_steps - ``late_steps(dt)`` in a rollout; 0: every step)."""
 
     rho_bar: Array | float
     v_bar: Array | float

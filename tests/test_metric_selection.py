@@ -99,7 +99,7 @@ def test_only_the_sums_read_are_carried():
         "J_comfort_a2", "J_comfort_at2", "J_comfort_switch", "a_prev"}
     acc = sim_metrics.init_metrics(5, keep=sim_metrics.accumulators(("control_effort",)))
     assert {k for k, v in vars(acc).items() if v is not None} == {"effort_sq", "n_active"}
-    assert sim_metrics.accumulators(sim_metrics.METRIC_NAMES) == set(vars(sim_metrics.init_metrics(5)))
+    assert sim_metrics.accumulators(sim_metrics.METRIC_ACCUMULATORS) == set(vars(sim_metrics.init_metrics(5)))
 
 
 def test_unknown_metric_names_the_valid_ones():

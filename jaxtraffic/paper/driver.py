@@ -36,6 +36,7 @@ from jaxtraffic.paper.scenarios import (
 from jaxtraffic.paper.summaries import UNITS, equilibrium_indices, summarise
 from jaxtraffic.paper.table2 import table2_rows, write_table2
 from jaxtraffic.platform import distributed
+from jaxtraffic.sim.metrics import LATE_WINDOW_S
 
 
 # ----------------------------------------------------------------------------- driver
@@ -249,11 +250,17 @@ def _robustness_json(robust: dict[str, dict[str, Any]], eval_config: EvalConfig,
         robust: controller -> quantity -> (n_delays, n_alphas) array (``scenarios.run_robustness``).
     """
     return {"delays_s": list(eval_config.robust_delays), "alphas": list(eval_config.robust_alphas),
-            "horizon_s": eval_config.robust_horizon_s,
+            "horizon_s": eval_config.robust_horizon_s, "paper_horizon_s": eval_config.horizon_s,
+            "late_window_s": LATE_WINDOW_S,
             "units": {"final_rho_L2": "veh/m", "final_v_L2": "m/s", "final_reward": "dimensionless",
-                      "diverged": "bool", "final_rho_spatial_std": "veh/m", "diverged_step": "plant steps (-1: never)"},
+                      "diverged": "bool", "final_rho_spatial_std": "veh/m", "diverged_step": "plant steps (-1: never)",
+                      "diverged_at_s": "s (null: never)", "final_rho_offset": "veh/m",
+                      "late_max_rho_spatial_std": "veh/m (max over the last late_window_s; null: diverged)",
+                      "paper_rho_L2": "veh/m", "paper_rho_spatial_std": "veh/m", "paper_diverged": "bool"},
             "note": "arrays indexed [delay][alpha]; controllers told D are told each cell's true plant delay; "
-                    "table: counts over the controllable cells (table.rule) and what each controller is told",
+                    "final_*: at horizon_s, paper_*: the same rollout at paper_horizon_s (the paper's column); "
+                    "table: counts over the controllable cells (table.rule) and what each controller is told, at "
+                    "both horizons and stays_stabilised (late maximum below the threshold, not diverged)",
             "controllers": {c: {k: v.tolist() for k, v in r.items()} for c, r in robust.items()},
             "table": table or {}}
 

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from jaxtraffic.paper import laws
+from jaxtraffic.paper.maps import judge_key, judge_label
 from jaxtraffic.sim.metrics import STABLE_STD
 from jaxtraffic.sim.units import INDEX_UNITS, labelled
 
@@ -43,9 +44,10 @@ def _num(x: Any, fmt: str) -> str:
 
 
 def _map_cell(table: dict[str, Any], name: str) -> str:
-    """"s/n (told ...)": stabilised of the controllable cells of ``table``'s row ``name``."""
+    """"s/n (told ...)": the controllable cells of ``table``'s row ``name`` that stay stabilised
+    (``maps.judge_key``: at the map's horizon for a table without the late maximum)."""
     r = table["rows"][name]
-    return f"{r['stabilised']}/{table['controllable']} (told {r['told']})"
+    return f"{r[judge_key(table)]}/{table['controllable']} (told {r['told']})"
 
 
 def comparison_section(metrics: dict, runs: dict[str, dict], robust: dict[str, dict[str, np.ndarray]],
@@ -71,9 +73,9 @@ def comparison_section(metrics: dict, runs: dict[str, dict], robust: dict[str, d
              "below backstepping's); quality figures "
              f"from this evaluation (paper initial condition, D = 4 s, {horizon_s:g} s, backstepping for reference: "
              f"final rho L2 {_num(1e3 * bs['final_rho_L2'], '.3f') if bs else 'n/a'} veh/km, J_comfort "
-             f"{_num(bs.get('J_comfort'), '.4g')} {INDEX_UNITS['J_comfort']}). *Map* = stabilised cells of the "
-             "robustness map (not "
-             f"diverged, final std_x(rho) < {STABLE_STD * 1e3:g} veh/km; of the controllable cells, and what each "
+             f"{_num(bs.get('J_comfort'), '.4g')} {INDEX_UNITS['J_comfort']}). *Map* = cells of the robustness map "
+             f"{judge_label(table) if table else 'stabilised at its horizon'} (not diverged, std_x(rho) < "
+             f"{STABLE_STD * 1e3:g} veh/km; of the controllable cells, and what each "
              "controller is told, when the map's table is given); *delays* = plant delays of the map "
              "at alpha = 0.15 where it is stabilised.", "",
              "| controller | run | training wall s | env steps | s to beat backstepping | final rho L2 (veh/km) "

@@ -21,7 +21,7 @@ from jaxtraffic.io.drawing import new_figure, save_figure
 from jaxtraffic.io.files import atomic_write_text, write_json
 from jaxtraffic.paper import laws
 from jaxtraffic.paper.learned import STABLE_STD
-from jaxtraffic.paper.maps import excluded_text, rejudge
+from jaxtraffic.paper.maps import excluded_text, judge_key, judge_label, rejudge
 from jaxtraffic.paper.scenarios import EXTRA_LEARNED, EvalConfig, learned, others
 from jaxtraffic.paper.summaries import _fmt
 from jaxtraffic.sim.units import labelled
@@ -113,13 +113,16 @@ def _numerics_lines(table: dict[str, Any], plants: list[str], results: dict[str,
 def _map_lines(robust: dict[str, dict], plants: list[str]) -> list[str]:
     """Markdown: per controller, what it is told and its stabilised / diverged counts on each plant's map, over
     the controllable cells (robustness.json's "table", ``paper.maps``; an older file without it: over all
-    cells), then the excluded cells of each plant."""
+    cells), then the excluded cells of each plant. Stabilised: the cells that stay stabilised where the table
+    has them (``maps.judge_key``), else at the map's horizon."""
     tables = {p: robust[p].get("table") or {} for p in plants}
-    counts = {p: ({c: (r["stabilised"], r["diverged"], tables[p]["controllable"]) for c, r in tables[p]["rows"].items()}
-                  if tables[p].get("rows") else _map_counts(robust[p])) for p in plants}
+    counts = {p: ({c: (r[judge_key(tables[p])], r["diverged"], tables[p]["controllable"])
+                   for c, r in tables[p]["rows"].items()} if tables[p].get("rows") else _map_counts(robust[p]))
+              for p in plants}
     told = {c: r.get("told", "n/a") for p in reversed(plants) for c, r in tables[p].get("rows", {}).items()}
     names = [c for c in counts[plants[0]] if all(c in counts[p] for p in plants)]
-    lines = ["| controller | told | " + " | ".join(f"{p}: stabilised / diverged of controllable cells" for p in plants)
+    what = {p: judge_label(tables[p]) if tables[p].get("rows") else "stabilised" for p in plants}
+    lines = ["| controller | told | " + " | ".join(f"{p}: {what[p]} / diverged of controllable cells" for p in plants)
              + " |", "|---|---|" + "---|" * len(plants)]
     for c in names:
         lines.append(f"| {laws.label(c)} | {told.get(c, 'n/a')} | "

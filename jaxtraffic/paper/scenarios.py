@@ -45,6 +45,7 @@ from jaxtraffic.compare.stats import SETTLE_FRACTION  # noqa: F401 (the paper's 
 from jaxtraffic.control import Controller, takes_delay, tell_delay
 from jaxtraffic.model.params import TrafficParams, equilibrium, steps_for
 from jaxtraffic.paper import laws
+from jaxtraffic.paper.cells import paper_column, snapshot_every
 from jaxtraffic.paper.laws import CTRL_DELAY
 from jaxtraffic.runs.session import eta_text
 from jaxtraffic.sim.initial import paper_initial_condition
@@ -54,8 +55,10 @@ from jaxtraffic.sim.plant import NoiseReading
 from jaxtraffic.sim.rollout import plant_alphas, simulate_batch, stack_params
 from jaxtraffic.sim.sharding import host_mesh
 
-# what the robustness map reads of each rollout (final-state metrics: no running sums in the loop)
+# what the robustness map reads of each rollout's final state (no running sums in the loop)
 ROBUST_METRICS = ("final_rho_L2", "final_v_L2", "final_reward", "diverged")
+# ... and the one running maximum it reads: std_x(rho) over the last 150 s (``sim.metrics.LATE_WINDOW_S``)
+MAP_METRICS = (*ROBUST_METRICS, "late_max_rho_std")
 NOISE_STD = 0.15  # std of the Gaussian noise on the plant's alpha (alpha_noise scenario)
 MODEL_BASED = ("lyapunov", "backstepping")  # controllers with a model alpha (PPO only normalises by the target)
 
@@ -216,13 +219,14 @@ class Outcome:
 def run_batch(controller: Controller, envs: list[TrafficParams], keys: list[int], eval_config: EvalConfig,
               record: bool = True, batch_controller: bool = False, noise: NoiseReading | None = None,
               chunk_size: int | None = None, readings: list[NoiseReading | None] | None = None,
-              metrics: tuple[str, ...] | None = None):
+              metrics: tuple[str, ...] | None = None, every: int | None = None):
     """One vmapped rollout of ``controller`` over ``envs`` from the paper's initial condition
     (computed on the nominal equilibrium; ``chunk_size``: see ``simulate_batch``, whose default
     None leaves). ``readings``: per environment, a road-wide reading whose alpha draw it gets
     (``plant_alphas``; ``noise`` then only carries ``model_sees``), so that environments of
     different holding times share one program. ``metrics``: the metrics computed (default all; see
-    ``simulate``). Returns the SimResult with numpy leaves."""
+    ``simulate``). ``every``: the recording stride in steps (default ``eval_config.record_every``).
+    Returns the SimResult with numpy leaves."""
     nom = eval_config.nominal()
     rho0, v0 = paper_initial_condition(nom)
     b = len(envs)
@@ -235,7 +239,7 @@ def run_batch(controller: Controller, envs: list[TrafficParams], keys: list[int]
         params, controller, n_steps=eval_config.n_steps, nominal=nom,
         rho0=jnp.broadcast_to(rho0, (b, nom.n_points)), v0=jnp.broadcast_to(v0, (b, nom.n_points)),
         keys=jnp.stack([jax.random.PRNGKey(k) for k in keys]),
-        batch_controller=batch_controller, record=Record(every=eval_config.record_every if record else 0),
+        batch_controller=batch_controller, record=Record(every=(every or eval_config.record_every) if record else 0),
         memory=Memory() if chunk_size is None else Memory(chunk_size=chunk_size),
         alpha_input=AlphaInput(alphas=alphas, noise=noise), metrics=metrics,
     )
@@ -349,11 +353,17 @@ def run_robustness(controllers: dict[str, Controller], eval_config: EvalConfig,
     remaining wave amplitude, blind to a uniform offset from the nominal target;
     final_rho_offset (veh/m) is the final density's mean over x minus the plant's own
     equilibrium density (its alpha, the nominal time gap h_bar: where the open loop would rest);
-    "diverged_step": the plant step at which it diverged (-1: never). A law registered as told "delay_alpha"
-    (the map's information bound) is also told each cell's plant alpha (its ``alpha0``, not adapted)."""
+    "diverged_step": the plant step at which it diverged (-1: never), "diverged_at_s" (s, inf: never);
+    "late_max_rho_spatial_std" (veh/m): the maximum of std_x(rho) over the last 150 s of the horizon
+    (``sim.metrics.late_max``; inf where it diverged); and the paper's column, the same rollout at the paper's
+    horizon (``eval_config.horizon_s``, 300 s; ``cells.paper_column``): "paper_rho_L2", "paper_rho_spatial_std"
+    (veh/m), "paper_diverged" (diverged by then). A law registered as told "delay_alpha" (the map's information
+    bound) is also told each cell's plant alpha (its ``alpha0``, not adapted)."""
     if not eval_config.robust_delays or not eval_config.robust_alphas:
         return {}
+    n_paper = eval_config.n_steps
     eval_config = replace(eval_config, horizon_s=eval_config.robust_horizon_s)
+    every = snapshot_every(n_paper, eval_config.n_steps)
     nom = eval_config.nominal()
     dd, aa = np.meshgrid(np.asarray(eval_config.robust_delays), np.asarray(eval_config.robust_alphas), indexing="ij")
     envs = [nom.replace(delay=float(d), alpha=float(a)) for d, a in zip(dd.ravel(), aa.ravel(), strict=True)]
@@ -374,13 +384,18 @@ def run_robustness(controllers: dict[str, Controller], eval_config: EvalConfig,
         if law is not None and law.told == "delay_alpha":
             ctrl = ctrl.replace(settings=ctrl.settings.replace(alpha0=jnp.asarray(aa.ravel(), jnp.float32)))
         t0 = time.perf_counter()
-        res = run_batch(ctrl, envs, [0] * len(envs), eval_config, record=False, batch_controller=batched,
-                        chunk_size=chunk, metrics=ROBUST_METRICS)
+        res = run_batch(ctrl, envs, [0] * len(envs), eval_config, record=every > 0, batch_controller=batched,
+                        chunk_size=chunk, metrics=MAP_METRICS, every=every)
         out[name] = {k: np.asarray(res.metrics[k]).reshape(dd.shape) for k in ROBUST_METRICS}
-        out[name]["diverged_step"] = np.asarray(res.final.diverged_step).reshape(dd.shape)
+        step = np.asarray(res.final.diverged_step).reshape(dd.shape)
+        out[name]["diverged_step"] = step
+        out[name]["diverged_at_s"] = np.where(out[name]["diverged"], step * eval_config.dt, np.inf)
         out[name]["final_rho_spatial_std"] = np.std(np.asarray(res.final.rho), axis=-1).reshape(dd.shape)
         out[name]["final_rho_offset"] = np.mean(np.asarray(res.final.rho), axis=-1).reshape(dd.shape) - own_rho
+        out[name]["late_max_rho_spatial_std"] = np.asarray(res.metrics["late_max_rho_std"]).reshape(dd.shape)
+        out[name].update(paper_column(res, n_paper, every, out[name]))
         log(f"  robustness {name:<13s} {len(envs):3d} envs x {eval_config.n_steps} steps"
             f"  {time.perf_counter() - t0:6.1f} s | {_eta(len(names) - i - 1, i + 1, t_start)}")
     return out
+
 

@@ -38,6 +38,7 @@ REWARD_TARGET = -0.1  # the paper's stop rule on the reward
 # deviation of its final density (the remaining waves, blind to a uniform offset) is below this
 STABLE_STD = 0.5e-3
 REWARD_DX = 5.0  # m, the paper's grid spacing: the reward's per-node sum is weighted by dx / REWARD_DX
+LATE_WINDOW_S = 150.0  # s: the late window of "late_max_rho_std" (the last 150 s of a rollout)
 
 
 def trapezoid(f: Array, dx: Array | float) -> Array:
@@ -111,6 +112,8 @@ class MetricsAccumulator:
     J_fuel_kmh: J_fuel with ``fuel_rate_kmh`` (the paper's reading).
     n_active (scalar): number of accumulated (healthy) steps.
     last_bad_step (scalar): last step index whose reward was below REWARD_TARGET (-1: none).
+    late_max_rho_std (scalar): max of std_x(rho) (veh/m) over the healthy steps n >= ``MetricsTarget.late_step``
+    (an opt-in metric, ``OPTIONAL_METRICS``: not in the default selection).
     A field is None when the rollout's metrics do not read it (``init_metrics(keep=...)``, ``accumulators``).
     """
 
@@ -129,6 +132,7 @@ class MetricsAccumulator:
     J_comfort_at2: Array
     J_comfort_switch: Array
     J_fuel_kmh: Array
+    late_max_rho_std: Array
 
 
 def init_metrics(n_points: int, dtype=jnp.float32, keep: Iterable[str] | None = None) -> MetricsAccumulator:
@@ -138,7 +142,7 @@ def init_metrics(n_points: int, dtype=jnp.float32, keep: Iterable[str] | None = 
     full = dict(
         J_TTT=z, J_fuel=z, J_comfort=z, effort_sq=z, max_cfl=z, a_prev=z,
         n_active=jnp.zeros((), jnp.int32), last_bad_step=jnp.full((), -1, jnp.int32),
-        J_comfort_a2=z, J_comfort_at2=z, J_comfort_switch=z, J_fuel_kmh=z,
+        J_comfort_a2=z, J_comfort_at2=z, J_comfort_switch=z, J_fuel_kmh=z, late_max_rho_std=jnp.zeros((), dtype),
     )
     kept = full.keys() if keep is None else set(keep)
     return MetricsAccumulator(**cast(dict[str, Any], {k: (v if k in kept else None) for k, v in full.items()}))
@@ -170,7 +174,8 @@ class StepRecord(NamedTuple):
 class MetricsTarget(NamedTuple):
     """The constants of a rollout's metrics: the target equilibrium rho_bar (veh/m), v_bar (m/s) and
     h_bar (s), the grid spacing dx (m), the time step dt (s) and the switch-on step ``switch_step``
-    (the plant's delay in steps: the step whose a_t^2 is the switch-on spike)."""
+    (the plant's delay in steps: the step whose a_t^2 is the switch-on spike); ``late_step``: the first step of
+    the late window of ``late_max_rho_std`` (n_steps - ``late_steps(dt)`` in a rollout; 0: every step)."""
 
     rho_bar: Array | float
     v_bar: Array | float
@@ -178,6 +183,7 @@ class MetricsTarget(NamedTuple):
     dx: Array | float
     dt: Array | float
     switch_step: Array | int = 0
+    late_step: Array | int = 0
 
 
 def update_metrics(acc: MetricsAccumulator, record: StepRecord, target: MetricsTarget) -> MetricsAccumulator:
@@ -196,7 +202,7 @@ def update_metrics(acc: MetricsAccumulator, record: StepRecord, target: MetricsT
     caller then counts the initial state itself).
     """
     step, rho, v, v_next, h_sent, cfl, active, reward_next = record
-    rho_bar, v_bar, h_bar, dx, dt, switch_step = target
+    rho_bar, v_bar, h_bar, dx, dt, switch_step, late_step = target
     inv_dt = 1.0 / dt
     a = material_acceleration(v, v_next, dx, dt)
     a_prev = jnp.where(step == 0, a, acc.a_prev) if acc.a_prev is not None else None
@@ -230,6 +236,8 @@ def update_metrics(acc: MetricsAccumulator, record: StepRecord, target: MetricsT
         "J_comfort_at2": lambda: add(acc.J_comfort_at2, at2()),
         "J_comfort_switch": lambda: add(acc.J_comfort_switch, jnp.where(step == switch_step, at2(), 0.0)),
         "J_fuel_kmh": lambda: add(acc.J_fuel_kmh, fuel_rate_kmh(v, a) * w),
+        "late_max_rho_std": lambda: jnp.where(active & (step >= late_step),
+                                              jnp.maximum(acc.late_max_rho_std, jnp.std(rho)), acc.late_max_rho_std),
     }
     return MetricsAccumulator(**cast(dict[str, Any], {k: (None if getattr(acc, k) is None else f())
                                                       for k, f in new.items()}))
@@ -287,23 +295,37 @@ METRIC_ACCUMULATORS: dict[str, tuple[str, ...]] = {
     "J_comfort_no_switch_on": _COMFORT3, "J_TTT_kmh": ("J_TTT",), "J_fuel_kmh": ("J_fuel_kmh",),
     "J_comfort_kmh": _COMFORT3[:2], "J_comfort_a2_kmh": ("J_comfort_a2",), "J_comfort_at2_kmh": ("J_comfort_at2",),
     "J_comfort_switch_on_kmh": ("J_comfort_switch",), "J_comfort_no_switch_on_kmh": _COMFORT3,
+    "late_max_rho_std": ("late_max_rho_std",),
 }
-METRIC_NAMES: tuple[str, ...] = tuple(METRIC_ACCUMULATORS)
+# the metrics computed only when asked for (not in the default selection, ``select_metrics(None)``)
+OPTIONAL_METRICS: tuple[str, ...] = ("late_max_rho_std",)
+METRIC_NAMES: tuple[str, ...] = tuple(k for k in METRIC_ACCUMULATORS if k not in OPTIONAL_METRICS)
 # the sums that need the previous step's acceleration (a_t)
 _NEED_A_PREV = frozenset(("J_comfort", "J_comfort_at2", "J_comfort_switch"))
 
 
 def select_metrics(names: Iterable[str] | str | None) -> tuple[str, ...]:
     """The metrics a caller asks for, in ``METRIC_NAMES`` order (a hashable, canonical static argument):
-    None: all of them; a string: that one metric; any other iterable of names (possibly empty: no metrics).
-    Raises ValueError for a name that is not a metric, listing the valid ones."""
+    None: all of them but ``OPTIONAL_METRICS``; a string: that one metric; any other iterable of names (possibly
+    empty: no metrics). Raises ValueError for a name that is not a metric, listing the valid ones."""
     if names is None:
         return METRIC_NAMES
     asked = {names} if isinstance(names, str) else set(names)
-    unknown = sorted(str(n) for n in asked - set(METRIC_NAMES))
+    unknown = sorted(str(n) for n in asked - set(METRIC_ACCUMULATORS))
     if unknown:
-        raise ValueError(f"unknown metric(s) {unknown}; the metrics are: {', '.join(METRIC_NAMES)}")
-    return tuple(n for n in METRIC_NAMES if n in asked)
+        raise ValueError(f"unknown metric(s) {unknown}; the metrics are: {', '.join(METRIC_ACCUMULATORS)}")
+    return tuple(n for n in METRIC_ACCUMULATORS if n in asked)
+
+
+def late_steps(dt: Array | float) -> Array:
+    """The number of steps of ``dt`` (s) in ``LATE_WINDOW_S`` (int32)."""
+    return jnp.round(LATE_WINDOW_S / dt).astype(jnp.int32)
+
+
+def late_max(acc: MetricsAccumulator, rho_final: Array, diverged: Array) -> Array:
+    """The "late_max_rho_std" metric (veh/m): the accumulated late maximum of std_x(rho) and the final state's;
+    +inf for a diverged rollout."""
+    return jnp.where(diverged, jnp.inf, jnp.maximum(acc.late_max_rho_std, jnp.std(rho_final)))
 
 
 def accumulators(names: Iterable[str]) -> frozenset[str]:

@@ -93,7 +93,8 @@ def finalize_metrics(acc: metrics.MetricsAccumulator, final: PlantState, target:
     output not finite, 3 initial state not finite/physical, 4 parameters invalid), control_effort
     (RMS over space and time of h_sent - h_bar, s), max_cfl (largest CFL number of the steps
     taken, with the applied input and the plant's alpha); then ``metrics.EXTRA_INDICES`` (the
-    comfort parts, the switch-on step and the paper's km/h reading).
+    comfort parts, the switch-on step and the paper's km/h reading); only when asked for (``names``):
+    late_max_rho_std (veh/m, ``metrics.late_max``: max of std_x(rho) over the last ``metrics.LATE_WINDOW_S``).
     """
     dx = target.dx if dx is None else dx
     rho_bar, v_bar = equilibrium(target)
@@ -115,6 +116,7 @@ def finalize_metrics(acc: metrics.MetricsAccumulator, final: PlantState, target:
         "diverged": lambda: final.diverged,
         "diverged_at_s": lambda: jnp.where(final.diverged, final.diverged_step * dt, jnp.inf),
         "diverged_reason": lambda: final.diverged_reason,
+        "late_max_rho_std": lambda: metrics.late_max(acc, final.rho, final.diverged),
     }
     names = metrics.METRIC_NAMES if names is None else names
     return {k: tot[k] if k in tot else table[k]() for k in names if k in tot or k in table and metrics.kept(acc, k)}
@@ -156,7 +158,7 @@ def _simulate(params: TrafficParams, controller: Controller | None, rho0: Array 
     alphas = plant_alphas(p, key, n_steps, noise, rho0.dtype) if alphas is None else alphas.astype(rho0.dtype)
     sees = noise is not None and noise.model_sees
     target = metrics.MetricsTarget(rho_bar=rho_bar, v_bar=v_bar, h_bar=nominal.h_bar, dx=p.dx, dt=p.dt,
-                                   switch_step=p.delay_steps)
+                                   switch_step=p.delay_steps, late_step=n_steps - metrics.late_steps(p.dt))
 
     def one_step(carry, alpha_n):
         state, cstate, acc = carry

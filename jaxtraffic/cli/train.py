@@ -110,10 +110,10 @@ def _default_algo(argv: list[str], from_file: Tables) -> str:
     if "algo" in from_file.get("run", {}):
         return from_file["run"]["algo"]
     run_dir = Path(_value_of(argv, "--out-dir") or RunConfig.out_dir)
-    if "--resume" in argv and (run_dir / "config.json").exists():
+    if "--resume" in argv:
         try:
             return load_config(run_dir).run.algo
-        except ValueError:  # (the resume's checks say what is wrong with the directory)
+        except (ValueError, OSError):  # (the resume's checks say what is wrong with the directory)
             pass
     return "ppo"
 

@@ -54,7 +54,7 @@ class RunConfig:
     overwrite: bool = hyper(False, help="clear the run in --out-dir first")
     seed: int = hyper(0, help="PRNG seed", lo=0, hi=2**32 - 1)
     total_steps: int = hyper(10_000_000, help="environment steps per member", lo=1, algo="ppo")
-    max_wall_s: float = hyper(math.inf, help="stop after this many seconds", lo=0.0, lo_open=True)
+    max_wall_s: float = hyper(math.inf, help="stop after this many seconds", lo=0.0, lo_open=True, inf=True)
     keep_going: bool = hyper(False, help="ignore the stop rule", algo="ppo")
     # stop rule: the deterministic evaluation reward (end of the evaluation rollout) >= this
     target_reward: float = hyper(REWARD_TARGET, help="stop rule: evaluation reward >= this", algo="ppo")
@@ -77,7 +77,8 @@ class RunConfig:
     val_plant: str = hyper("reference", help="validation suite's plant", choices=("reference", "training"), algo="ppo")
     # 1: at the nominal delay the density L2 at half the suite horizon below backstepping's, J_comfort within
     # 20 % of its, and no delay of the suite diverging or still growing; inf: no such condition
-    val_target: float = hyper(1.0, help="stop rule: validation score <= this", lo=0.0, lo_open=True, algo="ppo")
+    val_target: float = hyper(1.0, help="stop rule: validation score <= this", lo=0.0, lo_open=True, algo="ppo",
+                              inf=True)
     eval_horizon_s: float = hyper(300.0, help="evaluation rollout length, s", lo=0.0, lo_open=True)
     # also after a session's first chunk, at the end and on SIGINT/SIGTERM; SIGKILL loses at most this many chunks
     checkpoint_every: int = hyper(10, help="chunks between checkpoints", lo=1, algo="ppo")

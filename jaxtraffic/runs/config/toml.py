@@ -46,7 +46,10 @@ def _v3(tables: Tables) -> Tables:
         "controller_points") or 0}}
 
 
-MIGRATIONS: dict[int, Callable[[Tables], Tables]] = {3: _v3}  # version n's tables -> version n + 1's
+# version n's tables -> version n + 1's. A config file holds only what differs from the defaults, so a changed
+# default, or a field whose meaning changed, is a new version whose migration writes the old value or meaning into
+# the older files' tables (CONFIG_VERSION + 1, its function here).
+MIGRATIONS: dict[int, Callable[[Tables], Tables]] = {3: _v3}
 
 
 def migrate(tables: Tables, version: Any, where: str) -> Tables:

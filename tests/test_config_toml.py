@@ -72,8 +72,8 @@ def test_a_version_3_config_json_is_converted():
     old_ppo = {**ppo, "version": 3,
                "config": {**ppo["config"], "env": {**ppo["config"]["env"], "controller_points": None}}}
     assert config_from_json(old_ppo).grad.controller_points == 0
-    with pytest.raises(ValueError, match=r"older jaxtraffic \(its \[plant\] lacks L"):
-        config_from_json({**old, "version": 4})
+    # a version-4 file without the plant's other fields (written before they existed): at their defaults
+    assert config_from_json({**old, "version": 4}).plant.L == TrainConfig().plant.L
 
 
 @pytest.mark.parametrize("argv", [[*TINY, "--total-steps", "64", "--keep-going"], GRAD], ids=["ppo", "gradient"])
@@ -125,3 +125,75 @@ def test_sections_and_flags_map_to_fields_and_unknown_names_are_refused():
     assert resolve_env_params(n_points=21, horizon_s=1.0).horizon == 10
     with pytest.raises(TypeError, match="unknown environment config field"):
         resolve_env_params(n_pionts=21)
+
+
+def test_a_saved_config_holds_what_differs_from_the_defaults_and_each_recipe_is_short():
+    from importlib import resources
+
+    from jaxtraffic.paper.recipes import NAMES
+    from jaxtraffic.runs.config.toml import config_toml
+
+    body = [line for line in config_toml(TrainConfig()).splitlines() if line and not line.startswith("#")]
+    assert body == ["config_version = 4", "[run]", 'algo = "ppo"']
+    lr = config_toml(TrainConfig.make(ppo={"lr": 0.5}, run={"min_wave_speed": None}))
+    assert "[ppo]\nlr = 0.5\n" in lr and "min_wave_speed = -inf" in lr and "[env]" not in lr
+    for name in NAMES:
+        lines = resources.files("jaxtraffic.paper.recipes").joinpath(f"{name}.toml").read_text().splitlines()
+        assert len(lines) <= 25, name
+
+
+def test_an_edited_config_toml_is_honoured_in_its_run_control_and_refused_elsewhere(tmp_path, capsys):
+    """A run's config.toml is its truth: ``--resume`` and ``load_policy`` read it; an edit of the run control
+    (here the gradient trainer's step count) applies, any other edit is refused in one line naming the field."""
+    from jaxtraffic.io.files import read_json
+    from jaxtraffic.runs import load_policy
+    from jaxtraffic.runs.config import config_from_json
+
+    run = train_cli.main([*GRAD, "--out-dir", str(tmp_path / "r")])
+    toml = run / "config.toml"
+    assert "grad_steps = 2\n" in toml.read_text()
+    toml.write_text(toml.read_text().replace("grad_steps = 2\n", "grad_steps = 3\n"))
+    assert load_config(run).grad.grad_steps == 3
+    train_cli.main(["--resume", "--out-dir", str(run)])
+    assert read_json(run / "summary.json")["updates"] == 3  # trained on to the edited length
+    assert config_from_json(read_json(run / "config.json")).grad.grad_steps == 3  # and recorded in the machine copy
+    capsys.readouterr()
+    toml.write_text(toml.read_text().replace("train_horizon_s = 2.0\n", "train_horizon_s = 3.0\n"))
+    before = (run / ckpt.CHECKPOINT).read_bytes()
+    with pytest.raises(SystemExit) as exc:
+        train_cli.main(["--resume", "--out-dir", str(run)])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and err.count("\n") == 1 and "[grad] train_horizon_s = 3.0" in err and "2.0" in err
+    assert (run / ckpt.CHECKPOINT).read_bytes() == before
+    with pytest.raises(ValueError, match=r"config.toml: \[grad\] train_horizon_s = 3.0, but"):
+        load_policy(run)
+
+
+def test_an_older_run_loads_with_its_missing_fields_at_their_defaults(tmp_path):
+    """A run written by an older version (here: a committed run, whose config.toml has every field and no
+    config_version, with fields removed as if written before they existed) loads; a version-3 file is migrated;
+    a version this jaxtraffic does not know is refused."""
+    import shutil
+    from pathlib import Path
+
+    from jaxtraffic.io.files import read_json, write_json
+
+    committed = Path(__file__).parents[1] / "docs/results/runs/grad_gains"
+    run = tmp_path / "old"
+    run.mkdir()
+    for name in ("config.toml", "config.json"):
+        shutil.copy(committed / name, run / name)
+    data = read_json(run / "config.json")
+    del data["config"]["env"]["wave_weight"], data["config"]["grad"]["cem_tie_weight"]
+    write_json(run / "config.json", data)
+    text = (run / "config.toml").read_text()
+    assert "config_version" not in text
+    (run / "config.toml").write_text("".join(line for line in text.splitlines(keepends=True)
+                                             if not line.startswith(("wave_weight =", "cem_tie_weight ="))))
+    assert load_config(run) == load_config(committed)
+    (tmp_path / "v3.toml").write_text("config_version = 3\n[env]\ncontroller_points = 11\n[plant]\nn_points = 21\n"
+                                      "[run]\nalgo = 'gradient'\n")
+    assert read_config(tmp_path / "v3.toml").grad.controller_points == 11
+    (tmp_path / "v9.toml").write_text("config_version = 9\n")
+    with pytest.raises(ValueError, match="config version 9; this jaxtraffic reads versions 3 to 4"):
+        read_config(tmp_path / "v9.toml")

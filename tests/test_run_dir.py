@@ -167,20 +167,23 @@ def test_cli_run_directory_ownership_and_resume_keeps_the_saved_run_control(tmp_
 def test_config_and_checkpoint_are_bound_together(tiny_run_a, tmp_path):
     import shutil
 
+    from jaxtraffic.io.files import write_json
     from jaxtraffic.runs import load_policy
+    from jaxtraffic.runs.config import config_json, write_config
 
     run = tmp_path / "a"
     shutil.copytree(tiny_run_a, run)
     load_policy(run)
-    cfg = json.loads((run / ckpt.CONFIG).read_text())
-    cfg["config"]["env"]["gain_max"] = 0.123  # edited after training: another controller
-    (run / ckpt.CONFIG).write_text(json.dumps(cfg))
+    edited = load_config(run).updated(env={"gain_max": 0.123})  # edited after training: another controller
+    write_config(edited, run / "config.toml")  # the run's truth: refused against its machine copy
+    with pytest.raises(ValueError, match=r"config.toml: \[env\] gain_max = 0.123, but the run's config.json"):
+        load_policy(run)
+    write_json(run / ckpt.CONFIG, config_json(edited))  # both edited: refused against the checkpoint
     with pytest.raises(ValueError, match=r"gain_max = 0.123, but best.msgpack was trained with .*do not belong"):
         load_policy(run)
-    cfg["config"]["env"]["gain_max"] = load_config(tiny_run_a).env.gain_max
-    cfg["config"]["run"]["total_steps"] = 10**9  # run control is not part of the trained problem
-    (run / ckpt.CONFIG).write_text(json.dumps(cfg))
-    load_policy(run)
+    shutil.copy(tiny_run_a / ckpt.CONFIG, run / ckpt.CONFIG)
+    write_config(load_config(tiny_run_a).updated(run={"total_steps": 10**9}), run / "config.toml")
+    load_policy(run)  # run control is not part of the trained problem
     (run / ckpt.BEST).unlink()  # never silently another policy
     with pytest.raises(ValueError, match=r"best.msgpack is missing, though summary.json says the run kept"):
         load_policy(run)

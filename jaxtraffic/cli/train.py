@@ -44,20 +44,33 @@ ABOUT = {"ppo": "Train the paper's PPO gain policy (the default subcommand).",
          "gradient": "Train a policy (gains, network or delay schedule) by gradients through the simulator."}
 HELP = ("-h", "--help", "-H", "--help-verbose")
 DESCRIPTION = (f"Train a gain policy: {PROG} ppo [flags] (also {PROG} [flags]) or {PROG} gradient [flags]; "
-               f"{PROG} ALGO --help lists ALGO's flags (-H: with their help); --recipe NAME starts from a run of "
+               f"{PROG} ALGO --help lists ALGO's flags, by config section; --recipe NAME starts from a run of "
                f"the main job ({', '.join(NAMES)}); --version: the version.")
 
 
+GROUPS = {"plant": "the nominal training plant and its grid (physical constants: a --config file's [plant])",
+          "env": "episodes, domain randomisation, reward shaping, observation",
+          "ppo": "PPO (num_seeds: the population, num_envs: each member's)",
+          "grad": "the gradient and CEM trainers", "run": "where, how long, the stop rule (the run control)"}
+
+
 def flags_class(algo: str, base: TrainConfig) -> type:
-    """The dataclass tyro derives ``train.py ALGO``'s flags from: the leaf fields ``algo`` reads
-    (``tree.fields_for``) with ``base``'s values as defaults and their metadata's help, --config and the
-    cluster's flags."""
+    """The dataclass tyro derives ``train.py ALGO``'s flags from: one group per config section (a dataclass of the
+    leaf fields ``algo`` reads there, ``tree.fields_for``, with ``base``'s values as defaults and their metadata's
+    one-line help; its flags unprefixed), --config, --recipe and the cluster's flags."""
     hints = {s: typing.get_type_hints(cls) for s, cls in SECTIONS.items()}
     values = base.tables()
-    leaves = [(f.name, _flag_type(hints[s][f.name], f, values[s][f.name]),
-               dataclasses.field(default=values[s][f.name], metadata={"help": f.metadata.get("help")}))
-              for s, f in fields_for(algo)]
-    cls = dataclasses.make_dataclass(algo, [*leaves, (
+    groups: dict[str, list] = {}
+    for s, f in fields_for(algo):
+        groups.setdefault(s, []).append((f.name, _flag_type(hints[s][f.name], f, values[s][f.name]),
+                                         dataclasses.field(default=values[s][f.name], metadata={
+                                             "help": f.metadata.get("help")})))
+    sections = []
+    for s, leaves in groups.items():
+        group = dataclasses.make_dataclass(s, leaves, frozen=True)
+        group.__doc__ = GROUPS[s]
+        sections.append((s, Annotated[group, tyro.conf.OmitArgPrefixes], dataclasses.field(default_factory=group)))
+    cls = dataclasses.make_dataclass(algo, [*sections, (
         "config", Union[Path, None], dataclasses.field(default=None, metadata={  # noqa: UP007 (a runtime type)
             "help": "start from this config file (a run's config.toml); the flags given override it"})), (
         "recipe", Union[Literal[NAMES], None], dataclasses.field(default=None, metadata={  # noqa: UP007 (a runtime type)
@@ -75,7 +88,7 @@ def _flag_type(hint: Any, f: dataclasses.Field, value: Any) -> Any:
     ``--quiet`` still works when the file says ``quiet = true``)."""
     if "choices" in f.metadata:
         return Literal[tuple(f.metadata["choices"])]
-    if hint is bool and value == f.default:
+    if hint is bool and value is False and f.default is False:
         return Annotated[bool, tyro.conf.FlagCreatePairsOff]
     return hint
 
@@ -110,10 +123,10 @@ def _default_algo(argv: list[str], from_file: Tables) -> str:
     if "algo" in from_file.get("run", {}):
         return from_file["run"]["algo"]
     run_dir = Path(_value_of(argv, "--out-dir") or RunConfig.out_dir)
-    if "--resume" in argv and (run_dir / "config.json").exists():
+    if "--resume" in argv:
         try:
             return load_config(run_dir).run.algo
-        except ValueError:  # (the resume's checks say what is wrong with the directory)
+        except (ValueError, OSError):  # (the resume's checks say what is wrong with the directory)
             pass
     return "ppo"
 
@@ -192,7 +205,7 @@ def _one_line(event: Any, algo: str, owner: dict[str, str]) -> None:
 def parse(argv: list[str] | None = None) -> tuple[TrainConfig, Cluster, dict[str, str]]:
     """The training configuration of the command line ``argv`` (default ``sys.argv[1:]``), its cluster flags,
     and the fields its flags and its --config file set, each with where (``--lr``, ``lr in FILE``)."""
-    argv = list(sys.argv[1:] if argv is None else argv)
+    argv = ["--help" if a in ("-H", "--help-verbose") else a for a in (sys.argv[1:] if argv is None else argv)]
     _refuse_removed(argv)
     exit_on_version(argv, PROG)
     from_file = _start_tables(argv)
@@ -207,18 +220,17 @@ def parse(argv: list[str] | None = None) -> tuple[TrainConfig, Cluster, dict[str
         raise ValueError(f"{config_file}: {err}" if config_file else str(err)) from None
     classes = {a: flags_class(a, bases[a]) for a in ALGOS}
     algo = argv[0] if argv[0] in ALGOS else "ppo"
-    names = {f.name for f in dataclasses.fields(classes[algo])} - {"config", "recipe", "cluster"}
-    tuples = {"--" + f.name.replace("_", "-") for f in dataclasses.fields(classes[algo]) if "tuple" in str(f.type)}
+    section = flag_sections(algo)
+    tuples = {"--" + f.name.replace("_", "-") for _, f in fields_for(algo) if "tuple" in str(f.type)}
     argv = _split_commas(argv, tuples)
     # a type built at run time (the flag classes are): a value to mypy, not a type alias
     commands: Any = Union[tuple(Annotated[classes[a], tyro.conf.subcommand(a, description=ABOUT[a])]  # noqa: UP007
                                 for a in ALGOS)]
-    owner = {"--" + f.name.replace("_", "-"): a for a in reversed(ALGOS) for f in dataclasses.fields(classes[a])}
+    owner = {"--" + f.name.replace("_", "-"): a for a in reversed(ALGOS) for _, f in fields_for(a)}
     with tyro_errors.on_parse_error(lambda event: _one_line(event, algo, owner)):
-        flags = tyro.cli(commands, args=argv, prog=PROG, compact_help=True,
-                         default=classes["ppo"](), description=DESCRIPTION)
-    given = _given(argv[1:], names)
-    values = {k: getattr(flags, k) for k in given}
+        flags = tyro.cli(commands, args=argv, prog=PROG, default=classes["ppo"](), description=DESCRIPTION)
+    given = _given(argv[1:], set(section))
+    values = {k: getattr(getattr(flags, section[k]), k) for k in given}
     origin = {k: f"{k} in {config_file}" for t in from_file.values() for k in t if k != "algo"}
     origin.update({k: "--" + k.replace("_", "-") for k in given})
     if values.get("min_wave_speed") == -math.inf:  # the paper's rule alone (stored as null in the JSON outputs)

@@ -2,7 +2,8 @@
 alpha ranges (relative to the nominal plant's delay by default), initial perturbations, the gain bound and filter,
 the reward shaping and the observation (``EnvConfig``). ``learn.env.env_params(config, traffic)`` turns it and a
 nominal plant into the traced ``learn.env.EnvParams`` the environment steps; each field's default, range and
-help (its flag's help on ``train.py``'s command line) are defined here, once. ``algo="ppo"`` in a field's
+help (its flag's help on ``train.py``'s command line) are defined here, once (``pair``: the bounds of a LO,HI
+pair). ``algo="ppo"`` in a field's
 metadata: only PPO reads it (the gradient trainer reads ``gain_filter`` and ``filter_sigma`` too).
 """
 
@@ -22,11 +23,13 @@ class EnvConfig:
     # training plant delays ~ U(D - spread, D + spread) s (D: the nominal plant's), clipped at 0; 0 disables
     delay_spread: float = hyper(1.0, lo=0.0, help="plant delays D +- this, s (0: D alone)", algo="ppo")
     delay_range: tuple[float, float] | None = hyper(None, help="plant delays LO HI, s (over --delay-spread)",
-                                                    algo="ppo")
+                                                    algo="ppo", pair=(0.0, None))
     # None: the nominal plant's alpha alone
-    alpha_range: tuple[float, float] | None = hyper(None, help="plant alphas LO HI", algo="ppo")
-    amp_range: tuple[float, float] = hyper((0.010, 0.010), help="initial amplitude LO HI, veh/m", algo="ppo")
-    wavenumber_range: tuple[int, int] = hyper((4, 4), help="initial wavenumber LO HI", algo="ppo")
+    alpha_range: tuple[float, float] | None = hyper(None, help="plant alphas LO HI", algo="ppo",
+                                                    pair=(0.0, 1.0))
+    amp_range: tuple[float, float] = hyper((0.010, 0.010), help="initial amplitude LO HI, veh/m", algo="ppo",
+                                           pair=(0.0, None))
+    wavenumber_range: tuple[int, int] = hyper((4, 4), help="initial wavenumber LO HI", algo="ppo", pair=(0, None))
     phase_max: float = hyper(0.0, lo=0.0, help="initial phase ~ U(0, this), rad", algo="ppo")
     # |eta_i| bound of PPO's (normalised) gains: one value, or one per gain (the gradient trainer's: grad_gain_max)
     gain_max: float | tuple[float, float, float] = hyper((1.0, 3.0, 3.0), lo=0.0, lo_open=True,

@@ -151,9 +151,9 @@ def check_problem(config: TrainConfig, stored: Any, path: Path) -> None:
     diff = [k for k in saved if k in now and saved[k] != now[k]]
     if diff:
         said = ", ".join(f"{k} = {now[k]!r}" for k in diff[:4])
-        raise ValueError(f"{path.parent / CONFIG}: {said}, but {path.name} was trained with "
-                         f"{', '.join(repr(saved[k]) for k in diff[:4])}: the two files do not belong together "
-                         "(config.json edited after training, or taken from another run)")
+        raise ValueError(f"{path.parent / 'config.toml'}: {said}, but {path.name} was trained with "
+                         f"{', '.join(repr(saved[k]) for k in diff[:4])}: the two do not belong together "
+                         "(the config edited after training, or taken from another run)")
 
 
 def _fields(problem: Any) -> dict[str, Any]:

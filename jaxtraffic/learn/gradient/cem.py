@@ -38,6 +38,7 @@ from jaxtraffic.learn.gradient.objective import (
     trainable,
     training_scenarios,
 )
+from jaxtraffic.learn.gradient.policies import POLICIES
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.sim.metrics import STABLE_STD, VEH_PER_KM
 from jaxtraffic.sim.rollout import simulate_batch
@@ -129,8 +130,9 @@ def make_train(grad_config: GradientConfig, base: TrafficParams, devices: list |
     for the signature and must be None."""
     if devices is not None or jax.process_count() > 1:
         raise ValueError("the CEM trainer runs in one process, on its devices (devices=None)")
-    if grad_config.policy not in ("gains", "schedule", "residual"):
-        raise ValueError(f"method 'cem' trains the gains, schedule or residual policy, not {grad_config.policy!r}")
+    if "cem" not in POLICIES[grad_config.policy].methods:
+        raise ValueError(f"method 'cem' trains the {', '.join(p for p in POLICIES if 'cem' in POLICIES[p].methods)} "
+                         f"policy, not {grad_config.policy!r}")
     n_steps = horizon_steps(grad_config, base.dt)
     pool = train_pool(grad_config, base)
 

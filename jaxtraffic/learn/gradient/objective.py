@@ -41,7 +41,6 @@ import functools
 import itertools
 from typing import Any
 
-import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -51,13 +50,11 @@ from jax.sharding import Mesh
 
 from jaxtraffic.compare.scenarios import EpisodePool
 from jaxtraffic.control.adapter import ControllerGrid, on_grid
-from jaxtraffic.control.adaptive_residual import ALPHA_KNOTS, adaptive_residual, residual_gains
 from jaxtraffic.control.base import Controller
-from jaxtraffic.control.gain_law import DelaySchedule, constant_gains, schedule_gains, scheduled_gains, sigma_nodes
-from jaxtraffic.control.gain_policy import equilibrium_gains, feature_size, policy_controller
-from jaxtraffic.control.networks import ActorCritic
+from jaxtraffic.control.gain_policy import equilibrium_gains
 from jaxtraffic.control.stability import GROWTH_TOL, model_growth_rates, wavenumbers
 from jaxtraffic.learn.gradient.config import GradientConfig
+from jaxtraffic.learn.gradient.policies import OBS_SCALE, POLICIES, obs_statistics  # noqa: F401 (re-exported)
 from jaxtraffic.model.linear import linearize
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.model.solver import is_physical
@@ -71,7 +68,6 @@ Array = jax.Array
 # the rollout metrics the objective computes: J_comfort (its comfort term) and final-state ones, which cost no
 # running sum in the loop (reported per scenario in the training chunk's metrics)
 OBJECTIVE_METRICS = ("J_comfort", "final_rho_L2", "final_reward", "diverged")
-OBS_SCALE = 0.1  # std assumed for the normalised field deviations of the observation (dimensionless)
 # m: the road of every training config (runs.config has no road-length field); the filter's width in nodes
 # is static, so it is computed from this rather than from the traced base.L
 ROAD_LENGTH = float(TrafficParams().L)
@@ -132,77 +128,30 @@ def train_pool(grad_config: GradientConfig, base: TrafficParams) -> EpisodePool 
     return EpisodePool.train_split(grad_config.train_split, base) if grad_config.train_split else None
 
 
-def _network(grad_config: GradientConfig) -> ActorCritic:
-    return ActorCritic(hidden=tuple(grad_config.hidden))
-
-
-def obs_statistics(n_points: int) -> tuple[Array, Array]:
-    """Fixed observation normalisation of a gradient-trained network on ``n_points`` nodes: mean 0, std
-    ``OBS_SCALE`` for the 3 n field entries and 1/sqrt(3) (a uniform variable on [-1, 1]) for the 3 gains."""
-    var = jnp.concatenate([jnp.full((3 * n_points,), OBS_SCALE**2), jnp.full((3,), 1.0 / 3.0)])
-    return jnp.zeros_like(var), var
-
-
 def init_theta(grad_config: GradientConfig, base: TrafficParams, key: Array) -> Any:
-    """Initial parameters: the gains ``init_gains``, or a network whose output is (nearly) those
-    gains everywhere (final actor bias atanh(init_gains / grad_gain_max), small final weights)."""
+    """Initial parameters of the policy (``policies.POLICIES``): the gains ``init_gains``, a schedule or residual
+    table of them, or a network whose output is (nearly) those gains everywhere."""
     g0 = jnp.asarray(grad_config.init_gains, jnp.result_type(float))
-    if grad_config.policy == "gains":
-        return g0
-    if grad_config.policy == "schedule":
-        return jnp.tile(g0, (len(grad_config.schedule_knots), 1))
-    if grad_config.policy == "residual":  # [eta2, eta3] at every (delay, alpha_hat) knot; zeros: the adaptive law
-        return jnp.tile(g0[1:], (len(grad_config.schedule_knots), len(ALPHA_KNOTS), 1)) * trainable(grad_config, g0)
-    n = grad_config.controller_points or base.n_points
-    params = _network(grad_config).init(key, jnp.zeros((feature_size(n),)))
-    actor = params["params"]["actor"]
-    last = sorted(k for k in actor if k.startswith("Dense_"))[-1]
-    bias = jnp.arctanh(g0 / grad_config.grad_gain_max)
-    return {"params": {**params["params"], "actor": {**actor, last: {**actor[last], "bias": bias}}}}
+    return POLICIES[grad_config.policy].init(grad_config, grad_config.controller_points or base.n_points, g0, key)
 
 
 def trainable(grad_config: GradientConfig, theta: Array) -> Array | float:
-    """1 where a gains, schedule or residual parameter is trained, 0 where it is held at zero: a residual's rows
-    at alpha_hat knots below ``residual_alpha_floor`` (the adaptive law there; broadcasts against its table)."""
-    if grad_config.policy != "residual":
-        return 1.0
-    keep = jnp.asarray(ALPHA_KNOTS) >= grad_config.residual_alpha_floor
-    return keep.astype(jnp.result_type(theta))[None, :, None]
+    """1 where a parameter is trained, 0 where it is held at zero (a residual's rows below
+    ``residual_alpha_floor``: the adaptive law there; broadcasts against its table)."""
+    return POLICIES[grad_config.policy].mask(grad_config, theta)
 
 
 def own_controller(theta: Any, grad_config: GradientConfig, n_points: int, dx: float, delay: float | Array = 4.0
                    ) -> Controller:
     """The controller of parameters ``theta`` (deterministic) on its own grid of ``n_points`` nodes, spacing
     ``dx`` (m, for the filter width in nodes); ``delay`` (s): the delay a schedule is told."""
-    nodes = sigma_nodes(grad_config.filter_sigma, dx)
-    if grad_config.policy == "gains":
-        chex.assert_shape(theta, (3,))
-        return constant_gains(theta[0], theta[1], theta[2], grad_config.filter_sigma, dx)
-    if grad_config.policy == "schedule":
-        return scheduled_gains(theta, grad_config.schedule_knots, delay, grad_config.filter_sigma, dx)
-    if grad_config.policy == "residual":
-        return adaptive_residual(theta, delay, delay_knots=grad_config.schedule_knots, alpha_knots=ALPHA_KNOTS,
-                                 filter_sigma=grad_config.filter_sigma, dx=dx)
-    mean, var = obs_statistics(n_points)
-    return policy_controller(theta, mean, var, grad_config.grad_gain_max, hidden=tuple(grad_config.hidden),
-                             gain_filter=grad_config.gain_filter,
-                             sigma_nodes=nodes)
+    return POLICIES[grad_config.policy].controller(theta, grad_config, n_points, dx, delay)
 
 
 def fixed_gains(theta: Any, grad_config: GradientConfig, delay: float | Array) -> Array | None:
-    """The gains (3,) a gains or schedule policy applies when told ``delay`` (s); None for a network (its gains
-    depend on the state); for a residual, its correction's [0, eta2, eta3] at the initial estimate (the
-    nominal's alpha, ``ALPHA_KNOTS``' paper value 0.15)."""
-    if grad_config.policy == "gains":
-        return jnp.asarray(theta)
-    if grad_config.policy == "schedule":
-        return schedule_gains(DelaySchedule(knots=jnp.asarray(grad_config.schedule_knots, theta.dtype), table=theta,
-                                            delay=jnp.asarray(delay, theta.dtype)))
-    if grad_config.policy == "residual":
-        ctrl = adaptive_residual(theta, delay, delay_knots=grad_config.schedule_knots, alpha_knots=ALPHA_KNOTS)
-        g = residual_gains(ctrl.settings, jnp.asarray(0.15, theta.dtype))
-        return jnp.concatenate([jnp.zeros((1,), theta.dtype), g])
-    return None
+    """The gains (3,) the policy applies when told ``delay`` (s); None for a network (its gains depend on the
+    state); for a residual, its correction's [0, eta2, eta3] at the initial estimate."""
+    return POLICIES[grad_config.policy].gains(theta, grad_config, delay)
 
 
 def make_controller(theta: Any, grad_config: GradientConfig, base: TrafficParams, delay: float | Array | None = None

@@ -22,15 +22,12 @@ from typing import Any
 from jaxtraffic.fields import check_value, fail
 
 # Every value must survive its conversion to the dtype it is traced as: an int to int32 (unless its own range
-# declares a wider one: the seed's uint32), a float to float32 (finite unless listed in ALLOW_INF, and not a
-# nonzero value that would round to 0).
+# declares a wider one: the seed's uint32), a float to float32 (finite unless its field's metadata says
+# ``inf=True``, and not a nonzero value that would round to 0).
 FLOAT32_MAX = 3.4028234663852886e38
 FLOAT32_TINY = 1.1754943508222875e-38  # the smallest normal float32
 INT32_MAX = 2**31 - 1
 MAX_STEPS = 10**8  # time steps of one rollout (a longer one would not fit the step counters, nor finish)
-ALLOW_INF = {"max_wall_s", "val_target"}  # inf: no wall-clock limit / no validation condition
-PAIR_RULES = {"delay_range": (0.0, None), "alpha_range": (0.0, 1.0), "amp_range": (0.0, None),
-              "wavenumber_range": (0, None)}  # (lo bound, hi bound) of LO,HI pairs, with LO <= HI
 
 
 def _is_int(x: Any) -> bool:
@@ -41,9 +38,10 @@ def _is_real(x: Any) -> bool:
     return isinstance(x, numbers.Real) and not isinstance(x, bool) and type(x).__name__ != "bool_"
 
 
-def _scalar(name: str, kind: str, value: Any, int_max: int = INT32_MAX) -> Any:
+def _scalar(name: str, kind: str, value: Any, int_max: int = INT32_MAX, inf: bool = False) -> Any:
     """``value`` checked against the scalar type ``kind`` ("int", "float", "bool", "str") and normalised; an
-    integer's magnitude at most ``int_max`` (int32's, or the field's own wider range)."""
+    integer's magnitude at most ``int_max`` (int32's, or the field's own wider range); ``inf``: a float may be
+    inf."""
     if kind == "int":
         if not _is_int(value):
             raise fail(name, value, "must be an integer")
@@ -55,7 +53,7 @@ def _scalar(name: str, kind: str, value: Any, int_max: int = INT32_MAX) -> Any:
         if not _is_real(value):
             raise fail(name, value, "must be a number")
         value = float(value)
-        if math.isnan(value) or (math.isinf(value) and name not in ALLOW_INF):
+        if math.isnan(value) or (math.isinf(value) and not inf):
             raise fail(name, value, "must be finite")
         if math.isfinite(value) and abs(value) > FLOAT32_MAX:  # the programs compute in float32: it would be inf
             raise fail(name, value, f"must be finite in float32 (|x| <= {FLOAT32_MAX:.3g})")
@@ -72,9 +70,9 @@ def _scalar(name: str, kind: str, value: Any, int_max: int = INT32_MAX) -> Any:
     return value
 
 
-def _typed(name: str, annotation: str, value: Any, int_max: int = INT32_MAX) -> Any:
+def _typed(name: str, annotation: str, value: Any, int_max: int = INT32_MAX, inf: bool = False) -> Any:
     """``value`` checked against the field's annotation (as written in ``runs.config.tree``); ``int_max``: the
-    largest integer magnitude (``_scalar``)."""
+    largest integer magnitude, ``inf``: inf allowed (``_scalar``)."""
     kind = annotation.replace(" ", "")
     if kind.endswith("|None"):
         if value is None:
@@ -96,14 +94,15 @@ def _typed(name: str, annotation: str, value: Any, int_max: int = INT32_MAX) -> 
                         else f"must be {'one value or ' if one else ''}{len(inner)} {inner[0]}s")
         return tuple(_scalar(name, k, v, int_max) for k, v in zip(inner, value, strict=True))
     if kind in ("int", "float", "bool", "str"):
-        return _scalar(name, kind, value, int_max)
+        return _scalar(name, kind, value, int_max, inf)
     return value  # an annotation this module does not know: left to its owner
 
 
-def _check_pair(name: str, value: tuple | None) -> None:
-    if name not in PAIR_RULES or value is None:
+def _check_pair(name: str, value: tuple | None, bounds: tuple | None) -> None:
+    """A LO,HI pair: LO <= HI, both within ``bounds`` (lo bound, hi bound or None; its field's ``pair``)."""
+    if bounds is None or value is None:
         return
-    lo_bound, hi_bound = PAIR_RULES[name]
+    lo_bound, hi_bound = bounds
     lo, hi = value
     if lo > hi:
         raise fail(name, value, "needs LO <= HI")
@@ -117,7 +116,7 @@ def _checked(f: dataclasses.Field, value: Any) -> Any:
     rule = f.metadata.get("range")
     wide = rule[2] if rule is not None and rule[2] is not None and rule[2] > INT32_MAX else INT32_MAX  # (the seed)
     try:
-        typed = _typed(f.name, str(f.type), value, int(wide))
+        typed = _typed(f.name, str(f.type), value, int(wide), bool(f.metadata.get("inf")))
     except ValueError:  # the field's own range says more than the dtype's (max_delay_steps: [0, 1000000])
         if rule is not None and rule[2] is not None and _is_int(value):
             check_value(f.name, value, rule)
@@ -126,7 +125,7 @@ def _checked(f: dataclasses.Field, value: Any) -> Any:
     if choices and typed is not None and typed not in choices:
         raise fail(f.name, typed, f"must be one of {tuple(choices)}")
     if isinstance(typed, tuple) and rule is None:  # LO,HI pairs
-        _check_pair(f.name, typed)
+        _check_pair(f.name, typed, f.metadata.get("pair"))
     else:  # a number, or each element of a tuple (gain_max, the scenario grids)
         check_value(f.name, typed, rule)
     return typed

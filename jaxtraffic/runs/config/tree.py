@@ -10,10 +10,8 @@ Each setting is a field of the one dataclass that uses it, with its default, ran
 section is built with ``TrainConfig.make(plant={...}, ...)``, read with ``config.tables()``.
 ``train.py``'s flags are derived from the fields by tyro (``cli.train``: one flag per leaf field that the
 algorithm reads, ``fields_for``, named after it, with the one-line ``help`` of its metadata; a longer explanation
-is the comment above the field). A run's config.json is ``config_json(config)``, and
-``load_config(run_dir)`` reads it back: resume, ``load_policy`` and the evaluation all use it.
-A config.json of an older version (another layout, or without a field of today's) is an error that says
-so: such a run is retrained, not guessed at.
+is the comment above the field). A run's files (config.toml, its truth, and config.json, the machine copy) are
+written and read by ``runs.config.toml``.
 """
 
 from __future__ import annotations
@@ -22,11 +20,9 @@ import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 from jaxtraffic.fields import hyper
-from jaxtraffic.io.files import read_json
 from jaxtraffic.learn.env import PLANT, EnvParams, env_params
 from jaxtraffic.learn.env_config import EnvConfig
 from jaxtraffic.learn.gradient.config import GradientConfig
@@ -34,8 +30,7 @@ from jaxtraffic.learn.ppo import PPOConfig
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.sim.metrics import REWARD_TARGET
 
-CONFIG_VERSION = 4  # 4: the plant section is TrafficParams, controller_points the gradient trainer's
-OLD = "retrain the run with this version of train.py (its flags are in that config.json)"
+CONFIG_VERSION = 4  # 4: the plant section is TrafficParams, controller_points the gradient trainer's (toml.MIGRATIONS)
 
 
 ALGOS = ("ppo", "gradient")
@@ -59,7 +54,7 @@ class RunConfig:
     overwrite: bool = hyper(False, help="clear the run in --out-dir first")
     seed: int = hyper(0, help="PRNG seed", lo=0, hi=2**32 - 1)
     total_steps: int = hyper(10_000_000, help="environment steps per member", lo=1, algo="ppo")
-    max_wall_s: float = hyper(math.inf, help="stop after this many seconds", lo=0.0, lo_open=True)
+    max_wall_s: float = hyper(math.inf, help="stop after this many seconds", lo=0.0, lo_open=True, inf=True)
     keep_going: bool = hyper(False, help="ignore the stop rule", algo="ppo")
     # stop rule: the deterministic evaluation reward (end of the evaluation rollout) >= this
     target_reward: float = hyper(REWARD_TARGET, help="stop rule: evaluation reward >= this", algo="ppo")
@@ -82,7 +77,8 @@ class RunConfig:
     val_plant: str = hyper("reference", help="validation suite's plant", choices=("reference", "training"), algo="ppo")
     # 1: at the nominal delay the density L2 at half the suite horizon below backstepping's, J_comfort within
     # 20 % of its, and no delay of the suite diverging or still growing; inf: no such condition
-    val_target: float = hyper(1.0, help="stop rule: validation score <= this", lo=0.0, lo_open=True, algo="ppo")
+    val_target: float = hyper(1.0, help="stop rule: validation score <= this", lo=0.0, lo_open=True, algo="ppo",
+                              inf=True)
     eval_horizon_s: float = hyper(300.0, help="evaluation rollout length, s", lo=0.0, lo_open=True)
     # also after a session's first chunk, at the end and on SIGINT/SIGTERM; SIGKILL loses at most this many chunks
     checkpoint_every: int = hyper(10, help="chunks between checkpoints", lo=1, algo="ppo")
@@ -155,6 +151,10 @@ class TrainConfig:
                 raise TypeError(f"unknown config section {s!r} (the sections are {', '.join(SECTIONS)})")
         return TrainConfig.make(**{s: {**own[s], **tables.get(s, {})} for s in SECTIONS})
 
+    def defaults(self) -> TrainConfig:
+        """The defaults of this config's algorithm and gradient policy (what a config file need not say)."""
+        return TrainConfig.make(run={"algo": self.run.algo}, grad={"policy": self.grad.policy})
+
     def env_params(self) -> EnvParams:
         """The environment's parameters (``learn.env.env_params`` of the env section around the plant)."""
         return env_params(self.env, self.plant)
@@ -206,76 +206,3 @@ def flag_tables(algo: str, values: Mapping[str, Any]) -> dict[str, dict[str, Any
     for k, v in values.items():
         tables.setdefault(section[k], {})[k] = v
     return tables
-
-
-def _tuples(x: Any) -> Any:
-    return tuple(x) if isinstance(x, list) else x
-
-
-def config_json(config: TrainConfig, **extra: Any) -> dict[str, Any]:
-    """The content of a run's config.json: the tree (``{section: {field: value}}``) and its version,
-    plus ``extra`` facts about the run (devices, jax version, ...)."""
-    return {"version": CONFIG_VERSION, "config": dataclasses.asdict(config), **extra}
-
-
-# fields added within CONFIG_VERSION 4 that a saved config.json may lack: run control, None (off) when absent
-LATER = (("run", "mlflow"), ("env", "train_split"))
-
-
-def _from_json(f: dataclasses.Field, v: Any) -> Any:
-    """A field's value as JSON holds it: a list is a tuple; a null float that cannot be None is inf (JSON has no
-    inf: max_wall_s, val_target)."""
-    return math.inf if v is None and str(f.type) == "float" else _tuples(v)
-
-
-def config_from_json(data: dict[str, Any], where: str = "config.json") -> TrainConfig:
-    """The ``TrainConfig`` of a config.json's content. Keys of options that no longer exist are ignored;
-    a file of an older version (flat ``settings``, an ``algo`` section, a field missing) is an error."""
-    if not isinstance(data, dict):
-        raise ValueError(f"{where}: not a config.json written by train.py (a JSON {type(data).__name__}, "
-                         "not an object)")
-    if "settings" in data:  # written before the config tree
-        raise ValueError(f"{where} was written by an older jaxtraffic (flat settings): {OLD}")
-    if "config" not in data:
-        raise ValueError(f"{where}: neither a config tree nor settings; not written by train.py")
-    tree = data["config"]
-    if isinstance(tree, dict) and "algo" in tree and "ppo" not in tree:
-        raise ValueError(f"{where} was written by an older jaxtraffic (an 'algo' section; PPO's settings are "
-                         f"now the 'ppo' section, PPOConfig as it is): {OLD}")
-    if data.get("version") not in (3, CONFIG_VERSION) or isinstance(data.get("version"), bool):
-        raise ValueError(f"{where}: config version {data.get('version')!r}; this jaxtraffic reads versions 3 and "
-                         f"{CONFIG_VERSION} (a newer jaxtraffic wrote it, or it was edited)")
-    required = ("plant", "env", "ppo", "run")  # (sections added later default when absent)
-    if not isinstance(tree, dict) or not all(isinstance(tree.get(s), dict) for s in required):
-        have = sorted(tree) if isinstance(tree, dict) else type(tree).__name__
-        missing = [s for s in required if not isinstance(tree, dict) or not isinstance(tree.get(s), dict)]
-        raise ValueError(f"{where}: the config tree lacks the section(s) {missing} (has {have}); "
-                         "not a complete config.json written by train.py")
-    if data.get("version") == 3:  # the plant held eight of TrafficParams' fields (the others were the defaults);
-        # the controller's own grid was the environment's (None: the plant's)
-        env = dict(tree["env"])
-        grad = {**(tree.get("grad") or {}), "controller_points": env.pop("controller_points", None) or 0}
-        tree = {**tree, "plant": {**dataclasses.asdict(TrafficParams()), **tree["plant"]}, "env": env, "grad": grad}
-    tables: dict[str, dict[str, Any]] = {}
-    for s in SECTIONS:
-        section = tree.get(s)
-        saved: dict[str, Any] = section if isinstance(section, dict) else {}
-        own = leaf_fields(s)
-        missing = [f.name for f in own if f.name not in saved and (s, f.name) not in LATER]
-        if missing:
-            raise ValueError(f"{where} was written by an older jaxtraffic (its [{s}] lacks {', '.join(missing)}): "
-                             f"{OLD}")
-        tables[s] = {f.name: _from_json(f, saved[f.name]) for f in own if f.name in saved
-                     and (saved[f.name] is not None or "None" in str(f.type) or str(f.type) == "float")}
-    try:
-        return TrainConfig.make(**tables)
-    except (TypeError, ValueError) as err:
-        raise ValueError(f"{where}: {err}") from None
-
-
-def load_config(run_dir: str | Path) -> TrainConfig:
-    """The ``TrainConfig`` of a run directory (its config.json)."""
-    path = Path(run_dir) / "config.json"
-    if not path.exists():
-        raise FileNotFoundError(f"{run_dir} is not a run directory (no config.json)")
-    return config_from_json(read_json(path), str(path))  # a regular file of at most CONFIG_LIMIT

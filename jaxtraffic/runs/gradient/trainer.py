@@ -26,7 +26,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxtraffic.control.adapter import adapt, baseline_grid
-from jaxtraffic.control.adaptive_residual import ALPHA_KNOTS as RESIDUAL_ALPHA_KNOTS
 from jaxtraffic.control.base import Controller
 from jaxtraffic.control.baselines import backstepping
 from jaxtraffic.control.gain_policy import equilibrium_gains, feature_size
@@ -34,6 +33,7 @@ from jaxtraffic.control.networks import actor_critic_size
 from jaxtraffic.io.files import write_json
 from jaxtraffic.learn.gradient import cem, objective
 from jaxtraffic.learn.gradient.config import GradientConfig
+from jaxtraffic.learn.gradient.policies import POLICIES
 from jaxtraffic.model.linear import gain_law_wave_speed, linearize
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.runs import checkpoint as ckpt
@@ -177,16 +177,9 @@ class GradientTraining:
         summary = {**summary_base(prog, interrupted, config.run.eval_horizon_s), "algo": ALGO,
                    "policy": grad_config.policy, "updates": prog.updates, "final_eval": ev,
                    "backstepping_eval": self.ref, "stop_rule_reached": prog.seconds_to("paper_rule") is not None}
-        if grad_config.policy == "gains":
-            summary["gains"] = np.asarray(self.state.theta).tolist()
-        if grad_config.policy == "schedule":
-            summary["schedule"] = {"knots_s": list(grad_config.schedule_knots),
-                                   "gains": np.asarray(self.state.theta).tolist()}
+        summary.update(POLICIES[grad_config.policy].summary(jax.device_get(self.state.theta), grad_config))
         own = own_grid_controller(jax.device_get(self.state.theta), grad_config, self.plant, self.plant.delay)
-        if grad_config.policy == "residual":
-            summary["residual"] = {"delay_knots_s": list(grad_config.schedule_knots),
-                                   "alpha_knots": list(RESIDUAL_ALPHA_KNOTS),
-                                   "table": np.asarray(self.state.theta).tolist()}
+        if grad_config.policy == "residual":  # (the certificate covers the three-gain law only)
             summary["certificate"] = RESIDUAL_CERTIFICATE
         else:
             summary["certificate"] = policy_certificate(own, config)

@@ -170,7 +170,8 @@ def load_config(run_dir: str | Path) -> TrainConfig:
         raise FileNotFoundError(f"{run_dir} is not a run directory (no {CONFIG_TOML}, no {CONFIG_JSON})")
     trained = config_from_json(read_json(machine), str(machine)) if machine.exists() else None
     if not toml.exists():
-        return trained  # type: ignore[return-value]  (one of the two exists)
+        assert trained is not None  # (one of the two exists)
+        return trained
     config = read_config(toml)
     if trained is not None:
         check_edit(config, trained, toml)

@@ -4,6 +4,7 @@ does what its theory says on held-out scenarios."""
 
 from __future__ import annotations
 
+import jax
 import numpy as np
 import pytest
 
@@ -143,3 +144,25 @@ def test_tuning_searches_the_train_split_within_bounds_and_never_loses_the_start
     assert got["budget"] == {"population": 4, "generations": 2, "scenarios": 6, "horizon_s": 60.0}
     with pytest.raises(ValueError, match="train split"):
         tune(TUNABLE["backstepping"], sample(DIST, "test", 4, base=TINY), TINY, log=lambda s: None)
+
+
+@pytest.mark.skipif(not __import__("os").path.exists("/proc/self/maps"), reason="needs Linux's /proc/self/maps")
+def test_a_long_comparison_releases_its_programs_memory_mappings():
+    """Each law's compiled programs hold memory mappings on the CPU backend; ``release`` (the default) drops them
+    after each law, so a comparison of many laws in one process stays below the kernel's limit
+    (vm.max_map_count): the main job crashed there before."""
+
+    def mappings() -> int:
+        with open("/proc/self/maps") as f:
+            return sum(1 for _ in f)
+
+    scen = sample(DIST, "test", 4, seed=0, base=TINY)
+    laws = [LawSpec(f"lyapunov{k}", "Lyapunov", lambda k=k: jt.lyapunov(0.5 + 0.1 * k)) for k in range(3)]
+    growth = {}
+    for release in (False, True):
+        jax.clear_caches()
+        before = mappings()
+        evaluate_laws(laws, scen, TINY, horizon_s=20.0, log=lambda s: None, release=release)
+        growth[release] = mappings() - before
+    assert growth[False] > 60, growth  # each law compiles its own programs (tens of mappings each)
+    assert abs(growth[True]) < 0.25 * growth[False], growth

@@ -29,6 +29,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+import jax
+
 from jaxtraffic import paper
 from jaxtraffic.cli import errors, external, judge, staging
 from jaxtraffic.cli.options import EvaluateOptions, parse_evaluate, program
@@ -86,7 +88,9 @@ def find_or_train_run(run: Path | None, n_points: int | None) -> Path:
     _log(f"no trained run at {DEFAULT_RUN}: training it first (paper/recipes/ppo.toml, at most "
          f"{recipe('ppo').run.max_wall_s:g} s)")
     config = recipe("ppo").updated(run={"out_dir": str(DEFAULT_RUN)}, plant={"n_points": n_points} if n_points else {})
-    return train_run(config)
+    trained = train_run(config)
+    jax.clear_caches()  # the training's programs are not used again (their memory mappings released)
+    return trained
 
 
 def gradient_controllers(mode: str, root: Path, controller_points: int, reference: tuple[int, int]
@@ -109,6 +113,7 @@ def gradient_controllers(mode: str, root: Path, controller_points: int, referenc
             _log(f"no trained run at {run_dir}: {'continuing' if config.run.resume else 'training'} it first "
                  f"(paper/recipes/{sub}.toml on {config.plant.n_points} points)")
             train_run(config)
+            jax.clear_caches()  # the training's programs are not used again (their memory mappings released)
         ctrl, config = load_policy(run_dir)
         ctrls[name], grids[name] = ctrl, policy_grid(config)
         runs[name] = {"run_dir": str(run_dir), "summary": read_json(run_dir / "summary.json"),

@@ -72,11 +72,13 @@ def _run(spec: LawSpec, plants: TrafficParams, rho0: np.ndarray, v0: np.ndarray,
 
 
 def evaluate_laws(laws: list[LawSpec], scenarios: Scenarios, nominal: TrafficParams, horizon_s: float,
-                  record_every_s: float = 5.0, chunk: int = 64, log: Callable[[str], None] = print
-                  ) -> dict[str, dict[str, np.ndarray]]:
+                  record_every_s: float = 5.0, chunk: int = 64, log: Callable[[str], None] = print,
+                  release: bool = True) -> dict[str, dict[str, np.ndarray]]:
     """Every law of ``laws`` on every scenario (module docstring): name -> per-scenario measures. ``nominal``: the
     model and target every law is handed (the plant's grid, the nominal alpha), ``horizon_s`` (s) a whole number
-    of recording periods ``record_every_s`` (s)."""
+    of recording periods ``record_every_s`` (s). ``release``: drop every compiled program after each law
+    (``jax.clear_caches``): each law's programs hold ~300-500 memory mappings on the CPU backend, and a long
+    comparison in one process otherwise reaches the kernel's limit (``vm.max_map_count``, 65 530) and crashes."""
     dt = float(nominal.dt)
     every = max(1, round(record_every_s / dt))
     n_steps = every * max(1, math.ceil(horizon_s / (every * dt) - 1e-9))
@@ -88,6 +90,8 @@ def evaluate_laws(laws: list[LawSpec], scenarios: Scenarios, nominal: TrafficPar
         parts = [_run(spec, _slice(scenarios.plants, i, i + chunk), scenarios.rho0[i:i + chunk],
                       scenarios.v0[i:i + chunk], nominal, n_steps, every) for i in range(0, len(scenarios), chunk)]
         out[spec.name] = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+        if release:
+            jax.clear_caches()
         fail = out[spec.name]["diverged"].mean()
         log(f"   {spec.label}: median mean L2 {np.median(out[spec.name]['mean_rho_L2']):.3g} veh/km over "
             f"{len(scenarios)} {scenarios.split} scenarios, {100 * fail:.0f} % diverged")

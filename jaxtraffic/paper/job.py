@@ -12,6 +12,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import jax
+
 from jaxtraffic.control.base import Controller
 from jaxtraffic.io.files import atomic_write_text
 from jaxtraffic.paper.certificate import certificate_section
@@ -42,6 +44,7 @@ def evaluate_plants(controllers: dict[str, Controller], configs: dict[str, EvalC
             oracle=(oracles or {}).get(plant), **options)
         if plant != first and distributed.is_writer():
             atomic_write_text(out / "REPORT.md", reports[plant])
+        jax.clear_caches()  # a plant's programs (hundreds) are not used again: their memory mappings released
     fair_text = fair_stage.section(controllers, options.get("grids") or {}, first, configs[first].nominal(),
                                    out_dir / "fair" if distributed.is_writer() else None,
                                    log) if fair_stage is not None and fair_stage.n else []

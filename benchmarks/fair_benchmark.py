@@ -11,6 +11,11 @@ seeds (``train_split_sweep.py``): one row per seed and a line per law over its s
         --split-runs runs-split --out docs/results/fair
     python benchmarks/fair_benchmark.py --plant muscl ...          # the other scheme on the paper grid
     python benchmarks/fair_benchmark.py --plant reference ...      # the converged plant (8x the cost per scenario)
+    python benchmarks/fair_benchmark.py --strip docs/results/fair/split/paper.json   # keep the summaries only
+
+``--strip`` drops a JSON's per-scenario measures (about 85 % of it), keeping the tables, the checks, the scenarios
+and the provenance: the committed docs/results/fair/split/ files (docs/results stays within its 6 MB); rerun the
+command to have the measures again (``--resummarise`` needs them).
 """
 
 from __future__ import annotations
@@ -20,7 +25,7 @@ import time
 from pathlib import Path
 
 import jaxtraffic as jt
-from jaxtraffic.io.files import read_json
+from jaxtraffic.io.files import read_json, write_json
 from jaxtraffic.paper import fair
 from jaxtraffic.runs.policy import load_policy, policy_grid
 
@@ -45,7 +50,15 @@ def main() -> None:
     ap.add_argument("--split-runs", type=Path, default=None, help="split-trained runs (train_split_sweep.py)")
     ap.add_argument("--out", type=Path, default=None, help="folder of <plant>.json and <plant>.md")
     ap.add_argument("--resummarise", type=Path, default=None, help="only rewrite this JSON's tables and checks")
+    ap.add_argument("--strip", type=Path, nargs="*", default=(), help="only drop these JSONs' per-scenario measures")
     args = ap.parse_args()
+    for path in args.strip:
+        d = read_json(path)
+        d["per_scenario"] = "omitted by fair_benchmark.py --strip: rerun the benchmark (provenance) to have them"
+        write_json(path, d)
+        print(f"{path}: per-scenario measures dropped")
+    if args.strip:
+        return
     if args.resummarise:
         print("\n".join(fair.resummarise(args.resummarise)))
         return

@@ -170,19 +170,21 @@ def test_an_edited_config_toml_is_honoured_in_its_run_control_and_refused_elsewh
 
 
 def test_an_older_run_loads_with_its_missing_fields_at_their_defaults(tmp_path):
-    """A run written by an older version (here: a committed run, whose config.toml has every field and no
-    config_version, with fields removed as if written before they existed) loads; a version-3 file is migrated;
-    a version this jaxtraffic does not know is refused."""
+    """A run written by an older version (tests/data/run_before_config_version: the gradient-gains run as
+    docs/results held it before config_version, its config.toml with every field; here also with fields removed as
+    if written before they existed) loads as today's run of the same recipe; a version-3 file is migrated; a
+    version this jaxtraffic does not know is refused."""
     import shutil
     from pathlib import Path
 
     from jaxtraffic.io.files import read_json, write_json
 
     committed = Path(__file__).parents[1] / "docs/results/runs/grad_gains"
+    old = Path(__file__).parent / "data/run_before_config_version"
     run = tmp_path / "old"
     run.mkdir()
     for name in ("config.toml", "config.json"):
-        shutil.copy(committed / name, run / name)
+        shutil.copy(old / name, run / name)
     data = read_json(run / "config.json")
     del data["config"]["env"]["wave_weight"], data["config"]["grad"]["cem_tie_weight"]
     write_json(run / "config.json", data)

@@ -36,12 +36,12 @@ def test_every_flag_reaches_the_algorithm_under_its_own_name():
     assert {name: getattr(cfg, name) for name in GIVEN} == GIVEN
     # the fields the algorithm has beyond the flags of its section come from the environment and the network
     tree = TrainConfig.make(run={"algo": "gradient"}, plant={"n_points": 21}, grad={"controller_points": 11},
-                            env={"gain_filter": 0.5, "filter_sigma": 10.0})
+                            env={"gain_filter": 0.5, "filter_sigma": 10.0, "train_split": 3})
     cfg = gradient_setup(tree)[0]
-    assert (cfg.gain_filter, cfg.filter_sigma, cfg.controller_points, cfg.hidden) == (0.5, 10.0, 11,
-                                                                                      tuple(tree.ppo.hidden))
+    assert (cfg.gain_filter, cfg.filter_sigma, cfg.controller_points, cfg.hidden, cfg.train_split) == (
+        0.5, 10.0, 11, tuple(tree.ppo.hidden), 3)
     extra = {f.name for f in dataclasses.fields(GradientConfig)} - set(GIVEN) - {"policy"}
-    assert extra == {"hidden", "gain_filter", "filter_sigma", "max_grad_norm"}
+    assert extra == {"hidden", "gain_filter", "filter_sigma", "max_grad_norm", "train_split"}
     # the policies' defaults and the objective's weights use the same names
     assert all(set(d) <= set(GIVEN) for d in POLICY_DEFAULTS.values())
     assert {f.name for f in dataclasses.fields(Weights)} <= set(GIVEN)

@@ -23,12 +23,12 @@ from typing import Any
 
 import numpy as np
 
+from jaxtraffic.sim.units import INDEX_UNITS
+
 SETTLE_FRACTION = 0.1  # settling: the L2 norm stays below this fraction of its initial value
 VEH_PER_KM = 1e3
 JS = ("J_TTT", "J_fuel", "J_comfort")
-UNITS = {"mean_rho_L2": "veh/km", "late_max_rho_L2": "veh/km", "settle_s": "s",
-         "J_TTT": "veh/km·m·s", "J_fuel": "ml/s per vehicle × veh/km·m·s",
-         "J_comfort": "(m/s²)² + (m/s³)² × veh/km·m·s"}
+UNITS = {"mean_rho_L2": "veh/km", "late_max_rho_L2": "veh/km", "settle_s": "s", **INDEX_UNITS}
 MEASURES = tuple(UNITS)
 
 

@@ -553,22 +553,34 @@ def _set(section: str, key: str, value):
     return _edit_config(lambda c: c["config"][section].__setitem__(key, value))
 
 
+def _set_both(section: str, key: str, old: str, new: str, value):
+    """The field changed in config.json and in config.toml alike (the run's truth): a consistent config that no
+    longer matches the checkpoint."""
+    def damage(run: Path) -> None:
+        _set(section, key, value)(run)
+        toml = run / "config.toml"
+        text = toml.read_text()
+        assert f"{key} = {old}\n" in text
+        toml.write_text(text.replace(f"{key} = {old}\n", f"{key} = {new}\n"))
+    return damage
+
+
 BROKEN = {
     "truncated": (_damage_ckpt("truncated"), ".msgpack: truncated or not msgpack"),
     "empty": (_damage_ckpt("empty"), ".msgpack: empty file"),
     "flipped": (_damage_ckpt("flipped"), ".msgpack: checksum mismatch"),
-    "no_env": (_edit_config(lambda c: c["config"].pop("env")), "config.json: the config tree lacks the section(s) "
-                                                              "['env']"),
+    # config.json without its env section reads as the defaults, which config.toml (the truth) contradicts
+    "no_env": (_edit_config(lambda c: c["config"].pop("env")), "[env] horizon_s = 3.0, but the run's config.json"),
     "foreign": (lambda run: (run / ckpt.CONFIG).write_text('{"name": "something else"}'),
-                "config.json: neither a config tree nor settings"),
+                "config.json: not a config tree written by train.py"),
     "not_json": (lambda run: (run / ckpt.CONFIG).write_text('{"config": '), "config.json: unreadable or not valid"),
     "wrong_type": (_set("plant", "n_points", "21"), "config.json: n_points = '21': must be an integer"),
-    "grid": (_set("plant", "n_points", 41), "do not belong together"),  # 40 divides 800: passes the config checks
+    "grid": (_set_both("plant", "n_points", "21", "41", 41), "do not belong together"),  # passes the config checks
     "gain_filter": (_set("env", "gain_filter", 5), "config.json: gain_filter = 5.0"),
     "gain_max_nan": (_set("env", "gain_max", float("nan")), "config.json: gain_max = nan: must be finite"),
-    # config.json edited after training (bound to the checkpoint), or made pathological
-    "edited": (_set("env", "gain_max", 0.123), "gain_max = 0.123, but"),
-    "algo": (_set("run", "algo", "gradient"), "do not belong together"),
+    # config.json edited after training (config.toml, the truth, says otherwise), or made pathological
+    "edited": (_set("env", "gain_max", 0.123), "says 0.123; only the run control may be edited"),
+    "algo": (_set_both("run", "algo", '"ppo"', '"gradient"', "gradient"), "do not belong together"),
     "nested": (lambda run: (run / ckpt.CONFIG).write_text("[" * 100_000 + "]" * 100_000),
                "config.json: unreadable or not valid JSON (RecursionError"),
 }

@@ -13,6 +13,7 @@ from jaxtraffic.compare import (
     LawSpec,
     ScenarioDistribution,
     bootstrap_interval,
+    delay_order,
     evaluate_laws,
     per_scenario,
     sample,
@@ -128,6 +129,21 @@ def test_on_held_out_scenarios_the_laws_do_what_their_theory_says():
     assert lines[0].startswith("| law | mean_rho_L2 (veh/km)") and len(lines) == 2 + 3
     with pytest.raises(ValueError, match="told must be one of"):
         LawSpec("x", "x", jt.open_loop, told="alpha")
+
+
+def test_chunks_ordered_by_delay_give_every_scenario_the_same_values_in_its_own_place():
+    """``evaluate_laws`` chunks the scenarios in the order of their delays (a chunk's predictor loop runs its largest
+    D): the measures come back in the scenarios' order, bit for bit those of chunks in the drawn order."""
+    scen = sample(DIST, "test", 12, seed=3, base=TINY)
+    order = delay_order(scen)
+    delays = np.asarray(scen.plants.delay)
+    assert np.all(np.diff(delays[order]) >= 0) and not np.all(order == np.arange(12))
+    laws = [LawSpec("backstepping", "backstepping", lambda: jt.backstepping(4.0), told="delay")]
+    got = {b: evaluate_laws(laws, scen, TINY, horizon_s=60.0, chunk=4, log=lambda s: None, by_delay=b)["backstepping"]
+           for b in (True, False)}
+    for k, v in got[False].items():
+        np.testing.assert_array_equal(got[True][k], v, err_msg=k)
+    assert np.ptp(got[True]["mean_rho_L2"]) > 0  # distinct scenarios: a permuted result would be caught
 
 
 def test_tuning_searches_the_train_split_within_bounds_and_never_loses_the_start():

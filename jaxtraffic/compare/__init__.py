@@ -5,9 +5,10 @@ bootstrap intervals (``stats``), and the protocol that runs laws over a split on
 Layer: above ``sim`` and ``control``, below the trainers and the paper's experiments, which draw from it."""
 
 from jaxtraffic.compare import verdicts
-from jaxtraffic.compare.protocol import LawSpec, evaluate_laws, summary_table
+from jaxtraffic.compare.protocol import LawSpec, delay_order, evaluate_laws, summary_table
 from jaxtraffic.compare.scenarios import SPLITS, EpisodePool, ScenarioDistribution, Scenarios, sample
 from jaxtraffic.compare.stats import bootstrap_interval, per_scenario, settle_times, summarise
 
 __all__ = ["SPLITS", "EpisodePool", "LawSpec", "ScenarioDistribution", "Scenarios", "bootstrap_interval",
-           "evaluate_laws", "per_scenario", "sample", "settle_times", "summarise", "summary_table", "verdicts"]
+           "delay_order", "evaluate_laws", "per_scenario", "sample", "settle_times", "summarise", "summary_table",
+           "verdicts"]

@@ -11,6 +11,7 @@ seeds (``train_split_sweep.py``): one row per seed and a line per law over its s
         --split-runs runs-split --out docs/results/fair
     python benchmarks/fair_benchmark.py --plant muscl ...          # the other scheme on the paper grid
     python benchmarks/fair_benchmark.py --plant reference ...      # the converged plant (8x the cost per scenario)
+    python benchmarks/fair_benchmark.py --plant paper --sensor-noise 0 0.05 ...   # each law seeing noisy measurements
     python benchmarks/fair_benchmark.py --strip docs/results/fair/split/paper.json   # keep the summaries only
 
 ``--strip`` drops a JSON's per-scenario measures (about 85 % of it), keeping the tables, the checks, the scenarios
@@ -25,6 +26,7 @@ import time
 from pathlib import Path
 
 import jaxtraffic as jt
+from jaxtraffic.compare import ScenarioDistribution
 from jaxtraffic.io.files import read_json, write_json
 from jaxtraffic.paper import fair
 from jaxtraffic.runs.policy import load_policy, policy_grid
@@ -48,6 +50,9 @@ def main() -> None:
     ap.add_argument("--runs", type=Path, default=None, help="the main job's learned runs (e.g. docs/results/runs)")
     ap.add_argument("--tuned", type=Path, default=None, help="tuned parameters (benchmarks/tune_baselines.py)")
     ap.add_argument("--split-runs", type=Path, default=None, help="split-trained runs (train_split_sweep.py)")
+    ap.add_argument("--sensor-noise", type=float, nargs=2, default=None, metavar=("LO", "HI"),
+                    help="draw each scenario's relative sensor error from U(LO, HI) (jaxtraffic.control.noise); "
+                         "the files are then <plant>_noise.json / .md")
     ap.add_argument("--out", type=Path, default=None, help="folder of <plant>.json and <plant>.md")
     ap.add_argument("--resummarise", type=Path, default=None, help="only rewrite this JSON's tables and checks")
     ap.add_argument("--strip", type=Path, nargs="*", default=(), help="only drop these JSONs' per-scenario measures")
@@ -66,8 +71,12 @@ def main() -> None:
              + (main_job_runs(args.runs) if args.runs else []) + (fair.split_runs(args.split_runs)
                                                                   if args.split_runs else []))
     t0 = time.perf_counter()
-    out = fair.run(specs, args.plant, PLANTS[args.plant], args.out, args.n, args.horizon, args.seed)
-    print(f"{args.plant} plant, {args.n} test scenarios (seed {args.seed}), {args.horizon:g} s, "
+    noise = args.sensor_noise
+    dist = ScenarioDistribution(sensor_noise_range=tuple(noise)) if noise else None
+    out = fair.run(specs, args.plant, PLANTS[args.plant], args.out, args.n, args.horizon, args.seed, dist=dist,
+                   name=f"{args.plant}_noise" if noise else None)
+    print(f"{args.plant} plant, {args.n} test scenarios (seed {args.seed}"
+          + (f", sensor noise U({noise[0]:g}, {noise[1]:g})" if noise else "") + f"), {args.horizon:g} s, "
           f"{len(specs)} laws, {time.perf_counter() - t0:.0f} s")
     print("\n".join(out["markdown"]))
 

@@ -55,7 +55,7 @@ def test_evaluate_end_to_end(tiny_run, tmp_path, monkeypatch):
     metrics = evaluate.main(["--run", str(tiny_run), "--out", str(out), "--horizon", "6", "--noise-seeds", "2",
                              "--robust-grid", "2x2", "--gradient", "existing", "--runs-root", str(runs_root),
                              "--reference-grid", "41x1", "--reference-robust-grid", "2x1",
-                             "--oracle-dir", str(tmp_path / "oracle"), "--fair", "3",
+                             "--oracle-dir", str(tmp_path / "oracle"), "--fair", "3", "--fair-other", "2",
                              "--controller", f"ppo_predict={REPO / 'tests' / 'external_controller.py'}:"
                              f"predict_controller:{tiny_run}"])
     on_disk = json.loads((out / "metrics.json").read_text())
@@ -84,7 +84,11 @@ def test_evaluate_end_to_end(tiny_run, tmp_path, monkeypatch):
     held = json.loads((out / "fair" / "paper.json").read_text())
     assert {"open_loop", "backstepping", "backstepping_f25", "adaptive_backstepping", "ppo", "grad_residual",
             "ppo_predict"} <= set(held["laws"]) and held["scenarios"]["n"] == 3 and held["scenarios"]["split"] == "test"
-    assert "## Held-out comparison (the test split)" in (out / "REPORT.md").read_text()
+    # ... and on the other plant (--fair-other), each plant's table a section of the first plant's REPORT.md
+    other = json.loads((out / "fair" / "reference.json").read_text())
+    assert set(other["laws"]) == set(held["laws"]) and other["scenarios"]["n"] == 2
+    assert all(f"## Held-out comparison (the test split, {p} plant)" in (out / "REPORT.md").read_text()
+               for p in ("paper", "reference"))
     assert set(metrics) >= set(expected)
     for name in ("table2.md", "table2.csv", "REPORT.md", "fig3a_learning_curve.png", "fig3b_reward.png",
                  "fig5_spacetime_delay4.png", "fig6_l2_delay4.png", "robustness_map.png"):

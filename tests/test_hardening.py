@@ -332,6 +332,7 @@ def test_out_dir_not_writable(tmp_path, capsys):
     (["--reference-grid", "2x1"], "--reference-grid needs >= 3 points"),
     (["--n-points", "2"], "--n-points must be >= 3"),
     (["--fair", "-1"], "--fair must be >= 0 test scenarios"),
+    (["--fair-other", "-2"], "--fair-other must be >= 0 test scenarios"),
     (["--split-runs", "no/such/folder"], "--split-runs no/such/folder: not a folder"),
 ])
 def test_bad_evaluation_flags(argv, match, tmp_path, capsys):

@@ -197,7 +197,7 @@ def check_args(args: EvaluateOptions) -> tuple[int, int]:
     if args.n_points is not None and args.n_points < 3:
         raise _fail(f"--n-points must be >= 3, got {args.n_points}")
     try:
-        FairStage.from_paths(args.fair, args.tuned, args.split_runs)
+        FairStage.from_paths(args.fair, args.tuned, args.split_runs, args.fair_other)
     except ValueError as err:
         raise _fail(str(err)) from None
     for flag, run in (("--run", args.run), ("--run-delay0", args.run_delay0)):
@@ -351,7 +351,7 @@ def _main(args: EvaluateOptions, argv: list[str] | None, t0: float, nd: int, na:
         planned = policy_grid(planned_config(args))
         with external.blamed(args.controller):
             external.check_grids(own, own_grids, plant_configs(args, planned.n_points, planned.dt, nd, na))
-    fair_stage = FairStage.from_paths(args.fair, args.tuned, args.split_runs)  # (checked by check_args)
+    fair_stage = FairStage.from_paths(args.fair, args.tuned, args.split_runs, args.fair_other)  # (checked already)
     run_dir = find_or_train_run(args.run, args.n_points)
     ppo, config = load_policy(run_dir)
     for flag, value in (("--horizon", args.horizon), ("--robust-horizon", args.robust_horizon)):

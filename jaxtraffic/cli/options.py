@@ -16,6 +16,7 @@ from typing import Annotated, Literal
 import tyro
 
 from jaxtraffic.model.params import TrafficParams
+from jaxtraffic.paper.fair import N_OTHER, N_TEST
 
 _REF = TrafficParams.reference()
 
@@ -68,8 +69,10 @@ class EvaluateOptions:
     """the reference plant (MUSCL), POINTSxSUBSTEPS; also the gradient runs' training plant"""
     reference_robust_grid: str = "9x6"
     """robustness map on the reference plant, DELAYSxALPHAS"""
-    fair: int = 256
+    fair: int = N_TEST
     """test scenarios of the held-out comparison of every law on the first plant, 600 s (0: skip it)"""
+    fair_other: int = N_OTHER
+    """test scenarios of the held-out comparison on each other plant of --plants, 600 s (0: skip it)"""
     tuned: Path = Path("docs/results/fair/tuned.json")
     """the model-based laws' parameters tuned on the train split (tune_baselines.py; absent: no tuned rows)"""
     split_runs: Path | None = None

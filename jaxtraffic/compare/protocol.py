@@ -4,7 +4,9 @@ A law is declared by a ``LawSpec``: its name and label, how it is built (a ``Con
 is told of each scenario's plant ("nothing", or "delay": ``control.tell_delay`` with the scenario's D) and the grid
 it acts on (default: ``baseline_grid``, the paper's whenever the plant refines it). ``evaluate_laws`` runs every law
 on every scenario (chunks of ``chunk`` scenarios, one compiled program per law and plant) and returns the
-per-scenario measures (``stats.per_scenario``); ``summary_table`` writes their distributions as Markdown.
+per-scenario measures (``stats.per_scenario``); ``summary_table`` writes their distributions as Markdown. A scenario
+drawn with sensor noise has the law see its measurements through ``control.noise.sensor_noise`` at its level, on
+the law's own grid (its sensors).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from jaxtraffic.compare import stats
 from jaxtraffic.compare.scenarios import Scenarios
 from jaxtraffic.control.adapter import ControllerGrid, adapt, baseline_grid
 from jaxtraffic.control.base import Controller, tell_delay
+from jaxtraffic.control.noise import sensor_noise
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.sim.options import Record
 from jaxtraffic.sim.rollout import simulate_batch
@@ -53,18 +56,22 @@ def _slice(tree: Any, i: int, j: int) -> Any:
 
 
 def _run(spec: LawSpec, plants: TrafficParams, rho0: np.ndarray, v0: np.ndarray, nominal: TrafficParams,
-         n_steps: int, every: int) -> dict[str, np.ndarray]:
-    """One chunk of scenarios under one law: its per-scenario measures."""
+         n_steps: int, every: int, noise: np.ndarray, keys: jax.Array) -> dict[str, np.ndarray]:
+    """One chunk of scenarios under one law: its per-scenario measures. ``noise``: each scenario's sensor noise
+    level (``control.noise``; all 0: none, and ``keys`` unused), ``keys``: each scenario's PRNG key."""
     ctrl = spec.build()
     told = spec.told != "nothing"
     if told:
         ctrl = tell_delay(ctrl, jnp.asarray(plants.delay))
     if spec.told == "delay_alpha":
         ctrl = ctrl.replace(settings=ctrl.settings.replace(alpha0=jnp.asarray(plants.alpha, jnp.float32)))
+    noisy = bool(np.any(noise > 0))
+    if noisy:  # on the law's own grid (its sensors), before the adapter
+        ctrl = sensor_noise(ctrl, jnp.asarray(noise, jnp.float32), batched=told)
     ctrl = adapt(ctrl, spec.grid or baseline_grid(nominal), nominal)
     res = simulate_batch(plants, ctrl, n_steps=n_steps, rho0=jnp.asarray(rho0, jnp.float32),
-                         v0=jnp.asarray(v0, jnp.float32), nominal=nominal, batch_controller=told,
-                         record=Record(every=every), metrics=MEASURED)
+                         v0=jnp.asarray(v0, jnp.float32), nominal=nominal, batch_controller=told or noisy,
+                         keys=keys if noisy else None, record=Record(every=every), metrics=MEASURED)
     tr, met = res.trajectory, {k: np.asarray(v) for k, v in res.metrics.items()}
     assert tr is not None  # (recorded)
     t = np.append(np.asarray(tr.t)[0], n_steps * float(nominal.dt))
@@ -99,12 +106,15 @@ def evaluate_laws(laws: list[LawSpec], scenarios: Scenarios, nominal: TrafficPar
     order = delay_order(scenarios) if by_delay else np.arange(len(scenarios))
     plants, rho0, v0 = jax.tree.map(lambda x: x[order] if np.ndim(x) else x, scenarios.plants), \
         scenarios.rho0[order], scenarios.v0[order]
+    noise = np.asarray(scenarios.draws.get("sensor_noise", np.zeros(len(scenarios))), float)[order]
+    # each scenario's key (its sensor noise) by its own index: the same values in any order and chunk
+    keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(scenarios.seed), i))(jnp.asarray(order))
     back = np.argsort(order)  # the scenarios' own order again
     out = {}
     for spec in laws:
         t0 = time.perf_counter()
         parts = [_run(spec, _slice(plants, i, i + chunk), rho0[i:i + chunk], v0[i:i + chunk], nominal, n_steps,
-                      every) for i in range(0, len(scenarios), chunk)]
+                      every, noise[i:i + chunk], keys[i:i + chunk]) for i in range(0, len(scenarios), chunk)]
         out[spec.name] = {k: np.concatenate([p[k] for p in parts])[back] for k in parts[0]}
         if release:
             jax.clear_caches()

@@ -3,7 +3,8 @@
 A scenario is a plant (its input delay D, s, and ACC share alpha, drawn over the robustness map's ranges; its
 discretisation is the caller's) and an initial state: a wave around an equilibrium, either the nominal one (alpha
 = 0.15, the paper's) or the plant's own, made of one Fourier mode, a mixture of two, or a localised jam (a Gaussian
-bump), with the speed v = q_in / rho (the paper's construction, docs/model.md section 5).
+bump), with the speed v = q_in / rho (the paper's construction, docs/model.md section 5), and the relative error
+of the measurements the laws see (``control.noise.sensor_noise``; none by default).
 
 ``sample(dist, split, n, seed)`` draws ``n`` scenarios of ``split`` ("train" or "test") from their own stream
 (``jax.random.fold_in`` of the seed with the split's index): the same call gives the same scenarios on every
@@ -40,14 +41,18 @@ class ScenarioDistribution:
     jam_width_range: tuple[float, float] = (30.0, 150.0)  # the jam's standard deviation, m
     own_equilibrium: float = 0.5  # share of waves around the plant's own equilibrium (the rest: the nominal's)
     nominal_alpha: float = 0.15  # the nominal equilibrium's ACC share (the paper's)
+    # the relative error of every measurement a law sees (control.noise.sensor_noise: rho (1 + s e), e ~ N(0, 1) per
+    # node and step), s drawn per scenario; dimensionless (0.05: 5 %); (0, 0): exact measurements
+    sensor_noise_range: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
-        for name in ("delay_range", "alpha_range", "amp_range", "jam_width_range"):
+        for name in ("delay_range", "alpha_range", "amp_range", "jam_width_range", "sensor_noise_range"):
             lo, hi = getattr(self, name)
             if not (np.isfinite(lo) and np.isfinite(hi) and 0 <= lo <= hi):
                 raise ValueError(f"{name} must be a finite range 0 <= lo <= hi, got {(lo, hi)}")
-        if self.alpha_range[1] > 1:
-            raise ValueError(f"alpha_range must lie in [0, 1], got {self.alpha_range}")
+        for name in ("alpha_range", "sensor_noise_range"):
+            if getattr(self, name)[1] > 1:
+                raise ValueError(f"{name} must lie in [0, 1], got {getattr(self, name)}")
         if not self.wavenumbers or min(self.wavenumbers) < 1:
             raise ValueError(f"wavenumbers must be integers >= 1, got {self.wavenumbers}")
         w = np.asarray(self.kind_weights, float)
@@ -79,7 +84,8 @@ class Scenarios:
     def describe(self) -> dict[str, Any]:
         """The draws as lists (JSON), with their units."""
         return {"split": self.split, "seed": self.seed, "n": len(self),
-                "units": {"delay": "s", "amp": "veh/km", "jam_width": "m", "phase": "rad", "alpha": "1"},
+                "units": {"delay": "s", "amp": "veh/km", "jam_width": "m", "phase": "rad", "alpha": "1",
+                          "sensor_noise": "1 (relative standard deviation)"},
                 **{k: np.asarray(v).tolist() for k, v in self.draws.items()}}
 
 
@@ -93,7 +99,9 @@ def _draw(dist: ScenarioDistribution, n: int, key: jax.Array) -> dict[str, np.nd
         "wavenumber": rng.choice(np.asarray(dist.wavenumbers), n),
         "wavenumber2": rng.choice(np.asarray(dist.wavenumbers), n),
         "phase": rng.uniform(0.0, 2 * np.pi, n), "phase2": rng.uniform(0.0, 2 * np.pi, n),
-        "jam_centre": rng.uniform(0.2, 0.8, n), "jam_width": rng.uniform(*dist.jam_width_range, n)}
+        "jam_centre": rng.uniform(0.2, 0.8, n), "jam_width": rng.uniform(*dist.jam_width_range, n),
+        # (drawn last: the draws above are those of a distribution without it)
+        "sensor_noise": rng.uniform(*dist.sensor_noise_range, n)}
 
 
 def initial_states(d: dict[str, np.ndarray], base: TrafficParams, dist: ScenarioDistribution

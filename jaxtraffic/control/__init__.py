@@ -28,6 +28,7 @@ from jaxtraffic.control.gain_policy import (
     gain_target_controller,
     policy_controller,
 )
+from jaxtraffic.control.noise import sensor_noise
 
 __all__ = [
     "GAIN_NAMES", "AdaptiveSettings", "EstimatorState", "adaptive_backstepping",
@@ -35,5 +36,5 @@ __all__ = [
     "backstepping", "constant_gains", "equilibrium_gains", "gain_law", "gain_target_controller", "lyapunov",
     "lyapunov_equivalent_gains", "lyapunov_input", "lyapunov_law", "measurement_filter", "open_loop",
     "policy_controller", "predict",
-    "saturate", "schedule_gains", "scheduled_gains", "takes_delay", "tell_delay",
+    "saturate", "sensor_noise", "schedule_gains", "scheduled_gains", "takes_delay", "tell_delay",
 ]

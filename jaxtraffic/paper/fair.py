@@ -32,6 +32,7 @@ SPLIT = "_split_s"  # a split-trained run's row: <law>_split_s<seed>
 BASES = {"grad_residual": "adaptive_backstepping"}  # a learned law on a model-based base: held out, not worse
 HORIZON_S = 600.0  # s, the comparison's horizon (the paper's 300 s snapshot is the paper's column only)
 N_TEST = 256  # test scenarios per plant
+N_OTHER = 64  # test scenarios on each plant after the main job's first (the reference plant costs ~8x per scenario)
 
 
 def _given(ctrl: Controller) -> Callable[[], Controller]:
@@ -117,10 +118,13 @@ def tables(res: dict[str, dict[str, np.ndarray]], labels: dict[str, str]) -> tup
 
 
 def run(specs: list[LawSpec], plant: str, base: TrafficParams, out_dir: Path | None, n: int = N_TEST,
-        horizon_s: float = HORIZON_S, seed: int = 0, log: Callable[[str], None] = print) -> dict[str, Any]:
-    """Every law of ``specs`` on ``n`` test scenarios (seed ``seed``) of ``base`` (named ``plant``); writes
-    ``out_dir/<plant>.json`` and ``.md`` when ``out_dir`` is given; returns the JSON."""
-    scen = sample(ScenarioDistribution(), "test", n, seed, base=base)
+        horizon_s: float = HORIZON_S, seed: int = 0, log: Callable[[str], None] = print,
+        dist: ScenarioDistribution | None = None, name: str | None = None) -> dict[str, Any]:
+    """Every law of ``specs`` on ``n`` test scenarios (seed ``seed``) of ``dist`` (default: the default
+    distribution) on ``base`` (named ``plant``); writes ``out_dir/<name>.json`` and ``.md`` (default name: the
+    plant's) when ``out_dir`` is given; returns the JSON."""
+    scen = sample(dist or ScenarioDistribution(), "test", n, seed, base=base)
+    name = name or plant
     res = evaluate_laws(specs, scen, base, horizon_s, log=log)
     labels = {s.name: s.label for s in specs}
     lines, summ, checks = tables(res, labels)
@@ -128,8 +132,8 @@ def run(specs: list[LawSpec], plant: str, base: TrafficParams, out_dir: Path | N
            "per_scenario": {k: {m: np.asarray(v).tolist() for m, v in r.items()} for k, r in res.items()},
            "scenarios": scen.describe(), "provenance": provenance(), "markdown": lines}
     if out_dir is not None:
-        write_json(out_dir / f"{plant}.json", out)
-        atomic_write_text(out_dir / f"{plant}.md", "\n".join(lines) + "\n")
+        write_json(out_dir / f"{name}.json", out)
+        atomic_write_text(out_dir / f"{name}.md", "\n".join(lines) + "\n")
     return out
 
 
@@ -150,32 +154,41 @@ def resummarise(path: Path) -> list[str]:
 
 @dataclasses.dataclass(frozen=True)
 class FairStage:
-    """The held-out comparison as a stage of the main job (``evaluate.py``): ``n`` test scenarios on the paper's
-    plant (0: skipped), the model-based laws' ``tuned`` parameters (``tune_baselines.py``'s JSON; None: no tuned
-    rows) and the ``split_root`` of learned runs trained on the train split (None: none)."""
+    """The held-out comparison as a stage of the main job (``evaluate.py``): ``n`` test scenarios on its first plant
+    and ``n_other`` on each other plant (0: skipped there), the model-based laws' ``tuned`` parameters
+    (``tune_baselines.py``'s JSON; None: no tuned rows) and the ``split_root`` of learned runs trained on the train
+    split (None: none)."""
 
     n: int = N_TEST
     tuned: dict[str, Any] | None = None
     split_root: Path | None = None
+    n_other: int = N_OTHER
 
     @classmethod
-    def from_paths(cls, n: int, tuned: Path | None, split_root: Path | None) -> FairStage:
-        """The stage of ``n`` scenarios with the tuned parameters of the JSON ``tuned`` (when that file exists)."""
-        if n < 0:
-            raise ValueError(f"--fair must be >= 0 test scenarios (0: skip the comparison), got {n}")
+    def from_paths(cls, n: int, tuned: Path | None, split_root: Path | None, n_other: int = N_OTHER) -> FairStage:
+        """The stage of ``n`` (``n_other``) scenarios with the tuned parameters of the JSON ``tuned`` (when that
+        file exists)."""
+        for flag, value in (("--fair", n), ("--fair-other", n_other)):
+            if value < 0:
+                raise ValueError(f"{flag} must be >= 0 test scenarios (0: skip the comparison), got {value}")
         if split_root is not None and not split_root.is_dir():
             raise ValueError(f"--split-runs {split_root}: not a folder (benchmarks/train_split_sweep.py --out)")
-        return cls(n, read_json(tuned) if tuned is not None and tuned.exists() else None, split_root)
+        return cls(n, read_json(tuned) if tuned is not None and tuned.exists() else None, split_root, n_other)
+
+    def scenarios(self, first: bool) -> int:
+        """The test scenarios on the main job's first plant (``first``) or on another one."""
+        return self.n if first else self.n_other
 
     def section(self, controllers: dict[str, Controller], grids: dict[str, ControllerGrid], plant: str,
-                base: TrafficParams, out_dir: Path | None, log: Callable[[str], None] = print) -> list[str]:
-        """Run it on ``base`` (named ``plant``; ``run``, files in ``out_dir``) and return REPORT.md's section."""
+                base: TrafficParams, out_dir: Path | None, n: int, log: Callable[[str], None] = print) -> list[str]:
+        """Run it on ``n`` scenarios of ``base`` (named ``plant``; ``run``, files in ``out_dir``) and return
+        REPORT.md's section."""
         specs = (model_based(self.tuned) + learned(controllers, grids)
                  + (split_runs(self.split_root) if self.split_root else []))
-        log(f"== held-out comparison: {len(specs)} laws x {self.n} test scenarios x {HORIZON_S:g} s ({plant} plant)")
-        out = run(specs, plant, base, out_dir, self.n, log=log)
-        return ["## Held-out comparison (the test split)", "",
-                f"Every law on {self.n} scenarios of the scenario distribution's test split (docs/model.md section "
+        log(f"== held-out comparison: {len(specs)} laws x {n} test scenarios x {HORIZON_S:g} s ({plant} plant)")
+        out = run(specs, plant, base, out_dir, n, log=log)
+        return [f"## Held-out comparison (the test split, {plant} plant)", "",
+                f"Every law on {n} scenarios of the scenario distribution's test split (docs/model.md section "
                 f"20) on the {plant} plant, {HORIZON_S:g} s: median [bootstrap 95 % interval] over the scenarios. "
                 f"J_comfort in {UNITS['J_comfort']}. The learned laws are this job's runs; those trained on the "
                 "train split over seeds are benchmarks/train_split_sweep.py's (docs/results/fair).", "",

@@ -29,7 +29,7 @@ def evaluate_plants(controllers: dict[str, Controller], configs: dict[str, EvalC
                     log: Callable[[str], None] = print, fair_stage: FairStage | None = None,
                     **options: Any) -> dict[str, dict[str, Any]]:
     """``evaluate_plant`` on each plant of ``configs`` (in order; the first is the main one), then the held-out
-    comparison (``fair_stage``, on the first plant's nominal; outputs in ``out_dir/fair``), then every report
+    comparison (``fair_stage``, on each plant's nominal; outputs in ``out_dir/fair/PLANT.*``), then every report
     written once; returns plant -> metrics. ``options``: ``evaluate_plant``'s keyword arguments
     (``learned_runs`` also feeds the certificate section, ``grids`` the comparison); ``oracles``: plant -> its
     map's oracle rows."""
@@ -45,9 +45,13 @@ def evaluate_plants(controllers: dict[str, Controller], configs: dict[str, EvalC
         if plant != first and distributed.is_writer():
             atomic_write_text(out / "REPORT.md", reports[plant])
         jax.clear_caches()  # a plant's programs (hundreds) are not used again: their memory mappings released
-    fair_text = fair_stage.section(controllers, options.get("grids") or {}, first, configs[first].nominal(),
-                                   out_dir / "fair" if distributed.is_writer() else None,
-                                   log) if fair_stage is not None and fair_stage.n else []
+    fair_text: list[str] = []
+    for plant, eval_config in configs.items():
+        n = fair_stage.scenarios(plant == first) if fair_stage is not None else 0
+        if fair_stage is not None and n:
+            fair_text += fair_stage.section(controllers, options.get("grids") or {}, plant, eval_config.nominal(),
+                                            out_dir / "fair" if distributed.is_writer() else None, n, log) + [""]
+            jax.clear_caches()
     if distributed.is_writer():
         report = reports[first]
         if len(results) > 1:

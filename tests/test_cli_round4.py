@@ -174,7 +174,7 @@ def test_rounding_of_total_steps_is_said_with_its_reason():
 
 
 # ----------------------------------------------------------------------------- item 3: numbers that agree
-TIME = re.compile(r"about (\d+) minutes the first time, (\d+) once the compilation cache is warm")
+TIME = re.compile(r"about (\d+) minutes the first time, (\d+|less) once the compilation cache is warm")
 MAIN_JOB_TIME_IN = ("README.md", "docs/index.md", "docs/tutorials/own-policy.md", "docs/main-job.md")
 
 

@@ -95,7 +95,8 @@ FAIR_MARK = ("<!-- headline: fair comparison (benchmarks/reproduce.py) -->", "<!
 MAP_MARK = ("<!-- headline: robustness maps (benchmarks/reproduce.py) -->", "<!-- /headline -->")
 VERDICT_MARK = ("<!-- headline: fair comparison elsewhere (benchmarks/reproduce.py) -->", "<!-- /headline -->")
 # the held-out tables that test the paper grid's verdict: the other scheme, the converged plant, sensor noise
-ELSEWHERE = {"muscl": "with MUSCL", "reference": "on the reference plant", "paper_noise": "under sensor noise"}
+ELSEWHERE = {"muscl": "with MUSCL", "reference": "on the reference plant",
+             "paper_noise": "on the paper grid under sensor noise"}
 
 
 def headline(out: Path) -> str:

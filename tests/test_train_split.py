@@ -85,3 +85,18 @@ def test_the_verdicts_take_the_median_seed_and_judge_the_frontier_paired():
     assert worse["ratio"] > 1 and not worse["frontier"]
     _, checks = verdicts.base_checks(res, {"law": "base"}, lambda r: r.split("_s")[0], str)
     assert checks == {"law_s0_vs_base": True, "law_s1_vs_base": False, "law_s2_vs_base": True}
+
+
+def test_the_frontier_meets_the_best_law_told_no_more_than_d_not_the_information_bound():
+    """``paper.fair.tables``: the information bound (told the plant's alpha) is best here, but the learned law is
+    judged against the best model-based law told D at most (the tuned adaptive law)."""
+    from jaxtraffic.compare.stats import MEASURES
+    from jaxtraffic.paper import fair
+
+    res = _rows({"backstepping": 5.0, "backstepping_alpha": 0.5, "adaptive_backstepping_tuned": 2.0,
+                 "grad_robust_split_s0": 1.0})
+    for r in res.values():  # the table's other measures (the frontier reads mean_rho_L2 and diverged)
+        r.update({m: r["mean_rho_L2"] for m in MEASURES if m not in r})
+    _, _, checks = fair.tables(res, {k: k for k in res})
+    assert checks["best_model_based"] == "adaptive_backstepping_tuned"
+    assert checks["ratio"] == pytest.approx(0.5, rel=0.1) and checks["frontier"]

@@ -165,6 +165,40 @@ def test_cem_fitness_is_the_maps_counts():
     np.testing.assert_array_equal(np.asarray(fit0), np.asarray(stab - cem.DIVERGED_COST * div, fit0.dtype))
 
 
+def test_cem_mean_l2_fitness_is_the_fair_comparisons_measure():
+    """With ``cem_fitness="mean_l2"`` the fitness is minus the mean over the scenarios of each rollout's time-averaged
+    L2 (veh/km) as the fair comparison measures it (``compare.stats.per_scenario`` over the records, every 5 s of
+    road), capped, a diverged rollout at the cap: the tuned baselines' fitness (``compare.tuning``)."""
+    from jaxtraffic.compare import stats
+    from jaxtraffic.learn.gradient import cem
+
+    cfg = dataclasses.replace(CEM_CFG, cem_fitness="mean_l2")
+    n = objective.horizon_steps(cfg, PLANT.dt)
+    every = cem.record_every(n, float(PLANT.dt))
+    assert every == round(stats.RECORD_EVERY_S / float(PLANT.dt)) and n % every == 0
+    assert (cem.record_every(120, 0.1), cem.record_every(7, 0.1)) == (40, 7)  # lowered to a divisor of the horizon
+    with pytest.raises(ValueError, match="recording period"):
+        cem.fitness(jnp.stack([TABLE]), cfg, PLANT, n)
+    thetas = jnp.stack([TABLE, jnp.tile(jnp.asarray([0.0, 3.0, 3.0]), (3, 1))])  # the second diverges somewhere
+    fit, stab, div = cem.fitness(thetas, cfg, PLANT, n, every=every)
+    scen = objective.training_scenarios(cfg, PLANT)
+    for p, theta in enumerate(thetas):
+        means = []
+        for i in range(scen.rho0.shape[0]):
+            plant = jax.tree.map(lambda x, i=i: x[i], scen.params)
+            res = simulate(plant, objective.make_controller(theta, cfg, PLANT, plant.delay), n_steps=n,
+                           rho0=scen.rho0[i], v0=scen.v0[i], nominal=PLANT, record=Record(every=every))
+            t = np.append(np.asarray(res.trajectory.t), n * float(PLANT.dt))
+            l2 = np.append(np.asarray(res.trajectory.rho_L2), float(res.metrics["final_rho_L2"]))[None]
+            per = stats.per_scenario(t, l2, np.asarray([res.metrics["diverged"]]), {j: [0.0] for j in stats.JS})
+            means.append(min(float(per["mean_rho_L2"][0]), stats.L2_CAP))
+        np.testing.assert_allclose(float(fit[p]), -np.mean(means), rtol=2e-5)
+    assert int(div[1]) > 0 and float(fit[0]) > float(fit[1])  # the counts are still reported
+    init, chunk = cem.make_train(cfg, PLANT)  # and it trains: the policy's fitness never falls
+    state, m = chunk(init(jax.random.PRNGKey(0)))
+    assert np.all(np.diff(np.asarray(m["objective"])) <= 0) and np.isfinite(float(state.fitness))
+
+
 def test_cem_keeps_its_best_and_is_deterministic():
     from jaxtraffic.learn.gradient import cem
 

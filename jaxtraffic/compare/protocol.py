@@ -88,7 +88,7 @@ def delay_order(scenarios: Scenarios) -> np.ndarray:
 
 
 def evaluate_laws(laws: list[LawSpec], scenarios: Scenarios, nominal: TrafficParams, horizon_s: float,
-                  record_every_s: float = 5.0, chunk: int = 64, log: Callable[[str], None] = print,
+                  record_every_s: float = stats.RECORD_EVERY_S, chunk: int = 64, log: Callable[[str], None] = print,
                   release: bool = True, by_delay: bool = True) -> dict[str, dict[str, np.ndarray]]:
     """Every law of ``laws`` on every scenario (module docstring): name -> per-scenario measures, in the
     scenarios' order. ``nominal``: the model and target every law is handed (the plant's grid, the nominal

@@ -21,12 +21,15 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+import jax.numpy as jnp
 import numpy as np
 
 from jaxtraffic.sim.units import INDEX_UNITS
 
 SETTLE_FRACTION = 0.1  # settling: the L2 norm stays below this fraction of its initial value
 VEH_PER_KM = 1e3
+RECORD_EVERY_S = 5.0  # s: the period at which the measures sample a rollout's L2 norm
+L2_CAP = 50.0  # veh/km: a diverged scenario's (or a larger) time-averaged L2 in a fitness (a jam-scale wave)
 JS = ("J_TTT", "J_fuel", "J_comfort")
 UNITS = {"mean_rho_L2": "veh/km", "late_max_rho_L2": "veh/km", "settle_s": "s", **INDEX_UNITS}
 MEASURES = tuple(UNITS)
@@ -56,6 +59,17 @@ def per_scenario(t: np.ndarray, rho_l2: np.ndarray, diverged: np.ndarray, metric
            "settle_s": settle_times(t, y), **{j: np.asarray(metrics[j], float) for j in JS}}
     out = {k: np.where(div, np.inf, v) for k, v in out.items()}
     return {**out, "diverged": div, "not_settled": ~np.isfinite(out["settle_s"])}
+
+
+def capped_mean_l2(t: Any, rho_l2: Any, diverged: Any, cap: float = L2_CAP) -> Any:
+    """(B,) veh/km: ``per_scenario``'s ``mean_rho_L2`` of norms ``rho_l2`` (B, T) veh/m recorded at ``t`` (T,) s,
+    at most ``cap``, and ``cap`` where the rollout diverged or a norm is not finite: the fitness the tuned
+    baselines and the CEM-trained learned laws minimise (``compare.tuning``, ``learn.gradient.cem``). Pure
+    ``jax.numpy``: it runs inside a compiled training step."""
+    y = jnp.asarray(rho_l2) * VEH_PER_KM
+    mean = jnp.trapezoid(y, jnp.asarray(t), axis=1) / (t[-1] - t[0])
+    bad = jnp.asarray(diverged, bool) | ~jnp.all(jnp.isfinite(y), axis=1)
+    return jnp.where(bad, cap, jnp.minimum(mean, cap))
 
 
 def bootstrap_interval(x: np.ndarray, stat: Callable[..., Any] = np.median, n_boot: int = 2000,

@@ -31,7 +31,7 @@ from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.sim.options import Record
 from jaxtraffic.sim.rollout import simulate_batch
 
-CAP = 50.0  # veh/km: a diverged scenario's (or a larger) time-averaged L2 in the fitness (a jam-scale wave)
+CAP = stats.L2_CAP  # veh/km: a diverged scenario's (or a larger) time-averaged L2 in the fitness
 
 
 @dataclasses.dataclass(frozen=True)
@@ -76,7 +76,7 @@ def fitness(t: Tunable, pop: np.ndarray, scen: Scenarios, nominal: TrafficParams
 
 
 def tune(t: Tunable, scen: Scenarios, nominal: TrafficParams, horizon_s: float = 300.0, population: int = 12,
-         generations: int = 10, sigma: float = 0.3, seed: int = 0, record_every_s: float = 5.0,
+         generations: int = 10, sigma: float = 0.3, seed: int = 0, record_every_s: float = stats.RECORD_EVERY_S,
          log: Callable[[str], None] = print) -> dict[str, Any]:
     """CEM over ``t``'s parameters on ``scen`` (module docstring): the fittest set (``best``, by name), its
     fitness (minus the capped mean time-averaged L2, veh/km) and the generations' history."""

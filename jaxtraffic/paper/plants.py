@@ -145,7 +145,7 @@ def plot_plants(png: Path, table: dict[str, Any], plants: list[str], horizon_s: 
     axes = fig.subplots(1, 2)
     width = 0.8 / len(plants)
     for ax, key, scale, label in ((axes[0], "final_rho_L2", 1e3, f"density L2 at {horizon_s:g} s (veh/km)"),
-                                  (axes[1], "J_comfort", 1.0, f"J_comfort over {horizon_s:g} s")):
+                                  (axes[1], "J_comfort", 1.0, f"{labelled('J_comfort')} over {horizon_s:g} s")):
         for i, p in enumerate(plants):
             vals = [scale * table["delay4"][p][c][key] for c in names]
             ax.bar(np.arange(len(names)) + i * width, vals, width, label=p)

@@ -9,7 +9,10 @@ training scenarios of a ``GradientConfig`` (plants offset from the map's cells):
     fitness(theta) = #stabilised - DIVERGED_COST #diverged - cem_tie_weight mean_s log(final std_s + 1e-3 veh/km)
 
 (with the default ``cem_tie_weight`` 0.01 the last term only orders laws of equal counts, by how far their waves
-decayed; larger, it trades decay against the counts). Each generation samples
+decayed; larger, it trades decay against the counts). With ``cem_fitness="mean_l2"`` the fitness is instead the
+fair comparison's own measure, the one the tuned baselines minimise (``compare.tuning``): minus the mean over the
+scenarios of the time-averaged density L2 over the horizon (veh/km, sampled every ``stats.RECORD_EVERY_S``, capped
+at ``stats.L2_CAP``, a diverged scenario counted at the cap; ``stats.capped_mean_l2``). Each generation samples
 ``cem_population`` parameter sets from a diagonal Gaussian (the current mean is always one of them, so the
 mean's own fitness is known), rolls every one out on every scenario (one batched, forward-only
 ``simulate_batch``), and refits the Gaussian to the best fifth (the elites; a floor
@@ -28,6 +31,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from jaxtraffic.compare import stats
 from jaxtraffic.compare.scenarios import EpisodePool
 from jaxtraffic.learn.gradient.config import GradientConfig
 from jaxtraffic.learn.gradient.objective import (
@@ -41,13 +45,14 @@ from jaxtraffic.learn.gradient.objective import (
 from jaxtraffic.learn.gradient.policies import POLICIES
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.sim.metrics import STABLE_STD, VEH_PER_KM
+from jaxtraffic.sim.options import Record
 from jaxtraffic.sim.rollout import simulate_batch
 
 Array = jax.Array
 DIVERGED_COST = 2.0  # a diverged plant costs two stabilised ones
 SIGMA_MIN = 0.05  # floor of the search distribution's standard deviation (dimensionless gains)
 ELITE_FRACTION = 5  # the elites are the best population / ELITE_FRACTION (rounded, at least 2)
-DIVERGED_STD = 50.0  # veh/km: the tie-breaker's wave amplitude of a diverged plant (a jam-scale wave)
+DIVERGED_STD = stats.L2_CAP  # veh/km: the tie-breaker's wave amplitude of a diverged plant (a jam-scale wave)
 
 
 @struct.dataclass
@@ -65,23 +70,44 @@ class CemState:
 
 
 def fitness(thetas: Array, grad_config: GradientConfig, base: TrafficParams,
-            n_steps: int, pool: EpisodePool | None = None) -> tuple[Array, Array, Array]:
+            n_steps: int, pool: EpisodePool | None = None, every: int = 0) -> tuple[Array, Array, Array]:
     """(fitness, stabilised count, diverged count), each (P,), of P parameter sets ``thetas`` (P, ...) on the
-    training scenarios of ``grad_config`` (module docstring)."""
+    training scenarios of ``grad_config`` (module docstring: ``grad_config.cem_fitness`` chooses the fitness;
+    ``mean_l2`` samples the L2 norm every ``every`` steps, ``record_every``, static)."""
     scen = training_scenarios(grad_config, base, pool)
     n_p, n_s = thetas.shape[0], scen.rho0.shape[0]
     params = jax.tree.map(lambda x: jnp.tile(x, n_p), scen.params)
     tiled = jnp.repeat(thetas, n_s, axis=0)
     # every (theta, scenario) pair is one environment; each controller is told its plant's delay
     ctrl = jax.vmap(lambda th, d: make_controller(th, grad_config, base, d))(tiled, params.delay)
+    by_l2 = grad_config.cem_fitness == "mean_l2"
+    if by_l2 and not every:
+        raise ValueError("the mean_l2 fitness needs its recording period: every = record_every(n_steps, dt)")
     res = simulate_batch(params, ctrl, n_steps=n_steps, nominal=base, rho0=jnp.tile(scen.rho0, (n_p, 1)),
-                         v0=jnp.tile(scen.v0, (n_p, 1)), batch_controller=True, metrics=("diverged",))
+                         v0=jnp.tile(scen.v0, (n_p, 1)), batch_controller=True,
+                         record=Record(every=every if by_l2 else 0),
+                         metrics=("diverged", "final_rho_L2") if by_l2 else ("diverged",))
     div = res.metrics["diverged"].reshape(n_p, n_s)
     std = jnp.std(res.final.rho, axis=-1).reshape(n_p, n_s)
     stab = (~div & (std < STABLE_STD)).sum(axis=1)
     n_div = div.sum(axis=1)
+    if by_l2:
+        tr = res.trajectory
+        assert tr is not None  # (recorded)
+        t = jnp.append(tr.t[0], n_steps * base.dt)
+        l2 = jnp.concatenate([tr.rho_L2, res.metrics["final_rho_L2"][:, None]], axis=1)
+        return -stats.capped_mean_l2(t, l2, res.metrics["diverged"]).reshape(n_p, n_s).mean(axis=1), stab, n_div
     tie = jnp.mean(jnp.log(jnp.where(div, DIVERGED_STD, std * VEH_PER_KM) + 1e-3), axis=1)
     return stab - DIVERGED_COST * n_div - grad_config.cem_tie_weight * tie, stab, n_div
+
+
+def record_every(n_steps: int, dt: float) -> int:
+    """The recording period in steps of the ``mean_l2`` fitness: ``stats.RECORD_EVERY_S`` (s) in steps of ``dt``
+    (s, concrete), lowered to the nearest divisor of ``n_steps`` (the horizon is a whole number of periods)."""
+    every = max(1, min(n_steps, round(stats.RECORD_EVERY_S / dt)))
+    while n_steps % every:
+        every -= 1
+    return every
 
 
 def sample_population(key: Array, mean: Array, sigma: Array, population: int, mask: Array | float = 1.0) -> Array:
@@ -100,11 +126,11 @@ def refit(pop: Array, fit: Array) -> tuple[Array, Array, Array]:
 
 
 def _generation(state: CemState, grad_config: GradientConfig, base: TrafficParams,
-                n_steps: int, pool: EpisodePool | None) -> tuple[CemState, dict]:
+                n_steps: int, pool: EpisodePool | None, every: int) -> tuple[CemState, dict]:
     key, sub = jax.random.split(state.key)
     pop = sample_population(sub, state.mean, state.sigma, grad_config.cem_population,
                             trainable(grad_config, state.mean))
-    fit, stab, n_div = fitness(pop, grad_config, base, n_steps, pool)
+    fit, stab, n_div = fitness(pop, grad_config, base, n_steps, pool, every)
     top, mean, sigma = refit(pop, fit)
     better = fit[top] > state.fitness
     new = CemState(theta=jnp.where(better, pop[top], state.theta), fitness=jnp.where(better, fit[top], state.fitness),
@@ -114,10 +140,10 @@ def _generation(state: CemState, grad_config: GradientConfig, base: TrafficParam
                  "mean_diverged": n_div[0]}
 
 
-@functools.partial(jax.jit, static_argnames=("grad_config", "n_steps"))
+@functools.partial(jax.jit, static_argnames=("grad_config", "n_steps", "every"))
 def _train_chunk(state: CemState, base: TrafficParams, grad_config: GradientConfig,
-                 n_steps: int, pool: EpisodePool | None = None) -> tuple[CemState, dict]:
-    return jax.lax.scan(lambda s, _: _generation(s, grad_config, base, n_steps, pool), state, None,
+                 n_steps: int, pool: EpisodePool | None = None, every: int = 0) -> tuple[CemState, dict]:
+    return jax.lax.scan(lambda s, _: _generation(s, grad_config, base, n_steps, pool, every), state, None,
                         length=grad_config.steps_per_chunk)
 
 
@@ -135,6 +161,7 @@ def make_train(grad_config: GradientConfig, base: TrafficParams, devices: list |
                          f"policy, not {grad_config.policy!r}")
     n_steps = horizon_steps(grad_config, base.dt)
     pool = train_pool(grad_config, base)
+    every = record_every(n_steps, float(base.dt)) if grad_config.cem_fitness == "mean_l2" else 0
 
     def init(key: Array) -> CemState:
         theta = init_theta(grad_config, base, key)
@@ -142,6 +169,6 @@ def make_train(grad_config: GradientConfig, base: TrafficParams, devices: list |
                         sigma=jnp.full_like(theta, grad_config.cem_sigma), key=key, update=jnp.zeros((), jnp.int32))
 
     def train_chunk(state: CemState) -> tuple[CemState, dict[str, Any]]:
-        return _train_chunk(state, base, grad_config, n_steps, pool)
+        return _train_chunk(state, base, grad_config, n_steps, pool, every)
 
     return init, train_chunk

@@ -15,6 +15,7 @@ from jaxtraffic.fields import check_fields, fail, hyper
 
 POLICIES = ("gains", "network", "schedule", "residual")
 METHODS = ("adam", "cem")  # Adam on the gradient of the objective; the cross-entropy method on the map's counts
+CEM_FITNESS = ("counts", "mean_l2")  # the CEM's fitness: the map's counts; the fair comparison's time-averaged L2
 
 
 @dataclass(frozen=True)
@@ -69,6 +70,9 @@ class GradientConfig:
     cem_sigma: float = hyper(0.3, lo=0.0, lo_open=True, help="cem: initial std of the search over the gains")
     cem_tie_weight: float = hyper(0.01, lo=0.0, help="cem: fitness weight of the mean log final std_x(rho) "
                                   "(log veh/km) against the counts; small: a tie-breaker between equal counts")
+    cem_fitness: str = hyper("counts", help="cem: counts: the map's counts at the horizon (stabilised, diverged); "
+                             "mean_l2: minus the time-averaged density L2 over the horizon (veh/km, capped; the "
+                             "fair comparison's measure, which the tuned baselines minimise)", choices=CEM_FITNESS)
     residual_alpha_floor: float = hyper(0.0, lo=0.0, hi=1.0, help="residual policy: its table's rows at alpha_hat "
                                         "knots below this stay zero (the adaptive law) and are not trained")
 

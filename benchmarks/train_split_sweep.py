@@ -2,7 +2,8 @@
 docs/model.md section 20): each law's recipe (``paper.recipes``) with ``--train-split N`` (its episodes or
 scenarios drawn from N train-split scenarios, seed 0, instead of the paper's wave) and ``--seed S``, one run folder
 per law and seed, ``OUT/<law>/seed<S>``. The CEM-trained laws (delay schedule, residual) get the tuned baselines'
-budget (a population of 12 over 10 generations, 36 scenarios of 300 s: ``benchmarks/tune_baselines.py``); the
+budget and fitness (a population of 12 over 10 generations, 36 scenarios of 300 s, minimising the time-averaged
+density L2: ``benchmarks/tune_baselines.py``, ``--cem-fitness mean_l2``, not their recipes' map counts); the
 Adam-trained gains and network their recipes' steps on 12 scenarios (an Adam step sees every scenario); PPO 5
 million environment steps whatever its stop rule says (``--keep-going``: the rule reads the paper's wave, not the
 train split). Then ``fair_benchmark.py --split-runs OUT`` judges them on the test split.
@@ -27,8 +28,8 @@ PLAN: dict[str, tuple[str, str, tuple[str, ...]]] = {
     "grad_gains": ("gradient", "gradient-gains", ("--train-split", "12")),
     "grad_network": ("gradient", "gradient-network", ("--train-split", "12")),
     "grad_robust": ("gradient", "gradient-robust", ("--train-split", "36", "--cem-population", "12",
-                                                    "--train-horizon-s", "300")),
-    "grad_residual": ("gradient", "adaptive-residual", ("--train-split", "36")),
+                                                    "--train-horizon-s", "300", "--cem-fitness", "mean_l2")),
+    "grad_residual": ("gradient", "adaptive-residual", ("--train-split", "36", "--cem-fitness", "mean_l2")),
 }
 
 

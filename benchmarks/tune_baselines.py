@@ -20,12 +20,16 @@ from jaxtraffic.io.files import write_json
 from jaxtraffic.io.provenance import provenance
 from jaxtraffic.paper.laws import TUNABLE
 
+N_TRAIN = 36  # train scenarios: as many as the learned residual's training plants (train_split_sweep.py's CEM laws)
+HORIZON_S = 300.0  # s
+SEED = 0  # the split's seed (the same as the benchmark's)
+
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--n", type=int, default=36, help="train scenarios")
-    ap.add_argument("--horizon", type=float, default=300.0, help="s")
-    ap.add_argument("--seed", type=int, default=0, help="the split's seed (the same as the benchmark's)")
+    ap.add_argument("--n", type=int, default=N_TRAIN, help="train scenarios")
+    ap.add_argument("--horizon", type=float, default=HORIZON_S, help="s")
+    ap.add_argument("--seed", type=int, default=SEED, help="the split's seed (the same as the benchmark's)")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args()
     base = jt.TrafficParams()

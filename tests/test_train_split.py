@@ -100,3 +100,35 @@ def test_the_frontier_meets_the_best_law_told_no_more_than_d_not_the_information
     _, _, checks = fair.tables(res, {k: k for k in res})
     assert checks["best_model_based"] == "adaptive_backstepping_tuned"
     assert checks["ratio"] == pytest.approx(0.5, rel=0.1) and checks["frontier"]
+
+
+def test_the_sweeps_cem_laws_are_trained_as_the_baselines_are_tuned():
+    """benchmarks/train_split_sweep.py trains its CEM laws (delay schedule, residual) with the tuned baselines'
+    budget, scenarios and fitness (``compare.tuning.tune``'s defaults, ``benchmarks/tune_baselines.py``'s split):
+    the same population, generations and initial spread, the same train scenarios and horizon, and the fair
+    comparison's time-averaged L2 as the fitness, not the maps' counts."""
+    import inspect
+    import sys
+    from pathlib import Path
+
+    from jaxtraffic.cli.train import config_from_args
+    from jaxtraffic.compare import tuning
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import train_split_sweep
+    import tune_baselines
+
+    tune_default = {k: p.default for k, p in inspect.signature(tuning.tune).parameters.items()}
+    grads = {law: config_from_args([algo, "--recipe", recipe, *extra]).grad
+             for law, (algo, recipe, extra) in train_split_sweep.PLAN.items() if algo == "gradient"}
+    cem_laws = {law: g for law, g in grads.items() if g.grad_method == "cem"}
+    assert set(cem_laws) == {"grad_robust", "grad_residual"}
+    for law, g in cem_laws.items():
+        assert g.cem_fitness == "mean_l2", law
+        assert (g.cem_population, g.grad_steps, g.cem_sigma) == (
+            tune_default["population"], tune_default["generations"], tune_default["sigma"]), law
+        assert (g.train_split, g.train_horizon_s) == (tune_baselines.N_TRAIN, tune_baselines.HORIZON_S), law
+    pool = EpisodePool.train_split(tune_baselines.N_TRAIN, PLANT)  # the trainers' scenarios are the tuning's
+    tuned = sample(ScenarioDistribution(), "train", tune_baselines.N_TRAIN, tune_baselines.SEED, base=PLANT)
+    np.testing.assert_allclose(np.asarray(pool.rho0), tuned.rho0, rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(pool.delay), tuned.draws["delay"], rtol=1e-6)

@@ -24,7 +24,7 @@ from jaxtraffic.paper.learned import STABLE_STD
 from jaxtraffic.paper.maps import excluded_text, judge_key, judge_label, rejudge
 from jaxtraffic.paper.scenarios import EXTRA_LEARNED, EvalConfig, learned, others
 from jaxtraffic.paper.summaries import _fmt
-from jaxtraffic.sim.units import labelled
+from jaxtraffic.sim.units import INDEX_UNITS, labelled
 
 CLAIMS = {1: "learning curve; PPO converges, the open loop does not", 2: "D = 0: PPO vs Lyapunov",
           3: "D = 4 s: Lyapunov fails, backstepping and PPO stabilise", 4: "Table 2 (300 s, D = 4 s)",
@@ -145,7 +145,8 @@ def plot_plants(png: Path, table: dict[str, Any], plants: list[str], horizon_s: 
     axes = fig.subplots(1, 2)
     width = 0.8 / len(plants)
     for ax, key, scale, label in ((axes[0], "final_rho_L2", 1e3, f"density L2 at {horizon_s:g} s (veh/km)"),
-                                  (axes[1], "J_comfort", 1.0, f"{labelled('J_comfort')} over {horizon_s:g} s")):
+                                  (axes[1], "J_comfort", 1.0,
+                                   f"J_comfort over {horizon_s:g} s\n({INDEX_UNITS['J_comfort']})")):
         for i, p in enumerate(plants):
             vals = [scale * table["delay4"][p][c][key] for c in names]
             ax.bar(np.arange(len(names)) + i * width, vals, width, label=p)

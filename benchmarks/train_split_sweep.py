@@ -5,8 +5,10 @@ per law and seed, ``OUT/<law>/seed<S>``. The CEM-trained laws (delay schedule, r
 budget and fitness (a population of 12 over 10 generations, 36 scenarios of 300 s, minimising the time-averaged
 density L2: ``benchmarks/tune_baselines.py``, ``--cem-fitness mean_l2``, not their recipes' map counts); the
 Adam-trained gains and network their recipes' steps on 12 scenarios (an Adam step sees every scenario); PPO 5
-million environment steps whatever its stop rule says (``--keep-going``: the rule reads the paper's wave, not the
-train split). Then ``fair_benchmark.py --split-runs OUT`` judges them on the test split.
+million environment steps (``--keep-going``), its best checkpoint selected on its 36 train scenarios by the same
+measure over 300 s on the paper grid (``runs.ppo.selection.make_split_suite``: the tuned baselines' objective, as a
+ratio to backstepping's; nothing of the paper's wave). Then ``fair_benchmark.py --split-runs OUT`` judges them on
+the test split.
 
     python benchmarks/train_split_sweep.py --out runs-split --seeds 0 1 2      # about 45 min on 2 cores
 """
@@ -24,7 +26,8 @@ from jaxtraffic.paper import laws
 ROOT = Path(__file__).resolve().parents[1]
 # law -> (train.py subcommand, recipe, extra flags); PPO is registered without a recipe (the main job trains it)
 PLAN: dict[str, tuple[str, str, tuple[str, ...]]] = {
-    "ppo": ("ppo", "ppo", ("--train-split", "36", "--keep-going", "--total-steps", "5000000", "--max-wall-s", "1800")),
+    "ppo": ("ppo", "ppo", ("--train-split", "36", "--keep-going", "--total-steps", "5000000", "--max-wall-s", "1800",
+                           "--val-plant", "training", "--val-horizon-s", "300")),
     "grad_gains": ("gradient", "gradient-gains", ("--train-split", "12")),
     "grad_network": ("gradient", "gradient-network", ("--train-split", "12")),
     "grad_robust": ("gradient", "gradient-robust", ("--train-split", "36", "--cem-population", "12",

@@ -151,17 +151,17 @@ def test_the_stop_rule_says_which_condition_failed_with_the_values():
 
 def test_the_best_checkpoint_is_said_with_its_unit_never_the_placeholder():
     kept = selection.scores(np.array([-0.5, -0.7], np.float32), np.array([False, False]), None, None)
-    for validated in (True, False):
-        text = selection.best_text(float(kept[0]), 0, 64, validated)
+    for measure in ("the suite's measure", None):
+        text = selection.best_text(float(kept[0]), 0, 64, measure)
         assert "1e+07" not in text and text.startswith("no scored checkpoint") and "member 0 at 64 env steps" in text
-    text = selection.best_text(selection.BAD, 1, 128, True)
+    text = selection.best_text(selection.BAD, 1, 128, "the worst ratio")
     assert "1e+06" not in text and "rejected" in text
-    text = selection.best_text(0.84, 1, 128, True)
+    text = selection.best_text(0.84, 1, 128, "the worst ratio to backstepping")
     assert text.startswith("best checkpoint: member 1 at 128 env steps, validation score 0.84 (")
     assert "dimensionless" in text and "backstepping" in text
     no_suite = selection.scores(np.array([-0.05], np.float32), np.array([True]), None, None)
-    assert "evaluation reward -0.05 (dimensionless)" in selection.best_text(float(no_suite[0]), 0, 64, False)
-    assert selection.best_text(np.inf, 0, 0, True) == "no best checkpoint kept"
+    assert "evaluation reward -0.05 (dimensionless)" in selection.best_text(float(no_suite[0]), 0, 64, None)
+    assert selection.best_text(np.inf, 0, 0, "the worst ratio") == "no best checkpoint kept"
 
 
 def test_rounding_of_total_steps_is_said_with_its_reason():

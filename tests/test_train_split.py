@@ -128,7 +128,67 @@ def test_the_sweeps_cem_laws_are_trained_as_the_baselines_are_tuned():
         assert (g.cem_population, g.grad_steps, g.cem_sigma) == (
             tune_default["population"], tune_default["generations"], tune_default["sigma"]), law
         assert (g.train_split, g.train_horizon_s) == (tune_baselines.N_TRAIN, tune_baselines.HORIZON_S), law
+    # PPO's checkpoints are selected on the same split, horizon and plant (make_split_suite, the paper grid)
+    algo, recipe, extra = train_split_sweep.PLAN["ppo"]
+    ppo = config_from_args([algo, "--recipe", recipe, *extra])
+    assert (ppo.env.train_split, ppo.run.val_horizon_s, ppo.run.val_plant, ppo.plant.n_points) == (
+        tune_baselines.N_TRAIN, tune_baselines.HORIZON_S, "training", 201)
     pool = EpisodePool.train_split(tune_baselines.N_TRAIN, PLANT)  # the trainers' scenarios are the tuning's
     tuned = sample(ScenarioDistribution(), "train", tune_baselines.N_TRAIN, tune_baselines.SEED, base=PLANT)
     np.testing.assert_allclose(np.asarray(pool.rho0), tuned.rho0, rtol=1e-6)
     np.testing.assert_allclose(np.asarray(pool.delay), tuned.draws["delay"], rtol=1e-6)
+
+
+def test_ppo_split_runs_are_selected_on_their_train_split_by_the_comparisons_measure():
+    """A PPO run trained on the train split scores its checkpoints on its own training scenarios (``selection.
+    make_split_suite``) with the held-out comparison's measure: a member's score equals the capped mean over the
+    scenarios of ``compare.evaluate_laws``' time-averaged L2, over backstepping's (told each D), computed here by
+    the comparison's own code; the paper's wave is none of the scenarios."""
+    from jaxtraffic.compare import LawSpec, evaluate_laws
+    from jaxtraffic.compare.stats import L2_CAP
+    from jaxtraffic.control.baselines import backstepping, lyapunov
+    from jaxtraffic.runs.ppo.selection import make_split_suite
+    from jaxtraffic.sim.initial import paper_initial_condition
+
+    n, horizon = 4, 20.0
+    suite = make_split_suite(PLANT, horizon, n)
+    assert suite.scenarios == {"train_split": n, "seed": 0, "horizon_s": horizon}
+    members = jax.tree.map(lambda *x: np.stack(x), lyapunov(0.5), lyapunov(1.5))
+    out = suite(members, 2)
+    scen = sample(ScenarioDistribution(), "train", n, 0, base=PLANT)
+    np.testing.assert_allclose(scen.rho0, np.asarray(EpisodePool.train_split(n, PLANT).rho0), rtol=1e-6)
+    paper, _ = paper_initial_condition(PLANT)
+    assert np.abs(scen.rho0 - np.asarray(paper)[None]).max(axis=1).min() > 1e-4  # not the paper's wave
+    res = evaluate_laws([LawSpec("a", "a", lambda: lyapunov(0.5)), LawSpec("b", "b", lambda: lyapunov(1.5)),
+                         LawSpec("ref", "ref", backstepping, "delay")], scen, PLANT, horizon, log=lambda _: None)
+    capped = {k: np.minimum(r["mean_rho_L2"], L2_CAP) for k, r in res.items()}
+    np.testing.assert_allclose(suite.reference["mean_rho_L2"], capped["ref"], rtol=1e-6)
+    want = np.array([capped["a"].mean(), capped["b"].mean()]) / capped["ref"].mean()
+    np.testing.assert_allclose(out["score"], want, rtol=1e-6)
+    assert out["ratio"].shape == (2, n) and out["score"][0] != out["score"][1]
+
+
+def test_a_ppo_split_run_validates_without_the_paper_rule(tmp_path):
+    """The PPO trainer of a split run builds the split suite and validates members whose evaluation on the paper's
+    wave fails the paper's rule (a default run ranks those below every validated one, by reward, unvalidated)."""
+    from jaxtraffic.runs.ppo import selection
+    from jaxtraffic.runs.ppo.trainer import PPOTraining, build
+
+    def trainer(split: int) -> PPOTraining:
+        config = TrainConfig.make(plant={"n_points": 21, "delay": 1.0, "max_delay_steps": 80},
+                                  env={"train_split": split, "horizon_s": 2.0},
+                                  ppo={"num_envs": 4, "num_steps": 4, "num_minibatches": 1, "update_epochs": 1},
+                                  run={"val_horizon_s": 10.0, "val_plant": "training", "min_wave_speed": None,
+                                       "require_certificate": False})
+        t = PPOTraining(config, *build(config), tmp_path)
+        t.start(None, lambda *_: None)
+        return t
+
+    ev = {"final_reward": np.array([-1e3, -1e3]), "diverged": np.array([False, False]),
+          "wave_speed": np.zeros(2)}
+    split = trainer(3)
+    assert split.suite is not None and split.suite.scenarios["train_split"] == 3
+    paper, _, score = split._judge(ev)
+    assert not paper.any() and np.all(score < selection.UNVALIDATED / 2)  # validated: the suite's scores
+    _, _, score = trainer(0)._judge(ev)
+    assert np.all(score > selection.UNVALIDATED / 2)  # a default run: not validated

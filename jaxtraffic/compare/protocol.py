@@ -69,9 +69,25 @@ def _run(spec: LawSpec, plants: TrafficParams, rho0: np.ndarray, v0: np.ndarray,
     if noisy:  # on the law's own grid (its sensors), before the adapter
         ctrl = sensor_noise(ctrl, jnp.asarray(noise, jnp.float32), batched=told)
     ctrl = adapt(ctrl, spec.grid or baseline_grid(nominal), nominal)
+    return measure(plants, ctrl, rho0, v0, nominal, n_steps, every, batch_controller=told or noisy,
+                   keys=keys if noisy else None)
+
+
+def steps_of(horizon_s: float, dt: float, record_every_s: float = stats.RECORD_EVERY_S) -> tuple[int, int]:
+    """(steps, recording period in steps) of a rollout of at least ``horizon_s`` (s) at time step ``dt`` (s): the
+    period ``record_every_s`` (s) in whole steps, the horizon a whole number of periods."""
+    every = max(1, round(record_every_s / dt))
+    return every * max(1, math.ceil(horizon_s / (every * dt) - 1e-9)), every
+
+
+def measure(plants: TrafficParams, ctrl: Controller, rho0: Any, v0: Any, nominal: TrafficParams, n_steps: int,
+            every: int, batch_controller: bool = False, keys: jax.Array | None = None) -> dict[str, np.ndarray]:
+    """The per-scenario measures (``stats.per_scenario``) of one batched rollout of ``ctrl`` (on ``nominal``'s
+    grid) on ``plants`` from ``rho0`` (veh/m) and ``v0`` (m/s), (B, n_points) each, over ``n_steps`` steps, the
+    density L2 recorded every ``every`` steps and at the end."""
     res = simulate_batch(plants, ctrl, n_steps=n_steps, rho0=jnp.asarray(rho0, jnp.float32),
-                         v0=jnp.asarray(v0, jnp.float32), nominal=nominal, batch_controller=told or noisy,
-                         keys=keys if noisy else None, record=Record(every=every), metrics=MEASURED)
+                         v0=jnp.asarray(v0, jnp.float32), nominal=nominal, batch_controller=batch_controller,
+                         keys=keys, record=Record(every=every), metrics=MEASURED)
     tr, met = res.trajectory, {k: np.asarray(v) for k, v in res.metrics.items()}
     assert tr is not None  # (recorded)
     t = np.append(np.asarray(tr.t)[0], n_steps * float(nominal.dt))
@@ -97,9 +113,7 @@ def evaluate_laws(laws: list[LawSpec], scenarios: Scenarios, nominal: TrafficPar
     every compiled program after each law (``jax.clear_caches``): each law's programs hold ~300-500 memory
     mappings on the CPU backend, and a long comparison in one process otherwise reaches the kernel's limit
     (``vm.max_map_count``, 65 530) and crashes."""
-    dt = float(nominal.dt)
-    every = max(1, round(record_every_s / dt))
-    n_steps = every * max(1, math.ceil(horizon_s / (every * dt) - 1e-9))
+    n_steps, every = steps_of(horizon_s, float(nominal.dt), record_every_s)
     names = [s.name for s in laws]
     if len(set(names)) != len(names):
         raise ValueError(f"law names must be distinct, got {names}")

@@ -61,6 +61,12 @@ def per_scenario(t: np.ndarray, rho_l2: np.ndarray, diverged: np.ndarray, metric
     return {**out, "diverged": div, "not_settled": ~np.isfinite(out["settle_s"])}
 
 
+def capped(mean_rho_l2: Any, cap: float = L2_CAP) -> np.ndarray:
+    """``per_scenario``'s ``mean_rho_L2`` (veh/km; +inf where diverged) at most ``cap``: a diverged or larger
+    scenario counts as ``cap`` in a fitness or a selection score (``capped_mean_l2``'s value, from the measures)."""
+    return np.minimum(np.asarray(mean_rho_l2, float), cap)
+
+
 def capped_mean_l2(t: Any, rho_l2: Any, diverged: Any, cap: float = L2_CAP) -> Any:
     """(B,) veh/km: ``per_scenario``'s ``mean_rho_L2`` of norms ``rho_l2`` (B, T) veh/m recorded at ``t`` (T,) s,
     at most ``cap``, and ``cap`` where the rollout diverged or a norm is not finite: the fitness the tuned

@@ -7,13 +7,12 @@ A ``Tunable`` is a family of laws indexed by a few continuous parameters (backst
 measurements. ``tune`` rolls every candidate out on every train scenario (one batched ``simulate_batch`` per
 generation, every law told its plant's delay) and ranks candidates by the time-averaged density L2 over the
 horizon (``stats.per_scenario``), averaged over the scenarios with a diverged or larger one counted as
-``CAP`` veh/km: lower is fitter. The result is the fittest parameter set evaluated.
+``stats.L2_CAP`` veh/km (``stats.capped``): lower is fitter. The result is the fittest parameter set evaluated.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Callable
 from typing import Any
 
@@ -22,16 +21,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxtraffic.compare import stats
-from jaxtraffic.compare.protocol import MEASURED
+from jaxtraffic.compare.protocol import measure, steps_of
 from jaxtraffic.compare.scenarios import Scenarios
 from jaxtraffic.control.adapter import adapt, baseline_grid
 from jaxtraffic.control.base import Controller
 from jaxtraffic.learn.gradient.cem import refit, sample_population
 from jaxtraffic.model.params import TrafficParams
-from jaxtraffic.sim.options import Record
-from jaxtraffic.sim.rollout import simulate_batch
-
-CAP = stats.L2_CAP  # veh/km: a diverged scenario's (or a larger) time-averaged L2 in the fitness
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,20 +54,15 @@ def _batched(ctrl: Controller, n: int) -> Controller:
 
 def fitness(t: Tunable, pop: np.ndarray, scen: Scenarios, nominal: TrafficParams, n_steps: int, every: int
             ) -> np.ndarray:
-    """(P,): minus the mean over ``scen`` of each candidate's time-averaged L2 (veh/km, capped at ``CAP``)."""
+    """(P,): minus the mean over ``scen`` of each candidate's time-averaged L2 (veh/km, capped at ``stats.L2_CAP``)."""
     n_p, n_s = pop.shape[0], len(scen)
     delays = np.tile(np.asarray(scen.plants.delay, np.float32), n_p)
     params = [np.repeat(pop[:, i].astype(np.float32), n_s) for i in range(pop.shape[1])]
     ctrl = adapt(_batched(t.build(delays, *params), n_p * n_s), baseline_grid(nominal), nominal)
     plants = jax.tree.map(lambda x: np.tile(x, n_p) if np.ndim(x) else x, scen.plants)
-    res = simulate_batch(plants, ctrl, n_steps=n_steps, rho0=jnp.asarray(np.tile(scen.rho0, (n_p, 1)), jnp.float32),
-                         v0=jnp.asarray(np.tile(scen.v0, (n_p, 1)), jnp.float32), nominal=nominal,
-                         batch_controller=True, record=Record(every=every), metrics=MEASURED)
-    assert res.trajectory is not None  # (recorded)
-    t_rec = np.append(np.asarray(res.trajectory.t)[0], n_steps * float(nominal.dt))
-    l2 = np.concatenate([np.asarray(res.trajectory.rho_L2), np.asarray(res.metrics["final_rho_L2"])[:, None]], 1)
-    per = stats.per_scenario(t_rec, l2, np.asarray(res.metrics["diverged"]), res.metrics)
-    return -np.minimum(per["mean_rho_L2"], CAP).reshape(n_p, n_s).mean(axis=1)
+    per = measure(plants, ctrl, np.tile(scen.rho0, (n_p, 1)), np.tile(scen.v0, (n_p, 1)), nominal, n_steps, every,
+                  batch_controller=True)
+    return -stats.capped(per["mean_rho_L2"]).reshape(n_p, n_s).mean(axis=1)
 
 
 def tune(t: Tunable, scen: Scenarios, nominal: TrafficParams, horizon_s: float = 300.0, population: int = 12,
@@ -83,8 +73,7 @@ def tune(t: Tunable, scen: Scenarios, nominal: TrafficParams, horizon_s: float =
     if scen.split != "train":
         raise ValueError(f"tune on the train split, not {scen.split!r}: the test split is for the comparison")
     dt = float(nominal.dt)
-    every = max(1, round(record_every_s / dt))
-    n_steps = every * max(1, math.ceil(horizon_s / (every * dt) - 1e-9))
+    n_steps, every = steps_of(horizon_s, dt, record_every_s)
     lo, hi = (np.array([b[i] for b in t.bounds], np.float32) for i in (0, 1))
     key = jax.random.key(seed)
     mean, sd = jnp.asarray(t.init, jnp.float32), jnp.full((len(t.init),), sigma, jnp.float32)

@@ -115,9 +115,11 @@ def cases(tmp: Path) -> list[tuple[str, str, list, dict, int, str]]:
          "beyond the delay buffer"),
         ("4", "gradient --record-every 1000000", [[str(REPO / "train.py"), *GRAD, "--record-every", "1000000"]
                                                   + r("s2")], {}, 2, "must be <= the training horizon"),
-        ("4", "gradient --train-amplitudes -1", [[str(REPO / "train.py"), *GRAD, "--train-amplitudes", "-1"] + r("s3")],
+        ("4", "gradient --train-amplitudes -1000", [[str(REPO / "train.py"), *GRAD, "--train-amplitudes", "-1000"]
+                                                   + r("s3")],
          {}, 2, "leaves the physical region"),
-        ("4", "PPO --amp-range 1,1", [T + ["--amp-range", "1,1"] + r("s4")], {}, 2, "leaves the physical region"),
+        ("4", "PPO --amp-range 1000,1000", [T + ["--amp-range", "1000,1000"] + r("s4")], {}, 2,
+         "leaves the physical region"),
         ("4", "gradient with PPO's --num-envs 7 --tensorboard D", [[str(REPO / "train.py"), *GRAD, "--num-envs", "7",
                                                                    "--tensorboard", "D"] + r("s5")], {}, 2,
          "a flag of `train.py ppo`"),

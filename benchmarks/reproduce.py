@@ -96,7 +96,8 @@ MAP_MARK = ("<!-- headline: robustness maps (benchmarks/reproduce.py) -->", "<!-
 VERDICT_MARK = ("<!-- headline: fair comparison elsewhere (benchmarks/reproduce.py) -->", "<!-- /headline -->")
 # the held-out tables that test the paper grid's verdict: the other scheme, the converged plant, sensor noise
 ELSEWHERE = {"muscl": "with MUSCL", "reference": "on the reference plant",
-             "paper_noise": "on the paper grid under sensor noise"}
+             "paper_noise": "on the paper grid under sensor noise", "muscl_noise": "with MUSCL under sensor noise",
+             "reference_noise": "on the reference plant under sensor noise"}
 
 
 def headline(out: Path) -> str:
@@ -126,8 +127,9 @@ def fair_headline(out: Path) -> str:
 
 
 def elsewhere_headline(out: Path) -> str:
-    """The README's line on the verdict's robustness, from DIR/fair/split/{muscl,reference,paper_noise}.json: the best
-    learned law against the best model-based law on each (the frontier's ratio and interval, as ``fair_headline``)."""
+    """The README's line on the verdict's robustness, from DIR/fair/split/{muscl,reference}{,_noise}.json and
+    paper_noise.json (those present): the best learned law against the best model-based law on each (the
+    frontier's ratio and interval, as ``fair_headline``)."""
     parts = []
     for name, where in ELSEWHERE.items():
         path = out / "fair" / "split" / f"{name}.json"

@@ -14,6 +14,7 @@ from jaxtraffic.cli import train as train_cli
 from jaxtraffic.runs import checkpoint as ckpt
 from jaxtraffic.runs.config import TrainConfig, load_config
 from jaxtraffic.runs.config.toml import read_config, write_config
+from jaxtraffic.runs.config.tree import CONFIG_VERSION
 
 GRAD = ["gradient", "--policy", "schedule", "--n-points", "21", "--train-delays", "1", "--train-alphas",
         "0.15", "--train-horizon-s", "2", "--steps-per-chunk", "1", "--grad-steps", "2", "--eval-horizon-s", "2",
@@ -53,7 +54,8 @@ def test_the_plant_section_is_traffic_params_and_a_file_sets_its_physics(tmp_pat
 
 def test_a_version_3_config_json_is_converted():
     """Version 3 held eight of the plant's fields (the others could not be set: they were the defaults), and the
-    controller's own grid in the environment's section (None: the plant's)."""
+    controller's own grid in the environment's section (None: the plant's), and (to version 4) the initial
+    amplitudes in veh/m."""
     from jaxtraffic.runs.config import config_from_json, config_json
     from jaxtraffic.runs.config.tree import fields_for
 
@@ -65,12 +67,13 @@ def test_a_version_3_config_json_is_converted():
     tree = data["config"]
     old = {**data, "version": 3, "config": {
         **tree, "plant": {k: v for k, v in tree["plant"].items() if k in flags},
-        "env": {**tree["env"], "controller_points": 11},
-        "grad": {k: v for k, v in tree["grad"].items() if k != "controller_points"}}}
+        "env": {**tree["env"], "controller_points": 11, "amp_range": (0.01, 0.01)},
+        "grad": {**{k: v for k, v in tree["grad"].items() if k != "controller_points"}, "train_amplitudes": (0.01,)}}}
     assert config_from_json(old) == config
     ppo = config_json(TrainConfig.make(plant={"n_points": 21}))
     old_ppo = {**ppo, "version": 3,
-               "config": {**ppo["config"], "env": {**ppo["config"]["env"], "controller_points": None}}}
+               "config": {**ppo["config"], "env": {**ppo["config"]["env"], "controller_points": None,
+                                                   "amp_range": (0.01, 0.01)}}}
     assert config_from_json(old_ppo).grad.controller_points == 0
     # a version-4 file without the plant's other fields (written before they existed): at their defaults
     assert config_from_json({**old, "version": 4}).plant.L == TrainConfig().plant.L
@@ -134,7 +137,7 @@ def test_a_saved_config_holds_what_differs_from_the_defaults_and_each_recipe_is_
     from jaxtraffic.runs.config.toml import config_toml
 
     body = [line for line in config_toml(TrainConfig()).splitlines() if line and not line.startswith("#")]
-    assert body == ["config_version = 4", "[run]", 'algo = "ppo"']
+    assert body == [f"config_version = {CONFIG_VERSION}", "[run]", 'algo = "ppo"']
     lr = config_toml(TrainConfig.make(ppo={"lr": 0.5}, run={"min_wave_speed": None}))
     assert "[ppo]\nlr = 0.5\n" in lr and "min_wave_speed = -inf" in lr and "[env]" not in lr
     for name in NAMES:
@@ -196,6 +199,35 @@ def test_an_older_run_loads_with_its_missing_fields_at_their_defaults(tmp_path):
     (tmp_path / "v3.toml").write_text("config_version = 3\n[env]\ncontroller_points = 11\n[plant]\nn_points = 21\n"
                                       "[run]\nalgo = 'gradient'\n")
     assert read_config(tmp_path / "v3.toml").grad.controller_points == 11
+    # version 4 gave the initial amplitudes in veh/m; today's are in veh/km (the same waves)
+    (tmp_path / "v4.toml").write_text("config_version = 4\n[env]\namp_range = [0.005, 0.015]\n[grad]\n"
+                                      "train_amplitudes = [0.01, 0.012]\n[run]\nalgo = 'gradient'\n")
+    v4 = read_config(tmp_path / "v4.toml")
+    assert v4.env.amp_range == (5.0, 15.0) and v4.grad.train_amplitudes == (10.0, 12.0)
+    assert read_config(tmp_path / "v4.toml") == TrainConfig.make(env={"amp_range": (5.0, 15.0)}, grad={
+        "train_amplitudes": (10.0, 12.0)}, run={"algo": "gradient"})
     (tmp_path / "v9.toml").write_text("config_version = 9\n")
-    with pytest.raises(ValueError, match="config version 9; this jaxtraffic reads versions 3 to 4"):
+    with pytest.raises(ValueError, match=f"config version 9; this jaxtraffic reads versions 3 to {CONFIG_VERSION}"):
         read_config(tmp_path / "v9.toml")
+
+
+def test_a_checkpoint_bound_to_a_version_4_problem_still_belongs_to_its_migrated_config(tmp_path):
+    """A checkpoint stores the problem it was trained on (``checkpoint.problem_of``); one written by version 4 (no
+    version in it, the amplitudes in veh/m) belongs to its config read today (veh/km), and a different wave does
+    not."""
+    import json
+
+    from jaxtraffic.runs.checkpoint import check_problem, problem_of
+
+    def v4(amp: float) -> str:  # today's problem as version 4 wrote it
+        problem = json.loads(problem_of(TrainConfig()))
+        del problem["config_version"]
+        problem["env"]["amp_range"] = [amp, amp]
+        problem["grad"]["train_amplitudes"] = [amp]
+        return json.dumps(problem, sort_keys=True)
+
+    check_problem(TrainConfig(), v4(0.01), tmp_path / "checkpoint.msgpack")  # 0.01 veh/m: today's 10 veh/km
+    check_problem(TrainConfig(), problem_of(TrainConfig()), tmp_path / "checkpoint.msgpack")
+    with pytest.raises(ValueError, match=r"env.amp_range = \[10.0, 10.0\], grad.train_amplitudes = \[10.0\], but "
+                                         r"checkpoint.msgpack was trained with \[20.0, 20.0\], \[20.0\]"):
+        check_problem(TrainConfig(), v4(0.02), tmp_path / "checkpoint.msgpack")

@@ -795,7 +795,10 @@ def test_config_json_version_is_checked(version, tmp_path, capsys):
     write_json(run / "config.json", {**data, "version": version})
     before = checksum(tmp_path)
     code, err = _train(["--resume", "--out-dir", str(run)], capsys)
-    assert code == 2 and f"config.json: config version {version!r}; this jaxtraffic reads versions 3 to 4" in err
+    from jaxtraffic.runs.config.tree import CONFIG_VERSION
+
+    assert code == 2 and f"config.json: config version {version!r}; this jaxtraffic reads versions 3 to " \
+        f"{CONFIG_VERSION}" in err
     assert checksum(tmp_path) == before
 
 

@@ -22,7 +22,7 @@ from jaxtraffic.runs.gradient.policy import gradient_setup
 
 # a value of each gradient field other than its default and every policy's default, valid for the gains policy
 GIVEN = {"grad_steps": 6, "grad_lr": 0.02, "train_delays": (1.0, 2.0), "train_alphas": (0.2, 0.3),
-         "train_amplitudes": (0.005,), "train_wavenumbers": (2, 3), "train_phases": (0.5,), "train_horizon_s": 90.0,
+         "train_amplitudes": (5.0,), "train_wavenumbers": (2, 3), "train_phases": (0.5,), "train_horizon_s": 90.0,
          "record_every": 3, "steps_per_chunk": 2, "reward_weight": 0.5, "waves_weight": 0.25, "comfort_weight": 2e-5,
          "scenario_clip": 0.75, "init_gains": (0.1, -0.2, 0.3),
          "schedule_knots": (0.0, 3.0), "grad_method": "cem", "cem_population": 5, "cem_sigma": 0.4,

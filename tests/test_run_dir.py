@@ -297,7 +297,7 @@ def test_evaluate_writes_whole_or_nothing(outcome, tmp_path, monkeypatch, capsys
 @pytest.mark.parametrize("argv, match", [
     (["--train-delays", "50"], r"train_delays = \[50.0\]: beyond the delay buffer's 10 s"),
     (["--record-every", "1000000"], r"record_every = 1000000: must be <= the training horizon"),
-    (["--train-amplitudes", "-1"], r"\(veh/m\): an initial state leaves the physical region"),
+    (["--train-amplitudes", "-1000"], r"\(veh/km\): an initial state leaves the physical region"),
     (["--num-envs", "7", "--tensorboard", "tb"], r"error: --num-envs: a flag of `train.py ppo`, not of"),
     (["--total-steps", "7"], r"--total-steps: a flag of `train.py ppo`, not of `train.py gradient` \(its length"),
 ])
@@ -315,8 +315,8 @@ def test_ppo_rules_do_not_block_a_gradient_run_and_gradient_flags_do_not_pass_fo
     TrainConfig.make(run={"algo": "gradient"}, ppo={"num_minibatches": 7})  # PPO's batch rule does not apply
     code, err = _main([*TINY, "--out-dir", str(tmp_path / "p"), "--grad-steps", "3"], capsys)
     assert code == 2 and "--grad-steps: a flag of `train.py gradient`, not of `train.py ppo`" in err
-    code, err = _main([*TINY, "--out-dir", str(tmp_path / "p"), "--amp-range", "1,1"], capsys)
-    assert code == 2 and "amp_range = (1.0, 1.0): an initial state of amplitude 1 veh/m" in err
+    code, err = _main([*TINY, "--out-dir", str(tmp_path / "p"), "--amp-range", "1000,1000"], capsys)
+    assert code == 2 and "amp_range = (1000.0, 1000.0): an initial state of amplitude 1000 veh/km" in err
 
 
 def test_sizes_and_horizons_beyond_what_can_run_are_flag_errors(tmp_path, capsys):

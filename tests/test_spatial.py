@@ -61,3 +61,22 @@ def test_smooth_with_a_kernel_wider_than_the_road_is_the_normalised_sum(sigma_no
     j = np.arange(21)
     w = np.exp(-0.5 * ((j[None, :] - j[:, None]) / sigma_nodes) ** 2) * (np.abs(j[None, :] - j[:, None]) <= half)
     np.testing.assert_allclose(got, (w @ u) / w.sum(axis=1), atol=2e-6)
+
+
+@pytest.mark.parametrize("sigma_nodes", [0.7, 2.5, 5.0, 12.0])
+def test_smooth_is_the_normalised_convolution_to_float32_rounding(sigma_nodes):
+    """The shifted multiply-adds compute the convolution with the Gaussian weights inside the road (float64 oracle)."""
+    from jaxtraffic.model.spatial import _gaussian_weights
+
+    u = np.random.default_rng(0).normal(size=101).astype(np.float32)
+    w = _gaussian_weights(sigma_nodes)
+    oracle = np.convolve(u.astype(np.float64), w, mode="same") / np.convolve(np.ones(101), w, mode="same")
+    np.testing.assert_allclose(np.asarray(smooth(jnp.asarray(u), sigma_nodes)), oracle, rtol=2e-6, atol=2e-6)
+
+
+@pytest.mark.parametrize("r", [2, 4])
+def test_restrict_is_the_normalised_hat_sum_to_float32_rounding(r):
+    u = np.random.default_rng(1).normal(size=20 * r + 1).astype(np.float32)
+    w = (r - np.abs(np.arange(-r + 1, r))).astype(np.float64)
+    oracle = (np.convolve(u.astype(np.float64), w, mode="same") / np.convolve(np.ones(u.size), w, mode="same"))[::r]
+    np.testing.assert_allclose(np.asarray(restrict(jnp.asarray(u), r)), oracle, rtol=2e-6, atol=2e-6)

@@ -27,6 +27,7 @@ from tiny_runs import CHUNK, REPO, RUNS, TINY
 from jaxtraffic.cli import train as train_cli
 from jaxtraffic.runs import checkpoint as ckpt
 from jaxtraffic.runs.config import TrainConfig, load_config
+from jaxtraffic.runs.config.tree import CONFIG_VERSION
 from jaxtraffic.runs.curve import CURVE_FIELDS
 from jaxtraffic.runs.policy import load_policy
 
@@ -67,7 +68,7 @@ def test_run_directory_contents(runs):
     cfg = json.loads((run / "config.json").read_text())
     tree = cfg["config"]
     assert tree["plant"]["n_points"] == 21 and tree["plant"]["delay"] == 0.5 and tree["ppo"]["num_envs"] == 4
-    assert cfg["jax_version"] == jax.__version__ and cfg["horizon_steps"] == 30 and cfg["version"] == 4
+    assert cfg["jax_version"] == jax.__version__ and cfg["horizon_steps"] == 30 and cfg["version"] == CONFIG_VERSION
     loaded = load_config(run)  # the one loader (resume, load_policy, evaluation) reads the tree back
     assert loaded.plant.n_points == 21 and loaded.ppo.num_envs == 4 and loaded.run.max_wall_s == float("inf")
     assert loaded.env == TrainConfig.make(env={k: tuple(v) if isinstance(v, list) else v

@@ -49,7 +49,7 @@ from jaxtraffic.learn.env_config import EnvConfig
 from jaxtraffic.model.linear import LinearModel, gain_law_is_regular, gain_law_wave_speed, linearize
 from jaxtraffic.model.params import TrafficParams, equilibrium
 from jaxtraffic.sim.initial import paper_initial_condition
-from jaxtraffic.sim.metrics import node_weight
+from jaxtraffic.sim.metrics import VEH_PER_KM, node_weight
 from jaxtraffic.sim.plant import PlantState, closed_loop_step, initial_state, plant_alpha, select_state
 
 Array = jax.Array
@@ -79,7 +79,8 @@ class EnvParams:
     """Environment settings as the environment steps them (traced leaves, static shapes); ``traffic`` is the
     nominal plant (its delay is the training delay). Built from a ``learn.env_config.EnvConfig`` by
     ``env_params`` (or ``make_env_params`` field by field); the meaning, unit and range of each field are
-    ``EnvConfig``'s.
+    ``EnvConfig``'s, but for the initial amplitude: ``amp_min``/``amp_max`` in veh/m, the simulator's unit
+    (``EnvConfig.amp_range`` in veh/km).
 
     Ranges (lo, hi) are sampled uniformly at every reset; equal bounds disable randomisation.
     """
@@ -88,8 +89,9 @@ class EnvParams:
     horizon: int = round(_C.horizon_s / PLANT.dt)  # steps per episode
     # |eta_i| <= gain_max_i (dimensionless): one bound for all gains or one per gain (a 3-tuple)
     gain_max: float | tuple[float, float, float] = _C.gain_max
-    amp_min: float = _C.amp_range[0]  # veh/m
-    amp_max: float = _C.amp_range[1]
+    # the initial wave's amplitude, veh/m (the simulator's unit; EnvConfig.amp_range is in veh/km)
+    amp_min: float = _C.amp_range[0] / VEH_PER_KM
+    amp_max: float = _C.amp_range[1] / VEH_PER_KM
     wavenumber_min: int = _C.wavenumber_range[0]
     wavenumber_max: int = _C.wavenumber_range[1]
     phase_max: float = _C.phase_max  # rad; phase ~ U(0, phase_max)
@@ -132,8 +134,9 @@ def env_params(config: EnvConfig, traffic: TrafficParams) -> EnvParams:
     a_lo, a_hi = config.alpha_range or (traffic.alpha, traffic.alpha)
     return make_env_params(
         traffic, horizon=max(1, round(config.horizon_s / traffic.dt)), gain_max=config.gain_max,
-        amp_min=config.amp_range[0], amp_max=config.amp_range[1], wavenumber_min=int(config.wavenumber_range[0]),
-        wavenumber_max=int(config.wavenumber_range[1]), phase_max=config.phase_max, delay_min=d_lo, delay_max=d_hi,
+        amp_min=config.amp_range[0] / VEH_PER_KM, amp_max=config.amp_range[1] / VEH_PER_KM,
+        wavenumber_min=int(config.wavenumber_range[0]), wavenumber_max=int(config.wavenumber_range[1]),
+        phase_max=config.phase_max, delay_min=d_lo, delay_max=d_hi,
         alpha_min=a_lo, alpha_max=a_hi, gain_filter=config.gain_filter, h_rate_weight=config.h_rate_weight,
         wave_weight=config.wave_weight, wave_speed_min=config.wave_speed_min, obs_segments=config.obs_segments,
         diverge_penalty=config.diverge_penalty, filter_sigma=config.filter_sigma,

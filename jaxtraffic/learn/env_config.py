@@ -27,7 +27,7 @@ class EnvConfig:
     # None: the nominal plant's alpha alone
     alpha_range: tuple[float, float] | None = hyper(None, help="plant alphas LO HI", algo="ppo",
                                                     pair=(0.0, 1.0))
-    amp_range: tuple[float, float] = hyper((0.010, 0.010), help="initial amplitude LO HI, veh/m", algo="ppo",
+    amp_range: tuple[float, float] = hyper((10.0, 10.0), help="initial amplitude LO HI, veh/km", algo="ppo",
                                            pair=(0.0, None))
     wavenumber_range: tuple[int, int] = hyper((4, 4), help="initial wavenumber LO HI", algo="ppo", pair=(0, None))
     phase_max: float = hyper(0.0, lo=0.0, help="initial phase ~ U(0, this), rad", algo="ppo")

@@ -25,7 +25,8 @@ from flax import serialization
 
 from jaxtraffic.io.files import atomic_write_bytes, read_regular, to_jsonable
 from jaxtraffic.runs.config import TrainConfig
-from jaxtraffic.runs.config.tree import run_control
+from jaxtraffic.runs.config.toml import migrate
+from jaxtraffic.runs.config.tree import CONFIG_VERSION, run_control
 
 CHECKPOINT = "checkpoint.msgpack"
 CONFIG = "config.json"
@@ -136,10 +137,11 @@ PROBLEM = "config_problem"  # the trained problem (``problem_of``), in the check
 
 def problem_of(config: TrainConfig) -> str:
     """What a checkpoint was trained on: every config field but the run control (``RUN_CONTROL`` and the
-    gradient trainer's step count, which a resume may change), as canonical JSON."""
+    gradient trainer's step count, which a resume may change), as canonical JSON, with its ``config_version``."""
     skip = run_control("gradient")
-    return json.dumps(to_jsonable({s: {k: v for k, v in table.items() if k not in skip.get(s, ())}
-                                   for s, table in config.tables().items()}), sort_keys=True)
+    return json.dumps(to_jsonable({"config_version": CONFIG_VERSION, **{
+        s: {k: v for k, v in table.items() if k not in skip.get(s, ())} for s, table in config.tables().items()}}),
+        sort_keys=True)
 
 
 def check_problem(config: TrainConfig, stored: Any, path: Path) -> None:
@@ -147,13 +149,24 @@ def check_problem(config: TrainConfig, stored: Any, path: Path) -> None:
     trained on another problem than ``config`` says; files written before the binding hold none."""
     if not isinstance(stored, str):
         return
-    saved, now = _fields(json.loads(stored)), _fields(json.loads(problem_of(config)))
+    saved, now = _fields(_today(json.loads(stored), path)), _fields(json.loads(problem_of(config)))
     diff = [k for k in saved if k in now and saved[k] != now[k]]
     if diff:
         said = ", ".join(f"{k} = {now[k]!r}" for k in diff[:4])
         raise ValueError(f"{path.parent / 'config.toml'}: {said}, but {path.name} was trained with "
                          f"{', '.join(repr(saved[k]) for k in diff[:4])}: the two do not belong together "
                          "(the config edited after training, or taken from another run)")
+
+
+def _today(problem: Any, path: Path) -> Any:
+    """A stored ``problem_of`` brought to today's config version (``toml.migrate``; one written before it carried
+    its version: 3 or 4, which the migrations from 3 both read right)."""
+    if not isinstance(problem, dict):
+        return problem
+    version = problem.pop("config_version", 3)
+    if not all(isinstance(t, dict) for t in problem.values()):  # written before the sections: compares with nothing
+        return problem
+    return migrate(problem, version, str(path))
 
 
 def _fields(problem: Any) -> dict[str, Any]:

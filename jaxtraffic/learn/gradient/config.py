@@ -28,7 +28,7 @@ class GradientConfig:
     against the range in its metadata (``jaxtraffic.fields.hyper``).
 
     The training scenarios are the Cartesian product of ``train_delays`` (s, multiples of dt) x
-    ``train_alphas`` x ``train_amplitudes`` (veh/m) x ``train_wavenumbers`` x ``train_phases`` (rad) of the
+    ``train_alphas`` x ``train_amplitudes`` (veh/km) x ``train_wavenumbers`` x ``train_phases`` (rad) of the
     initial cosine perturbation (``sim.initial.paper_initial_condition``), or with ``train_split`` > 0 that many
     scenarios of the scenario distribution's train split (``compare.scenarios``).
     """
@@ -40,7 +40,7 @@ class GradientConfig:
                         choices=POLICIES)
     train_delays: tuple[float, ...] = hyper((3.0, 4.0, 5.0), lo=0.0, help="plant delays of the scenarios, s")
     train_alphas: tuple[float, ...] = hyper((0.15,), lo=0.0, lo_open=True, hi=1.0, help="plant alphas of the scenarios")
-    train_amplitudes: tuple[float, ...] = hyper((0.010,), help="initial perturbation amplitudes, veh/m")
+    train_amplitudes: tuple[float, ...] = hyper((10.0,), help="initial perturbation amplitudes, veh/km")
     train_wavenumbers: tuple[int, ...] = hyper((4,), help="initial perturbation wavenumbers")
     train_phases: tuple[float, ...] = hyper((0.0,), help="initial perturbation phases, rad")
     train_horizon_s: float = hyper(300.0, lo=0.0, lo_open=True, help="rollout length of the objective, s")

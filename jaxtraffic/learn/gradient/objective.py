@@ -60,6 +60,7 @@ from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.model.solver import is_physical
 from jaxtraffic.platform.tracing import is_traced
 from jaxtraffic.sim.initial import paper_initial_condition
+from jaxtraffic.sim.metrics import VEH_PER_KM
 from jaxtraffic.sim.options import Memory, Record
 from jaxtraffic.sim.rollout import simulate
 from jaxtraffic.sim.sharding import batch_mesh, gathered, local_copy, replicate, sharded_batch, spans_processes
@@ -110,9 +111,9 @@ def training_scenarios(grad_config: GradientConfig, base: TrafficParams, pool: E
         batched = jax.tree.map(lambda x: jnp.broadcast_to(jnp.asarray(x, pool.rho0.dtype), pool.delay.shape),
                                base.replace(alpha_noise=0.0))
         return Scenarios(params=batched.replace(delay=pool.delay, alpha=pool.alpha), rho0=pool.rho0, v0=pool.v0)
-    grid = list(itertools.product(grad_config.train_delays, grad_config.train_alphas, grad_config.train_amplitudes,
-                                  grad_config.train_wavenumbers,
-                                  grad_config.train_phases))
+    amps_m = tuple(a / VEH_PER_KM for a in grad_config.train_amplitudes)  # veh/km -> veh/m, the simulator's unit
+    grid = list(itertools.product(grad_config.train_delays, grad_config.train_alphas, amps_m,
+                                  grad_config.train_wavenumbers, grad_config.train_phases))
     dtype = jnp.result_type(float)  # float32, or float64 under jax.enable_x64
     delays, alphas, amps, wns, phases = (jnp.asarray(c, dtype) for c in zip(*grid, strict=True))
     b = len(grid)
@@ -197,7 +198,7 @@ def check_scenarios(grad_config: GradientConfig, base: TrafficParams) -> None:
                          f"{round(grad_config.train_horizon_s / float(base.dt))} steps)")
     sc = training_scenarios(grad_config, base)
     if not bool(jnp.all(jax.vmap(is_physical)(sc.rho0, sc.v0, sc.params))):
-        raise ValueError(f"train_amplitudes = {list(grad_config.train_amplitudes)} (veh/m): "
+        raise ValueError(f"train_amplitudes = {list(grad_config.train_amplitudes)} (veh/km): "
                          "an initial state leaves the physical region (0 < rho < 1/l, v >= 0); use smaller amplitudes")
 
 

@@ -286,14 +286,15 @@ def refuse_memory(need: dict[str, float], have: float | None, field: str, value:
 
 
 def check_initial_amplitudes(config: Any, traffic: Any) -> None:
-    """Every PPO episode must start inside the physical region: both ends of ``amp_range`` (veh/m) on
+    """Every PPO episode must start inside the physical region: both ends of ``amp_range`` (veh/km) on
     ``traffic`` (concrete ``TrafficParams``)."""
     from jaxtraffic.model.solver import is_physical
     from jaxtraffic.sim.initial import paper_initial_condition
+    from jaxtraffic.sim.metrics import VEH_PER_KM
 
     en = config.env
     for amp in en.amp_range:
-        rho0, v0 = paper_initial_condition(traffic, amp, float(en.wavenumber_range[0]))
+        rho0, v0 = paper_initial_condition(traffic, amp / VEH_PER_KM, float(en.wavenumber_range[0]))
         if not bool(is_physical(rho0, v0, traffic)):
-            raise fail("amp_range", tuple(en.amp_range), f"an initial state of amplitude {amp:g} veh/m leaves the "
+            raise fail("amp_range", tuple(en.amp_range), f"an initial state of amplitude {amp:g} veh/km leaves the "
                         "physical region (0 < rho < 1/l, v >= 0); use smaller amplitudes")

@@ -46,10 +46,18 @@ def _v3(tables: Tables) -> Tables:
         "controller_points") or 0}}
 
 
+def _v4(tables: Tables) -> Tables:
+    """Version 4 -> 5: the initial amplitudes ([env] amp_range, [grad] train_amplitudes) in veh/km, not veh/m (the
+    unit of every other density a user sees)."""
+    moved = {"env": "amp_range", "grad": "train_amplitudes"}
+    return {s: {k: (type(v)(round(a * 1e3, 9) for a in v) if moved.get(s) == k and v is not None else v)
+                for k, v in table.items()} for s, table in tables.items()}
+
+
 # version n's tables -> version n + 1's. A config file holds only what differs from the defaults, so a changed
 # default, or a field whose meaning changed, is a new version whose migration writes the old value or meaning into
 # the older files' tables (CONFIG_VERSION + 1, its function here).
-MIGRATIONS: dict[int, Callable[[Tables], Tables]] = {3: _v3}
+MIGRATIONS: dict[int, Callable[[Tables], Tables]] = {3: _v3, 4: _v4}
 
 
 def migrate(tables: Tables, version: Any, where: str) -> Tables:

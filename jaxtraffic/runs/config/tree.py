@@ -30,7 +30,9 @@ from jaxtraffic.learn.ppo import PPOConfig
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.sim.metrics import REWARD_TARGET
 
-CONFIG_VERSION = 4  # 4: the plant section is TrafficParams, controller_points the gradient trainer's (toml.MIGRATIONS)
+# 4: the plant section is TrafficParams, controller_points the gradient trainer's; 5: the initial amplitudes in veh/km
+# (toml.MIGRATIONS)
+CONFIG_VERSION = 5
 
 
 ALGOS = ("ppo", "gradient")

@@ -14,9 +14,12 @@ seeds (``train_split_sweep.py``): one row per seed and a line per law over its s
     python benchmarks/fair_benchmark.py --plant paper --sensor-noise 0 0.05 ...   # each law seeing noisy measurements
     python benchmarks/fair_benchmark.py --strip docs/results/fair/split/paper.json   # keep the summaries only
 
-``--strip`` drops a JSON's per-scenario measures (about 85 % of it), keeping the tables, the checks, the scenarios
-and the provenance: the committed docs/results/fair/split/ files (docs/results stays within its 6 MB); rerun the
-command to have the measures again (``--resummarise`` needs them).
+``--strip`` drops a JSON's per-scenario measures (about 85 % of it) and its Markdown (the .md beside it), keeping
+the tables, the checks, the scenarios (at float32's precision) and the provenance: the committed
+docs/results/fair/split/ files (docs/results stays within its 6 MB); rerun the command to have the measures again
+(``--resummarise`` needs them). Before it drops them it adds (as every run does) where each law diverges: its rate
+in four equal bands of the plants' delay and of their ACC share over the distribution's ranges
+(``diverged_by_plant`` in the JSON, a section of the Markdown).
 """
 
 from __future__ import annotations
@@ -24,10 +27,13 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 import jaxtraffic as jt
 from jaxtraffic.compare import ScenarioDistribution
-from jaxtraffic.io.files import read_json, write_json
+from jaxtraffic.io.files import atomic_write_text, read_json, write_json
 from jaxtraffic.paper import fair
 from jaxtraffic.runs.policy import load_policy, policy_grid
 
@@ -39,6 +45,61 @@ def main_job_runs(root: Path) -> list:
     """The main job's learned runs under ``root`` (``root/<law>``)."""
     loaded = {n: load_policy(root / n) for n in fair.laws.names(learned=True) if (root / n / "config.json").exists()}
     return fair.learned({n: c for n, (c, _) in loaded.items()}, {n: policy_grid(cfg) for n, (_, cfg) in loaded.items()})
+
+
+BANDS = 4  # equal bands of each plant parameter's range
+SECTION = "Where each law diverges"  # the Markdown section ``add_divergence_bands`` writes
+
+
+def divergence_bands(d: dict[str, Any]) -> dict[str, Any]:
+    """Each row's divergence rate (a fraction) in ``BANDS`` equal bands of the plants' delay (s) and ACC share over
+    the distribution's ranges, from a run's JSON ``d`` (its per-scenario flags and its scenarios' draws)."""
+    dist, scen = ScenarioDistribution(), d["scenarios"]
+    out: dict[str, Any] = {"bands": {}, "n": {}, "rates": {k: {} for k in d["per_scenario"]}}
+    for draw, (lo, hi) in (("delay", dist.delay_range), ("alpha", dist.alpha_range)):
+        edges = np.linspace(lo, hi, BANDS + 1)
+        band = np.clip(np.searchsorted(edges, np.asarray(scen[draw], float), side="right") - 1, 0, BANDS - 1)
+        out["bands"][draw] = [[float(edges[b]), float(edges[b + 1])] for b in range(BANDS)]
+        out["n"][draw] = [int((band == b).sum()) for b in range(BANDS)]
+        for row, measures in d["per_scenario"].items():
+            flags = np.asarray(measures["diverged"], bool)
+            out["rates"][row][draw] = [float(flags[band == b].mean()) if (band == b).any() else None
+                                       for b in range(BANDS)]
+    return out
+
+
+def add_divergence_bands(path: Path) -> None:
+    """Add ``divergence_bands`` to the JSON at ``path`` (``diverged_by_plant``) and its Markdown (a section after the
+    checks, replacing an earlier one)."""
+    d = read_json(path)
+    if not isinstance(d.get("per_scenario"), dict):
+        raise ValueError(f"{path} holds no per-scenario measures; rerun the benchmark")
+    by = d["diverged_by_plant"] = divergence_bands(d)
+    units = {"delay": "s", "alpha": ""}
+    head = [f"{'D' if k == 'delay' else 'alpha'} {lo:.3g}-{hi:.3g}{(' ' + units[k]) if units[k] else ''} (n {n})"
+            for k in ("delay", "alpha") for (lo, hi), n in zip(by["bands"][k], by["n"][k], strict=True)]
+    lines = [f"{SECTION} (diverged, % of the test scenarios in each band of the plant's delay D and ACC share "
+             "alpha):", "", "| law | " + " | ".join(head) + " |", "|" + "---|" * (len(head) + 1)]
+    for row, rates in by["rates"].items():
+        cells = ["-" if r is None else f"{100 * r:.0f} %" for k in ("delay", "alpha") for r in rates[k]]
+        lines.append(f"| {d['laws'].get(row, row)} | " + " | ".join(cells) + " |")
+    md = list(d["markdown"])
+    if any(line.startswith(SECTION) for line in md):
+        md = md[:next(i for i, line in enumerate(md) if line.startswith(SECTION))]
+        while md and not md[-1]:
+            md.pop()
+    d["markdown"] = [*md, "", *lines]
+    write_json(path, d)
+    atomic_write_text(path.with_suffix(".md"), "\n".join(d["markdown"]) + "\n")
+
+
+def stripped(d: dict[str, Any]) -> dict[str, Any]:
+    """A run's JSON as committed: without its per-scenario measures and its Markdown (the .md beside it), the
+    scenarios' draws at float32's round-trip precision (9 significant digits: as the simulation read them)."""
+    scen = {k: [float(f"{x:.9g}") if isinstance(x, float) else x for x in v] if isinstance(v, list) else v
+            for k, v in d["scenarios"].items()}
+    return {**{k: v for k, v in d.items() if k != "markdown"}, "scenarios": scen,
+            "per_scenario": "omitted by fair_benchmark.py --strip: rerun the benchmark (provenance) to have them"}
 
 
 def main() -> None:
@@ -58,9 +119,8 @@ def main() -> None:
     ap.add_argument("--strip", type=Path, nargs="*", default=(), help="only drop these JSONs' per-scenario measures")
     args = ap.parse_args()
     for path in args.strip:
-        d = read_json(path)
-        d["per_scenario"] = "omitted by fair_benchmark.py --strip: rerun the benchmark (provenance) to have them"
-        write_json(path, d)
+        add_divergence_bands(path)
+        write_json(path, stripped(read_json(path)))
         print(f"{path}: per-scenario measures dropped")
     if args.strip:
         return
@@ -73,8 +133,12 @@ def main() -> None:
     t0 = time.perf_counter()
     noise = args.sensor_noise
     dist = ScenarioDistribution(sensor_noise_range=tuple(noise)) if noise else None
+    name = f"{args.plant}_noise" if noise else args.plant
     out = fair.run(specs, args.plant, PLANTS[args.plant], args.out, args.n, args.horizon, args.seed, dist=dist,
-                   name=f"{args.plant}_noise" if noise else None)
+                   name=name)
+    if args.out is not None:
+        add_divergence_bands(args.out / f"{name}.json")
+        out = read_json(args.out / f"{name}.json")
     print(f"{args.plant} plant, {args.n} test scenarios (seed {args.seed}"
           + (f", sensor noise U({noise[0]:g}, {noise[1]:g})" if noise else "") + f"), {args.horizon:g} s, "
           f"{len(specs)} laws, {time.perf_counter() - t0:.0f} s")

@@ -94,6 +94,7 @@ README_MARK = ("<!-- headline: learned vs backstepping (benchmarks/reproduce.py)
 FAIR_MARK = ("<!-- headline: fair comparison (benchmarks/reproduce.py) -->", "<!-- /headline -->")
 MAP_MARK = ("<!-- headline: robustness maps (benchmarks/reproduce.py) -->", "<!-- /headline -->")
 VERDICT_MARK = ("<!-- headline: fair comparison elsewhere (benchmarks/reproduce.py) -->", "<!-- /headline -->")
+PPO_MARK = ("<!-- headline: where PPO diverges (benchmarks/reproduce.py) -->", "<!-- /headline -->")
 # the held-out tables that test the paper grid's verdict: the other scheme, the converged plant, sensor noise
 ELSEWHERE = {"muscl": "with MUSCL", "reference": "on the reference plant",
              "paper_noise": "on the paper grid under sensor noise", "muscl_noise": "with MUSCL under sensor noise",
@@ -143,6 +144,25 @@ def elsewhere_headline(out: Path) -> str:
         parts.append(f"{where} ({n} scenarios{level}) {c['ratio']:.2f}x [{lo:.2f}, {hi:.2f}], frontier "
                      f"{'reached' if c['frontier'] else 'not reached'}")
     return "the best learned law against the best model-based law elsewhere: " + "; ".join(parts)
+
+
+def ppo_headline(out: Path) -> str:
+    """The README's line on where the split-trained PPO runs diverge, from DIR/fair/split/paper.json (its failure
+    count per seed and ``diverged_by_plant``, ``fair_benchmark.py``): in the lowest band of ACC share and above it."""
+    d = json.loads((out / "fair" / "split" / "paper.json").read_text())
+    rows = sorted(k for k in d["laws"] if k.startswith("ppo_split_s"))
+    n, by = d["scenarios"]["n"], d["diverged_by_plant"]
+    failed = [round(d["summary"][k]["diverged_rate"]["value"] * n) for k in rows]
+    low = [by["rates"][k]["alpha"][0] for k in rows]
+    high = [r for k in rows for r in by["rates"][k]["alpha"][1:] if r is not None]
+    delay = [r for k in rows for r in by["rates"][k]["delay"] if r is not None]
+    (a_lo, a_mid), a_hi = by["bands"]["alpha"][0], by["bands"]["alpha"][-1][1]
+    d_lo, d_hi = by["bands"]["delay"][0][0], by["bands"]["delay"][-1][1]
+    return (f"diverges on {', '.join(map(str, failed))} of {n} test scenarios (paper grid, seeds "
+            f"{', '.join(k.rsplit('_s', 1)[1] for k in rows)}): on {100 * min(low):.0f}-{100 * max(low):.0f} % of "
+            f"the plants with an ACC share of {a_lo:.2g}-{a_mid:.2g}, on {100 * min(high):.0f}-{100 * max(high):.0f} % "
+            f"in each band above it up to {a_hi:.2g}, and on {100 * min(delay):.0f}-{100 * max(delay):.0f} % in each "
+            f"band of delay from {d_lo:g} to {d_hi:g} s")
 
 
 def map_headline(out: Path) -> str:
@@ -221,6 +241,9 @@ def main() -> int:
     if any((out / "fair" / "split" / f"{n}.json").exists() for n in ELSEWHERE):
         results["the README's fair-comparison robustness line is the results'"] = readme_claim(
             out, args.write_readme, VERDICT_MARK, elsewhere_headline)
+    if (out / "fair" / "split" / "paper.json").exists():
+        results["the README's line on where PPO diverges is the results'"] = readme_claim(
+            out, args.write_readme, PPO_MARK, ppo_headline)
     if (out / "reference" / "robustness.json").exists():
         results["the README's map headline is the results'"] = readme_claim(out, args.write_readme, MAP_MARK,
                                                                             map_headline)

@@ -918,3 +918,29 @@ def test_a_checkpoint_with_a_valid_checksum_and_junk_progress_is_refused(junk, t
     assert checksum(tmp_path) == before
     checkpoint.save_checkpoint(run, {"update": np.zeros(1)}, {"env_steps": 64, "seconds_to_stop_rule": None})
     assert checkpoint.load_checkpoint(run)[1]["env_steps"] == 64  # what a run writes is accepted
+
+
+def test_a_signal_that_reaches_evaluate_through_a_c_extensions_error_is_still_a_signal(tmp_path, monkeypatch, capsys):
+    """A signal handled while a C extension runs Python code of its own arrives as that extension's SystemError
+    ("returned a result with an exception set"), the ``Stopped`` its cause: still 128 + signal, one line, the
+    previous report untouched (seen in CI: SIGINT inside NumPy's call of ml_dtypes' ``__numpy_dtype__``)."""
+    import signal
+
+    from jaxtraffic.cli import staging
+
+    out = previous_report(tmp_path / "res", {"REPORT.md": "previous"})
+    run = fake_run(tmp_path / "r")
+    before = checksum(out)
+
+    def interrupted(args, *rest):
+        (args.out / "REPORT.md").write_text("half")
+        try:
+            raise staging.Stopped(signal.SIGINT)
+        except staging.Stopped as stop:
+            raise SystemError("<function f> returned a result with an exception set") from stop
+
+    monkeypatch.setattr(evaluate_cli, "_main", interrupted)
+    got, msg = _evaluate(["--run", str(run), "--out", str(out)], capsys)
+    assert got == 128 + signal.SIGINT and msg.startswith("evaluate.py: interrupted (SIGINT): nothing was written")
+    assert checksum(out) == before
+    assert staging.stopped_in(ValueError("x")) is None

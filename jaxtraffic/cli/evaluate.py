@@ -280,15 +280,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         print(f"{PROG}: interrupted during a training ({stop}): nothing was written to {final}; the run's checkpoint "
               "is kept and the next evaluate.py continues it", file=sys.stderr, flush=True)
         raise staging.leave(stop.exit_code) from None
-    except staging.Stopped as stop:  # SIGINT / SIGTERM / SIGHUP: exit 128 + signal, nothing half-written
+    except BaseException as err:  # a signal (also through a C extension's error): 128 + signal; else one line
         if stage is not None:
             stage.discard()
-        print(f"{PROG}: interrupted ({stop}): nothing was written to {final} (what it held is unchanged)",
-              file=sys.stderr, flush=True)
-        raise staging.leave(stop.exit_code) from None
-    except BaseException as err:  # one line naming the file and the cause (cli.errors)
-        if stage is not None:
-            stage.discard()
+        signalled = staging.stopped_in(err)
+        if signalled is not None:  # SIGINT / SIGTERM / SIGHUP: exit 128 + signal, nothing half-written
+            print(f"{PROG}: interrupted ({signalled}): nothing was written to {final} (what it held is unchanged)",
+                  file=sys.stderr, flush=True)
+            raise staging.leave(signalled.exit_code) from None
         code = errors.report(PROG, err)
         if code is None:
             raise

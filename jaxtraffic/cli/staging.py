@@ -61,6 +61,19 @@ def _raise(signum, frame):
     raise Stopped(signum)
 
 
+def stopped_in(err: BaseException) -> Stopped | None:
+    """The ``Stopped`` that ``err`` is or was caused by, if any. A signal handled while a C extension runs Python
+    code of its own (NumPy asking ml_dtypes for a dtype, say) can reach the caller as that extension's
+    ``SystemError`` "returned a result with an exception set", the ``Stopped`` as its cause."""
+    seen: set[int] = set()
+    while err is not None and id(err) not in seen:
+        if isinstance(err, Stopped):
+            return err
+        seen.add(id(err))
+        err = err.__cause__ or err.__context__  # type: ignore[assignment]
+    return None
+
+
 @contextlib.contextmanager
 def signals_raise() -> Iterator[None]:
     """While active (main thread only), SIGINT/SIGTERM/SIGHUP raise ``Stopped``; the previous handlers

@@ -195,6 +195,26 @@ def test_json_distinguishes_nan_from_never(tmp_path):
     assert np.isnan(back["final_reward"]) and back["time_to_reward_target_s"] is None and back["low"] == -np.inf
 
 
+def test_json_writes_float32_at_its_shortest_round_trip_decimal(tmp_path):
+    """A float32 value is written as the shortest decimal that reads back as the same float32 (the edges
+    included: subnormal, the largest, -0, non-finite), in fewer characters than its float64 repr; float64,
+    integers and booleans are written as before."""
+    rng = np.random.default_rng(0)
+    a = (rng.standard_normal(4000) * 10.0 ** rng.integers(-12, 12, 4000)).astype(np.float32)
+    a[:6] = [np.finfo(np.float32).smallest_subnormal, np.finfo(np.float32).max, -0.0, np.inf, -np.inf, np.nan]
+    obj = {"f32": a.reshape(40, 100), "scalar": np.float32(0.1), "f64": np.float64(0.1) / 3, "i": np.arange(3),
+           "b": np.array([True, False])}
+    files.write_json(tmp_path / "x.json", obj)
+    back = files.from_jsonable(json.loads((tmp_path / "x.json").read_text()))
+    got = np.asarray([np.inf if v is None else v for v in np.ravel(np.asarray(back["f32"], object))], np.float32)
+    np.testing.assert_array_equal(got, a)  # every value, bit for bit (NaN as NaN)
+    assert np.signbit(got[2]) and back["scalar"] == 0.1 and back["f64"] == 0.1 / 3
+    assert back["i"] == [0, 1, 2] and back["b"] == [True, False]
+    finite = a[np.isfinite(a)]
+    assert sum(len(repr(float(str(x)))) for x in finite) < 0.7 * sum(len(repr(float(x))) for x in finite)
+    assert files.as_lists(np.float32(2.5)) == 2.5 and files.as_lists(np.zeros((2, 0), np.float32)) == [[], []]
+
+
 def test_json_lists_of_scalars_on_one_line(tmp_path):
     """``write_json`` puts a list of numbers, booleans and nulls on one line (the recorded series: a third of the
     bytes), keeps nested lists, dicts and strings (a string that looks like a list included) as they are, and reads

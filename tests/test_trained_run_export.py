@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import jax
 import numpy as np
 import pytest
 
@@ -39,3 +40,28 @@ def test_a_gradient_run_has_no_predict(tiny_runs_root):
 
     with pytest.raises(ValueError, match="no predict"):
         load_predict(tiny_runs_root / GRADIENT_ROOT / "gradient-gains")
+
+
+def test_an_exported_gradient_run_loads_the_same_policy_without_its_optimiser_state(tiny_runs_root, tmp_path, capsys):
+    """``evaluate.py``'s export of a gradient-trained run (``export_runs``) writes its checkpoint without the
+    Adam state: smaller, the same policy through ``load_policy``, and a resume of it is refused in one line."""
+    from tiny_runs import GRADIENT_ROOT
+
+    from jaxtraffic.cli import evaluate as evaluate_cli
+    from jaxtraffic.cli import train as train_cli
+    from jaxtraffic.runs import checkpoint as ckpt
+
+    src = tiny_runs_root / GRADIENT_ROOT / "gradient-gains"
+    evaluate_cli.export_runs({"grad_gains": {"run_dir": str(src)}}, tmp_path)
+    out = tmp_path / "grad_gains"
+    runner, meta = ckpt.load_checkpoint(out)
+    full, _ = ckpt.load_checkpoint(src)
+    assert "opt_state" in full and "opt_state" not in runner and meta[ckpt.POLICY_ONLY] is True
+    assert (out / ckpt.CHECKPOINT).stat().st_size < (src / ckpt.CHECKPOINT).stat().st_size
+    (want, _), (got, _) = load_policy(src), load_policy(out)
+    for a, b in zip(jax.tree.leaves(want.settings), jax.tree.leaves(got.settings), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    with pytest.raises(SystemExit) as exc:
+        train_cli.main(["--out-dir", str(out), "--resume", "--quiet"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and "cannot be resumed" in err and "Traceback" not in err, err

@@ -42,6 +42,7 @@ from jaxtraffic.paper.oracle import load_oracle
 from jaxtraffic.paper.recipes import recipe, training_plant
 from jaxtraffic.platform import compile_cache, distributed
 from jaxtraffic.runs import train_run
+from jaxtraffic.runs.checkpoint import CHECKPOINT, export_policy
 from jaxtraffic.runs.config import TrainConfig, load_config
 from jaxtraffic.runs.config.checks import MAX_STEPS
 from jaxtraffic.runs.policy import load_policy, policy_grid
@@ -128,15 +129,19 @@ def export_runs(learned_runs: dict[str, dict], root: Path) -> None:
     """The evaluated controllers themselves, small enough to commit: each run's config.json, summary.json,
     learning curve and the checkpoint ``load_policy`` reads (best.msgpack when there is one, else
     checkpoint.msgpack) in ``root/NAME``, loadable with ``load_policy(root/NAME)``. Only regular files are
-    copied (a symbolic link in a run directory is skipped, never followed), with their permission bits."""
+    copied (a symbolic link in a run directory is skipped, never followed), with their permission bits; a
+    gradient-trained run's checkpoint is written without its optimiser state (``export_policy``: it loads, it
+    does not resume; a network's is a third of the size)."""
     for name, run in learned_runs.items():
         src, dst = Path(run["run_dir"]), root / name
         if src.is_symlink() or not src.is_dir():  # a --controller of the user's: no run directory
             continue
         dst.mkdir(parents=True, exist_ok=True)
         best = src / "best.msgpack"
-        ckpt = "best.msgpack" if best.is_file() and not best.is_symlink() else "checkpoint.msgpack"
+        ckpt = "best.msgpack" if best.is_file() and not best.is_symlink() else CHECKPOINT
         for f in (*RUN_FILES, ckpt):
+            if f == CHECKPOINT and export_policy(src, dst):
+                continue
             if staging.copy_regular(src / f, dst / f) == "link":
                 _log(f"note: {src / f} is a symbolic link; not exported")
 

@@ -31,8 +31,8 @@ from typing import Any
 import jax
 import numpy as np
 
-__all__ = ["CONFIG_LIMIT", "atomic_write_bytes", "atomic_write_text", "clean_stale_tmp", "dumps_json", "from_jsonable",
-           "read_json", "read_regular", "read_text", "to_jsonable", "write_json"]
+__all__ = ["CONFIG_LIMIT", "as_lists", "atomic_write_bytes", "atomic_write_text", "clean_stale_tmp", "dumps_json",
+           "from_jsonable", "read_json", "read_regular", "read_text", "to_jsonable", "write_json"]
 
 CONFIG_LIMIT = 2**20  # bytes: a config file (TOML, config.json), a summary: a few kB in practice
 KINDS = {stat.S_IFIFO: "a FIFO (named pipe)", stat.S_IFCHR: "a character device", stat.S_IFBLK: "a block device",
@@ -122,17 +122,31 @@ def read_text(path: str | Path, limit: int = CONFIG_LIMIT, follow: bool = True) 
 
 
 def to_jsonable(x: Any) -> Any:
-    """Convert numpy/jax scalars and arrays to JSON types. +inf becomes None (null: "never",
-    unbounded), NaN the string "nan" (not computable: kept distinct from null), -inf "-inf"."""
+    """Convert numpy/jax scalars and arrays to JSON types (``as_lists``: float32 values at their shortest
+    decimal). +inf becomes None (null: "never", unbounded), NaN the string "nan" (not computable: kept distinct
+    from null), -inf "-inf"."""
     if isinstance(x, dict):
         return {str(k): to_jsonable(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
         return [to_jsonable(v) for v in x]
     if isinstance(x, (jax.Array, np.ndarray, np.generic)):
-        return to_jsonable(np.asarray(x).tolist())
+        return to_jsonable(as_lists(x))
     if isinstance(x, float) and not math.isfinite(x):
         return "nan" if math.isnan(x) else (None if x > 0 else "-inf")
     return x
+
+
+def as_lists(x: Any) -> Any:
+    """An array as nested Python lists (a scalar for a 0-d one), like ``tolist``, but a float32 (or float16)
+    value becomes the shortest decimal that rounds back to it (numpy's unique repr: 0.021665478, not float64's
+    0.021665478125214577): what a reader gets with ``np.float32(x)``, in about half the characters of JSON.
+    Non-finite values stay floats."""
+    a = np.asarray(x)
+    if a.dtype not in (np.float32, np.float16):
+        return a.tolist()
+    flat = np.empty(a.size, object)
+    flat[:] = [float(str(v)) for v in a.ravel()]  # (str of a numpy float32 scalar: its shortest unique repr)
+    return flat.reshape(a.shape).tolist()
 
 
 NONFINITE = {"nan": math.nan, "inf": math.inf, "-inf": -math.inf}

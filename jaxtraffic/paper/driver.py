@@ -13,7 +13,7 @@ import jax
 
 from jaxtraffic.control import Controller
 from jaxtraffic.control.adapter import ControllerGrid
-from jaxtraffic.io.files import atomic_write_text, to_jsonable, write_json
+from jaxtraffic.io.files import as_lists, atomic_write_text, to_jsonable, write_json
 from jaxtraffic.io.provenance import provenance
 from jaxtraffic.model.params import equilibrium
 from jaxtraffic.paper import laws
@@ -261,7 +261,7 @@ def _robustness_json(robust: dict[str, dict[str, Any]], eval_config: EvalConfig,
                     "final_*: at horizon_s, paper_*: the same rollout at paper_horizon_s (the paper's column); "
                     "table: counts over the controllable cells (table.rule) and what each controller is told, at "
                     "both horizons and stays_stabilised (late maximum below the threshold, not diverged)",
-            "controllers": {c: {k: v.tolist() for k, v in r.items()} for c, r in robust.items()},
+            "controllers": {c: {k: as_lists(v) for k, v in r.items()} for c, r in robust.items()},
             "table": table or {}}
 
 

@@ -53,6 +53,29 @@ def save_checkpoint(run_dir: str | Path, runner: Any, meta: dict) -> None:
     _write_checked(Path(run_dir) / CHECKPOINT, state)
 
 
+POLICY_ONLY = "policy_only"  # meta flag of an exported checkpoint: the policy without the optimiser state
+
+
+def export_policy(run_dir: str | Path, out_dir: str | Path) -> bool:
+    """Write ``run_dir``'s checkpoint in ``out_dir`` without its optimiser state, when it is a gradient-trained
+    run's (a runner of ``theta`` and ``opt_state``): what ``load_policy`` reads, a third of the bytes of a
+    network's checkpoint. Such a file loads but cannot be resumed (``restore_runner`` says so). Returns False,
+    writing nothing, for any other checkpoint (a PPO runner, whose policy an export takes from best.msgpack) and
+    for one that is a symbolic link, missing or unreadable (the caller copies it as it is, or not at all)."""
+    path = Path(run_dir) / CHECKPOINT
+    if path.is_symlink() or not path.is_file():
+        return False
+    try:
+        runner, meta = load_checkpoint(run_dir)
+    except ValueError:  # not a checkpoint this version reads: load_policy will say what is wrong with the copy
+        return False
+    if not {"theta", "opt_state"} <= set(runner):
+        return False
+    state = {"runner": {k: v for k, v in runner.items() if k != "opt_state"}, "meta": {**meta, POLICY_ONLY: True}}
+    _write_checked(Path(out_dir) / CHECKPOINT, state)
+    return True
+
+
 def _broken(path: Path, why: str) -> ValueError:
     return ValueError(f"{path}: {why}; the checkpoint cannot be used (restore it from a copy, or retrain "
                       "without --resume in a new --out-dir)")
@@ -92,7 +115,8 @@ def _check_meta(path: Path, meta: dict) -> None:
     (int >= 0), seconds (finite >= 0 or null), a flag, rows and the trained problem: a crafted file with a valid
     checksum is refused before anything is rewritten."""
     rules = {"env_steps": _count, "updates": _count, "wall_s": _seconds, "stopped": lambda x: isinstance(x, bool),
-             "rows": lambda x: isinstance(x, list) and all(isinstance(r, dict) for r in x), PROBLEM: _problem}
+             "rows": lambda x: isinstance(x, list) and all(isinstance(r, dict) for r in x), PROBLEM: _problem,
+             POLICY_ONLY: lambda x: x is True}
     for key, value in meta.items():
         ok = rules.get(key)
         if ok is None and key.startswith("seconds_to_"):
@@ -203,6 +227,10 @@ def restore_runner(template: Any, state: dict, path: str | Path = CHECKPOINT) ->
     flat_want = dict(_flatten(want))
     flat_have = dict(_flatten(state))
     if set(flat_want) != set(flat_have):
+        if "theta" in state and "opt_state" not in state:
+            raise ValueError(f"{path} holds a policy without its optimiser state (exported by evaluate.py into "
+                             "results/runs): load_policy loads it, but it cannot be resumed; resume the run it "
+                             "was exported from")
         missing = sorted(set(flat_want) - set(flat_have))[:3]
         extra = sorted(set(flat_have) - set(flat_want))[:3]
         raise ValueError(f"{path}: the saved state does not match this configuration (missing {missing}, "

@@ -121,8 +121,8 @@ def fair_headline(out: Path) -> str:
     return (f"on {n} held-out scenarios (paper grid, {d['horizon_s']:g} s), with every learned law trained on the "
             f"train split ({'-'.join(map(str, n_seeds)) or 'no'} seeds), the best learned law, "
             f"{labels[c['best_learned']]} (its median seed), has {c['ratio']:.2f}x [{lo:.2f}, {hi:.2f}] the "
-            f"time-averaged density L2 of the best model-based law, {labels[c['best_model_based']]} (median "
-            f"per-scenario ratio, 95 % interval): the frontier of 0.8x is "
+            f"median time-averaged density L2 of the best model-based law, {labels[c['best_model_based']]} (the ratio "
+            f"of the medians, paired-bootstrap 95 % interval): the frontier of 0.8x is "
             f"{'reached' if c['frontier'] else 'not reached'}; the learned residual's held-out check against its "
             f"base, the adaptive law, holds for {sum(base)} of {len(base)} seeds")
 
@@ -143,7 +143,8 @@ def elsewhere_headline(out: Path) -> str:
         level = f", relative error U({min(noise):.2f}, {max(noise):.2f})" if max(noise) > 0 else ""
         parts.append(f"{where} ({n} scenarios{level}) {c['ratio']:.2f}x [{lo:.2f}, {hi:.2f}], frontier "
                      f"{'reached' if c['frontier'] else 'not reached'}")
-    return "the best learned law against the best model-based law elsewhere: " + "; ".join(parts)
+    return ("the best learned law against the best model-based law elsewhere (the ratio of the medians): "
+            + "; ".join(parts))
 
 
 def ppo_headline(out: Path) -> str:

@@ -15,11 +15,13 @@ from jaxtraffic.compare import (
     bootstrap_interval,
     delay_order,
     evaluate_laws,
+    median_ratio,
     per_scenario,
     sample,
     settle_times,
     summarise,
     summary_table,
+    wilson_interval,
 )
 from jaxtraffic.control import adaptive_backstepping, measurement_filter, tell_delay
 
@@ -94,9 +96,36 @@ def test_summaries_rank_failures_last_and_pair_the_ratio():
             per.setdefault(m, per["mean_rho_L2"])
         per.setdefault("not_settled", per["diverged"])
     s = summarise(half, reference=base)
-    assert s["ratio_mean_rho_L2"]["median"] == pytest.approx(0.5)  # inf / inf: counted as no better (inf)
+    assert s["mean_rho_L2"]["median"] == 1.5  # an even count: the mean of the middle two, (1 + 2) / 2
+    assert s["ratio_mean_rho_L2"]["value"] == pytest.approx(0.5)  # the ratio of the medians, 1.5 / 3
     assert s["diverged_rate"]["value"] == 0.25 and s["n"] == 4
     assert s["mean_rho_L2"]["unit"] == "veh/km"
+    assert summarise(base)["late_max_rho_L2"]["median"] == 3.0
+    two_failed = {**base, "mean_rho_L2": np.array([1.0, 2.0, np.inf, np.inf])}
+    assert summarise(two_failed)["mean_rho_L2"]["median"] == np.inf  # a failure in the middle: the median fails
+
+
+def test_the_failure_rates_have_wilson_intervals_not_empty_at_zero_or_all():
+    """Oracle values of the Wilson score interval (95 %): 0 of 10 -> [0, 0.2775], 5 of 10 -> [0.2366, 0.7634],
+    10 of 10 -> [0.7225, 1]; a percentile bootstrap gives [0, 0] at 0 of n."""
+    assert wilson_interval(0, 10) == pytest.approx((0.0, 0.27753), abs=1e-5)
+    assert wilson_interval(5, 10) == pytest.approx((0.23659, 0.76341), abs=1e-5)
+    assert wilson_interval(10, 10) == pytest.approx((0.72247, 1.0), abs=1e-5)
+    lo, hi = wilson_interval(0, 256)
+    assert lo == 0.0 and 0.0 < hi < 0.02
+    with pytest.raises(ValueError, match="0 <= k <= n"):
+        wilson_interval(3, 2)
+
+
+def test_the_ratio_of_medians_is_paired_and_bounds_its_value():
+    """``median_ratio``: median(a) / median(b) with an interval from resampling the scenarios together; a law
+    that is exactly half of another on every scenario has 0.5 [0.5, 0.5] however the scenarios spread."""
+    b = np.random.default_rng(0).lognormal(size=64)
+    assert median_ratio(b / 2, b) == (pytest.approx(0.5), (pytest.approx(0.5), pytest.approx(0.5)))
+    r, (lo, hi) = median_ratio(np.random.default_rng(1).lognormal(size=64), b)
+    assert lo <= r <= hi and r == pytest.approx(np.median(np.random.default_rng(1).lognormal(size=64)) / np.median(b))
+    with pytest.raises(ValueError, match="one shape"):
+        median_ratio(b, b[:3])
 
 
 def test_the_measurement_filter_is_the_gain_laws_own_filter():

@@ -87,6 +87,25 @@ def test_the_verdicts_take_the_median_seed_and_judge_the_frontier_paired():
     assert checks == {"law_s0_vs_base": True, "law_s1_vs_base": False, "law_s2_vs_base": True}
 
 
+def test_the_frontier_is_the_ratio_of_the_medians_with_the_intervals_apart_and_no_more_failures():
+    """Issue 47's definition, not the median of per-scenario ratios: a law whose median is 2/3 of the rival's, with
+    the two medians' intervals apart and as many failures, reaches it although its per-scenario median ratio is
+    0.975; an overlap of the intervals, or more scenarios left unsettled, and it is not reached."""
+    model = np.tile([1.0, 2.0, 3.0, 4.0, 5.0], 50)
+    law = np.tile([2.0, 1.9, 0.1, 3.9, 4.9], 50)
+    ok = np.zeros(250, bool)
+    res = {"law": {"mean_rho_L2": law, "diverged": ok, "not_settled": ok},
+           "model": {"mean_rho_L2": model, "diverged": ok, "not_settled": ok}}
+    lines, best = verdicts.frontier(res, ["law"], ["model"], str)
+    assert best["ratio"] == pytest.approx(2.0 / 3.0) and best["intervals_apart"] and best["frontier"]
+    assert best["ratio_per_scenario"] == pytest.approx(0.975) and "**reached**" in lines[0]
+    unsettled = {**res, "law": {**res["law"], "not_settled": np.arange(250) < 1}}
+    assert not verdicts.frontier(unsettled, ["law"], ["model"], str)[1]["frontier"]
+    wide = {"law": res["law"], "model": {**res["model"], "mean_rho_L2": np.tile([2.0, 4.0], 125)}}
+    _, close = verdicts.frontier(wide, ["law"], ["model"], str)  # ratio 2/3 again; the rival's median in [2, 4]
+    assert close["ratio"] == pytest.approx(2.0 / 3.0) and not close["intervals_apart"] and not close["frontier"]
+
+
 def test_the_frontier_meets_the_best_law_told_no_more_than_d_not_the_information_bound():
     """``paper.fair.tables``: the information bound (told the plant's alpha) is best here, but the learned law is
     judged against the best model-based law told D at most (the tuned adaptive law)."""

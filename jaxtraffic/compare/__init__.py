@@ -7,8 +7,15 @@ Layer: above ``sim`` and ``control``, below the trainers and the paper's experim
 from jaxtraffic.compare import verdicts
 from jaxtraffic.compare.protocol import LawSpec, delay_order, evaluate_laws, summary_table
 from jaxtraffic.compare.scenarios import SPLITS, EpisodePool, ScenarioDistribution, Scenarios, sample
-from jaxtraffic.compare.stats import bootstrap_interval, per_scenario, settle_times, summarise
+from jaxtraffic.compare.stats import (
+    bootstrap_interval,
+    median_ratio,
+    per_scenario,
+    settle_times,
+    summarise,
+    wilson_interval,
+)
 
 __all__ = ["SPLITS", "EpisodePool", "LawSpec", "ScenarioDistribution", "Scenarios", "bootstrap_interval",
-           "delay_order", "evaluate_laws", "per_scenario", "sample", "settle_times", "summarise", "summary_table",
-           "verdicts"]
+           "delay_order", "evaluate_laws", "median_ratio", "per_scenario", "sample", "settle_times", "summarise",
+           "summary_table", "verdicts", "wilson_interval"]

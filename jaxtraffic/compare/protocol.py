@@ -145,11 +145,11 @@ def _fmt(x: float, digits: int = 3) -> str:
 def summary_table(results: dict[str, dict[str, np.ndarray]], labels: dict[str, str], reference: str,
                   seed: int = 0) -> tuple[list[str], dict[str, Any]]:
     """(Markdown lines, the summaries as JSON): per law, the median [95 % interval] of each measure, the failure
-    rates, and the median ratio of mean_rho_L2 to ``reference``'s on the same scenarios."""
+    rates, and the ratio of the medians of mean_rho_L2 to ``reference``'s on the same scenarios."""
     summ = {k: stats.summarise(v, results.get(reference), seed) for k, v in results.items()}
     cols = ("mean_rho_L2", "late_max_rho_L2", "settle_s", "J_comfort")
     head = ["law", *(f"{c} ({stats.UNITS[c]})" for c in cols),
-            f"mean_rho_L2 / {labels.get(reference, reference)}", "diverged", "not settled"]
+            f"median mean_rho_L2 / {labels.get(reference, reference)}'s", "diverged", "not settled"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for k, s in summ.items():
         cells = [labels.get(k, k)]
@@ -157,7 +157,7 @@ def summary_table(results: dict[str, dict[str, np.ndarray]], labels: dict[str, s
             lo, hi = s[c]["ci95"]
             cells.append(f"{_fmt(s[c]['median'])} [{_fmt(lo)}, {_fmt(hi)}]")
         r = s["ratio_mean_rho_L2"]
-        cells.append(f"{_fmt(r['median'])} [{_fmt(r['ci95'][0])}, {_fmt(r['ci95'][1])}]")
+        cells.append(f"{_fmt(r['value'])} [{_fmt(r['ci95'][0])}, {_fmt(r['ci95'][1])}]")
         for f in ("diverged_rate", "not_settled_rate"):
             cells.append(f"{100 * s[f]['value']:.0f} % [{100 * s[f]['ci95'][0]:.0f}, {100 * s[f]['ci95'][1]:.0f}]")
         lines.append("| " + " | ".join(cells) + " |")

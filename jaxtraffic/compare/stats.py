@@ -11,14 +11,17 @@ Per scenario (``per_scenario``), from the density deviation's L2 norm recorded a
     diverged                 the rollout left the physical region or the controller's output was not finite
 
 A diverged rollout's measures are +inf (the worst), so that medians and intervals rank it last. Over scenarios
-(``summarise``): the median of each measure with a percentile-bootstrap 95 % interval (``bootstrap_interval``,
-seeded), the failure rates (diverged; not settled by T) with theirs, and, against a reference law run on the same
-scenarios, the median of the per-scenario ratio of ``mean_rho_L2`` with a paired-bootstrap interval.
+(``summarise``): the median of each measure (``np.median``: the mean of the two middle values of an even count;
++inf where either is) with a percentile-bootstrap 95 % interval (``bootstrap_interval``, seeded), the failure
+rates (diverged; not settled by T) with Wilson score intervals (``wilson_interval``: not empty at 0 or n
+failures), and, against a reference law run on the same scenarios, the ratio of the medians of ``mean_rho_L2``
+with a paired-bootstrap interval (``median_ratio``: the scenarios resampled together).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from statistics import NormalDist
 from typing import Any
 
 import jax.numpy as jnp
@@ -78,6 +81,16 @@ def capped_mean_l2(t: Any, rho_l2: Any, diverged: Any, cap: float = L2_CAP) -> A
     return jnp.where(bad, cap, jnp.minimum(mean, cap))
 
 
+def _resamples(n: int, n_boot: int, seed: int) -> np.ndarray:
+    """(n_boot, n) indices drawn with replacement (seeded)."""
+    return np.random.default_rng(seed).integers(0, n, size=(n_boot, n))
+
+
+def _percentiles(stats: np.ndarray, level: float) -> tuple[float, float]:
+    q = (1 - level) / 2
+    return float(np.quantile(stats, q, method="inverted_cdf")), float(np.quantile(stats, 1 - q, method="inverted_cdf"))
+
+
 def bootstrap_interval(x: np.ndarray, stat: Callable[..., Any] = np.median, n_boot: int = 2000,
                        level: float = 0.95, seed: int = 0) -> tuple[float, float]:
     """The percentile-bootstrap ``level`` interval of ``stat`` over the samples ``x`` (resampled ``n_boot`` times
@@ -86,35 +99,49 @@ def bootstrap_interval(x: np.ndarray, stat: Callable[..., Any] = np.median, n_bo
     x = np.asarray(x, float)
     if x.ndim != 1 or x.size == 0:
         raise ValueError(f"bootstrap_interval needs a non-empty 1-d sample, got shape {x.shape}")
-    idx = np.random.default_rng(seed).integers(0, x.size, size=(n_boot, x.size))
-    stats = stat(x[idx], axis=1)
-    q = (1 - level) / 2
-    return float(np.quantile(stats, q, method="inverted_cdf")), float(np.quantile(stats, 1 - q, method="inverted_cdf"))
+    return _percentiles(stat(x[_resamples(x.size, n_boot, seed)], axis=1), level)
 
 
-def _median(x: np.ndarray) -> float:
-    return float(np.quantile(np.asarray(x, float), 0.5, method="inverted_cdf"))
+def ratio_or_inf(a: Any, b: Any) -> np.ndarray:
+    """a / b with inf / inf (both failed) counted as inf (no better) and x / 0 as inf."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = np.asarray(a, float) / np.asarray(b, float)
+    return np.where(np.isnan(r), np.inf, r)
 
 
-def _quantile_median(a: np.ndarray, axis: int) -> np.ndarray:  # a median defined with +inf (no inf - inf)
-    return np.quantile(a, 0.5, axis=axis, method="inverted_cdf")
+def median_ratio(a: np.ndarray, b: np.ndarray, n_boot: int = 2000, level: float = 0.95, seed: int = 0
+                 ) -> tuple[float, tuple[float, float]]:
+    """(median(a) / median(b), its paired-bootstrap ``level`` interval): ``a`` and ``b`` are one measure of two laws
+    on the same scenarios (resampled together, seeded); +inf samples rank last."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    if a.shape != b.shape or a.ndim != 1 or a.size == 0:
+        raise ValueError(f"median_ratio needs two 1-d samples of one shape, got {a.shape} and {b.shape}")
+    idx = _resamples(a.size, n_boot, seed)
+    boot = ratio_or_inf(np.median(a[idx], axis=1), np.median(b[idx], axis=1))
+    return float(ratio_or_inf(np.median(a), np.median(b))), _percentiles(boot, level)
+
+
+def wilson_interval(k: int, n: int, level: float = 0.95) -> tuple[float, float]:
+    """The Wilson score ``level`` interval of a rate of ``k`` events in ``n`` trials (not empty at k = 0 or n)."""
+    if n <= 0 or not 0 <= k <= n:
+        raise ValueError(f"wilson_interval needs 0 <= k <= n, n > 0; got k = {k}, n = {n}")
+    z = NormalDist().inv_cdf(0.5 + level / 2)
+    p, d = k / n, 1 + z * z / n
+    centre, half = (p + z * z / (2 * n)) / d, z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / d
+    return max(0.0, float(centre - half)), min(1.0, float(centre + half))
 
 
 def summarise(per: dict[str, np.ndarray], reference: dict[str, np.ndarray] | None = None, seed: int = 0
               ) -> dict[str, Any]:
     """The distribution of ``per`` (``per_scenario``) over its scenarios (module docstring); ``reference``: the
-    same scenarios under the reference law (the ratio of ``mean_rho_L2``)."""
+    same scenarios under the reference law (the ratio of the medians of ``mean_rho_L2``)."""
     out: dict[str, Any] = {"n": int(per["diverged"].size)}
     for m in MEASURES:
-        out[m] = {"median": _median(per[m]), "ci95": bootstrap_interval(per[m], _quantile_median, seed=seed),
-                  "unit": UNITS[m]}
+        out[m] = {"median": float(np.median(per[m])), "ci95": bootstrap_interval(per[m], seed=seed), "unit": UNITS[m]}
     for f in ("diverged", "not_settled"):
-        x = per[f].astype(float)
-        out[f"{f}_rate"] = {"value": float(x.mean()), "ci95": bootstrap_interval(x, np.mean, seed=seed)}
+        x = np.asarray(per[f], bool)
+        out[f"{f}_rate"] = {"value": float(x.mean()), "ci95": wilson_interval(int(x.sum()), x.size)}
     if reference is not None:
-        with np.errstate(invalid="ignore", divide="ignore"):
-            ratio = per["mean_rho_L2"] / reference["mean_rho_L2"]
-        ratio = np.where(np.isnan(ratio), np.inf, ratio)  # inf / inf: both failed, counted as no better
-        out["ratio_mean_rho_L2"] = {"median": _median(ratio), "ci95": bootstrap_interval(ratio, _quantile_median,
-                                                                                         seed=seed)}
+        r, ci = median_ratio(per["mean_rho_L2"], reference["mean_rho_L2"], seed=seed)
+        out["ratio_mean_rho_L2"] = {"value": r, "ci95": ci}
     return out

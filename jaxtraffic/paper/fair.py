@@ -151,14 +151,14 @@ def _float32_list(values: Any) -> list:
 
 def resummarise(path: Path) -> list[str]:
     """Rewrite the table, summaries and checks of an earlier run's JSON from its per-scenario measures (nothing
-    simulated; its provenance kept); returns the lines."""
+    simulated; its provenance kept, the code that summarised it as ``summarised_by``); returns the lines."""
     d = read_json(path)
     if not isinstance(d.get("per_scenario"), dict):
         raise ValueError(f"{path} holds no per-scenario measures ({d.get('per_scenario')!r}); rerun the benchmark")
     res = {k: {m: np.asarray([np.inf if x is None else x for x in v], float) if m not in ("diverged", "not_settled")
                else np.asarray(v, bool) for m, v in r.items()} for k, r in d["per_scenario"].items()}
     lines, d["summary"], d["checks"] = tables(res, d["laws"])
-    d["markdown"] = lines
+    d["markdown"], d["summarised_by"] = lines, provenance()
     write_json(path, d)
     atomic_write_text(path.with_suffix(".md"), "\n".join(lines) + "\n")
     return lines

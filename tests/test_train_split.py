@@ -104,6 +104,9 @@ def test_the_frontier_is_the_ratio_of_the_medians_with_the_intervals_apart_and_n
     wide = {"law": res["law"], "model": {**res["model"], "mean_rho_L2": np.tile([2.0, 4.0], 125)}}
     _, close = verdicts.frontier(wide, ["law"], ["model"], str)  # ratio 2/3 again; the rival's median in [2, 4]
     assert close["ratio"] == pytest.approx(2.0 / 3.0) and not close["intervals_apart"] and not close["frontier"]
+    worse = {"law": res["model"], "model": res["law"]}  # apart the other way: 1.5x, not reached
+    _, behind = verdicts.frontier(worse, ["law"], ["model"], str)
+    assert behind["ratio"] == pytest.approx(1.5) and behind["intervals_apart"] and not behind["frontier"]
 
 
 def test_the_frontier_meets_the_best_law_told_no_more_than_d_not_the_information_bound():

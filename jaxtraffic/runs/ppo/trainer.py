@@ -13,8 +13,10 @@ are certified (``control.stability``: the delayed, filtered law's linearised clo
 wavenumber faster than 1e-3/s at the training delay and alpha); (3) with a validation suite (``val_horizon_s``
 > 0, ``selection``), its validation score is <= ``val_target``. The suite is rolled out only for evaluations
 that pass (1) and (2). A run trained on the train split (``EnvConfig.train_split``) is validated on it
-(``selection.make_split_suite``; with ``val_horizon_s`` > 0) and drops (1) from the conditions: its selection
-reads nothing of the paper's wave, which stays in the learning curve. The run stops when one member has met the rule
+(``selection.make_split_suite``; with ``val_horizon_s`` > 0) and drops (1) from the conditions; a checkpoint that
+fails (2) still ranks, below every one that passes, by its evaluation reward on the paper's wave
+(``selection.scores``), so a split run none of whose evaluations passes (2) keeps the one best on that wave.
+The run stops when one member has met the rule
 at ``stop_patience`` consecutive evaluations (default 1). ``seconds_to_stop_rule`` records the first time it held,
 ``seconds_to_paper_rule`` the first time (1) alone held.
 

@@ -34,12 +34,13 @@ from jaxtraffic.control.adapter import adapt, baseline_grid
 from jaxtraffic.model.params import equilibrium
 from jaxtraffic.paper.scenarios import EvalConfig, run_batch
 from jaxtraffic.sim.initial import paper_initial_condition
+from jaxtraffic.sim.metrics import STABLE_STD, VEH_PER_KM, density_std
 from jaxtraffic.sim.plant import closed_loop_step, initial_state
 from jaxtraffic.sim.units import INDEX_UNITS
 
 DELAYS = tuple(float(d) for d in range(9))  # s
 ALPHAS = tuple(float(a) for a in np.round(np.linspace(0.05, 0.6, 6), 6))
-STD_TOL = 0.5e-3  # veh/m: 0.5 veh/km
+STD_TOL = STABLE_STD  # veh/km
 
 
 def eval_config(plant: str, horizon_s: float = 600.0) -> EvalConfig:
@@ -77,7 +78,7 @@ def run_map(cfg: EvalConfig, names: list[str], cells: int | None, log=print) -> 
         t0 = time.perf_counter()
         res = run_batch(ctrl, envs, [0] * len(envs), cfg, record=False, batch_controller=batched,
                         chunk_size=len(ALPHAS))
-        std = np.std(np.asarray(res.final.rho), axis=-1)
+        std = VEH_PER_KM * np.std(np.asarray(res.final.rho), axis=-1)
         div = np.asarray(res.metrics["diverged"]).astype(bool)
         entry = {"diverged": div.tolist(), "std": std.tolist(), "final_rho_L2": np.asarray(
             res.metrics["final_rho_L2"]).tolist(), "diverged_step": np.asarray(res.final.diverged_step).tolist()}
@@ -149,7 +150,7 @@ def trace(cfg: EvalConfig, delays, alphas, n_steps: int, every: int, alpha0: flo
             state, cs = carry
             state, cs, _, _ = closed_loop_step(state, cs, c, plant, nom, plant.alpha, jax.random.PRNGKey(0),
                                                (rho_bar, v_bar))
-            return (state, cs), (cs.inner.alpha_hat, jnp.std(state.rho), state.diverged)
+            return (state, cs), (cs.inner.alpha_hat, density_std(state.rho), state.diverged)
 
         def chunk(carry, _):
             carry, rec = jax.lax.scan(step, carry, None, length=every)
@@ -172,7 +173,7 @@ def print_trace(cfg: EvalConfig, delay: float, alpha: float, alpha0: float, hori
         i = int(round(ts / cfg.dt)) - 1
         if i < len(t):
             print(f"  t {t[i]:6.1f} s  alpha_hat {a_hat[i]:.4f}  error {a_hat[i] - alpha:+.4f}  "
-                  f"std rho {1e3 * std[i]:.3f} veh/km  diverged {bool(div[i])}")
+                  f"std rho {std[i]:.3f} veh/km  diverged {bool(div[i])}")
     err = np.abs(a_hat - alpha)
     print(f"  max |error| for t >= 1 s: {err[t >= 1].max():.4f}, t >= 10 s: {err[t >= 10].max():.4f}, "
           f"t >= 100 s: {err[t >= 100].max():.4f}")
@@ -195,7 +196,7 @@ def print_trace_map(cfg: EvalConfig, horizon: float, alpha0: float, **estimator)
         if i < len(t):
             j = np.nanargmax(err[:, i])
             print(f"  t {ts:4d} s  max |error| {err[j, i]:.4f} (D {dd[j]:g} s, alpha {aa[j]:g})  "
-                  f"median {np.nanmedian(err[:, i]):.5f}  std rho > 5 veh/km in {int((std[:, i] > 5e-3).sum())} cells")
+                  f"median {np.nanmedian(err[:, i]):.5f}  std rho > 5 veh/km in {int((std[:, i] > 5.0).sum())} cells")
     for since in (10, 60, 300):
         e = np.nanmax(err[:, t >= since], axis=1)
         j = np.nanargmax(e)
@@ -212,7 +213,7 @@ def nominal_point(cfg: EvalConfig) -> None:
                     ("adaptive_hold", adaptive_backstepping(4.0, hold_target=True))):
         res = run_batch(adapt(c, baseline_grid(nom), nom), env, [0], cfg300, record=False)
         m = res.metrics
-        print(f"  nominal point (D 4 s, alpha 0.15), {name:<13s} rho L2 300 s {1e3 * float(m['final_rho_L2'][0]):.4f}"
+        print(f"  nominal point (D 4 s, alpha 0.15), {name:<13s} rho L2 300 s {float(m['final_rho_L2'][0]):.4f}"
               f" veh/km  J_comfort {float(m['J_comfort'][0]):.5g} {INDEX_UNITS['J_comfort']}")
 
 

@@ -30,6 +30,7 @@ from jaxtraffic.control import backstepping, open_loop, tell_delay  # noqa: E402
 from jaxtraffic.control.adapter import adapt, baseline_grid  # noqa: E402
 from jaxtraffic.control.adaptive_residual import ALPHA_KNOTS, DELAY_KNOTS, adaptive_residual  # noqa: E402
 from jaxtraffic.paper.scenarios import EvalConfig, run_batch  # noqa: E402
+from jaxtraffic.sim.metrics import VEH_PER_KM  # noqa: E402
 from jaxtraffic.sim.units import INDEX_UNITS  # noqa: E402
 
 HELD_OUT_DELAYS = (0.3, 1.7, 3.3, 4.7, 6.3, 7.7)  # s: the recipe's training delays (offset from the maps' cells)
@@ -51,8 +52,8 @@ def tables_from(pairs: str, run: str) -> tuple[list[str], np.ndarray]:
 
 
 def run_cells(cfg: EvalConfig, tables: np.ndarray, delays, alphas) -> dict[str, np.ndarray]:
-    """Every table on every cell (delays[i], alphas[i]) in one batch: diverged, final std_x rho (veh/m), final
-    rho L2 (veh/m), J_comfort, each (P, C)."""
+    """Every table on every cell (delays[i], alphas[i]) in one batch: diverged, final std_x rho (veh/km), final
+    rho L2 (veh/km), J_comfort, each (P, C)."""
     nom = cfg.nominal()
     n_p, n_c = len(tables), len(delays)
     envs = [nom.replace(delay=float(d), alpha=float(a)) for d, a in zip(delays, alphas, strict=True)] * n_p
@@ -62,7 +63,7 @@ def run_cells(cfg: EvalConfig, tables: np.ndarray, delays, alphas) -> dict[str, 
     res = run_batch(c, envs, [0] * len(envs), cfg, record=False, batch_controller=True, chunk_size=n_c)
     m = res.metrics
     return {"diverged": np.asarray(m["diverged"], bool).reshape(n_p, n_c),
-            "std": np.std(np.asarray(res.final.rho), axis=-1).reshape(n_p, n_c),
+            "std": VEH_PER_KM * np.std(np.asarray(res.final.rho), axis=-1).reshape(n_p, n_c),
             "rho_L2": np.asarray(m["final_rho_L2"]).reshape(n_p, n_c),
             "J_comfort": np.asarray(m["J_comfort"]).reshape(n_p, n_c)}
 
@@ -82,7 +83,8 @@ def baseline_cells(cfg: EvalConfig, delays, alphas) -> dict[str, np.ndarray]:
     envs = [nom.replace(delay=float(d), alpha=float(a)) for d, a in zip(delays, alphas, strict=True)]
     c = tell_delay(adapt(backstepping(), baseline_grid(nom), nom), jnp.asarray(delays, jnp.float32))
     res = run_batch(c, envs, [0] * len(envs), cfg, record=False, batch_controller=True, chunk_size=len(ALPHAS))
-    return {"diverged": np.asarray(res.metrics["diverged"], bool), "std": np.std(np.asarray(res.final.rho), axis=-1)}
+    return {"diverged": np.asarray(res.metrics["diverged"], bool),
+            "std": VEH_PER_KM * np.std(np.asarray(res.final.rho), axis=-1)}
 
 
 def count(div: np.ndarray, std: np.ndarray, keep: np.ndarray) -> tuple[int, int]:
@@ -118,14 +120,14 @@ def nominal(labels, tables) -> dict:
     nom = cfg.nominal()
     bs = run_batch(adapt(backstepping(4.0), baseline_grid(nom), nom), [nom.replace(delay=4.0)], [0], cfg, record=False)
     ref = (float(bs.metrics["final_rho_L2"][0]), float(bs.metrics["J_comfort"][0]))
-    print(f"nominal point (reference plant, D 4 s, alpha 0.15, 300 s): backstepping rho L2 {ref[0] * 1e3:.4f} veh/km, "
+    print(f"nominal point (reference plant, D 4 s, alpha 0.15, 300 s): backstepping rho L2 {ref[0]:.4f} veh/km, "
           f"J_comfort {ref[1]:.1f} {INDEX_UNITS['J_comfort']}")
     r = run_cells(cfg, tables, [4.0], [0.15])
     out = {"backstepping": ref}
     for i, lab in enumerate(labels):
         l2, jc = float(r["rho_L2"][i, 0]), float(r["J_comfort"][i, 0])
         out[lab] = (l2, jc)
-        print(f"  {lab:<32s} rho L2 {l2 * 1e3:.4f} veh/km ({l2 / ref[0]:.3f}x)  J_comfort {jc:.1f} ({jc / ref[1]:.3f}x)"
+        print(f"  {lab:<32s} rho L2 {l2:.4f} veh/km ({l2 / ref[0]:.3f}x)  J_comfort {jc:.1f} ({jc / ref[1]:.3f}x)"
               f"  diverged {bool(r['diverged'][i, 0])}")
     return out
 

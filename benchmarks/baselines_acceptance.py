@@ -93,8 +93,8 @@ def run_case(name, plant, controller, nominal, seconds=None, *, n_steps, noise_s
     row = {
         "case": name,
         "seconds": n_steps * float(plant.dt),
-        "rho_L2_0_vehkm": 1000 * float(r_l2[0]),
-        "rho_L2_T_vehkm": 1000 * m["final_rho_L2"],
+        "rho_L2_0_vehkm": float(r_l2[0]),
+        "rho_L2_T_vehkm": m["final_rho_L2"],
         "rho_ratio": m["final_rho_L2"] / float(r_l2[0]),
         "v_L2_0": float(v_l2[0]),
         "v_L2_T": m["final_v_L2"],
@@ -115,7 +115,7 @@ def run_case(name, plant, controller, nominal, seconds=None, *, n_steps, noise_s
         keys = jax.random.split(jax.random.PRNGKey(1), noise_seeds)
         b = simulate_batch(plant, controller, keys=keys, n_steps=n_steps, rho0=rho0, v0=v0, nominal=nominal)
         fr = np.asarray(b.metrics["final_reward"])
-        frl = 1000 * np.asarray(b.metrics["final_rho_L2"])
+        frl = np.asarray(b.metrics["final_rho_L2"])
         row["seeds"] = noise_seeds
         row["final_reward_seeds_min_median_max"] = [float(fr.min()), float(np.median(fr)), float(fr.max())]
         row["rho_L2_T_vehkm_seeds_min_median_max"] = [float(frl.min()), float(np.median(frl)),

@@ -54,7 +54,7 @@ c, _ = load_policy(sys.argv[1])
 out = {}
 for d in range(7):
     m = jt.simulate(jt.TrafficParams(delay=float(d)), c, n_steps=6000, nominal=jt.TrafficParams(delay=4.0)).metrics
-    out[d] = {"diverged": bool(m["diverged"]), "final_rho_L2_veh_km": float(m["final_rho_L2"]) * 1e3}
+    out[d] = {"diverged": bool(m["diverged"]), "final_rho_L2_veh_km": float(m["final_rho_L2"])}
 print(json.dumps(out))
 """
 
@@ -73,8 +73,8 @@ def part_training(policy: str, repeats: int, tmp: Path) -> dict:
     res = {
         "seconds_to_beat_backstepping": [r["seconds_to_beat_backstepping"] for r in runs],
         "wall_s": [r["wall_s"] for r in runs], "updates": runs[0]["updates"],
-        "final_rho_L2_veh_km": ev["final_rho_L2"] * 1e3, "final_J_comfort": ev["J_comfort"],
-        "backstepping_rho_L2_veh_km": ref["final_rho_L2"] * 1e3, "backstepping_J_comfort": ref["J_comfort"],
+        "final_rho_L2_veh_km": ev["final_rho_L2"], "final_J_comfort": ev["J_comfort"],
+        "backstepping_rho_L2_veh_km": ref["final_rho_L2"], "backstepping_J_comfort": ref["J_comfort"],
         "repeats_bit_identical": all(r["checkpoint_bytes"] == runs[0]["checkpoint_bytes"] for r in runs),
     }
     if policy == "network":

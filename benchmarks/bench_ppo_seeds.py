@@ -83,7 +83,7 @@ def reference(judge: str = "paper"):
 
     p = plant_of(judge)
     res = jt.simulate(p, adapt(jt.backstepping(4.0), baseline_grid(p), p), n_steps=3000)
-    return {"rho_L2_300": float(res.metrics["final_rho_L2"]) * 1e3, "J_comfort": float(res.metrics["J_comfort"])}
+    return {"rho_L2_300": float(res.metrics["final_rho_L2"]), "J_comfort": float(res.metrics["J_comfort"])}
 
 
 def evaluate_run(run_dir: Path, ref: dict, judge: str = "paper") -> dict:
@@ -97,8 +97,8 @@ def evaluate_run(run_dir: Path, ref: dict, judge: str = "paper") -> dict:
     m300 = jt.simulate(p, ctrl, n_steps=3000).metrics
     m600 = jt.simulate(p, ctrl, n_steps=6000).metrics
     summary = json.loads((run_dir / "summary.json").read_text())
-    l2_300 = float(m300["final_rho_L2"]) * 1e3
-    l2_600 = float(m600["final_rho_L2"]) * 1e3
+    l2_300 = float(m300["final_rho_L2"])
+    l2_600 = float(m600["final_rho_L2"])
     jc = float(m300["J_comfort"])
     diverged = bool(m300["diverged"]) or bool(m600["diverged"])
     stopped = bool(summary.get("stopped", summary.get("stop_rule_reached", False)))
@@ -112,7 +112,7 @@ def evaluate_run(run_dir: Path, ref: dict, judge: str = "paper") -> dict:
     if judge == "reference":
         fine = p.replace(n_points=2 * p.n_points - 1, substeps=2 * p.substeps)
         mf = jt.simulate(fine, load_policy(run_dir, plant=fine)[0], n_steps=3000).metrics
-        out["refined_change_L2"] = float(mf["final_rho_L2"]) * 1e3 / l2_300 - 1.0
+        out["refined_change_L2"] = float(mf["final_rho_L2"]) / l2_300 - 1.0
         out["refined_change_J"] = float(mf["J_comfort"]) / jc - 1.0
         checks["refined"] = max(abs(out["refined_change_L2"]), abs(out["refined_change_J"])) < 0.10
     return {**out, "checks": checks, "pass": all(checks.values())}

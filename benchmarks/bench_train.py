@@ -208,7 +208,7 @@ def main(argv: list[str] | None = None) -> dict:
         res["compare"] = c
         for name in ("ppo", "backstepping", "open_loop"):
             m = c[name]
-            say(f"(c) {name:12s}: final rho L2 {m['final_rho_L2']:.3e} veh/m, J_comfort {m['J_comfort']:.1f}, "
+            say(f"(c) {name:12s}: final rho L2 {m['final_rho_L2']:.4g} veh/km, J_comfort {m['J_comfort']:.1f}, "
                 f"final reward {m['final_reward']:.4f}, diverged {m['diverged']}")
         say(f"(c) ppo/backstepping: L2 ratio {c['rho_L2_ratio']:.3f} (target < 1: "
             f"{c['target_L2_below_baseline']}), J_comfort ratio {c['J_comfort_ratio']:.3f} (target within 20 %: "

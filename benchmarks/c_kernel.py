@@ -105,7 +105,8 @@ def c_metrics(p: TrafficParams, rho, v, sums, ints, n_steps: int) -> dict[str, n
     a2, at2, sw = trap(s["a2"]), trap(s["at2"]), trap(s["switch"])
     return {
         "J_TTT": trap(s["J_TTT"]), "J_fuel": trap(s["J_fuel"]), "J_comfort": trap(s["J_comfort"]),
-        "final_rho_L2": np.sqrt(((rho - rb) ** 2).mean(-1)), "final_v_L2": np.sqrt(((v - vb) ** 2).mean(-1)),
+        "final_rho_L2": 1e3 * np.sqrt(((rho - rb) ** 2).mean(-1)),  # veh/km, as the library reports it
+        "final_v_L2": np.sqrt(((v - vb) ** 2).mean(-1)),
         "final_reward": r_fin, "time_to_reward_target_s": np.where(reached, (last_bad + 1) * dt, np.inf),
         "diverged": diverged, "diverged_reason": ints[:, 4],
         "control_effort": np.sqrt(s["effort"].mean(-1) / np.maximum(n_active, 1)),

@@ -20,6 +20,10 @@ on another backend, are compared with tolerances; counts never):
   divergence flags and steps, checkpoint steps, names. A map count that moves is a difference at any
   tolerance.
 
+``--from-veh-per-m``: the first tree was written before densities were reported in veh/km (metrics.json,
+robustness.json, judge.json and the runs' summaries held the density norms, spreads and offsets in veh/m, the
+state's unit); its values are converted (``upgrade``: x 1000, the keys and unit strings renamed) before comparing.
+
 Prints, per file, the differences beyond the tolerance (the first few), how many values are within it but
 not equal and the largest relative difference; then the totals. Exit status 1 if any difference exceeds it.
 """
@@ -29,6 +33,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -90,6 +95,34 @@ def compare(a: Any, b: Any, c: Comparison, path: str = "") -> Comparison:
     return c
 
 
+# the density quantities an older tree held in veh/m (the state's unit): now in veh/km
+DENSITY_KEYS = {"final_rho_L2", "final_rho_spatial_std", "final_rho_offset", "late_max_rho_spatial_std", "paper_rho_L2",
+                "paper_rho_spatial_std", "rho_bar_veh_per_m", "rho_veh_per_m"}
+_AMP = re.compile(r"amp=([0-9.eE+-]+) ")
+
+
+def upgrade(x: Any, key: str = "") -> Any:
+    """An older tree's JSON value with its densities in veh/km (see the module docstring): the values under
+    ``DENSITY_KEYS`` x 1000 (``*_veh_per_m`` renamed ``*_veh_per_km``), "veh/m" -> "veh/km" in the unit strings,
+    and the PPO validation labels' amplitude in veh/km."""
+    if isinstance(x, dict):
+        return {k.replace("_veh_per_m", "_veh_per_km"): (_units(v) if k == "units" else upgrade(v, k))
+                for k, v in x.items()}
+    if isinstance(x, list):
+        return [upgrade(v, key) for v in x]
+    if isinstance(x, float) and key in DENSITY_KEYS:
+        return 1000.0 * x
+    if isinstance(x, str):
+        return _AMP.sub(lambda m: f"amp={1000.0 * float(m.group(1)):g} veh/km ", x)
+    return x
+
+
+def _units(u: Any) -> Any:
+    if isinstance(u, dict):
+        return {k: _units(v) for k, v in u.items()}
+    return re.sub(r"\bveh/m\b(?!²)", "veh/km", u) if isinstance(u, str) else u
+
+
 def differences(a: Any, b: Any, path: str = "", rtol: float = 0.0, atol: float = 0.0) -> list[tuple]:
     """(path, a's value, b's value) of every leaf that differs beyond the tolerance (default: bit for bit)."""
     return compare(a, b, Comparison(rtol=rtol, atol=atol), path).beyond
@@ -102,6 +135,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rtol", type=float, default=RTOL, help=f"relative tolerance of floats (default {RTOL:g})")
     parser.add_argument("--atol", type=float, default=ATOL, help=f"absolute tolerance of floats (default {ATOL:g})")
     parser.add_argument("--exact", action="store_true", help="bit for bit (rtol = atol = 0)")
+    parser.add_argument("--from-veh-per-m", action="store_true",
+                        help="the first tree holds densities in veh/m (an older version): convert them first")
     args = parser.parse_args(argv)
     rtol, atol = (0.0, 0.0) if args.exact else (args.rtol, args.atol)
     total, rounding, max_rel = 0, 0, 0.0
@@ -111,7 +146,9 @@ def main(argv: list[str] | None = None) -> int:
         if not other.exists():
             print(f"{rel}: only in {args.a}")
             continue
-        c = compare(json.loads(path.read_text()), json.loads(other.read_text()), Comparison(rtol=rtol, atol=atol))
+        old = json.loads(path.read_text())
+        c = compare(upgrade(old) if args.from_veh_per_m else old, json.loads(other.read_text()),
+                    Comparison(rtol=rtol, atol=atol))
         print(f"{rel}: {len(c.beyond)} differences beyond rtol {rtol:g}, atol {atol:g}"
               + (f", e.g. {c.beyond[:3]}" if c.beyond else "")
               + f"; {c.rounding} floats within it, largest relative difference {c.max_rel:.1e}")

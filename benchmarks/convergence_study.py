@@ -56,7 +56,7 @@ def run_one(ctrl, grid, plant: jt.TrafficParams) -> dict[str, float]:
     short = jt.simulate(plant, c, n_steps=3000)
     long = jt.simulate(plant, c, n_steps=6000, record=jt.Record(every=100))
     m, ml = short.metrics, long.metrics
-    return {"rho_L2_300": 1e3 * float(m["final_rho_L2"]), "rho_L2_600": 1e3 * float(ml["final_rho_L2"]),
+    return {"rho_L2_300": float(m["final_rho_L2"]), "rho_L2_600": float(ml["final_rho_L2"]),
             "v_L2_300": float(m["final_v_L2"]), "J_TTT": float(m["J_TTT"]), "J_fuel": float(m["J_fuel"]),
             "t_reward": float(ml["time_to_reward_target_s"]), "J_comfort": float(m["J_comfort"]),
             "J_comfort_a2": float(m["J_comfort_a2"]), "J_comfort_at2": float(m["J_comfort_at2"]),

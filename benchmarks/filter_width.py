@@ -24,7 +24,7 @@ from jaxtraffic.runs.policy import load_policy, policy_certificate, policy_grid
 
 def judge(ctrl, grid, plant: jt.TrafficParams) -> dict[str, float]:
     res = jt.simulate(plant, adapt(ctrl, grid, plant), n_steps=3000)
-    return {"rho_L2_300_veh_km": 1e3 * float(res.metrics["final_rho_L2"]), "J_comfort": float(res.metrics["J_comfort"]),
+    return {"rho_L2_300_veh_km": float(res.metrics["final_rho_L2"]), "J_comfort": float(res.metrics["J_comfort"]),
             "diverged": bool(res.metrics["diverged"])}
 
 

@@ -37,6 +37,7 @@ from jaxtraffic.paper.oracle import (  # noqa: E402
     oracle_rows,
 )
 from jaxtraffic.paper.scenarios import EvalConfig, robust_axis  # noqa: E402
+from jaxtraffic.sim.metrics import STABLE_STD  # noqa: E402
 
 MAPS = {"paper": (17, 12), "reference": (9, 6)}  # evaluate.py's default map sizes per plant
 
@@ -63,7 +64,7 @@ def main() -> None:
     t0 = time.perf_counter()
     div, std = gain_grid_map(cfg, triples, args.filter_sigma, log=lambda m: print(m, file=sys.stderr, flush=True))
     rows = oracle_rows(triples, div, std)
-    stab = ~div & (std < 0.5e-3)
+    stab = ~div & (std < STABLE_STD)
     per_triple = stab.reshape(len(triples), -1).sum(axis=1)
     out = oracle_json(cfg, triples, rows, args.filter_sigma, extra={
         "grid": {"eta1": args.eta1, "eta2": args.eta2, "eta3": args.eta3},

@@ -19,8 +19,9 @@ import itertools
 import jaxtraffic as jt
 from jaxtraffic.paper.scenarios import EvalConfig, run_robustness
 from jaxtraffic.runs import load_policy
+from jaxtraffic.sim.metrics import STABLE_STD
 
-STD_MAX = 0.5e-3  # veh/m: the map's "stabilised" threshold
+STD_MAX = STABLE_STD  # veh/km: the map's "stabilised" threshold
 
 
 def main() -> None:
@@ -41,7 +42,7 @@ def main() -> None:
             stab = ~div & (out["final_rho_spatial_std"] < STD_MAX)
             m = jt.simulate(p, ctrl, n_steps=3000).metrics
             print(f"{checkpoint} member {member}: map {int(stab.sum())} stabilised / {int(div.sum())} diverged of "
-                  f"{stab.size}; D = 4 s: rho L2 {float(m['final_rho_L2']) * 1e3:.3f} veh/km, J_comfort "
+                  f"{stab.size}; D = 4 s: rho L2 {float(m['final_rho_L2']):.3f} veh/km, J_comfort "
                   f"{float(m['J_comfort']) / float(ref['J_comfort']):.2f}x backstepping's", flush=True)
             if args.maps:
                 print("\n".join("".join("#" if x else "." for x in row) for row in stab))

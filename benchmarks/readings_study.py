@@ -82,7 +82,7 @@ def noise(horizon: float, seeds: int) -> None:
         res = run_batch(ctrl, envs, list(cfg.seeds), cfg, record=False, noise=sc.reading(cfg.dt, "backstepping"))
         m = jax.tree_util.tree_map(np.asarray, res.metrics)
         ok = (~m["diverged"]) & np.isfinite(m["time_to_reward_target_s"])
-        l2 = 1000 * m["final_rho_L2"]
+        l2 = m["final_rho_L2"]
         print(f"| {sc.name} | {int(ok.sum())}/{seeds} | {int(m['diverged'].sum())}/{seeds} | {l2.mean():.3g} "
               f"| {', '.join(f'{x:.3g}' for x in l2)} |", flush=True)
 

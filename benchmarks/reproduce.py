@@ -36,7 +36,7 @@ def _beats_backstepping(c: str, j_ratio: float = 1.0) -> Callable[[dict], tuple[
             return False, f"{c} not evaluated"
         ok = ((not x["diverged"]) and x["final_rho_L2"] < b["final_rho_L2"]
               and x["J_comfort"] < j_ratio * b["J_comfort"])
-        return ok, (f"rho L2 {1e3 * x['final_rho_L2']:.3f} vs {1e3 * b['final_rho_L2']:.3f} veh/km, "
+        return ok, (f"rho L2 {x['final_rho_L2']:.3f} vs {b['final_rho_L2']:.3f} veh/km, "
                     f"J_comfort {x['J_comfort']:.4g} vs {b['J_comfort']:.4g} (m²/s⁴ + m²/s⁶)·veh/km·m·s")
     return check
 
@@ -53,7 +53,7 @@ def _stabilises(scenario: str, c: str) -> Callable[[dict], tuple[bool, str]]:
 
 def _lyapunov_fails_with_delay(m: dict) -> tuple[bool, str]:
     e = m["delay4"]["lyapunov"]
-    return e.get("time_to_reward_-0.1_s") is None, f"final rho L2 {1e3 * e['final_rho_L2']:.3g} veh/km"
+    return e.get("time_to_reward_-0.1_s") is None, f"final rho L2 {e['final_rho_L2']:.3g} veh/km"
 
 
 CLAIMS: dict[str, Callable[[dict], tuple[bool, str]]] = {

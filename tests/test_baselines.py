@@ -237,7 +237,7 @@ def test_delay_four_seconds_lyapunov_vs_predictor_small_grid():
     both = simulate_batch(p, _stack(backstepping(0.0), backstepping(4.0)), n_steps=n, batch_controller=True)
     m = {k: np.asarray(v) for k, v in both.metrics.items()}
     rho0, _ = paper_initial_condition(p)
-    rho0_l2 = float(jnp.sqrt(jnp.mean((rho0 - equilibrium(p)[0]) ** 2)))
+    rho0_l2 = 1e3 * float(jnp.sqrt(jnp.mean((rho0 - equilibrium(p)[0]) ** 2)))  # veh/km
     assert not m["diverged"][1]
     assert m["final_reward"][1] > -0.1 and m["final_rho_L2"][1] < 0.2 * rho0_l2, m
     assert m["final_reward"][0] < 10 * m["final_reward"][1], m

@@ -24,7 +24,7 @@ CURVE = {"eval_reward": np.array([-5.0, -0.5, -0.05])}
 
 def entry(t_reward=30.0, rho=50.0, v=60.0, effort=0.1, diverged=False, J=(3.2e7, 8.1e5, 1.3e5), **extra):
     """One metrics.json entry (single seed): times in s, None = never."""
-    return {"J_TTT": J[0], "J_fuel": J[1], "J_comfort": J[2], "final_rho_L2": 1e-4, "final_v_L2": 1e-3,
+    return {"J_TTT": J[0], "J_fuel": J[1], "J_comfort": J[2], "final_rho_L2": 0.1, "final_v_L2": 1e-3,
             "final_reward": -0.01 if t_reward is not None else -3.0, "time_to_reward_-0.1_s": t_reward,
             "diverged": diverged, "control_effort": effort, "t_settle_rho_s": rho, "t_settle_v_s": v,
             "n_seeds": 1, **extra}

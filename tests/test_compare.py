@@ -55,13 +55,13 @@ def test_the_splits_are_seeded_independent_and_physical():
 
 def test_settling_time_late_maximum_and_time_average_against_oracles():
     t = np.linspace(0.0, 100.0, 101)
-    decay = 0.02 * np.exp(-t / 20.0)  # veh/m: below 10 % of its start after 20 ln 10 = 46.05 s
+    decay = 20.0 * np.exp(-t / 20.0)  # veh/km: below 10 % of its start after 20 ln 10 = 46.05 s
     bump = decay.copy()
-    bump[80] = 0.01  # back above the threshold at 80 s: settled only from 81 s
-    grows = 0.02 * np.exp(t / 200.0)
+    bump[80] = 10.0  # back above the threshold at 80 s: settled only from 81 s
+    grows = 20.0 * np.exp(t / 200.0)
     got = settle_times(t, np.stack([decay, bump, grows]))
     np.testing.assert_allclose(got, [47.0, 81.0, np.inf])
-    assert settle_times(t, decay[None], threshold=1.0)[0] == 0.0  # always below: its first time
+    assert settle_times(t, decay[None], threshold=1e3)[0] == 0.0  # always below: its first time
     per = per_scenario(t, np.stack([decay, bump, grows]), np.array([False, False, True]),
                        {j: np.ones(3) for j in ("J_TTT", "J_fuel", "J_comfort")})
     exact = 20.0 * 20.0 * (1 - np.exp(-5.0)) / 100.0  # veh/km: time average of 20 e^{-t/20} over [0, 100]

@@ -9,25 +9,25 @@ from jaxtraffic.paper.learned import comparison_section, seconds_to_beat, stabil
 
 def test_stabilised_cells_count_calm_non_diverged_cells():
     r = {"diverged": np.array([[False, True], [False, False]]),
-         "final_rho_spatial_std": np.array([[1e-4, 1e-5], [6e-4, 4.9e-4]])}
+         "final_rho_spatial_std": np.array([[0.1, 0.01], [0.6, 0.49]])}  # veh/km
     assert stabilised_cells(r) == 2  # the diverged calm cell and the 0.6 veh/km cell do not count
 
 
 def test_seconds_to_beat_needs_both_l2_and_comfort():
     curve = {"wall_s": np.array([1.0, 2.0, 3.0]), "eval_rho_L2": np.array([0.2, 0.5, 0.2]),
              "eval_J_comfort": np.array([5000.0, 100.0, 100.0])}
-    assert seconds_to_beat(curve, rho_l2=0.3e-3, j_comfort=4000.0) == 3.0
-    assert seconds_to_beat(curve, rho_l2=0.1e-3, j_comfort=4000.0) is None
+    assert seconds_to_beat(curve, rho_l2=0.3, j_comfort=4000.0) == 3.0
+    assert seconds_to_beat(curve, rho_l2=0.1, j_comfort=4000.0) is None
     assert seconds_to_beat(None, 1.0, 1.0) is None
 
 
 def test_comparison_section_reports_each_run_and_the_map():
-    metrics = {"delay4": {"backstepping": {"final_rho_L2": 3.4e-4, "J_comfort": 4000.0},
-                          "grad_gains": {"final_rho_L2": 1.0e-4, "J_comfort": 2000.0}}}
+    metrics = {"delay4": {"backstepping": {"final_rho_L2": 0.34, "J_comfort": 4000.0},  # veh/km
+                          "grad_gains": {"final_rho_L2": 0.1, "J_comfort": 2000.0}}}
     alphas, delays = (0.1, 0.15), (0.0, 4.0)
-    calm = {"diverged": np.zeros((2, 2), bool), "final_rho_spatial_std": np.array([[1.0, 1e-5], [1.0, 1e-5]])}
+    calm = {"diverged": np.zeros((2, 2), bool), "final_rho_spatial_std": np.array([[1e3, 0.01], [1e3, 0.01]])}
     rough = {"diverged": np.array([[True, False], [True, False]]),
-             "final_rho_spatial_std": np.array([[1.0, 1e-5], [1.0, 1.0]])}
+             "final_rho_spatial_std": np.array([[1e3, 0.01], [1e3, 1e3]])}
     runs = {"grad_gains": {"run_dir": "runs/g", "summary": {"wall_s": 12.5, "env_steps": 9e5},
                            "curve": {"wall_s": np.array([9.0]), "eval_rho_L2": np.array([0.1]),
                                      "eval_J_comfort": np.array([2000.0])}}}

@@ -91,8 +91,8 @@ def test_a_cell_that_blows_up_before_the_delay_is_excluded():
     cfg = EvalConfig(dt=0.1, robust_delays=DELAYS, robust_alphas=ALPHAS)
     # open loop: (4 s, 0.6) blows up at step 30 = 3 s < D = 4 s: excluded; (0 s, 0.6) at step 30 > D = 0 and
     # (4 s, 0.15) at step 50 = 5 s > 4 s: counted (control acted first)
-    robust = {"open_loop": _row([[False, True], [True, True]], [[1e-2, 0.0], [0.0, 0.0]], [[-1, 30], [50, 30]]),
-              "adaptive_backstepping": _row([[False, True], [False, True]], [[1e-5, 0.0], [1e-5, 0.0]])}
+    robust = {"open_loop": _row([[False, True], [True, True]], [[10.0, 0.0], [0.0, 0.0]], [[-1, 30], [50, 30]]),
+              "adaptive_backstepping": _row([[False, True], [False, True]], [[0.01, 0.0], [0.01, 0.0]])}
     ex = excluded_cells(robust, cfg)
     assert ex.tolist() == [[False, False], [False, True]]
     table = map_table(robust, {"open_loop": "nothing", "adaptive_backstepping": "D"}, cfg)
@@ -193,7 +193,7 @@ def test_paper_column_and_late_max_equal_a_recorded_rollout(long_map):
         res = run_batch(ctrl, envs, [0] * len(envs), long, batch_controller=batched, every=1)
         t = np.append(res.trajectory.t[0], long.n_steps * long.dt)
         rho = np.concatenate([res.trajectory.rho, res.final.rho[:, None]], axis=1)
-        std = np.std(rho, axis=-1)  # (cells, steps + 1)
+        std = 1e3 * np.std(rho, axis=-1)  # (cells, steps + 1), veh/km
         div = np.asarray(res.metrics["diverged"], bool)
         late = np.where(div, np.inf, std[:, t >= t[-1] - LATE_WINDOW_S - 1e-9].max(axis=1))
         at = np.flatnonzero(np.isclose(t, cfg.horizon_s))[0]
@@ -234,7 +234,7 @@ def test_a_cell_that_blows_up_after_the_papers_horizon_is_not_stabilised_at_the_
     cfg = EvalConfig(dt=0.1, robust_delays=(4.0,), robust_alphas=(0.15, 0.3, 0.45, 0.6))
     # calm throughout | calm at 300 s, diverged at 450 s | calm at 300 s and at 600 s, waves in between
     # (not "stays stabilised") | diverged at 200 s
-    row = _cells(final_std=[1e-5, 0.0, 4e-4, 0.0], late=[2e-5, 0.0, 7e-4, 0.0], paper_std=[1e-4, 2e-4, 1e-4, 9.0],
+    row = _cells(final_std=[0.01, 0.0, 0.4, 0.0], late=[0.02, 0.0, 0.7, 0.0], paper_std=[0.1, 0.2, 0.1, 9e3],  # veh/km
                  diverged_at=[None, 450.0, None, 200.0])
     m = cell_masks(row)
     assert m["stabilised_paper"].tolist() == [[True, True, True, False]]

@@ -206,7 +206,7 @@ def test_metrics_at_equilibrium_paper_grid():
     xi = sim_metrics.FUEL_B0 + sim_metrics.FUEL_B1 * v_bar + sim_metrics.FUEL_B3 * v_bar**3
     assert float(m["J_fuel"]) == pytest.approx(xi * 1000.0 * rho_bar * 1000.0 * 300.0, rel=5e-5)
     assert 0.0 <= float(m["J_comfort"]) < 1e-3
-    assert float(m["final_rho_L2"]) < 1e-6 and float(m["final_v_L2"]) < 1e-4
+    assert float(m["final_rho_L2"]) < 1e-3 and float(m["final_v_L2"]) < 1e-4  # veh/km, m/s
     assert float(m["time_to_reward_target_s"]) == 0.0
     assert float(m["control_effort"]) == 0.0
     assert float(m["max_cfl"]) == pytest.approx(cfl_number(p), rel=1e-4)

@@ -31,18 +31,16 @@ from jaxtraffic.paper import laws
 from jaxtraffic.paper.numerics import deploy
 from jaxtraffic.paper.scenarios import SCENARIOS, EvalConfig, Outcome, initial_norms, run_scenarios
 from jaxtraffic.paper.summaries import UNITS, summarise
-from jaxtraffic.sim.metrics import VEH_PER_KM
 
 ADAPTIVE = "adaptive_backstepping"
 _ADAPTIVE_RUN = "adaptive backstepping"  # its name in run_scenarios: one a --controller cannot take (no spaces)
 REFERENCES = {"backstepping": "backstepping", ADAPTIVE: "the adaptive law"}  # what each policy is compared with
 TIE = 0.01  # a ratio within 1 +- TIE is a tie
 UNIT_KEYS = ("J_TTT", "J_fuel", "J_comfort", "final_rho_L2", "final_v_L2", "final_reward", "diverged")
-# REPORT.md's columns: (metrics key, header with its unit, scale to the unit shown)
-COLUMNS = (("J_TTT", "J_TTT (veh/km·m·s)", 1.0), ("J_fuel", "J_fuel (ml/s·veh/km·m·s)", 1.0),
-           ("J_comfort", "J_comfort ((m²/s⁴ + m²/s⁶)·veh/km·m·s)", 1.0),
-           ("final_rho_L2", "final ρ L2 (veh/km)", VEH_PER_KM), ("final_v_L2", "final v L2 (m/s)", 1.0),
-           ("final_reward", "final reward (1)", 1.0))
+# REPORT.md's columns: (metrics key, header with its unit: judge.json's)
+COLUMNS = (("J_TTT", "J_TTT (veh/km·m·s)"), ("J_fuel", "J_fuel (ml/s·veh/km·m·s)"),
+           ("J_comfort", "J_comfort ((m²/s⁴ + m²/s⁶)·veh/km·m·s)"), ("final_rho_L2", "final ρ L2 (veh/km)"),
+           ("final_v_L2", "final v L2 (m/s)"), ("final_reward", "final reward (1)"))
 
 
 def judge_plants(own: dict[str, Any], grids: dict[str, Any], configs: dict[str, EvalConfig], out_dir: Path,
@@ -143,11 +141,11 @@ def summary_line(comparison: dict[str, dict[str, Any]], name: str) -> str:
             f"{100 * TIE:g} %)" + (f"; diverged runs: {', '.join(diverged)}" if diverged else ""))
 
 
-def _cell(v: Any, scale: float = 1.0) -> str:
+def _cell(v: Any) -> str:
     if isinstance(v, bool) or v is None:
         return "" if v is None else str(v)
     if isinstance(v, (int, float)):
-        return f"{v * scale:.4g}"
+        return f"{v:.4g}"
     return str(v)
 
 
@@ -184,7 +182,7 @@ def report_text(result: dict[str, Any]) -> str:
     lines += ["## Scenarios", "", "| scenario | plant and readings |", "|---|---|"]
     lines += [f"| {s} | {text} |" for s, text in result.get("scenarios", {}).items()] + [""]
     lines += ["## Units", ""] + [f"- {k}: {text}" for k, text in result.get("units", {}).items()]
-    lines += ["- final ρ L2 is shown in veh/km in the tables (judge.json: veh/m); ratios are dimensionless", ""]
+    lines += ["- ratios are dimensionless", ""]
     return "\n".join(lines)
 
 
@@ -194,7 +192,7 @@ def _comparison_table(res: dict[str, Any], order: list[str]) -> list[str]:
     for c, per in res.get("comparison", {}).items():
         for s in sorted(per, key=order.index):
             row, m = per[s], res["scenarios"][s][c]
-            l2 = "diverged" if m["diverged"] else f"{m['final_rho_L2'] * VEH_PER_KM:.4g}"
+            l2 = "diverged" if m["diverged"] else f"{m['final_rho_L2']:.4g}"
             lines.append(f"| {s} | {c} | {l2} | {_ratio(row['rho_L2_ratio_to_backstepping'])} "
                          f"| {row['vs_backstepping']} | {_ratio(row[f'rho_L2_ratio_to_{ADAPTIVE}'])} "
                          f"| {row[f'vs_{ADAPTIVE}']} |")
@@ -202,11 +200,11 @@ def _comparison_table(res: dict[str, Any], order: list[str]) -> list[str]:
 
 
 def _metrics_table(res: dict[str, Any], order: list[str]) -> list[str]:
-    lines = ["| scenario | controller | " + " | ".join(h for _, h, _ in COLUMNS) + " | diverged |",
+    lines = ["| scenario | controller | " + " | ".join(h for _, h in COLUMNS) + " | diverged |",
              "|---|---|" + "---|" * (len(COLUMNS) + 1)]
     for s in sorted(res["scenarios"], key=order.index):
         for c, m in res["scenarios"][s].items():
             cells = (["diverged"] * len(COLUMNS) if m["diverged"] else
-                     [_cell(m.get(k), scale) for k, _, scale in COLUMNS])
+                     [_cell(m.get(k)) for k, _ in COLUMNS])
             lines.append(f"| {s} | {c} | " + " | ".join(cells) + f" | {_diverged(m)} |")
     return lines + [""]

@@ -30,7 +30,6 @@ import numpy as np
 from jaxtraffic.sim.units import INDEX_UNITS
 
 SETTLE_FRACTION = 0.1  # settling: the L2 norm stays below this fraction of its initial value
-VEH_PER_KM = 1e3
 RECORD_EVERY_S = 5.0  # s: the period at which the measures sample a rollout's L2 norm
 L2_CAP = 50.0  # veh/km: a diverged scenario's (or a larger) time-averaged L2 in a fitness (a jam-scale wave)
 JS = ("J_TTT", "J_fuel", "J_comfort")
@@ -53,9 +52,9 @@ def settle_times(t: np.ndarray, y: np.ndarray, fraction: float = SETTLE_FRACTION
 
 def per_scenario(t: np.ndarray, rho_l2: np.ndarray, diverged: np.ndarray, metrics: dict[str, Any]
                  ) -> dict[str, np.ndarray]:
-    """The measures of the module docstring, each (B,): ``t`` (T,) s, ``rho_l2`` (B, T) veh/m, ``diverged`` (B,),
+    """The measures of the module docstring, each (B,): ``t`` (T,) s, ``rho_l2`` (B, T) veh/km, ``diverged`` (B,),
     ``metrics``: the rollouts' J's, each (B,)."""
-    t, y = np.asarray(t, float), np.asarray(rho_l2, float) * VEH_PER_KM
+    t, y = np.asarray(t, float), np.asarray(rho_l2, float)
     div = np.asarray(diverged, bool) | ~np.all(np.isfinite(y), axis=1)
     late = t >= 0.5 * (t[0] + t[-1])
     out = {"mean_rho_L2": np.trapezoid(y, t, axis=1) / (t[-1] - t[0]), "late_max_rho_L2": y[:, late].max(axis=1),
@@ -71,11 +70,11 @@ def capped(mean_rho_l2: Any, cap: float = L2_CAP) -> np.ndarray:
 
 
 def capped_mean_l2(t: Any, rho_l2: Any, diverged: Any, cap: float = L2_CAP) -> Any:
-    """(B,) veh/km: ``per_scenario``'s ``mean_rho_L2`` of norms ``rho_l2`` (B, T) veh/m recorded at ``t`` (T,) s,
+    """(B,) veh/km: ``per_scenario``'s ``mean_rho_L2`` of norms ``rho_l2`` (B, T) veh/km recorded at ``t`` (T,) s,
     at most ``cap``, and ``cap`` where the rollout diverged or a norm is not finite: the fitness the tuned
     baselines and the CEM-trained learned laws minimise (``compare.tuning``, ``learn.gradient.cem``). Pure
     ``jax.numpy``: it runs inside a compiled training step."""
-    y = jnp.asarray(rho_l2) * VEH_PER_KM
+    y = jnp.asarray(rho_l2)
     mean = jnp.trapezoid(y, jnp.asarray(t), axis=1) / (t[-1] - t[0])
     bad = jnp.asarray(diverged, bool) | ~jnp.all(jnp.isfinite(y), axis=1)
     return jnp.where(bad, cap, jnp.minimum(mean, cap))

@@ -12,6 +12,8 @@ from typing import Any
 
 import numpy as np
 
+from jaxtraffic.sim.metrics import VEH_PER_KM
+
 SNAPSHOTS_MAX = 64  # the most states a map rollout records to hold the one at the paper's horizon
 
 
@@ -28,7 +30,7 @@ def snapshot_every(n_paper: int, n_map: int) -> int:
 def paper_column(res: Any, n_paper: int, every: int, cells: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """The map's cells at the paper's horizon (step ``n_paper``) of the map rollout ``res`` recorded every
     ``every`` steps (``snapshot_every``; 0: the final state is the paper's when the horizons agree, else NaN):
-    "paper_rho_L2", "paper_rho_spatial_std" (veh/m) and "paper_diverged" (diverged at a step < ``n_paper``,
+    "paper_rho_L2", "paper_rho_spatial_std" (veh/km) and "paper_diverged" (diverged at a step < ``n_paper``,
     from ``cells``'s "diverged" and "diverged_step")."""
     shape = cells["diverged"].shape
     div = cells["diverged"] & (cells["diverged_step"] < n_paper)
@@ -36,7 +38,7 @@ def paper_column(res: Any, n_paper: int, every: int, cells: dict[str, np.ndarray
         k = n_paper // every
         rho = np.asarray(res.trajectory.rho)[:, k]
         l2 = np.asarray(res.trajectory.rho_L2)[:, k].reshape(shape)
-        std = np.std(rho, axis=-1).reshape(shape)
+        std = VEH_PER_KM * np.std(rho, axis=-1).reshape(shape)
     elif n_paper == int(np.max(res.final.step)):
         l2, std = cells["final_rho_L2"], cells["final_rho_spatial_std"]
     else:

@@ -368,8 +368,8 @@ def _claim_alpha_noise(metrics: dict) -> dict[str, Any]:
                           "ppo_stabilised_fraction": stabilised_fraction(pp),
                           "backstepping_stabilised_fraction": stabilised_fraction(bs),
                           "n_seeds": bs.get("n_seeds", 1),
-                          "backstepping_final_rho_L2_veh_per_km": 1000 * bs["final_rho_L2"],
-                          "ppo_final_rho_L2_veh_per_km": 1000 * pp["final_rho_L2"]}
+                          "backstepping_final_rho_L2_veh_per_km": bs["final_rho_L2"],
+                          "ppo_final_rho_L2_veh_per_km": pp["final_rho_L2"]}
         checks += sub
     return dict(id=5, claim="Robustness: PPO trained at alpha = 0.15, D = 4 s; plant alpha perturbed "
                 "by N(0, 0.15^2): PPO stabilises, backstepping fails.", readings=readings,

@@ -36,7 +36,7 @@ from jaxtraffic.paper.scenarios import (
 from jaxtraffic.paper.summaries import UNITS, equilibrium_indices, summarise
 from jaxtraffic.paper.table2 import table2_rows, write_table2
 from jaxtraffic.platform import distributed
-from jaxtraffic.sim.metrics import LATE_WINDOW_S
+from jaxtraffic.sim.metrics import LATE_WINDOW_S, VEH_PER_KM
 
 
 # ----------------------------------------------------------------------------- driver
@@ -212,7 +212,7 @@ def _meta(meta: dict[str, Any], eval_config: EvalConfig, grids: dict[str, Contro
 
     Args:
         grids: the controllers' grids. fig7: the alpha noise reading drawn as figure 7.
-        init_l2: the initial condition's L2 deviations (``scenarios.initial_norms``), veh/m and m/s.
+        init_l2: the initial condition's L2 deviations (``scenarios.initial_norms``), veh/km and m/s.
     """
     nom = eval_config.nominal()
     meta = dict(meta)
@@ -225,9 +225,9 @@ def _meta(meta: dict[str, Any], eval_config: EvalConfig, grids: dict[str, Contro
                  "controller_grids": {k: dataclasses.asdict(g) for k, g in grids.items()}},
         "fig7_reading": fig7,
         "nominal": {"alpha": 0.15, "h_bar_s": float(nom.h_bar),
-                    "rho_bar_veh_per_m": float(equilibrium(nom)[0]),
+                    "rho_bar_veh_per_km": VEH_PER_KM * float(equilibrium(nom)[0]),
                     "v_bar_m_per_s": float(equilibrium(nom)[1])},
-        "initial_L2": {"rho_veh_per_m": init_l2[0], "v_m_per_s": init_l2[1]},
+        "initial_L2": {"rho_veh_per_km": init_l2[0], "v_m_per_s": init_l2[1]},
         "scenarios": {s.name: {"plant_delay_s": s.plant_delay, "alpha_noise": s.alpha_noise,
                                "controllers": list(s.controllers), "description": s.description,
                                "noise_hold_s": s.noise_hold_s, "noise_per_node": s.noise_per_node,
@@ -252,11 +252,11 @@ def _robustness_json(robust: dict[str, dict[str, Any]], eval_config: EvalConfig,
     return {"delays_s": list(eval_config.robust_delays), "alphas": list(eval_config.robust_alphas),
             "horizon_s": eval_config.robust_horizon_s, "paper_horizon_s": eval_config.horizon_s,
             "late_window_s": LATE_WINDOW_S,
-            "units": {"final_rho_L2": "veh/m", "final_v_L2": "m/s", "final_reward": "dimensionless",
-                      "diverged": "bool", "final_rho_spatial_std": "veh/m", "diverged_step": "plant steps (-1: never)",
-                      "diverged_at_s": "s (null: never)", "final_rho_offset": "veh/m",
-                      "late_max_rho_spatial_std": "veh/m (max over the last late_window_s; null: diverged)",
-                      "paper_rho_L2": "veh/m", "paper_rho_spatial_std": "veh/m", "paper_diverged": "bool"},
+            "units": {"final_rho_L2": "veh/km", "final_v_L2": "m/s", "final_reward": "dimensionless",
+                      "diverged": "bool", "final_rho_spatial_std": "veh/km", "diverged_step": "plant steps (-1: never)",
+                      "diverged_at_s": "s (null: never)", "final_rho_offset": "veh/km",
+                      "late_max_rho_spatial_std": "veh/km (max over the last late_window_s; null: diverged)",
+                      "paper_rho_L2": "veh/km", "paper_rho_spatial_std": "veh/km", "paper_diverged": "bool"},
             "note": "arrays indexed [delay][alpha]; controllers told D are told each cell's true plant delay; "
                     "final_*: at horizon_s, paper_*: the same rollout at paper_horizon_s (the paper's column); "
                     "table: counts over the controllable cells (table.rule) and what each controller is told, at "

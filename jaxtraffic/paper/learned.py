@@ -28,14 +28,14 @@ def stabilised_cells(r: dict[str, np.ndarray]) -> int:
 
 
 def seconds_to_beat(curve: dict[str, np.ndarray] | None, rho_l2: float, j_comfort: float) -> float | None:
-    """Wall time of the first learning-curve row whose evaluation beats (``rho_l2`` veh/m,
+    """Wall time of the first learning-curve row whose evaluation beats (``rho_l2`` veh/km,
     ``j_comfort``) on both final density L2 and J_comfort; None if none does."""
     if not curve:
         return None
     l2 = curve.get("eval_rho_L2_veh_km", curve.get("eval_rho_L2"))
     if l2 is None or "eval_J_comfort" not in curve or "wall_s" not in curve:
         return None
-    hit = np.flatnonzero((np.asarray(l2) < 1e3 * rho_l2) & (np.asarray(curve["eval_J_comfort"]) < j_comfort))
+    hit = np.flatnonzero((np.asarray(l2) < rho_l2) & (np.asarray(curve["eval_J_comfort"]) < j_comfort))
     return float(curve["wall_s"][hit[0]]) if hit.size else None
 
 
@@ -72,10 +72,10 @@ def comparison_section(metrics: dict, runs: dict[str, dict], robust: dict[str, d
              "*s to beat backstepping*: first evaluation during training whose final rho L2 and J_comfort are both "
              "below backstepping's); quality figures "
              f"from this evaluation (paper initial condition, D = 4 s, {horizon_s:g} s, backstepping for reference: "
-             f"final rho L2 {_num(1e3 * bs['final_rho_L2'], '.3f') if bs else 'n/a'} veh/km, J_comfort "
+             f"final rho L2 {_num(bs['final_rho_L2'], '.3f') if bs else 'n/a'} veh/km, J_comfort "
              f"{_num(bs.get('J_comfort'), '.4g')} {INDEX_UNITS['J_comfort']}). *Map* = cells of the robustness map "
              f"{judge_label(table) if table else 'stabilised at its horizon'} (not diverged, std_x(rho) < "
-             f"{STABLE_STD * 1e3:g} veh/km; of the controllable cells, and what each "
+             f"{STABLE_STD:g} veh/km; of the controllable cells, and what each "
              "controller is told, when the map's table is given); *delays* = plant delays of the map "
              "at alpha = 0.15 where it is stabilised.", "",
              "| controller | run | training wall s | env steps | s to beat backstepping | final rho L2 (veh/km) "
@@ -100,7 +100,7 @@ def comparison_section(metrics: dict, runs: dict[str, dict], robust: dict[str, d
         lines.append(
             f"| {laws.label(name)} | `{run['run_dir']}` | {_num(s.get('wall_s'), '.1f')} "
             f"| {_num(s.get('env_steps'), '.3g')} | {_num(t_beat, '.1f')} "
-            f"| {_num(1e3 * m['final_rho_L2'] if m else None, '.3f')} | {_num(m.get('J_comfort'), '.4g')} "
+            f"| {_num(m['final_rho_L2'] if m else None, '.3f')} | {_num(m.get('J_comfort'), '.4g')} "
             f"| {_num(ratio, '.2f')} | {cells} | {ok_delays} |")
     if table:
         for name, label in (("backstepping", "backstepping"), ("adaptive_backstepping", "adaptive backstepping"),

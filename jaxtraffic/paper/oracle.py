@@ -35,6 +35,7 @@ from jaxtraffic.control.gain_law import FILTER_SIGMA
 from jaxtraffic.paper.learned import STABLE_STD
 from jaxtraffic.paper.scenarios import EvalConfig
 from jaxtraffic.sim.initial import paper_initial_condition
+from jaxtraffic.sim.metrics import VEH_PER_KM, density_std
 from jaxtraffic.sim.rollout import simulate_batch, stack_params
 
 ORACLES = ("best_constant", "delay_schedule", "per_cell")
@@ -48,7 +49,7 @@ DEFAULT_GRID = {"eta1": (-0.4, 0.0, 0.4), "eta2": (-2.0, -1.5, -1.0, -0.5, 0.0),
 def gain_grid_map(eval_config: EvalConfig, triples: Sequence[tuple[float, float, float]],
                   filter_sigma: float = FILTER_SIGMA,
                   per_call: int = 4, log: Callable[[str], None] = print) -> tuple[np.ndarray, np.ndarray]:
-    """(diverged (T, ND, NA) bool, final std_x(rho) (T, ND, NA) veh/m) of every constant triple on the map of
+    """(diverged (T, ND, NA) bool, final std_x(rho) (T, ND, NA) veh/km) of every constant triple on the map of
     ``eval_config`` (its robust delays, alphas and horizon; the law on the paper's grid with filter width
     ``filter_sigma`` m, adapted to ``eval_config``'s plant). ``per_call`` triples share one batched rollout."""
     eval_config = replace(eval_config, horizon_s=eval_config.robust_horizon_s)
@@ -66,7 +67,7 @@ def gain_grid_map(eval_config: EvalConfig, triples: Sequence[tuple[float, float,
         res = simulate_batch(params, law.replace(settings=gains), n_steps=n_steps, nominal=nom,
                              rho0=jnp.broadcast_to(rho0, (b, nom.n_points)), v0=jnp.broadcast_to(v0, (b, nom.n_points)),
                              batch_controller=True, metrics=("diverged",))
-        return res.metrics["diverged"], jnp.std(res.final.rho, axis=-1)
+        return res.metrics["diverged"], density_std(res.final.rho)
 
     div = np.zeros((len(triples), *dd.shape), bool)
     std = np.zeros((len(triples), *dd.shape))
@@ -122,7 +123,7 @@ def oracle_json(eval_config: EvalConfig, triples: Sequence[tuple[float, ...]], r
     return {"delays_s": list(map(float, eval_config.robust_delays)), "alphas": list(map(float,
                                                                                         eval_config.robust_alphas)),
             "horizon_s": eval_config.robust_horizon_s, "plant": eval_config.describe(), "filter_sigma_m": filter_sigma,
-            "n_gain_triples": len(triples), "stable_std_veh_m": STABLE_STD, **(extra or {}),
+            "n_gain_triples": len(triples), "stable_std_veh_per_km": STABLE_STD, **(extra or {}),
             "rows": {k: {"diverged": np.asarray(r["diverged"]).tolist(),
                          "final_rho_spatial_std": np.asarray(r["final_rho_spatial_std"]).tolist(),
                          "gains": r["gains"], "stabilised_cells": stabilised_and_diverged(r)[0],
@@ -131,7 +132,8 @@ def oracle_json(eval_config: EvalConfig, triples: Sequence[tuple[float, ...]], r
 
 def load_oracle(path: Path, eval_config: EvalConfig) -> dict[str, dict] | None:
     """The rows of an ``oracle_json`` file if it was computed on ``eval_config``'s map (same delays, alphas and
-    horizon), as arrays; None if the file is missing or belongs to another map."""
+    horizon), as arrays (std in veh/km: a file of an earlier version, its threshold named ``stable_std_veh_m``,
+    held it in veh/m and is converted); None if the file is missing or belongs to another map."""
     import json
 
     if not path.is_file():
@@ -143,6 +145,7 @@ def load_oracle(path: Path, eval_config: EvalConfig) -> dict[str, dict] | None:
                                                                                         eval_config.robust_alphas)
     if not same or float(data.get("horizon_s", -1)) != float(eval_config.robust_horizon_s):
         return None
+    scale = VEH_PER_KM if "stable_std_veh_m" in data else 1.0
     return {k: {"diverged": np.asarray(r["diverged"], bool),
-                "final_rho_spatial_std": np.asarray(r["final_rho_spatial_std"], float), "gains": r["gains"]}
+                "final_rho_spatial_std": scale * np.asarray(r["final_rho_spatial_std"], float), "gains": r["gains"]}
             for k, r in data["rows"].items()}

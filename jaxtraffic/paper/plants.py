@@ -84,7 +84,7 @@ def _delay4_lines(table: dict[str, Any], plants: list[str], horizon_s: float) ->
             if bs and c != "backstepping" and bs["final_rho_L2"] and bs["J_comfort"]:
                 l2, jc = me["final_rho_L2"] / bs["final_rho_L2"], me["J_comfort"] / bs["J_comfort"]
                 rel.append(f"{p}: {l2:.2f}x, {jc:.2f}x")
-        lines.append(f"| {laws.label(c)} | " + " | ".join(_fmt(1e3 * x["final_rho_L2"]) for x in e) + " | "
+        lines.append(f"| {laws.label(c)} | " + " | ".join(_fmt(x["final_rho_L2"]) for x in e) + " | "
                      + " | ".join(_fmt(x["J_comfort"]) + (" (diverged)" if x["diverged"] else "") for x in e)
                      + f" | {'; '.join(rel) or '-'} |")
     return lines
@@ -144,11 +144,10 @@ def plot_plants(png: Path, table: dict[str, Any], plants: list[str], horizon_s: 
     fig = new_figure(figsize=(11, 3.8))
     axes = fig.subplots(1, 2)
     width = 0.8 / len(plants)
-    for ax, key, scale, label in ((axes[0], "final_rho_L2", 1e3, f"density L2 at {horizon_s:g} s (veh/km)"),
-                                  (axes[1], "J_comfort", 1.0,
-                                   f"J_comfort over {horizon_s:g} s\n({INDEX_UNITS['J_comfort']})")):
+    for ax, key, label in ((axes[0], "final_rho_L2", f"density L2 at {horizon_s:g} s (veh/km)"),
+                           (axes[1], "J_comfort", f"J_comfort over {horizon_s:g} s\n({INDEX_UNITS['J_comfort']})")):
         for i, p in enumerate(plants):
-            vals = [scale * table["delay4"][p][c][key] for c in names]
+            vals = [table["delay4"][p][c][key] for c in names]
             ax.bar(np.arange(len(names)) + i * width, vals, width, label=p)
         ax.set_yscale("log")
         ax.set_xticks(np.arange(len(names)) + width * (len(plants) - 1) / 2)

@@ -182,8 +182,8 @@ def _l2_axes(axes, t, series, styles_dash: Mapping[str, str] | None = None) -> N
         st = _style(label) or dict(color=f"C{i}")
         if styles_dash and label in styles_dash:
             st["ls"] = styles_dash[label]
-        for ax, y, scale in ((axes[0], r, VEH_PER_KM), (axes[1], v, 1.0)):
-            m, lo, hi = _mean_band(np.asarray(y, float) * scale)
+        for ax, y in ((axes[0], r), (axes[1], v)):
+            m, lo, hi = _mean_band(np.asarray(y, float))
             ax.plot(t, np.maximum(m, 1e-12), lw=max(2.8 - 0.4 * i, 1.2), label=label, **st)
             if lo is not None and hi is not None:  # (both or neither)
                 ax.fill_between(t, np.maximum(lo, 1e-12), np.maximum(hi, 1e-12), color=st.get("color"),
@@ -203,7 +203,7 @@ def plot_l2_norms(png_path: str | Path | None, t: np.ndarray,
                   fig: Figure | SubFigure | None = None) -> Figure | SubFigure:
     """L2 norms of the density and speed deviations over time (paper figs. 6, 8).
 
-    ``series``: label -> (rho_L2 in veh/m, v_L2 in m/s), each (T,) or (S, T) (mean, min-max band).
+    ``series``: label -> (rho_L2 in veh/km, v_L2 in m/s), each (T,) or (S, T) (mean, min-max band).
     """
     fig = new_figure(fig, figsize=(12, 4.2))
     axes = fig.subplots(1, 2)
@@ -238,20 +238,19 @@ def plot_robustness_map(
     quantity: str = "final ||rho - rho_bar||_L2 (veh/km)", stable_below: float | None = None, *,
     fig: Figure | SubFigure | None = None,
 ) -> Figure | SubFigure:
-    """Heatmaps of a final density deviation (given in veh/m, shown in veh/km on a log colour
-    scale) over plant delay (rows of the arrays, s) x plant ACC rate alpha (columns), one panel
-    per controller.
+    """Heatmaps of a final density deviation (veh/km, on a log colour scale) over plant delay (rows of the
+    arrays, s) x plant ACC rate alpha (columns), one panel per controller.
 
-    ``maps``: label -> (value (ND, NA) in veh/m, diverged (ND, NA) bool). Diverged cells are
+    ``maps``: label -> (value (ND, NA) in veh/km, diverged (ND, NA) bool). Diverged cells are
     drawn grey with hatching. ``nominal`` marks the training point (D, alpha) with a red star;
-    ``initial_l2`` (veh/m), if given, is marked on the colour bar. ``quantity`` labels the bar.
-    ``stable_below`` (veh/m): also count, in each panel's title, the cells below it that did not diverge.
+    ``initial_l2`` (veh/km), if given, is marked on the colour bar. ``quantity`` labels the bar.
+    ``stable_below`` (veh/km): also count, in each panel's title, the cells below it that did not diverge.
     """
     delays, alphas = np.asarray(delays, float), np.asarray(alphas, float)
     k = len(maps)
     ncol = min(k, 2)
     nrow = math.ceil(k / ncol)
-    vals = [np.asarray(m[0], float) * VEH_PER_KM for m in maps.values()]
+    vals = [np.asarray(m[0], float) for m in maps.values()]
     good = np.concatenate([v[~np.asarray(m[1], bool) & np.isfinite(v)].ravel()
                            for v, m in zip(vals, maps.values(), strict=True)])
     vmin = max(float(np.min(good)) if good.size else 1e-3, 1e-4)
@@ -277,7 +276,7 @@ def plot_robustness_map(
         if nominal is not None:
             ax.plot([nominal[1]], [nominal[0]], marker="*", ms=14, color="red", mec="white", ls="none")
         nd = int(div.sum())
-        stable = "" if stable_below is None else f"{int((~div & (v < stable_below * VEH_PER_KM)).sum())} stabilised, "
+        stable = "" if stable_below is None else f"{int((~div & (v < stable_below)).sum())} stabilised, "
         ax.set_title(f"{label}  ({stable}{nd}/{div.size} diverged)", fontsize=10)
         ax.set_xlabel("plant ACC penetration rate alpha")
         ax.set_ylabel("plant input delay D (s)")
@@ -292,9 +291,9 @@ def plot_robustness_map(
         cb.ax.yaxis.set_major_locator(ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
         cb.ax.yaxis.set_major_formatter(ticker.FuncFormatter(lambda val, _: f"{val:g}"))
         cb.ax.yaxis.set_minor_formatter(ticker.NullFormatter())
-        if initial_l2 is not None and vmin <= initial_l2 * VEH_PER_KM <= vmax:
-            cb.ax.axhline(initial_l2 * VEH_PER_KM, color="red", lw=2)
-            cb.ax.text(1.05, initial_l2 * VEH_PER_KM, " initial", color="red", fontsize=7,
+        if initial_l2 is not None and vmin <= initial_l2 <= vmax:
+            cb.ax.axhline(initial_l2, color="red", lw=2)
+            cb.ax.text(1.05, initial_l2, " initial", color="red", fontsize=7,
                        transform=cb.ax.get_yaxis_transform(), va="center")
     fig.suptitle(title)
     return finish_figure(fig, png_path)

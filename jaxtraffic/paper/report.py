@@ -140,10 +140,10 @@ def robustness_summary(robust: dict[str, dict[str, np.ndarray]], eval_config: Ev
              "backstepping estimates alpha online (docs/model.md section 18): the fair model-based competitor of "
              "a learned law told D only. Stabilised and diverged count the controllable cells only "
              f"({ctl} of {table['cells']}; {excluded_text(table)}) "
-             f"*Stabilised* at a horizon: not diverged by then and std_x(rho) < {STABLE_STD * 1e3:g} veh/km then; "
+             f"*Stabilised* at a horizon: not diverged by then and std_x(rho) < {STABLE_STD:g} veh/km then; "
              f"counted at the paper's {paper_s:g} s (the paper's column: the same rollout's state then) and at "
              f"{end_s:g} s, and *stays stabilised*: not diverged by {end_s:g} s and std_x(rho) < "
-             f"{STABLE_STD * 1e3:g} veh/km at every step of the last {LATE_WINDOW_S:g} s, not at one instant (a "
+             f"{STABLE_STD:g} veh/km at every step of the last {LATE_WINDOW_S:g} s, not at one instant (a "
              f"count at one instant moves with the horizon: a cell calm at {paper_s:g} s may blow up later). "
              "The L2 deviation "
              "is measured from the nominal target (alpha = 0.15), so it includes the steady offset a "
@@ -151,7 +151,7 @@ def robustness_summary(robust: dict[str, dict[str, np.ndarray]], eval_config: Ev
              "of rho measures only the remaining waves (the horizon is longer than the paper's because "
              "such a plant needs about L / v_bar ~ 320 s to settle to its own steady state). "
              "Initial ||rho~||_L2 = "
-             f"{1000 * r0:.3g} veh/km. *Offset*: median over the cells that did not diverge of |mean_x rho - the "
+             f"{r0:.3g} veh/km. *Offset*: median over the cells that did not diverge of |mean_x rho - the "
              "plant's own equilibrium density| at the end (its alpha, h = h_bar: where the open loop would rest).", "",
              f"| controller | told | paper's column, {paper_s:g} s: stabilised / diverged (of {ctl}) | {end_s:g} s: "
              f"stabilised / diverged (of {ctl}) | stays stabilised, last {LATE_WINDOW_S:g} s (of {ctl}) "
@@ -165,10 +165,10 @@ def robustness_summary(robust: dict[str, dict[str, np.ndarray]], eval_config: Ev
         calm = (~div) & (np.asarray(r["final_rho_spatial_std"]) < SETTLE_FRACTION * r0)
         at = "not on grid"
         if d_idx and a_idx:
-            at = f"{1000 * float(r['final_rho_L2'][d_idx[0], a_idx[0]]):.3g}"
+            at = f"{float(r['final_rho_L2'][d_idx[0], a_idx[0]]):.3g}"
         row = table["rows"][c]
         off = np.abs(np.asarray(r.get("final_rho_offset", np.full(div.shape, np.nan))))[~div]
-        offset = f"{1000 * float(np.median(off)):.3g}" if off.size and np.all(np.isfinite(off)) else "n/a"
+        offset = f"{float(np.median(off)):.3g}" if off.size and np.all(np.isfinite(off)) else "n/a"
         paper = f"{row['stabilised_paper']} / {row['diverged_paper']}" if "stabilised_paper" in row else "n/a"
         lines.append(f"| {laws.label(c)} | {row['told']} | {paper} | {row['stabilised']} / {row['diverged']} "
                      f"| {row.get(STAYS, 'n/a')} | {int(below.sum())}/{n} "
@@ -248,7 +248,7 @@ def report_text(out_dir: Path, claims: list[dict[str, Any]], metrics: dict, meta
                 div = f"{100 * e['diverged_fraction']:.0f} % of {e['n_seeds']} seeds"
             lines.append(
                 f"| {s} | {c} | {e['J_TTT']:.4g} | {e['J_fuel']:.4g} | {e['J_comfort']:.3g} "
-                f"| {1000 * e['final_rho_L2']:.3g} | {e['final_v_L2']:.3g} | {e['final_reward']:.3g} "
+                f"| {e['final_rho_L2']:.3g} | {e['final_v_L2']:.3g} | {e['final_reward']:.3g} "
                 f"| {_t(e['time_to_reward_-0.1_s'])} | {_t(e['t_settle_rho_s'])} | {_t(e['t_settle_v_s'])} "
                 f"| {e['control_effort']:.3g} | {div} |")
     lines += [""] + (sections or [])

@@ -49,7 +49,7 @@ from jaxtraffic.paper.cells import paper_column, snapshot_every
 from jaxtraffic.paper.laws import CTRL_DELAY
 from jaxtraffic.runs.session import eta_text
 from jaxtraffic.sim.initial import paper_initial_condition
-from jaxtraffic.sim.metrics import l2_deviation
+from jaxtraffic.sim.metrics import VEH_PER_KM, density_l2, l2_deviation
 from jaxtraffic.sim.options import AlphaInput, Memory, Record
 from jaxtraffic.sim.plant import NoiseReading
 from jaxtraffic.sim.rollout import plant_alphas, simulate_batch, stack_params
@@ -202,7 +202,7 @@ class Outcome:
     """Result of one (scenario, controller): per-seed metrics and recorded series.
 
     metrics: name -> array (S,); t: (T,) s (every record_every steps from 0, plus the final time);
-    rho, v (veh/m, m/s), h (sent time gap, s): (S, T, N); reward, rho_L2 (veh/m), v_L2 (m/s): (S, T).
+    rho, v (veh/m, m/s), h (sent time gap, s): (S, T, N); reward, rho_L2 (veh/km), v_L2 (m/s): (S, T).
     """
 
     metrics: dict[str, np.ndarray]
@@ -256,11 +256,11 @@ def _program_reading(reading: NoiseReading | None) -> NoiseReading | None:
 
 
 def initial_norms(eval_config: EvalConfig) -> tuple[float, float]:
-    """||rho~(0)||_L2 (veh/m) and ||v~(0)||_L2 (m/s) of the paper's initial condition."""
+    """||rho~(0)||_L2 (veh/km) and ||v~(0)||_L2 (m/s) of the paper's initial condition."""
     nom = eval_config.nominal()
     rho_bar, v_bar = equilibrium(nom)
     rho0, v0 = paper_initial_condition(nom)
-    return float(l2_deviation(rho0, rho_bar)), float(l2_deviation(v0, v_bar))
+    return float(density_l2(rho0, rho_bar)), float(l2_deviation(v0, v_bar))
 
 
 def run_scenarios(controllers: dict[str, Controller], eval_config: EvalConfig,
@@ -349,15 +349,15 @@ def run_robustness(controllers: dict[str, Controller], eval_config: EvalConfig,
     true plant delay (a batched controller setting); the others ignore the delay. Returns name ->
     {"final_rho_L2", "diverged", "final_v_L2", "final_reward",
     "final_rho_spatial_std", "final_rho_offset"} arrays of shape (len(delays), len(alphas));
-    final_rho_spatial_std (veh/m) is the standard deviation over x of the final density: the
+    final_rho_spatial_std (veh/km) is the standard deviation over x of the final density: the
     remaining wave amplitude, blind to a uniform offset from the nominal target;
-    final_rho_offset (veh/m) is the final density's mean over x minus the plant's own
+    final_rho_offset (veh/km) is the final density's mean over x minus the plant's own
     equilibrium density (its alpha, the nominal time gap h_bar: where the open loop would rest);
     "diverged_step": the plant step at which it diverged (-1: never), "diverged_at_s" (s, inf: never);
-    "late_max_rho_spatial_std" (veh/m): the maximum of std_x(rho) over the last 150 s of the horizon
+    "late_max_rho_spatial_std" (veh/km): the maximum of std_x(rho) over the last 150 s of the horizon
     (``sim.metrics.late_max``; inf where it diverged); and the paper's column, the same rollout at the paper's
     horizon (``eval_config.horizon_s``, 300 s; ``cells.paper_column``): "paper_rho_L2", "paper_rho_spatial_std"
-    (veh/m), "paper_diverged" (diverged by then). A law registered as told "delay_alpha" (the map's information
+    (veh/km), "paper_diverged" (diverged by then). A law registered as told "delay_alpha" (the map's information
     bound) is also told each cell's plant alpha (its ``alpha0``, not adapted)."""
     if not eval_config.robust_delays or not eval_config.robust_alphas:
         return {}
@@ -390,8 +390,9 @@ def run_robustness(controllers: dict[str, Controller], eval_config: EvalConfig,
         step = np.asarray(res.final.diverged_step).reshape(dd.shape)
         out[name]["diverged_step"] = step
         out[name]["diverged_at_s"] = np.where(out[name]["diverged"], step * eval_config.dt, np.inf)
-        out[name]["final_rho_spatial_std"] = np.std(np.asarray(res.final.rho), axis=-1).reshape(dd.shape)
-        out[name]["final_rho_offset"] = np.mean(np.asarray(res.final.rho), axis=-1).reshape(dd.shape) - own_rho
+        out[name]["final_rho_spatial_std"] = VEH_PER_KM * np.std(np.asarray(res.final.rho), axis=-1).reshape(dd.shape)
+        out[name]["final_rho_offset"] = VEH_PER_KM * (np.mean(np.asarray(res.final.rho), axis=-1).reshape(dd.shape)
+                                                      - own_rho)
         out[name]["late_max_rho_spatial_std"] = np.asarray(res.metrics["late_max_rho_std"]).reshape(dd.shape)
         out[name].update(paper_column(res, n_paper, every, out[name]))
         log(f"  robustness {name:<13s} {len(envs):3d} envs x {eval_config.n_steps} steps"

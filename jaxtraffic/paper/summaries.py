@@ -20,7 +20,7 @@ UNITS = {
     "J_TTT": "veh/km·m·s = 1e-3 veh·s (int int rho dx dt with rho in veh/km, x in m, t in s; paper Table 2 units)",
     "J_fuel": "int int xi(v,a) rho dx dt, xi in ml/s per vehicle, rho in veh/km, x in m, t in s",
     "J_comfort": "int int (a^2 + a_t^2) rho dx dt, a in m/s^2, a_t in m/s^3, rho in veh/km, x in m, t in s",
-    "final_rho_L2": "veh/m, sqrt(mean_i (rho_i - rho_bar)^2) at the end of the horizon",
+    "final_rho_L2": "veh/km, sqrt(mean_i (rho_i - rho_bar)^2) at the end of the horizon",
     "final_v_L2": "m/s, sqrt(mean_i (v_i - v_bar)^2) at the end of the horizon",
     "final_reward": "dimensionless, paper reward -sum_i[(rho~_i/rho_bar)^2 + (v~_i/v_bar)^2] at the end",
     "time_to_reward_-0.1_s": "s, time after which the reward stays >= -0.1 to the end; null if never",

@@ -1,6 +1,7 @@
 """Performance indices and norms (docs/model.md section 10), accumulated while a rollout streams.
 
-Units: the J's use rho in veh/km, x in m, t in s (the paper's Table 2 magnitudes); speed in m/s,
+Units: the state is SI (rho in veh/m), every density metric veh/km: the J's use rho in veh/km, x in m, t in s
+(the paper's Table 2 magnitudes), the density norms (``density_l2``, ``density_std``) are in veh/km; speed in m/s,
 acceleration a = v_t + v v_x in m/s^2. Space integrals use the trapezoidal rule over the nodes;
 time integrals the left rectangle rule over the steps (sample at t_n, n = 0..n_steps-1), so a
 uniform state of density rho over T seconds gives J_TTT = 1000 rho L T (to rounding). The time
@@ -30,13 +31,13 @@ from jaxtraffic.model.fundamental import in_physical_region
 
 Array = jax.Array
 
-VEH_PER_KM = 1000.0  # veh/m -> veh/km
+VEH_PER_KM = 1000.0  # veh/m (the state's unit, SI) -> veh/km (the unit of every density metric and output)
 FUEL_B0, FUEL_B1, FUEL_B3, FUEL_B4 = 25e-3, 24.5e-6, 32.5e-9, 125e-6  # Treiber & Kesting
 KMH = 3.6  # m/s -> km/h
 REWARD_TARGET = -0.1  # the paper's stop rule on the reward
-# veh/m (0.5 veh/km): a plant of the robustness map is *stabilised* when it did not diverge and the spatial standard
+# veh/km: a plant of the robustness map is *stabilised* when it did not diverge and the spatial standard
 # deviation of its final density (the remaining waves, blind to a uniform offset) is below this
-STABLE_STD = 0.5e-3
+STABLE_STD = 0.5
 REWARD_DX = 5.0  # m, the paper's grid spacing: the reward's per-node sum is weighted by dx / REWARD_DX
 LATE_WINDOW_S = 150.0  # s: the late window of "late_max_rho_std" (the last 150 s of a rollout)
 
@@ -56,6 +57,17 @@ def spatial_gradient(u: Array, dx: Array | float) -> Array:
 def l2_deviation(u: Array, u_bar: Array | float) -> Array:
     """The paper's norm ||u - u_bar||_L2 = sqrt(mean_i (u_i - u_bar)^2), units of u."""
     return jnp.sqrt(jnp.mean((u - u_bar) ** 2, axis=-1))
+
+
+def density_l2(rho: Array, rho_bar: Array | float) -> Array:
+    """||rho - rho_bar||_L2 (``l2_deviation``) in veh/km of densities in veh/m: the unit of every density metric."""
+    return VEH_PER_KM * l2_deviation(rho, rho_bar)
+
+
+def density_std(rho: Array) -> Array:
+    """The standard deviation over x (last axis) of densities in veh/m, in veh/km (the waves left, blind to a
+    uniform offset)."""
+    return VEH_PER_KM * jnp.std(rho, axis=-1)
 
 
 def node_weight(dx: Array | float) -> Array | float:
@@ -112,7 +124,8 @@ class MetricsAccumulator:
     J_fuel_kmh: J_fuel with ``fuel_rate_kmh`` (the paper's reading).
     n_active (scalar): number of accumulated (healthy) steps.
     last_bad_step (scalar): last step index whose reward was below REWARD_TARGET (-1: none).
-    late_max_rho_std (scalar): max of std_x(rho) (veh/m) over the healthy steps n >= ``MetricsTarget.late_step``
+    late_max_rho_std (scalar): max of std_x(rho) (veh/m; ``late_max`` reports it in veh/km) over the healthy steps
+    n >= ``MetricsTarget.late_step``
     (an opt-in metric, ``OPTIONAL_METRICS``: not in the default selection).
     A field is None when the rollout's metrics do not read it (``init_metrics(keep=...)``, ``accumulators``).
     """
@@ -323,9 +336,9 @@ def late_steps(dt: Array | float) -> Array:
 
 
 def late_max(acc: MetricsAccumulator, rho_final: Array, diverged: Array) -> Array:
-    """The "late_max_rho_std" metric (veh/m): the accumulated late maximum of std_x(rho) and the final state's;
-    +inf for a diverged rollout."""
-    return jnp.where(diverged, jnp.inf, jnp.maximum(acc.late_max_rho_std, jnp.std(rho_final)))
+    """The "late_max_rho_std" metric (veh/km): the accumulated late maximum of std_x(rho) (kept in veh/m) and the
+    final state's; +inf for a diverged rollout."""
+    return jnp.where(diverged, jnp.inf, VEH_PER_KM * jnp.maximum(acc.late_max_rho_std, jnp.std(rho_final)))
 
 
 def accumulators(names: Iterable[str]) -> frozenset[str]:

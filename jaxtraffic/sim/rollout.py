@@ -59,7 +59,7 @@ __all__ = ["AlphaInput", "DivergedError", "Divergence", "Memory", "NoiseReading"
 @struct.dataclass
 class Trajectory:
     """Every ``Record.every``-th step from t = 0: t (s), rho (veh/m), v (m/s), h (sent, s),
-    reward, rho_L2 (veh/m) and v_L2 (m/s)."""
+    reward, rho_L2 (veh/km, like every density metric) and v_L2 (m/s)."""
 
     t: Array
     rho: Array
@@ -86,7 +86,7 @@ def finalize_metrics(acc: metrics.MetricsAccumulator, final: PlantState, target:
     """Scalar results of a rollout (``dx``: the plant's grid spacing, default ``target.dx``): those of
     ``names`` (default: all, ``metrics.METRIC_NAMES``) whose running sums ``acc`` keeps, in that order.
 
-    J_TTT, J_fuel, J_comfort (rho in veh/km; see ``metrics``), final_rho_L2 (veh/m),
+    J_TTT, J_fuel, J_comfort (rho in veh/km; see ``metrics``), final_rho_L2 (veh/km),
     final_v_L2 (m/s), final_reward, time_to_reward_target_s (time after which the reward stays
     >= -0.1; inf if it never does), diverged, diverged_at_s (inf if never), diverged_reason
     (int32 code of ``sim.outcome.Divergence``: 0 healthy, 1 state left the physical region, 2 controller
@@ -94,7 +94,7 @@ def finalize_metrics(acc: metrics.MetricsAccumulator, final: PlantState, target:
     (RMS over space and time of h_sent - h_bar, s), max_cfl (largest CFL number of the steps
     taken, with the applied input and the plant's alpha); then ``metrics.EXTRA_INDICES`` (the
     comfort parts, the switch-on step and the paper's km/h reading); only when asked for (``names``):
-    late_max_rho_std (veh/m, ``metrics.late_max``: max of std_x(rho) over the last ``metrics.LATE_WINDOW_S``).
+    late_max_rho_std (veh/km, ``metrics.late_max``: max of std_x(rho) over the last ``metrics.LATE_WINDOW_S``).
     """
     dx = target.dx if dx is None else dx
     rho_bar, v_bar = equilibrium(target)
@@ -109,7 +109,7 @@ def finalize_metrics(acc: metrics.MetricsAccumulator, final: PlantState, target:
 
     tot = metrics.totals(acc, dx)
     table = {
-        "final_rho_L2": lambda: metrics.l2_deviation(final.rho, rho_bar),
+        "final_rho_L2": lambda: metrics.density_l2(final.rho, rho_bar),
         "final_v_L2": lambda: metrics.l2_deviation(final.v, v_bar),
         "final_reward": r_final,
         "time_to_reward_target_s": time_to_target,
@@ -181,7 +181,7 @@ def _simulate(params: TrafficParams, controller: Controller | None, rho0: Array 
             s = carry[0]
             carry, hs = jax.lax.scan(one_step, carry, alpha_chunk)
             rec = (s.step * p.dt, s.rho, s.v, hs[0], metrics.reward(s.rho, s.v, rho_bar, v_bar, p.dx),
-                   metrics.l2_deviation(s.rho, rho_bar), metrics.l2_deviation(s.v, v_bar))
+                   metrics.density_l2(s.rho, rho_bar), metrics.l2_deviation(s.v, v_bar))
             return carry, rec
 
         # remat: reverse-mode differentiation keeps only the carry at chunk boundaries and recomputes

@@ -44,7 +44,7 @@ from jaxtraffic.learn.gradient.objective import (
 )
 from jaxtraffic.learn.gradient.policies import POLICIES
 from jaxtraffic.model.params import TrafficParams
-from jaxtraffic.sim.metrics import STABLE_STD, VEH_PER_KM
+from jaxtraffic.sim.metrics import STABLE_STD, density_std
 from jaxtraffic.sim.options import Record
 from jaxtraffic.sim.rollout import simulate_batch
 
@@ -88,7 +88,7 @@ def fitness(thetas: Array, grad_config: GradientConfig, base: TrafficParams,
                          record=Record(every=every if by_l2 else 0),
                          metrics=("diverged", "final_rho_L2") if by_l2 else ("diverged",))
     div = res.metrics["diverged"].reshape(n_p, n_s)
-    std = jnp.std(res.final.rho, axis=-1).reshape(n_p, n_s)
+    std = density_std(res.final.rho).reshape(n_p, n_s)
     stab = (~div & (std < STABLE_STD)).sum(axis=1)
     n_div = div.sum(axis=1)
     if by_l2:
@@ -97,7 +97,7 @@ def fitness(thetas: Array, grad_config: GradientConfig, base: TrafficParams,
         t = jnp.append(tr.t[0], n_steps * base.dt)
         l2 = jnp.concatenate([tr.rho_L2, res.metrics["final_rho_L2"][:, None]], axis=1)
         return -stats.capped_mean_l2(t, l2, res.metrics["diverged"]).reshape(n_p, n_s).mean(axis=1), stab, n_div
-    tie = jnp.mean(jnp.log(jnp.where(div, DIVERGED_STD, std * VEH_PER_KM) + 1e-3), axis=1)
+    tie = jnp.mean(jnp.log(jnp.where(div, DIVERGED_STD, std) + 1e-3), axis=1)
     return stab - DIVERGED_COST * n_div - grad_config.cem_tie_weight * tie, stab, n_div
 
 

@@ -217,7 +217,7 @@ def scenario_objective(theta: Any, params: TrafficParams, rho0: Array, v0: Array
                    metrics=OBJECTIVE_METRICS)
     tr, m = res.trajectory, res.metrics
     assert tr is not None  # recorded: record_every >= 1
-    waves = jnp.log1p(jnp.var(tr.rho * 1000.0, axis=-1) / 100.0 + jnp.var(tr.v, axis=-1))
+    waves = jnp.log1p(jnp.var(tr.rho * VEH_PER_KM, axis=-1) / 100.0 + jnp.var(tr.v, axis=-1))
     late = jnp.arange(1, waves.shape[0] + 1, dtype=waves.dtype)  # t_k / T up to a factor
     j = (-w.reward_weight * jnp.mean(tr.reward) + w.waves_weight * jnp.sum(late * waves) / jnp.sum(late)
          + w.comfort_weight * m["J_comfort"])

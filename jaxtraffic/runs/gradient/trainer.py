@@ -126,7 +126,7 @@ class GradientTraining:
         step = f"CEM generation of {grad_config.cem_population} candidates" if cem_run else "Adam step"
         return (f"training by {'CEM' if cem_run else 'gradient'} ({grad_config.policy}): {grad_config.n_scenarios} "
                 f"scenarios x {n_steps} steps per {step}, {grad_config.steps_per_chunk} steps/chunk, plant D = "
-                f"{config.plant.delay:g} s; backstepping reference: rho L2 {self.ref['final_rho_L2'] * 1e3:.3f} "
+                f"{config.plant.delay:g} s; backstepping reference: rho L2 {self.ref['final_rho_L2']:.3f} "
                 f"veh/km, J_comfort {self.ref['J_comfort']:.4g} {INDEX_UNITS['J_comfort']}")
 
     def chunk(self, clock: Clock) -> tuple[dict, str]:
@@ -145,7 +145,7 @@ class GradientTraining:
         row = {"update": prog.updates, "env_steps": prog.env_steps, "wall_s": round(prog.wall_s, 3),
                "objective": float(m["objective"][-1]), "grad_norm": float(m["grad_norm"][-1]),
                "eval_reward": ev["final_reward"], "eval_J_comfort": ev["J_comfort"],
-               "eval_rho_L2_veh_km": ev["final_rho_L2"] * 1e3, "eval_wave_speed": ev["wave_speed"],
+               "eval_rho_L2_veh_km": ev["final_rho_L2"], "eval_wave_speed": ev["wave_speed"],
                "eta1": g[0], "eta2": g[1], "eta3": g[2]}
         prog.rows.append(row)
         prog.mark("paper_rule", (not ev["diverged"]) and ev["final_reward"] >= REWARD_TARGET)
@@ -187,7 +187,7 @@ class GradientTraining:
             write_json(run_dir / ckpt.SUMMARY, summary)
         beat = prog.seconds_to("beat_backstepping")
         steps = "Adam steps" if grad_config.grad_method == "adam" else "CEM generations"
-        return (f"done: {prog.updates} {steps} in {prog.wall_s:.1f} s; final rho L2 {ev['final_rho_L2'] * 1e3:.3f} "
+        return (f"done: {prog.updates} {steps} in {prog.wall_s:.1f} s; final rho L2 {ev['final_rho_L2']:.3f} "
                 f"veh/km, J_comfort {ev['J_comfort']:.4g} {INDEX_UNITS['J_comfort']}; "
                 + (f"first beat backstepping after {beat:.1f} s" if beat is not None else "never beat backstepping")
                 + f"; outputs in {run_dir}")

@@ -1,7 +1,7 @@
 """Validation suite for PPO checkpoints: a few initial conditions x plant delays, long horizon.
 
 Each member's deterministic policy (``control.gain_policy.policy_controller``) is rolled out on every scenario
-of the suite (the cosine initial conditions ``ics`` = (amplitude veh/m, wavenumber, phase rad) x
+of the suite (the cosine initial conditions ``ics`` = (amplitude veh/km, wavenumber, phase rad) x
 the plant delays ``delays`` s; alpha and the rest as the training plant, no noise) for ``steps``
 steps, in one batched ``simulate_batch``. The reference is ``backstepping`` assuming the nominal
 delay on the same scenarios. Per scenario i (rho L2 at half the horizon and at its end, J_comfort
@@ -47,24 +47,25 @@ from jaxtraffic.control.adapter import ControllerGrid, adapt, baseline_grid
 from jaxtraffic.control.base import tell_delay
 from jaxtraffic.control.baselines import backstepping
 from jaxtraffic.sim.initial import paper_initial_condition
+from jaxtraffic.sim.metrics import VEH_PER_KM
 from jaxtraffic.sim.options import Record
 from jaxtraffic.sim.rollout import simulate_batch
 
 BAD = 1e6
 SUITE_METRICS = ("final_rho_L2", "J_comfort", "diverged")  # what the suite reads of each rollout
-DEFAULT_ICS = ((0.010, 4.0, 0.0), (0.010, 4.0, math.pi))  # the paper's, and the same shifted by half a wave
+DEFAULT_ICS = ((10.0, 4.0, 0.0), (10.0, 4.0, math.pi))  # the paper's, and the same shifted by half a wave
 
 
 def scenarios(nominal, delays, ics):
     """(plants stacked over scenarios, rho0 (S, n), v0 (S, n), labels)."""
     rows = [(d, ic) for ic in ics for d in delays]
     plant = nominal.replace(alpha_noise=0.0)
-    init = [paper_initial_condition(plant, a, k, ph) for _, (a, k, ph) in rows]
+    init = [paper_initial_condition(plant, a / VEH_PER_KM, k, ph) for _, (a, k, ph) in rows]
     rho0 = jnp.stack([r for r, _ in init])
     v0 = jnp.stack([v for _, v in init])
     plants = jax.tree.map(lambda x: jnp.broadcast_to(jnp.asarray(x, float), (len(rows),)), plant)
     plants = plants.replace(delay=jnp.asarray([d for d, _ in rows], float))
-    labels = [f"D={d:g} amp={a:g} k={k:g} phase={ph:.2f}" for d, (a, k, ph) in rows]
+    labels = [f"D={d:g} amp={a:g} veh/km k={k:g} phase={ph:.2f}" for d, (a, k, ph) in rows]
     return plants, rho0, v0, labels
 
 
@@ -117,11 +118,11 @@ def make_suite(nominal, steps: int, delays, ics=DEFAULT_ICS, j_slack: float = 1.
             ratio = np.maximum(half / ref_half, jc / (j_slack * ref_j))
             bad = div | ~(end < half) | ~np.isfinite(ratio)
         ratio = np.where(bad, BAD, np.where(nominal_delay, ratio, 0.0))
-        return {"score": ratio.max(axis=1), "ratio": ratio, "rho_L2_half": half * 1e3, "rho_L2_end": end * 1e3,
+        return {"score": ratio.max(axis=1), "ratio": ratio, "rho_L2_half": half, "rho_L2_end": end,
                 "J_comfort": jc, "labels": labels}
 
     out = cast(Suite, suite)  # a function with attributes: the Protocol's members
-    out.reference = {"rho_L2_half": ref_half * 1e3, "rho_L2_end": ref_end * 1e3, "J_comfort": ref_j,
+    out.reference = {"rho_L2_half": ref_half, "rho_L2_end": ref_end, "J_comfort": ref_j,
                      "labels": labels}
     out.scenarios = {"delays": list(delays)}
     out.measure = "the worst ratio to backstepping over the suite"

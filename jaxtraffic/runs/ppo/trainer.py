@@ -62,7 +62,6 @@ from jaxtraffic.runs.policy import load_policy, policy_certificate
 from jaxtraffic.runs.ppo import members, selection
 from jaxtraffic.runs.session import check_finite, check_total, eta_text, fmt_time, rounding_note
 from jaxtraffic.sim.initial import paper_initial_condition
-from jaxtraffic.sim.metrics import VEH_PER_KM
 from jaxtraffic.sim.rollout import simulate_batch
 
 __all__ = ["build", "make_evaluator", "member_controller", "train"]
@@ -279,7 +278,7 @@ class PPOTraining:
                "wall_s": round(prog.wall_s, 3), "mean_reward": float(m["mean_reward"][:, -1].mean()),
                "eval_reward": float(reward.mean()), "eval_reward_min": float(reward.min()),
                "eval_reward_max": float(reward.max()), "eval_J_comfort": float(ev["J_comfort"].mean()),
-               "eval_rho_L2_veh_km": float(ev["final_rho_L2"].mean()) * VEH_PER_KM,
+               "eval_rho_L2_veh_km": float(ev["final_rho_L2"].mean()),
                "eval_wave_speed": float(ev["wave_speed"].mean()),
                "val_score": float(np.min(score)), "best_val_score": float(np.min(self.best.score))}
         row.update({k: float(m[k][:, -1].mean()) for k in ("eta1", "eta2", "eta3", "entropy", "approx_kl",

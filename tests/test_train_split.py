@@ -214,3 +214,37 @@ def test_a_ppo_split_run_validates_without_the_paper_rule(tmp_path):
     assert not paper.any() and np.all(score < selection.UNVALIDATED / 2)  # validated: the suite's scores
     _, _, score = trainer(0)._judge(ev)
     assert np.all(score > selection.UNVALIDATED / 2)  # a default run: not validated
+
+
+def test_a_split_run_that_validates_nothing_keeps_the_checkpoint_best_on_its_train_split(tmp_path):
+    """Issue 47: a split run none of whose evaluations passes the wave-speed and certificate test ranks its members
+    by their own suite score on the train split (below every validated one), never by their reward on the paper's
+    wave; a default run keeps ranking those by reward."""
+    from jaxtraffic.runs.ppo import selection
+    from jaxtraffic.runs.ppo.trainer import PPOTraining, build, member_controller
+
+    suite = lambda controller, n: {"score": np.array([2.0, 1.0])}  # noqa: E731  (member 1 best on the split)
+    reward = np.array([-0.01, -5.0])  # member 0 best on the paper's wave
+    none = np.array([False, False])
+    by_wave = selection.scores(reward, none, suite, lambda: None)
+    by_split = selection.scores(reward, none, suite, lambda: None, rank_all=True)
+    assert np.argmin(by_wave) == 0 and np.argmin(by_split) == 1
+    assert all(selection.Validation.of(s) is selection.Validation.NOT_VALIDATED for s in by_split)
+    one = selection.scores(reward, np.array([True, False]), suite, lambda: None, rank_all=True)
+    assert one[0] == 2.0 and one[1] > selection.UNVALIDATED  # a validated member still ranks first
+    text = selection.best_text(float(by_split[1]), 1, 64, "the mean ratio", rank_all=True)
+    assert "the best by the mean ratio" in text and "evaluation reward" not in text
+
+    config = TrainConfig.make(plant={"n_points": 21, "delay": 1.0, "max_delay_steps": 80},
+                              env={"train_split": 3, "horizon_s": 2.0},
+                              ppo={"num_envs": 4, "num_steps": 4, "num_minibatches": 1, "update_epochs": 1},
+                              run={"val_horizon_s": 10.0, "val_plant": "training", "min_wave_speed": 1e3,
+                                   "require_certificate": False})
+    t = PPOTraining(config, *build(config), tmp_path)
+    t.start(None, lambda *_: None)
+    ev = {"final_reward": np.array([-1e-3, -1e3]), "diverged": np.array([False, False]), "wave_speed": np.zeros(2)}
+    _, ok, score = t._judge(ev)  # no member is fast enough: none validated
+    assert not ok.any() and np.all(score > selection.UNVALIDATED)
+    own = t.suite(member_controller(t.ppo_config, t.env_params, t.rep.params, t.rep.stats.mean, t.rep.stats.var),
+                  2)["score"]
+    np.testing.assert_allclose(score - selection.UNVALIDATED, own, rtol=1e-6)

@@ -174,14 +174,18 @@ def validation_delays(env_params) -> tuple[float, ...]:
                                                       env_params.delay_max)}))
 
 
-def scores(reward: np.ndarray, candidate: np.ndarray, suite, controller) -> np.ndarray:
+def scores(reward: np.ndarray, candidate: np.ndarray, suite, controller, rank_all: bool = False) -> np.ndarray:
     """Per-member score of one evaluation (lower is better): the suite's score of the ``candidate``
     members (``controller()``: their policy controller with a leading member axis, built only if
-    needed); the others rank below every candidate, by evaluation reward ``reward``. Without a suite
-    (``suite`` None) the evaluation reward ranks the candidates too."""
+    needed); the others rank below every candidate, by evaluation reward ``reward`` (the paper's wave), or with
+    ``rank_all`` (a run trained on the train split: nothing of its selection may read the paper's wave) by their
+    own suite score. Without a suite (``suite`` None) the evaluation reward ranks the candidates too."""
     score = UNVALIDATED - np.where(np.isfinite(reward), np.maximum(reward, -1e6), -1e6)
     if suite is None:
         return np.where(candidate, -reward, score)
+    if rank_all:
+        suite_score = suite(controller(), len(reward))["score"]
+        return np.where(candidate, suite_score, UNVALIDATED + np.minimum(suite_score, BAD))
     if candidate.any():
         score = np.where(candidate, suite(controller(), len(reward))["score"], score)
     return score
@@ -248,7 +252,8 @@ class Validation(enum.Enum):
     def message(self) -> str:
         return {Validation.SCORED: "validated; the score is the suite's (<= 1: as good as backstepping)",
                 Validation.REJECTED: "validated and rejected: a rollout diverged or stopped converging",
-                Validation.NOT_VALIDATED: "not validated: the evaluation's rule failed (ranked by its reward)"}[self]
+                Validation.NOT_VALIDATED: "not validated: the evaluation's rule failed (ranked below every validated "
+                                          "one)"}[self]
 
 
 def format_scores(score: np.ndarray) -> str:
@@ -257,10 +262,10 @@ def format_scores(score: np.ndarray) -> str:
 
 
 # ----------------------------------------------------------------------------- the run's closing line
-def best_text(score: float, member: int, env_steps: int, measure: str | None) -> str:
+def best_text(score: float, member: int, env_steps: int, measure: str | None, rank_all: bool = False) -> str:
     """The best checkpoint in words for the run's closing line: its score and what it ``measure``s (the suite's
-    ``measure``; None: no validation suite ran), or that no checkpoint was scored; never the ranking's internal
-    numbers."""
+    ``measure``; None: no validation suite ran), or that no checkpoint was scored and how the kept one was ranked
+    (``rank_all``: as ``scores``'s); never the ranking's internal numbers."""
     validated = measure is not None
     where = f"member {member} at {env_steps} env steps"
     if not math.isfinite(score):
@@ -275,7 +280,7 @@ def best_text(score: float, member: int, env_steps: int, measure: str | None) ->
         return (f"no scored checkpoint (every validated one was rejected: a rollout diverged or stopped converging); "
                 f"the policy kept: {where}")
     return (f"no scored checkpoint (none met the evaluation's conditions of the stop rule); the policy kept: {where}, "
-            "the highest evaluation reward")
+            + (f"the best by {measure} among them" if rank_all and validated else "the highest evaluation reward"))
 
 
 def rule_text(run: Any, ev: dict, certified: np.ndarray | None, score: np.ndarray | None,

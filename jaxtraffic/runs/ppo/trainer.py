@@ -14,8 +14,9 @@ wavenumber faster than 1e-3/s at the training delay and alpha); (3) with a valid
 > 0, ``selection``), its validation score is <= ``val_target``. The suite is rolled out only for evaluations
 that pass (1) and (2). A run trained on the train split (``EnvConfig.train_split``) is validated on it
 (``selection.make_split_suite``; with ``val_horizon_s`` > 0) and drops (1) from the conditions; a checkpoint that
-fails (2) still ranks, below every one that passes, by its evaluation reward on the paper's wave
-(``selection.scores``), so a split run none of whose evaluations passes (2) keeps the one best on that wave.
+fails (2) still ranks, below every one that passes, by its evaluation reward on the paper's wave, or in a split run
+by its suite score on the train split (``selection.scores``): a split run none of whose evaluations passes (2)
+keeps the one best on its train split, never the one best on the paper's wave.
 The run stops when one member has met the rule
 at ``stop_patience`` consecutive evaluations (default 1). ``seconds_to_stop_rule`` records the first time it held,
 ``seconds_to_paper_rule`` the first time (1) alone held.
@@ -230,7 +231,7 @@ class PPOTraining:
         candidate = candidate if certified is None else candidate & certified
         score = selection.scores(reward, candidate, self.suite, functools.partial(
             member_controller, self.ppo_config, self.env_params, self.rep.params, self.rep.stats.mean,
-            self.rep.stats.var))
+            self.rep.stats.var), rank_all=self.split)
         ok = candidate & ((score <= run.val_target) if self.suite is not None else True)
         self.last_checks = (certified, score)  # for the closing line (selection.rule_text)
         return paper, ok, score
@@ -349,7 +350,7 @@ class PPOTraining:
                                       paper_rule=not self.split))
         best_line = selection.best_text(float(best.score[best_member]), best_member,
                                         int(best.env_steps[best_member]),
-                                        None if self.suite is None else self.suite.measure)
+                                        None if self.suite is None else self.suite.measure, rank_all=self.split)
         return (f"done: {prog.env_steps} env steps in {prog.wall_s:.1f} s; eval reward per seed "
                 f"{np.round(ev['final_reward'], 4)} (dimensionless)\nstop rule {rule}\n{best_line}\n"
                 f"outputs in {run_dir}")

@@ -101,16 +101,17 @@ DENSITY_KEYS = {"final_rho_L2", "final_rho_spatial_std", "final_rho_offset", "la
 _AMP = re.compile(r"amp=([0-9.eE+-]+) ")
 
 
-def upgrade(x: Any, key: str = "") -> Any:
+def upgrade(x: Any, key: str = "", ratio: bool = False) -> Any:
     """An older tree's JSON value with its densities in veh/km (see the module docstring): the values under
-    ``DENSITY_KEYS`` x 1000 (``*_veh_per_m`` renamed ``*_veh_per_km``), "veh/m" -> "veh/km" in the unit strings,
-    and the PPO validation labels' amplitude in veh/km."""
+    ``DENSITY_KEYS`` x 1000 (``*_veh_per_m`` renamed ``*_veh_per_km``; not below a key naming relative differences
+    or ratios, ``ratio``), "veh/m" -> "veh/km" in the unit strings, and the PPO validation labels' amplitude in
+    veh/km."""
     if isinstance(x, dict):
-        return {k.replace("_veh_per_m", "_veh_per_km"): (_units(v) if k == "units" else upgrade(v, k))
-                for k, v in x.items()}
+        return {k.replace("_veh_per_m", "_veh_per_km"): (
+            _units(v) if k == "units" else upgrade(v, k, ratio or "rel" in k or "ratio" in k)) for k, v in x.items()}
     if isinstance(x, list):
-        return [upgrade(v, key) for v in x]
-    if isinstance(x, float) and key in DENSITY_KEYS:
+        return [upgrade(v, key, ratio) for v in x]
+    if isinstance(x, float) and key in DENSITY_KEYS and not ratio:
         return 1000.0 * x
     if isinstance(x, str):
         return _AMP.sub(lambda m: f"amp={1000.0 * float(m.group(1)):g} veh/km ", x)

@@ -13,6 +13,8 @@ seeds (``train_split_sweep.py``): one row per seed and a line per law over its s
     python benchmarks/fair_benchmark.py --plant reference ...      # the converged plant (8x the cost per scenario)
     python benchmarks/fair_benchmark.py --plant paper --sensor-noise 0 0.05 ...   # each law seeing noisy measurements
     python benchmarks/fair_benchmark.py --strip docs/results/fair/split/paper.json   # keep the summaries only
+    python benchmarks/fair_benchmark.py --plant paper --tuned T.json --only backstepping_tuned \
+        --merge-into full/paper.json                  # judge some laws again, into an earlier run's full JSON
 
 ``--strip`` drops a JSON's per-scenario measures (about 85 % of it) and its Markdown (the .md beside it), keeping
 the tables, the checks, the scenarios (at float32's precision) and the provenance: the committed
@@ -20,11 +22,17 @@ docs/results/fair/split/ files (docs/results stays within its 6 MB); rerun the c
 (``--resummarise`` needs them). Before it drops them it adds (as every run does) where each law diverges: its rate
 in four equal bands of the plants' delay and of their ACC share over the distribution's ranges
 (``diverged_by_plant`` in the JSON, a section of the Markdown).
+
+``--only ROW...`` judges only those rows of the others' specs; ``--merge-into FULL`` puts their per-scenario
+measures into an earlier run's JSON with its measures (not stripped) on the same plant, horizon and scenarios,
+replacing the rows it had under the same names, and summarises it again (``merge``): a law re-tuned or retrained is
+judged at its own cost, not at the whole table's (each law's measures depend only on it and the scenarios).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from pathlib import Path
 from typing import Any
@@ -33,7 +41,7 @@ import numpy as np
 
 import jaxtraffic as jt
 from jaxtraffic.compare import ScenarioDistribution
-from jaxtraffic.io.files import atomic_write_text, read_json, write_json
+from jaxtraffic.io.files import atomic_write_text, dumps_json, read_json, write_json
 from jaxtraffic.paper import fair
 from jaxtraffic.runs.policy import load_policy, policy_grid
 
@@ -102,6 +110,21 @@ def stripped(d: dict[str, Any]) -> dict[str, Any]:
             "per_scenario": "omitted by fair_benchmark.py --strip: rerun the benchmark (provenance) to have them"}
 
 
+def merge(full: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]:
+    """``full`` (a run's JSON with its per-scenario measures) with the rows of ``new`` (a run on the same plant,
+    horizon and scenarios) put in: a row of the same name replaced in place, a new one appended; ``merged`` records
+    each merge's rows and provenance. Raises ValueError when the runs do not share their scenarios."""
+    if not isinstance(full.get("per_scenario"), dict):
+        raise ValueError("the file to merge into holds no per-scenario measures; rerun the benchmark")
+    for key in ("plant", "horizon_s", "scenarios"):
+        if json.loads(dumps_json(full.get(key))) != json.loads(dumps_json(new.get(key))):
+            raise ValueError(f"not the same {key}: the runs cannot be merged")
+    out = {**full, "laws": {**full["laws"], **new["laws"]},
+           "per_scenario": {**full["per_scenario"], **new["per_scenario"]}}
+    out["merged"] = [*full.get("merged", []), {"rows": list(new["laws"]), "provenance": new["provenance"]}]
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--plant", choices=sorted(PLANTS), default="paper")
@@ -117,6 +140,9 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None, help="folder of <plant>.json and <plant>.md")
     ap.add_argument("--resummarise", type=Path, default=None, help="only rewrite this JSON's tables and checks")
     ap.add_argument("--strip", type=Path, nargs="*", default=(), help="only drop these JSONs' per-scenario measures")
+    ap.add_argument("--only", nargs="+", default=None, metavar="ROW", help="judge only these rows")
+    ap.add_argument("--merge-into", type=Path, default=None, metavar="FULL",
+                    help="put the rows judged into this earlier run's JSON (with its measures) and resummarise it")
     args = ap.parse_args()
     for path in args.strip:
         add_divergence_bands(path)
@@ -130,12 +156,24 @@ def main() -> None:
     specs = (fair.model_based(read_json(args.tuned) if args.tuned else None)
              + (main_job_runs(args.runs) if args.runs else []) + (fair.split_runs(args.split_runs)
                                                                   if args.split_runs else []))
+    if args.only:
+        unknown = sorted(set(args.only) - {sp.name for sp in specs})
+        if unknown:
+            ap.error(f"--only: no such rows {unknown}; the rows: {', '.join(sp.name for sp in specs)}")
+        specs = [sp for sp in specs if sp.name in args.only]
     t0 = time.perf_counter()
     noise = args.sensor_noise
     dist = ScenarioDistribution(sensor_noise_range=tuple(noise)) if noise else None
     name = f"{args.plant}_noise" if noise else args.plant
-    out = fair.run(specs, args.plant, PLANTS[args.plant], args.out, args.n, args.horizon, args.seed, dist=dist,
-                   name=name)
+    out = fair.run(specs, args.plant, PLANTS[args.plant], None if args.merge_into else args.out, args.n,
+                   args.horizon, args.seed, dist=dist, name=name)
+    if args.merge_into:
+        write_json(args.merge_into, merge(read_json(args.merge_into), out))
+        print("\n".join(fair.resummarise(args.merge_into)))
+        add_divergence_bands(args.merge_into)
+        print(f"{args.merge_into}: rows {', '.join(out['laws'])} merged in, "
+              f"{time.perf_counter() - t0:.0f} s")
+        return
     if args.out is not None:
         add_divergence_bands(args.out / f"{name}.json")
         out = read_json(args.out / f"{name}.json")

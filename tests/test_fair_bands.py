@@ -43,3 +43,39 @@ def test_divergence_bands_against_a_hand_count_and_kept_by_strip(tmp_path):
     stripped = read_json(path)
     assert isinstance(stripped["per_scenario"], str) and stripped["diverged_by_plant"] == by
     assert "markdown" not in stripped and stripped["scenarios"] == _result()["scenarios"]
+
+
+def test_rows_judged_again_and_merged_equal_a_run_of_every_row(tmp_path):
+    """``fair_benchmark.py --only ... --merge-into``: a row judged on its own and merged into an earlier run's JSON
+    gives the same measures, table and checks as one run of every row (each row's measures depend only on its law
+    and the scenarios); a run on other scenarios is refused."""
+    import pytest
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import fair_benchmark
+
+    import jaxtraffic as jt
+    from jaxtraffic.compare import LawSpec
+    from jaxtraffic.paper import fair
+
+    base = jt.TrafficParams(n_points=21)
+    ref = LawSpec("backstepping", "backstepping", jt.backstepping, "delay")  # the tables' reference row
+    a, b = LawSpec("a", "law A", lambda: jt.lyapunov(0.5)), LawSpec("b", "law B", lambda: jt.lyapunov(1.5))
+    b_before = LawSpec("b", "law B", lambda: jt.lyapunov(0.1))  # the row as it was before it is judged again
+    quiet = dict(n=6, horizon_s=20.0, log=lambda _: None)
+    fair.run([ref, a, b], "tiny", base, tmp_path / "both", **quiet)
+    fair.run([ref, a, b_before], "tiny", base, tmp_path / "old", **quiet)
+    new_b = fair.run([ref, b], "tiny", base, None, **quiet)
+    path = tmp_path / "old" / "tiny.json"
+    old_b = read_json(path)["per_scenario"]["b"]
+    write_json(path, fair_benchmark.merge(read_json(path), new_b))
+    fair.resummarise(path)
+    fair.resummarise(tmp_path / "both" / "tiny.json")  # both summarised from the measures as written (7 digits)
+    merged, whole = read_json(path), read_json(tmp_path / "both" / "tiny.json")
+    assert merged["per_scenario"] == whole["per_scenario"] and merged["laws"] == whole["laws"]
+    assert merged["summary"] == whole["summary"] and merged["checks"] == whole["checks"]
+    assert merged["markdown"] == whole["markdown"] and merged["merged"][0]["rows"] == ["backstepping", "b"]
+    assert old_b != merged["per_scenario"]["b"]  # the row judged again did replace the earlier one
+    other = fair.run([ref, b], "tiny", base, None, seed=1, **quiet)
+    with pytest.raises(ValueError, match="scenarios"):
+        fair_benchmark.merge(read_json(path), other)

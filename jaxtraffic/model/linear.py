@@ -72,9 +72,9 @@ def linear_step(rho_t: Array, v_t: Array, U: Array, lm: LinearModel) -> tuple[Ar
     """One upwind step of the linearised model for deviations (veh/m, m/s) under U = h - h_bar (s).
 
     Density is built by one concatenate (boundary node, interior update) rather than two scatters into a copy
-    of ``rho_t``: the same arithmetic, bit for bit, and in the predictor's loop (``control.baselines.predict``:
-    up to D/dt of these per control step) one copy of the carry fewer per iteration, 1.2-1.3x faster there
-    (BENCHMARKS.md)."""
+    of ``rho_t``: the same arithmetic (equal results to rounding: XLA may fuse it otherwise), and in the
+    predictor's loop (``control.baselines.predict``: up to D/dt of these per control step) one copy of the
+    carry fewer per iteration, 1.2-1.3x faster there."""
     chex.assert_equal_shape([rho_t, v_t, U])
     dx, dt = lm.dx, lm.dt
     q = lm.v_bar * rho_t + lm.rho_bar * v_t  # linearised mass flux

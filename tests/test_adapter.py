@@ -101,3 +101,24 @@ def test_a_non_finite_controller_is_refused_through_the_adapter_as_directly(bad,
         assert float(res.metrics["diverged_at_s"]) <= 0.5  # its first step (s)
     healthy = jt.simulate(plant, adapt(jt.lyapunov(1.0), GRID, plant), n_steps=12)
     assert not bool(healthy.metrics["diverged"])
+
+
+def test_a_law_adapted_again_with_new_settings_reuses_its_compiled_rollout():
+    """``adapt`` gives every controller of one law on one grid the same functions, so a rollout compiled for it
+    runs new settings without tracing or compiling again: a training that validates each checkpoint through the
+    adapter used to load one program per validation until the process ran out of memory mappings (and died)."""
+    from jaxtraffic.sim.rollout import _simulate_batch_jit
+
+    fine = P.replace(n_points=41)
+    plants = jt.stack_params(fine, fine.replace(alpha=0.2))
+    first = adapt(jt.lyapunov(0.5), GRID, fine)
+    again = adapt(jt.lyapunov(0.7), GRID, fine)
+    assert (first.act_fn, first.init_fn) == (again.act_fn, again.init_fn)
+    assert adapt(jt.backstepping(2.0), GRID, fine).act_fn is not first.act_fn  # another law: its own functions
+    runs = []
+    for ctrl in (first, again):
+        before = _simulate_batch_jit._cache_size()
+        res = jt.simulate_batch(plants, ctrl, n_steps=20, nominal=fine, metrics=("final_rho_L2",))
+        runs.append((_simulate_batch_jit._cache_size() - before, np.asarray(res.metrics["final_rho_L2"])))
+    assert [n for n, _ in runs] == [1, 0]
+    assert not np.array_equal(runs[0][1], runs[1][1])  # the new gain did act

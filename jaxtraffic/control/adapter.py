@@ -23,6 +23,8 @@ the controller, or a ratio that is not an integer, is a ``ValueError``.
 from __future__ import annotations
 
 import dataclasses
+import functools
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import jax
@@ -111,7 +113,18 @@ def on_grid(controller: Controller, grid: ControllerGrid, r: int, s: int) -> Con
     """``adapt`` with the ratios given (static ints: plant nodes per controller cell r, plant steps per
     control period s), for a plant that is traced; ``grid.dt`` is then not used when s = 1 (the
     controller's period is the plant's dt)."""
-    inner = controller
+    act, init = _on_grid_fns(controller.act_fn, controller.init_fn, grid, r, s)
+    return Controller(settings=controller.settings, act_fn=act, init_fn=init,
+                      name=f"{controller.name} ({grid.n_points} points, {grid.dt:g} s)")
+
+
+@functools.cache
+def _on_grid_fns(inner_act: Callable, inner_init: Callable, grid: ControllerGrid, r: int, s: int
+                 ) -> tuple[Callable, Callable]:
+    """``on_grid``'s (act_fn, init_fn), one pair per inner law and grid: the same functions for every controller
+    adapted alike, so that a compiled rollout is reused for new settings, not traced and compiled again (a training
+    that validates each checkpoint would otherwise load a program per validation until the process runs out of
+    memory mappings)."""
 
     def view(obs: Observation, nominal: TrafficParams, h_prev: Array,
              sent: delay_buffer.DelayBuffer) -> tuple[Observation, TrafficParams]:
@@ -122,12 +135,12 @@ def on_grid(controller: Controller, grid: ControllerGrid, r: int, s: int) -> Con
         h0 = jnp.full((grid.n_points,), nominal.h_bar, obs.rho.dtype)
         sent = delay_buffer.init_buffer(h0, grid.max_delay_steps)
         sub, nom = view(obs, nominal, h0, sent)
-        return AdaptedState(inner=inner.init_fn(settings, sub, nom), h_ctrl=h0, sent=sent,
+        return AdaptedState(inner=inner_init(settings, sub, nom), h_ctrl=h0, sent=sent,
                             h_plant=jnp.full_like(obs.rho, nominal.h_bar), step=jnp.zeros((), jnp.int32))
 
     def act(settings, cs: AdaptedState, obs, nominal, key):
         sub, nom = view(obs, nominal, cs.h_ctrl, cs.sent)
-        h, inner_state = inner.act_fn(settings, cs.inner, sub, nom, key)
+        h, inner_state = inner_act(settings, cs.inner, sub, nom, key)
         finite = jnp.all(jnp.isfinite(h))  # a NaN/inf output reaches the plant as NaN: refused there, not hidden
         h = saturate(h, nom).astype(obs.rho.dtype)
         now = cs.step % s == 0
@@ -137,5 +150,4 @@ def on_grid(controller: Controller, grid: ControllerGrid, r: int, s: int) -> Con
             new = jax.tree.map(lambda a, b: jnp.where(now, a, b), new, cs.replace(step=cs.step + 1))
         return new.h_plant, new
 
-    return Controller(settings=inner.settings, act_fn=act, init_fn=init,
-                      name=f"{inner.name} ({grid.n_points} points, {grid.dt:g} s)")
+    return act, init

@@ -8,6 +8,10 @@ points, the laws acting on the paper's grid as theirs do). Writes the tuned para
 
     python benchmarks/tune_baselines.py --out docs/results/fair/tuned.json     # about 20 minutes on 2 cores
     python benchmarks/tune_baselines.py --plant training --out tuned-training.json
+    python benchmarks/tune_baselines.py --sensor-noise 0 0.05 --out tuned-noise.json   # seeing noisy measurements
+
+``--sensor-noise LO HI`` draws each train scenario's relative sensor error from U(LO, HI), as the comparison's
+``--sensor-noise`` draws the test scenarios' (the same scenarios otherwise), and tunes the laws seeing it.
 """
 
 from __future__ import annotations
@@ -46,12 +50,16 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=SEED, help="the split's seed (the same as the benchmark's)")
     ap.add_argument("--plant", choices=("paper", "training"), default="paper",
                     help="the paper's grid, or the plant the CEM-trained learned laws train on")
+    ap.add_argument("--sensor-noise", type=float, nargs=2, default=None, metavar=("LO", "HI"),
+                    help="tune seeing measurements with a relative error drawn from U(LO, HI) per scenario")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args()
     base = plant(args.plant)
-    scen = sample(ScenarioDistribution(), "train", args.n, args.seed, base=base)
+    dist = ScenarioDistribution(sensor_noise_range=tuple(args.sensor_noise)) if args.sensor_noise else \
+        ScenarioDistribution()
+    scen = sample(dist, "train", args.n, args.seed, base=base)
     out = {"scenarios": scen.describe(), "plant": {"kind": args.plant, **{k: getattr(base, k) for k in GRID_FIELDS}},
-           "provenance": provenance(), "laws": {}}
+           "sensor_noise_range": list(dist.sensor_noise_range), "provenance": provenance(), "laws": {}}
     for name, t in TUNABLE.items():
         t0 = time.perf_counter()
         out["laws"][name] = {**tune(t, scen, base, horizon_s=args.horizon, seed=args.seed),

@@ -191,6 +191,30 @@ def test_tuning_searches_the_train_split_within_bounds_and_never_loses_the_start
         tune(TUNABLE["backstepping"], sample(DIST, "test", 4, base=TINY), TINY, log=lambda s: None)
 
 
+def test_tuning_under_sensor_noise_scores_each_candidate_as_the_comparison_judges_it():
+    """A train split drawn with sensor noise: the tuning's fitness of each candidate is minus the capped mean of
+    the comparison's own measure of that law on those scenarios (the same noise levels and keys), and the noise
+    matters (the noise-free split scores the candidates differently)."""
+    from jaxtraffic.compare import stats
+    from jaxtraffic.compare.protocol import steps_of
+    from jaxtraffic.compare.tuning import fitness
+    from jaxtraffic.paper.laws import TUNABLE
+
+    t = TUNABLE["backstepping"]
+    scen = sample(ScenarioDistribution(sensor_noise_range=(0.05, 0.1)), "train", 4, seed=0, base=TINY)
+    assert np.all(scen.draws["sensor_noise"] >= 0.05)
+    pop = np.array([[1.0, 0.3], [0.5, 0.0]], np.float32)
+    n_steps, every = steps_of(60.0, float(TINY.dt))
+    got = fitness(t, pop, scen, TINY, n_steps, every)
+    for i, (k, keep) in enumerate(pop):
+        law = LawSpec("cand", "cand", lambda k=k, keep=keep: t.build(np.float32(4.0), k, keep), told="delay")
+        judged = evaluate_laws([law], scen, TINY, horizon_s=60.0, log=lambda s: None, by_delay=False)["cand"]
+        np.testing.assert_allclose(got[i], -stats.capped(judged["mean_rho_L2"]).mean(), rtol=1e-5)
+    clean = sample(DIST, "train", 4, seed=0, base=TINY)
+    np.testing.assert_array_equal(clean.rho0, scen.rho0)  # the same scenarios but for the noise
+    assert not np.allclose(fitness(t, pop, clean, TINY, n_steps, every), got, rtol=1e-4)
+
+
 @pytest.mark.skipif(not __import__("os").path.exists("/proc/self/maps"), reason="needs Linux's /proc/self/maps")
 def test_a_long_comparison_releases_its_programs_memory_mappings():
     """Each law's compiled programs hold memory mappings on the CPU backend; ``release`` (the default) drops them

@@ -7,7 +7,9 @@ A ``Tunable`` is a family of laws indexed by a few continuous parameters (backst
 measurements. ``tune`` rolls every candidate out on every train scenario (one batched ``simulate_batch`` per
 generation, every law told its plant's delay) and ranks candidates by the time-averaged density L2 over the
 horizon (``stats.per_scenario``), averaged over the scenarios with a diverged or larger one counted as
-``stats.L2_CAP`` veh/km (``stats.capped``): lower is fitter. The result is the fittest parameter set evaluated.
+``stats.L2_CAP`` veh/km (``stats.capped``): lower is fitter. Scenarios drawn with sensor noise are seen through it
+as the comparison sees them (``compare.protocol``: each scenario's level and key), every candidate the same draws.
+The result is the fittest parameter set evaluated.
 """
 
 from __future__ import annotations
@@ -21,10 +23,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxtraffic.compare import stats
-from jaxtraffic.compare.protocol import measure, steps_of
+from jaxtraffic.compare.protocol import measure, scenario_keys, sensor_noise_levels, steps_of
 from jaxtraffic.compare.scenarios import Scenarios
 from jaxtraffic.control.adapter import adapt, baseline_grid
 from jaxtraffic.control.base import Controller
+from jaxtraffic.control.noise import sensor_noise
 from jaxtraffic.learn.gradient.cem import refit, sample_population
 from jaxtraffic.model.params import TrafficParams
 
@@ -58,10 +61,15 @@ def fitness(t: Tunable, pop: np.ndarray, scen: Scenarios, nominal: TrafficParams
     n_p, n_s = pop.shape[0], len(scen)
     delays = np.tile(np.asarray(scen.plants.delay, np.float32), n_p)
     params = [np.repeat(pop[:, i].astype(np.float32), n_s) for i in range(pop.shape[1])]
-    ctrl = adapt(_batched(t.build(delays, *params), n_p * n_s), baseline_grid(nominal), nominal)
+    ctrl = _batched(t.build(delays, *params), n_p * n_s)
+    noise = sensor_noise_levels(scen)
+    noisy = bool(np.any(noise > 0))
+    if noisy:  # each scenario's noise as the comparison draws it, the same for every candidate
+        ctrl = sensor_noise(ctrl, jnp.asarray(np.tile(noise, n_p), jnp.float32), batched=True)
+    ctrl = adapt(ctrl, baseline_grid(nominal), nominal)
     plants = jax.tree.map(lambda x: np.tile(x, n_p) if np.ndim(x) else x, scen.plants)
     per = measure(plants, ctrl, np.tile(scen.rho0, (n_p, 1)), np.tile(scen.v0, (n_p, 1)), nominal, n_steps, every,
-                  batch_controller=True)
+                  batch_controller=True, keys=jnp.tile(scenario_keys(scen), (n_p, 1)) if noisy else None)
     return -stats.capped(per["mean_rho_L2"]).reshape(n_p, n_s).mean(axis=1)
 
 

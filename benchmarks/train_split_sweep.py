@@ -5,12 +5,14 @@ per law and seed, ``OUT/<law>/seed<S>``. The CEM-trained laws (delay schedule, r
 budget and fitness (a population of 12 over 10 generations, 36 scenarios of 300 s, minimising the time-averaged
 density L2: ``benchmarks/tune_baselines.py``, ``--cem-fitness mean_l2``, not their recipes' map counts); the
 Adam-trained gains and network their recipes' steps on 12 scenarios (an Adam step sees every scenario); PPO 5
-million environment steps (``--keep-going``), its best checkpoint selected on its 36 train scenarios by the same
-measure over 300 s on the paper grid (``runs.ppo.selection.make_split_suite``: the tuned baselines' objective, as a
-ratio to backstepping's; nothing of the paper's wave). Then ``fair_benchmark.py --split-runs OUT`` judges them on
-the test split.
+million environment steps by default (``--keep-going``; ``--ppo-steps 12960000`` gives it the CEM classes' budget
+in plant-seconds: 12 x 10 x 36 rollouts of 300 s = 1.296 M s, against 5 M steps of 0.1 s = 0.5 M s), its best
+checkpoint selected on its 36 train scenarios by the same measure over 300 s on the paper grid
+(``runs.ppo.selection.make_split_suite``: the tuned baselines' objective, as a ratio to backstepping's; nothing of
+the paper's wave). Then ``fair_benchmark.py --split-runs OUT`` judges them on the test split.
 
     python benchmarks/train_split_sweep.py --out runs-split --seeds 0 1 2      # about 45 min on 2 cores
+    python benchmarks/train_split_sweep.py --out runs-ppo-matched --laws ppo --ppo-steps 12960000   # ~40 min
 """
 
 from __future__ import annotations
@@ -24,9 +26,10 @@ from pathlib import Path
 from jaxtraffic.paper import laws
 
 ROOT = Path(__file__).resolve().parents[1]
+MATCHED_PPO_STEPS = 12_960_000  # env steps of 0.1 s: the CEM classes' 1.296 M plant-seconds (12 x 10 x 36 x 300 s)
 # law -> (train.py subcommand, recipe, extra flags); PPO is registered without a recipe (the main job trains it)
 PLAN: dict[str, tuple[str, str, tuple[str, ...]]] = {
-    "ppo": ("ppo", "ppo", ("--train-split", "36", "--keep-going", "--total-steps", "5000000", "--max-wall-s", "1800",
+    "ppo": ("ppo", "ppo", ("--train-split", "36", "--keep-going", "--max-wall-s", "3600",
                            "--val-plant", "training", "--val-horizon-s", "300")),
     "grad_gains": ("gradient", "gradient-gains", ("--train-split", "12")),
     "grad_network": ("gradient", "gradient-network", ("--train-split", "12")),
@@ -41,6 +44,8 @@ def main() -> None:
     ap.add_argument("--out", type=Path, required=True, help="the runs' root folder")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--laws", nargs="+", default=list(PLAN), choices=list(PLAN))
+    ap.add_argument("--ppo-steps", type=int, default=5_000_000,
+                    help=f"PPO's environment steps (0.1 s each); {MATCHED_PPO_STEPS}: the CEM classes' plant-seconds")
     args = ap.parse_args()
     missing = [n for n in laws.names(learned=True) if n not in PLAN]
     if missing:
@@ -48,6 +53,8 @@ def main() -> None:
     for seed in args.seeds:
         for name in args.laws:
             algo, recipe, extra = PLAN[name]
+            if name == "ppo":
+                extra = (*extra, "--total-steps", str(args.ppo_steps))
             out = args.out / name / f"seed{seed}"
             if (out / "summary.json").exists():
                 print(f"{name} seed {seed}: done already ({out})", flush=True)

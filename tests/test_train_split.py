@@ -128,7 +128,8 @@ def test_the_sweeps_cem_laws_are_trained_as_the_baselines_are_tuned():
     """benchmarks/train_split_sweep.py trains its CEM laws (delay schedule, residual) with the tuned baselines'
     budget, scenarios and fitness (``compare.tuning.tune``'s defaults, ``benchmarks/tune_baselines.py``'s split):
     the same population, generations and initial spread, the same train scenarios and horizon, and the fair
-    comparison's time-averaged L2 as the fitness, not the maps' counts."""
+    comparison's time-averaged L2 as the fitness, not the maps' counts; its matched PPO budget is their
+    plant-seconds."""
     import inspect
     import sys
     from pathlib import Path
@@ -153,6 +154,10 @@ def test_the_sweeps_cem_laws_are_trained_as_the_baselines_are_tuned():
     # PPO's checkpoints are selected on the same split, horizon and plant (make_split_suite, the paper grid)
     algo, recipe, extra = train_split_sweep.PLAN["ppo"]
     ppo = config_from_args([algo, "--recipe", recipe, *extra])
+    # --ppo-steps MATCHED_PPO_STEPS gives PPO the CEM classes' budget in plant-seconds (rollouts x horizon)
+    for law, g in cem_laws.items():
+        plant_s = g.cem_population * g.grad_steps * g.train_split * g.train_horizon_s
+        assert train_split_sweep.MATCHED_PPO_STEPS * ppo.plant.dt == pytest.approx(plant_s), law
     assert (ppo.env.train_split, ppo.run.val_horizon_s, ppo.run.val_plant, ppo.plant.n_points) == (
         tune_baselines.N_TRAIN, tune_baselines.HORIZON_S, "training", 201)
     pool = EpisodePool.train_split(tune_baselines.N_TRAIN, PLANT)  # the trainers' scenarios are the tuning's

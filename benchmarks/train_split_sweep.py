@@ -23,6 +23,7 @@ import sys
 import time
 from pathlib import Path
 
+from jaxtraffic.io.files import read_json
 from jaxtraffic.paper import laws
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -37,6 +38,12 @@ PLAN: dict[str, tuple[str, str, tuple[str, ...]]] = {
                                                     "--train-horizon-s", "300", "--cem-fitness", "mean_l2")),
     "grad_residual": ("gradient", "adaptive-residual", ("--train-split", "36", "--cem-fitness", "mean_l2")),
 }
+
+
+def finished(run: Path) -> bool:
+    """Whether the run in ``run`` trained to its end: its summary.json exists and does not say it was interrupted
+    (a stopped run writes one too, and is resumed)."""
+    return (run / "summary.json").exists() and not read_json(run / "summary.json").get("interrupted")
 
 
 def main() -> None:
@@ -56,7 +63,7 @@ def main() -> None:
             if name == "ppo":
                 extra = (*extra, "--total-steps", str(args.ppo_steps))
             out = args.out / name / f"seed{seed}"
-            if (out / "summary.json").exists():
+            if finished(out):
                 print(f"{name} seed {seed}: done already ({out})", flush=True)
                 continue
             cmd = [sys.executable, str(ROOT / "train.py"), algo, "--recipe", recipe, *extra, "--seed", str(seed),

@@ -253,3 +253,21 @@ def test_a_split_run_that_validates_nothing_keeps_the_checkpoint_best_on_its_tra
     own = t.suite(member_controller(t.ppo_config, t.env_params, t.rep.params, t.rep.stats.mean, t.rep.stats.var),
                   2)["score"]
     np.testing.assert_allclose(score - selection.UNVALIDATED, own, rtol=1e-6)
+
+
+def test_the_sweep_resumes_an_interrupted_run_and_skips_a_finished_one(tmp_path):
+    """An interrupted run writes its summary too (``interrupted``: true): the sweep must resume it, not count it
+    as done (it did, and a seed stopped at 2 M of its 13 M environment steps was judged as trained)."""
+    import json
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from train_split_sweep import finished
+
+    assert not finished(tmp_path)  # nothing yet
+    (tmp_path / "summary.json").write_text(json.dumps({"env_steps": 2073600, "interrupted": True}))
+    assert not finished(tmp_path)
+    (tmp_path / "summary.json").write_text(json.dumps({"env_steps": 12979200, "interrupted": False}))
+    assert finished(tmp_path)
+

@@ -23,7 +23,8 @@ docs/results/fair/split/ files (docs/results stays within its 6 MB); rerun the c
 in four equal bands of the plants' delay and of their ACC share over the distribution's ranges
 (``diverged_by_plant`` in the JSON, a section of the Markdown).
 
-``--only ROW...`` judges only those rows of the others' specs; ``--merge-into FULL`` puts their per-scenario
+``--only ROW...`` judges only those rows of the others' specs (and the reference row, backstepping, which every
+table's ratios are taken to); ``--merge-into FULL`` puts their per-scenario
 measures into an earlier run's JSON with its measures (not stripped) on the same plant, horizon and scenarios,
 replacing the rows it had under the same names, and summarises it again (``merge``): a law re-tuned or retrained is
 judged at its own cost, not at the whole table's (each law's measures depend only on it and the scenarios).
@@ -125,6 +126,14 @@ def merge(full: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def only(specs: list, rows: list[str]) -> list:
+    """The specs named in ``rows``, and the reference row (``fair.REFERENCE``), which every table's ratio column is
+    taken to: a table without it cannot be written, so it is judged too (said on stdout when not asked for)."""
+    if fair.REFERENCE not in rows:
+        print(f"--only: adding the reference row {fair.REFERENCE} (the tables' ratios are to it)")
+    return [sp for sp in specs if sp.name in {*rows, fair.REFERENCE}]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--plant", choices=sorted(PLANTS), default="paper")
@@ -160,7 +169,7 @@ def main() -> None:
         unknown = sorted(set(args.only) - {sp.name for sp in specs})
         if unknown:
             ap.error(f"--only: no such rows {unknown}; the rows: {', '.join(sp.name for sp in specs)}")
-        specs = [sp for sp in specs if sp.name in args.only]
+        specs = only(specs, args.only)
     t0 = time.perf_counter()
     noise = args.sensor_noise
     dist = ScenarioDistribution(sensor_noise_range=tuple(noise)) if noise else None

@@ -65,7 +65,8 @@ def test_rows_judged_again_and_merged_equal_a_run_of_every_row(tmp_path):
     quiet = dict(n=6, horizon_s=20.0, log=lambda _: None)
     fair.run([ref, a, b], "tiny", base, tmp_path / "both", **quiet)
     fair.run([ref, a, b_before], "tiny", base, tmp_path / "old", **quiet)
-    new_b = fair.run([ref, b], "tiny", base, None, **quiet)
+    assert fair_benchmark.only([ref, a, b], ["b"]) == [ref, b]  # --only b judges the reference row too
+    new_b = fair.run(fair_benchmark.only([ref, a, b], ["b"]), "tiny", base, None, **quiet)
     path = tmp_path / "old" / "tiny.json"
     old_b = read_json(path)["per_scenario"]["b"]
     write_json(path, fair_benchmark.merge(read_json(path), new_b))
@@ -76,6 +77,8 @@ def test_rows_judged_again_and_merged_equal_a_run_of_every_row(tmp_path):
     assert merged["summary"] == whole["summary"] and merged["checks"] == whole["checks"]
     assert merged["markdown"] == whole["markdown"] and merged["merged"][0]["rows"] == ["backstepping", "b"]
     assert old_b != merged["per_scenario"]["b"]  # the row judged again did replace the earlier one
+    with pytest.raises(ValueError, match="backstepping"):  # refused before it simulates, not after
+        fair.run([a, b], "tiny", base, None, **quiet)
     other = fair.run([ref, b], "tiny", base, None, seed=1, **quiet)
     with pytest.raises(ValueError, match="scenarios"):
         fair_benchmark.merge(read_json(path), other)

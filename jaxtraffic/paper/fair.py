@@ -29,6 +29,7 @@ from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.paper import laws
 
 SPLIT = "_split_s"  # a split-trained run's row: <law>_split_s<seed>
+REFERENCE = "backstepping"  # the row every table's ratio column is taken to (so every judged table has it)
 BASES = {"grad_residual": "adaptive_backstepping"}  # a learned law on a model-based base: held out, not worse
 HORIZON_S = 600.0  # s, the comparison's horizon (the paper's 300 s snapshot is the paper's column only)
 N_TEST = 256  # test scenarios per plant
@@ -106,7 +107,7 @@ def tables(res: dict[str, dict[str, np.ndarray]], labels: dict[str, str]) -> tup
     a base law against it, and the frontier: the best learned law (a split-trained law's median seed; without any,
     the paper-wave rows) against the best model-based row that is told no more than D (the information bound is a
     bound, not a competitor)."""
-    lines, summ = summary_table(res, labels, reference="backstepping")
+    lines, summ = summary_table(res, labels, reference=REFERENCE)
     label = labels.__getitem__
     groups = verdicts.seed_groups(list(res), SPLIT)
     seeds, over_seeds = verdicts.seed_lines(res, groups, laws.short_label)
@@ -125,7 +126,11 @@ def run(specs: list[LawSpec], plant: str, base: TrafficParams, out_dir: Path | N
         dist: ScenarioDistribution | None = None, name: str | None = None) -> dict[str, Any]:
     """Every law of ``specs`` on ``n`` test scenarios (seed ``seed``) of ``dist`` (default: the default
     distribution) on ``base`` (named ``plant``); writes ``out_dir/<name>.json`` and ``.md`` (default name: the
-    plant's) when ``out_dir`` is given; returns the JSON."""
+    plant's) when ``out_dir`` is given; returns the JSON. ``specs`` must hold the reference row (``REFERENCE``).
+    Raises:
+        ValueError: before anything runs, without the reference row."""
+    if REFERENCE not in {s.name for s in specs}:
+        raise ValueError(f"the rows must include {REFERENCE!r}: every table's ratios are taken to it")
     scen = sample(dist or ScenarioDistribution(), "test", n, seed, base=base)
     name = name or plant
     res = evaluate_laws(specs, scen, base, horizon_s, log=log)

@@ -3,7 +3,10 @@ PPO's episodes, the gradient trainers' scenarios) and the held-out verdicts over
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -271,3 +274,44 @@ def test_the_sweep_resumes_an_interrupted_run_and_skips_a_finished_one(tmp_path)
     (tmp_path / "summary.json").write_text(json.dumps({"env_steps": 12979200, "interrupted": False}))
     assert finished(tmp_path)
 
+
+
+def test_the_gradient_trainers_see_the_train_splits_sensor_noise_as_the_comparison_does():
+    """``GradientConfig.train_sensor_noise``: the pool carries the split's noise levels and keys (the scenarios are
+    those of a noise-free split), the CEM fitness of a law under that noise is the comparison's measure of the same
+    law on the same scenarios (``compare.protocol``: its own path, told each D, the noise wrapped there), the noise
+    moves it, Adam's objective has a finite gradient under it, and a noise range without a split is refused."""
+    from jaxtraffic.compare import protocol, stats
+
+    dist = ScenarioDistribution(sensor_noise_range=(0.05, 0.1))
+    scen = sample(dist, "train", 4, 0, base=PLANT)
+    pool = EpisodePool.train_split(4, PLANT, (0.05, 0.1))
+    np.testing.assert_allclose(np.asarray(pool.noise), scen.noise_levels(), rtol=1e-6)
+    np.testing.assert_array_equal(np.asarray(pool.keys), np.asarray(scen.keys()))
+    np.testing.assert_array_equal(np.asarray(pool.rho0), np.asarray(EpisodePool.train_split(4, PLANT).rho0))
+    assert np.all((scen.noise_levels() >= 0.05) & (scen.noise_levels() <= 0.1))
+
+    grad = GradientConfig.for_policy("schedule", train_split=4, cem_population=2, train_horizon_s=10.0,
+                                     record_every=1, cem_fitness="mean_l2", train_sensor_noise=(0.05, 0.1))
+    thetas = jnp.stack([jnp.tile(jnp.asarray([0.0, -1.0, -1.5]), (5, 1)), jnp.tile(jnp.asarray([0.3, -0.5, -1.0]),
+                                                                                    (5, 1))])
+    n_steps, every = protocol.steps_of(10.0, float(PLANT.dt))
+    fit, _, _ = cem.fitness(thetas, grad, PLANT, n_steps, pool, every)
+    laws = [protocol.LawSpec(f"p{i}", "", lambda th=th: objective.own_controller(th, grad, 21, 50.0), "delay")
+            for i, th in enumerate(thetas)]
+    res = protocol.evaluate_laws(laws, scen, PLANT, 10.0, log=lambda s: None, release=False)
+    want = [-float(np.mean(stats.capped(res[f"p{i}"]["mean_rho_L2"]))) for i in range(2)]
+    np.testing.assert_allclose(np.asarray(fit), want, rtol=1e-5)
+    quiet = dataclasses.replace(grad, train_sensor_noise=(0.0, 0.0))
+    fit0, _, _ = cem.fitness(thetas, quiet, PLANT, n_steps, EpisodePool.train_split(4, PLANT), every)
+    assert np.all(np.abs(np.asarray(fit0) - np.asarray(fit)) > 1e-6)
+
+    adam = GradientConfig(train_split=2, train_horizon_s=2.0, record_every=5, train_sensor_noise=(0.05, 0.1))
+    scen2, w = objective.training_scenarios(adam, PLANT), objective.weights_of(adam)
+    loss, g = jax.value_and_grad(lambda t: objective.objective(t, scen2, w, adam, PLANT)[0])(jnp.asarray([-0.3, -0.6,
+                                                                                                          -0.6]))
+    assert np.isfinite(float(loss)) and np.all(np.isfinite(np.asarray(g))) and float(jnp.abs(g).sum()) > 0
+    with pytest.raises(ValueError, match="train_sensor_noise"):
+        objective.check_scenarios(GradientConfig(train_sensor_noise=(0.0, 0.05)), PLANT)
+    with pytest.raises(ValueError, match="train_sensor_noise"):
+        GradientConfig(train_sensor_noise=(0.1, 0.05))

@@ -103,17 +103,6 @@ def delay_order(scenarios: Scenarios) -> np.ndarray:
     return np.argsort(np.asarray(scenarios.plants.delay, float).reshape(len(scenarios)), kind="stable")
 
 
-def sensor_noise_levels(scenarios: Scenarios) -> np.ndarray:
-    """(N,): each scenario's sensor noise level (relative standard deviation; 0 where none was drawn)."""
-    return np.asarray(scenarios.draws.get("sensor_noise", np.zeros(len(scenarios))), float)
-
-
-def scenario_keys(scenarios: Scenarios) -> jax.Array:
-    """(N, 2): each scenario's PRNG key (its sensor noise), from the split's seed and the scenario's own index: the
-    same values in any order and chunk, and for every law."""
-    return jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(scenarios.seed), i))(jnp.arange(len(scenarios)))
-
-
 def evaluate_laws(laws: list[LawSpec], scenarios: Scenarios, nominal: TrafficParams, horizon_s: float,
                   record_every_s: float = stats.RECORD_EVERY_S, chunk: int = 64, log: Callable[[str], None] = print,
                   release: bool = True, by_delay: bool = True) -> dict[str, dict[str, np.ndarray]]:
@@ -131,8 +120,8 @@ def evaluate_laws(laws: list[LawSpec], scenarios: Scenarios, nominal: TrafficPar
     order = delay_order(scenarios) if by_delay else np.arange(len(scenarios))
     plants, rho0, v0 = jax.tree.map(lambda x: x[order] if np.ndim(x) else x, scenarios.plants), \
         scenarios.rho0[order], scenarios.v0[order]
-    noise = sensor_noise_levels(scenarios)[order]
-    keys = scenario_keys(scenarios)[order]
+    noise = scenarios.noise_levels()[order]
+    keys = scenarios.keys()[order]
     back = np.argsort(order)  # the scenarios' own order again
     out = {}
     for spec in laws:

@@ -77,6 +77,15 @@ class Scenarios:
     def __len__(self) -> int:
         return int(self.rho0.shape[0])
 
+    def noise_levels(self) -> np.ndarray:
+        """(n,): each scenario's sensor noise level (relative standard deviation; 0 where none was drawn)."""
+        return np.asarray(self.draws.get("sensor_noise", np.zeros(len(self))), float)
+
+    def keys(self) -> jax.Array:
+        """(n, 2): each scenario's PRNG key (its sensor noise), from the split's seed and the scenario's own index: the
+        same values in any order and chunk, and for every law and trainer that sees the scenario."""
+        return jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(self.seed), i))(jnp.arange(len(self)))
+
     def key_of(self) -> np.ndarray:
         """One row per scenario of everything drawn (to compare splits)."""
         return np.stack([np.asarray(v, float) for v in self.draws.values()], axis=1)
@@ -153,18 +162,25 @@ def sample(dist: ScenarioDistribution, split: str, n: int, seed: int = 0,
 @struct.dataclass
 class EpisodePool:
     """A finite set of training episodes (``EnvConfig.train_split``: the scenario distribution's train split): per
-    scenario the plant's delay D (s) and ACC share alpha, shapes (P,), and the initial density (veh/m) and speed
-    (m/s), shapes (P, n_points). A reset draws one uniformly."""
+    scenario the plant's delay D (s) and ACC share alpha, shapes (P,), the initial density (veh/m) and speed
+    (m/s), shapes (P, n_points), and the sensor noise a law sees (``Scenarios.noise_levels``, (P,), and
+    ``Scenarios.keys``, (P, 2)). A reset draws one uniformly."""
 
     delay: jax.Array
     alpha: jax.Array
     rho0: jax.Array
     v0: jax.Array
+    noise: jax.Array
+    keys: jax.Array
 
     @classmethod
-    def train_split(cls, n: int, traffic: TrafficParams) -> EpisodePool:
-        """``n`` scenarios of the train split (``compare.scenarios.sample``, seed 0) on ``traffic``'s grid."""
-        scen = sample(ScenarioDistribution(), "train", n, 0, base=traffic.replace(alpha_noise=0.0))
+    def train_split(cls, n: int, traffic: TrafficParams, sensor_noise: tuple[float, float] = (0.0, 0.0)
+                    ) -> EpisodePool:
+        """``n`` scenarios of the train split (``compare.scenarios.sample``, seed 0) on ``traffic``'s grid, each
+        seen with a relative sensor error drawn from U(``sensor_noise``) (the same scenarios for any range)."""
+        scen = sample(ScenarioDistribution(sensor_noise_range=sensor_noise), "train", n, 0,
+                      base=traffic.replace(alpha_noise=0.0))
         dtype = jnp.result_type(float)
         return cls(delay=jnp.asarray(scen.draws["delay"], dtype), alpha=jnp.asarray(scen.draws["alpha"], dtype),
-                   rho0=jnp.asarray(scen.rho0, dtype), v0=jnp.asarray(scen.v0, dtype))
+                   rho0=jnp.asarray(scen.rho0, dtype), v0=jnp.asarray(scen.v0, dtype),
+                   noise=jnp.asarray(scen.noise_levels(), jnp.float32), keys=scen.keys())

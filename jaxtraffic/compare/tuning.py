@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxtraffic.compare import stats
-from jaxtraffic.compare.protocol import measure, scenario_keys, sensor_noise_levels, steps_of
+from jaxtraffic.compare.protocol import measure, steps_of
 from jaxtraffic.compare.scenarios import Scenarios
 from jaxtraffic.control.adapter import adapt, baseline_grid
 from jaxtraffic.control.base import Controller
@@ -62,14 +62,14 @@ def fitness(t: Tunable, pop: np.ndarray, scen: Scenarios, nominal: TrafficParams
     delays = np.tile(np.asarray(scen.plants.delay, np.float32), n_p)
     params = [np.repeat(pop[:, i].astype(np.float32), n_s) for i in range(pop.shape[1])]
     ctrl = _batched(t.build(delays, *params), n_p * n_s)
-    noise = sensor_noise_levels(scen)
+    noise = scen.noise_levels()
     noisy = bool(np.any(noise > 0))
     if noisy:  # each scenario's noise as the comparison draws it, the same for every candidate
         ctrl = sensor_noise(ctrl, jnp.asarray(np.tile(noise, n_p), jnp.float32), batched=True)
     ctrl = adapt(ctrl, baseline_grid(nominal), nominal)
     plants = jax.tree.map(lambda x: np.tile(x, n_p) if np.ndim(x) else x, scen.plants)
     per = measure(plants, ctrl, np.tile(scen.rho0, (n_p, 1)), np.tile(scen.v0, (n_p, 1)), nominal, n_steps, every,
-                  batch_controller=True, keys=jnp.tile(scenario_keys(scen), (n_p, 1)) if noisy else None)
+                  batch_controller=True, keys=jnp.tile(scen.keys(), (n_p, 1)) if noisy else None)
     return -stats.capped(per["mean_rho_L2"]).reshape(n_p, n_s).mean(axis=1)
 
 

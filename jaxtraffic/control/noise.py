@@ -17,6 +17,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from jaxtraffic.control.base import Controller
+from jaxtraffic.platform.tracing import is_traced
 
 __all__ = ["NoisySettings", "sensor_noise"]
 
@@ -50,12 +51,12 @@ def _wrapped(act_fn: Callable, init_fn: Callable) -> tuple[Callable, Callable]:
 
 def sensor_noise(controller: Controller, level: float | jax.Array, batched: bool = False) -> Controller:
     """``controller`` seeing its measurements with a relative error of standard deviation ``level`` (module
-    docstring; >= 0, finite). A (B,) ``level`` gives a batch of B controllers, run with ``batch_controller=True``:
-    the law's settings are broadcast to a leading axis of B, unless ``batched`` says they have it already (a law
-    given a batch of delays by ``tell_delay``, which must come first)."""
+    docstring; >= 0, finite: checked when concrete). A (B,) ``level`` gives a batch of B controllers, run with
+    ``batch_controller=True``: the law's settings are broadcast to a leading axis of B, unless ``batched`` says they
+    have it already (a law given a batch of delays by ``tell_delay``, which must come first)."""
     level = jnp.asarray(level, jnp.float32)
     chex.assert_rank(level, {0, 1})
-    if not bool(jnp.all(jnp.isfinite(level) & (level >= 0))):
+    if not is_traced(level) and not bool(jnp.all(jnp.isfinite(level) & (level >= 0))):  # (traced: the caller's)
         raise ValueError(f"sensor noise level must be finite and >= 0, got {level}")
     inner = controller.settings
     if level.ndim == 1 and not batched:

@@ -38,6 +38,7 @@ from jaxtraffic.learn.gradient.objective import (
     horizon_steps,
     init_theta,
     make_controller,
+    noisy,
     train_pool,
     trainable,
     training_scenarios,
@@ -78,13 +79,17 @@ def fitness(thetas: Array, grad_config: GradientConfig, base: TrafficParams,
     n_p, n_s = thetas.shape[0], scen.rho0.shape[0]
     params = jax.tree.map(lambda x: jnp.tile(x, n_p), scen.params)
     tiled = jnp.repeat(thetas, n_s, axis=0)
-    # every (theta, scenario) pair is one environment; each controller is told its plant's delay
-    ctrl = jax.vmap(lambda th, d: make_controller(th, grad_config, base, d))(tiled, params.delay)
+    # every (theta, scenario) pair is one environment; each controller is told its plant's delay, and sees its
+    # scenario's sensor noise (the same draws for every candidate, as ``compare.tuning`` sees them)
+    seen = noisy(grad_config)
+    ctrl = jax.vmap(lambda th, d, e: make_controller(th, grad_config, base, d, e if seen else None))(
+        tiled, params.delay, jnp.tile(scen.noise, n_p))
     by_l2 = grad_config.cem_fitness == "mean_l2"
     if by_l2 and not every:
         raise ValueError("the mean_l2 fitness needs its recording period: every = record_every(n_steps, dt)")
     res = simulate_batch(params, ctrl, n_steps=n_steps, nominal=base, rho0=jnp.tile(scen.rho0, (n_p, 1)),
                          v0=jnp.tile(scen.v0, (n_p, 1)), batch_controller=True,
+                         keys=jnp.tile(scen.keys, (n_p, 1)) if seen else None,
                          record=Record(every=every if by_l2 else 0),
                          metrics=("diverged", "final_rho_L2") if by_l2 else ("diverged",))
     div = res.metrics["diverged"].reshape(n_p, n_s)

@@ -61,6 +61,9 @@ class GradientConfig:
     # > 0: the scenarios are this many of the scenario distribution's train split instead of the grid above (a run:
     # EnvConfig.train_split)
     train_split: int = hyper(0, lo=0)
+    train_sensor_noise: tuple[float, float] = hyper(
+        (0.0, 0.0), lo=0.0, hi=1.0, help="train split: each scenario's relative sensor error drawn from U(lo, hi), as "
+        "the comparison's --sensor-noise (control.noise; 0 0: none)")
     # the controller's own grid (``control.adapter``; the plant's n_points must refine it by an integer factor)
     controller_points: int = hyper(0, lo=0, help="controller's grid points (0: the plant's)")
     schedule_knots: tuple[float, ...] = hyper((0.0, 2.0, 4.0, 6.0, 8.0), help="schedule policy: its knot delays, s")
@@ -83,6 +86,8 @@ class GradientConfig:
             if len(getattr(self, name)) < 1:
                 raise ValueError(f"{name} needs at least one value")
         check_fields(self)  # every field's range
+        if self.train_sensor_noise[0] > self.train_sensor_noise[1]:
+            raise fail("train_sensor_noise", self.train_sensor_noise, "must be (lo, hi) with lo <= hi")
         if self.controller_points != 0 and self.controller_points < 3:  # 0: the plant's grid
             raise fail("controller_points", self.controller_points, "must be >= 3 (0: the plant's grid)")
         if self.grad_method not in METHODS or (self.grad_method == "cem" and self.policy == "network") or (

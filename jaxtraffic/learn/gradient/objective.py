@@ -52,6 +52,7 @@ from jaxtraffic.compare.scenarios import EpisodePool
 from jaxtraffic.control.adapter import ControllerGrid, on_grid
 from jaxtraffic.control.base import Controller
 from jaxtraffic.control.gain_policy import equilibrium_gains
+from jaxtraffic.control.noise import sensor_noise
 from jaxtraffic.control.stability import GROWTH_TOL, model_growth_rates, wavenumbers
 from jaxtraffic.learn.gradient.config import GradientConfig
 from jaxtraffic.learn.gradient.policies import OBS_SCALE, POLICIES, obs_statistics  # noqa: F401 (re-exported)
@@ -85,11 +86,19 @@ class Weights:
 
 @struct.dataclass
 class Scenarios:
-    """A batch of training plants: batched ``TrafficParams`` and initial fields (B, n)."""
+    """A batch of training plants: batched ``TrafficParams``, initial fields (B, n), and the sensor noise each
+    scenario's law sees (``noise``: relative levels (B,), ``keys``: PRNG keys (B, 2); ``noisy``)."""
 
     params: TrafficParams
     rho0: Array
     v0: Array
+    noise: Array
+    keys: Array
+
+
+def noisy(grad_config: GradientConfig) -> bool:
+    """Whether the training scenarios are seen with sensor noise (static: the controller is wrapped only then)."""
+    return grad_config.train_sensor_noise[1] > 0
 
 
 @struct.dataclass
@@ -110,7 +119,8 @@ def training_scenarios(grad_config: GradientConfig, base: TrafficParams, pool: E
         assert pool is not None
         batched = jax.tree.map(lambda x: jnp.broadcast_to(jnp.asarray(x, pool.rho0.dtype), pool.delay.shape),
                                base.replace(alpha_noise=0.0))
-        return Scenarios(params=batched.replace(delay=pool.delay, alpha=pool.alpha), rho0=pool.rho0, v0=pool.v0)
+        return Scenarios(params=batched.replace(delay=pool.delay, alpha=pool.alpha), rho0=pool.rho0, v0=pool.v0,
+                         noise=pool.noise, keys=pool.keys)
     amps_m = tuple(a / VEH_PER_KM for a in grad_config.train_amplitudes)  # veh/km -> veh/m, the simulator's unit
     grid = list(itertools.product(grad_config.train_delays, grad_config.train_alphas, amps_m,
                                   grad_config.train_wavenumbers, grad_config.train_phases))
@@ -120,13 +130,15 @@ def training_scenarios(grad_config: GradientConfig, base: TrafficParams, pool: E
     batched = jax.tree.map(lambda x: jnp.broadcast_to(jnp.asarray(x, dtype), (b,)), base.replace(alpha_noise=0.0))
     params = batched.replace(delay=jnp.round(delays / base.dt) * base.dt, alpha=alphas)
     rho0, v0 = jax.vmap(lambda a, k, ph: paper_initial_condition(base, a, k, ph, dtype))(amps, wns, phases)
-    return Scenarios(params=params, rho0=rho0, v0=v0)
+    return Scenarios(params=params, rho0=rho0, v0=v0, noise=jnp.zeros((b,), jnp.float32),
+                     keys=jax.random.split(jax.random.PRNGKey(0), b))
 
 
 def train_pool(grad_config: GradientConfig, base: TrafficParams) -> EpisodePool | None:
     """The train-split scenarios of ``grad_config`` on ``base``'s grid (``base`` concrete: drawn on the host, then
     passed traced to the compiled training), or None for the scenario grid (built inside the compiled program)."""
-    return EpisodePool.train_split(grad_config.train_split, base) if grad_config.train_split else None
+    return EpisodePool.train_split(grad_config.train_split, base, grad_config.train_sensor_noise) \
+        if grad_config.train_split else None
 
 
 def init_theta(grad_config: GradientConfig, base: TrafficParams, key: Array) -> Any:
@@ -155,15 +167,17 @@ def fixed_gains(theta: Any, grad_config: GradientConfig, delay: float | Array) -
     return POLICIES[grad_config.policy].gains(theta, grad_config, delay)
 
 
-def make_controller(theta: Any, grad_config: GradientConfig, base: TrafficParams, delay: float | Array | None = None
-                    ) -> Controller:
+def make_controller(theta: Any, grad_config: GradientConfig, base: TrafficParams, delay: float | Array | None = None,
+                    noise: float | Array | None = None) -> Controller:
     """The controller of parameters ``theta`` on its own grid, acting on the plant grid of ``base``
     (``control.adapter.on_grid``: restricted observation, interpolated time gap; the period is dt);
-    ``delay`` (s): the delay a schedule is told (default ``base.delay``)."""
+    ``delay`` (s): the delay a schedule is told (default ``base.delay``); ``noise``: the relative sensor error it
+    sees on its own grid (``control.noise.sensor_noise``; None: none)."""
     check_road(base)
     n = grad_config.controller_points or base.n_points
     r = (base.n_points - 1) // (n - 1)
     ctrl = own_controller(theta, grad_config, n, ROAD_LENGTH / (n - 1), base.delay if delay is None else delay)
+    ctrl = ctrl if noise is None else sensor_noise(ctrl, noise)
     return ctrl if r == 1 else on_grid(ctrl, ControllerGrid(n, 0.0, base.max_delay_steps), r, 1)
 
 
@@ -182,10 +196,13 @@ def check_road(base: TrafficParams) -> None:
 
 
 def check_scenarios(grad_config: GradientConfig, base: TrafficParams) -> None:
-    """``ValueError`` naming the field if a training scenario is one the plant cannot represent: a delay beyond
-    the buffer, an initial state outside the physical region, a sampling interval longer than the horizon, a
-    road of another length (``check_road``)."""
+    """``ValueError`` naming the field if a training scenario is one the plant cannot represent: sensor noise
+    without the train split, a delay beyond the buffer, an initial state outside the physical region, a sampling
+    interval longer than the horizon, a road of another length (``check_road``)."""
     check_road(base)
+    if noisy(grad_config) and not grad_config.train_split:
+        raise ValueError(f"train_sensor_noise = {grad_config.train_sensor_noise}: needs train_split > 0 (the grid of "
+                         "scenarios has no noise draws)")
     cap = base.max_delay_steps
     beyond = [d for d in grad_config.train_delays if round(d / float(base.dt)) > cap]
     if beyond:
@@ -208,13 +225,15 @@ def horizon_steps(grad_config: GradientConfig, dt: float) -> int:
                round(grad_config.train_horizon_s / float(dt) / grad_config.record_every) * grad_config.record_every)
 
 
-def scenario_objective(theta: Any, params: TrafficParams, rho0: Array, v0: Array, w: Weights,
-                       grad_config: GradientConfig, base: TrafficParams, n_steps: int, remat: bool = True
+def scenario_objective(theta: Any, params: TrafficParams, rho0: Array, v0: Array, noise: Array, key: Array,
+                       w: Weights, grad_config: GradientConfig, base: TrafficParams, n_steps: int, remat: bool = True
                        ) -> tuple[Array, dict]:
-    """(J_s, metrics) of one scenario (plant ``params``, initial fields (n,)); see the module docstring."""
-    res = simulate(params, make_controller(theta, grad_config, base, params.delay), n_steps=n_steps, rho0=rho0, v0=v0,
-                   nominal=base, record=Record(every=grad_config.record_every), memory=Memory(remat=remat),
-                   metrics=OBJECTIVE_METRICS)
+    """(J_s, metrics) of one scenario (plant ``params``, initial fields (n,), the sensor noise ``noise`` and its
+    ``key``, read when ``noisy``); see the module docstring."""
+    seen = noisy(grad_config)
+    res = simulate(params, make_controller(theta, grad_config, base, params.delay, noise if seen else None),
+                   n_steps=n_steps, rho0=rho0, v0=v0, key=key if seen else None, nominal=base,
+                   record=Record(every=grad_config.record_every), memory=Memory(remat=remat), metrics=OBJECTIVE_METRICS)
     tr, m = res.trajectory, res.metrics
     assert tr is not None  # recorded: record_every >= 1
     waves = jnp.log1p(jnp.var(tr.rho * VEH_PER_KM, axis=-1) / 100.0 + jnp.var(tr.v, axis=-1))
@@ -230,8 +249,8 @@ def objective(theta: Any, scen: Scenarios, w: Weights, grad_config: GradientConf
     ``n_steps`` (static; default ``horizon_steps(grad_config, base.dt)``, which needs a concrete dt);
     ``remat``: checkpoint the rollout every ``record_every`` steps (same values and gradients)."""
     n_steps = horizon_steps(grad_config, base.dt) if n_steps is None else n_steps
-    per, m = jax.vmap(scenario_objective, (None, 0, 0, 0, None, None, None, None, None))(
-        theta, scen.params, scen.rho0, scen.v0, w, grad_config, base, n_steps, remat)
+    per, m = jax.vmap(scenario_objective, (None, 0, 0, 0, 0, 0, None, None, None, None, None))(
+        theta, scen.params, scen.rho0, scen.v0, scen.noise, scen.keys, w, grad_config, base, n_steps, remat)
     return jnp.mean(per), {**m, "scenario_objective": per}
 
 
@@ -244,10 +263,12 @@ def objective_and_grad(theta: Any, scen: Scenarios, w: Weights, grad_config: Gra
     long horizons) cannot dominate the step. Traceable."""
     vg = jax.value_and_grad(scenario_objective, has_aux=True)
 
-    def block(th, p, r, v):  # one device's scenarios
-        return jax.vmap(vg, (None, 0, 0, 0, None, None, None, None))(th, p, r, v, w, grad_config, base, n_steps)
+    def block(th, p, r, v, e, k):  # one device's scenarios
+        return jax.vmap(vg, (None, 0, 0, 0, 0, 0, None, None, None, None))(th, p, r, v, e, k, w, grad_config, base,
+                                                                           n_steps)
 
-    (per, m), gs = sharded_batch(block, (theta, scen.params, scen.rho0, scen.v0), (None, 0, 0, 0), mesh)
+    (per, m), gs = sharded_batch(block, (theta, scen.params, scen.rho0, scen.v0, scen.noise, scen.keys),
+                                 (None, 0, 0, 0, 0, 0), mesh)
     norms = jax.vmap(optax.tree.norm)(gs)
     scale = (jnp.minimum(1.0, grad_config.scenario_clip / jnp.maximum(norms, 1e-30)) if grad_config.scenario_clip > 0
              else jnp.ones_like(norms))

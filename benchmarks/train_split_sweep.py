@@ -31,6 +31,7 @@ from pathlib import Path
 
 from jaxtraffic.io.files import read_json
 from jaxtraffic.paper import laws
+from jaxtraffic.runs.config import load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 MATCHED_PPO_STEPS = 12_960_000  # env steps of 0.1 s: the CEM classes' 1.296 M plant-seconds (12 x 10 x 36 x 300 s)
@@ -63,7 +64,7 @@ def main() -> None:
                     help="train the gradient laws seeing each scenario's relative sensor error drawn from U(LO, HI)")
     args = ap.parse_args()
     noise = ("--train-sensor-noise", *map(str, args.sensor_noise)) if args.sensor_noise else ()
-    if noise and "ppo" in args.laws:
+    if noise and args.sensor_noise[1] > 0 and "ppo" in args.laws:
         print("note: PPO's environment has no sensor noise: ppo is not trained with --sensor-noise")
         args.laws = [n for n in args.laws if n != "ppo"]
     missing = [n for n in laws.names(learned=True) if n not in PLAN]
@@ -77,6 +78,10 @@ def main() -> None:
             else:
                 extra = (*extra, *noise)
             out = args.out / name / f"seed{seed}"
+            if name != "ppo" and (out / "config.json").exists():  # a run trained with other noise is not this one
+                seen = tuple(load_config(out).grad.train_sensor_noise)
+                if seen != tuple(args.sensor_noise or (0.0, 0.0)):
+                    raise SystemExit(f"{out}: trained with sensor noise {seen}, not {args.sensor_noise}: another --out")
             if finished(out):
                 print(f"{name} seed {seed}: done already ({out})", flush=True)
                 continue

@@ -27,7 +27,7 @@ GIVEN = {"grad_steps": 6, "grad_lr": 0.02, "train_delays": (1.0, 2.0), "train_al
          "scenario_clip": 0.75, "init_gains": (0.1, -0.2, 0.3),
          "schedule_knots": (0.0, 3.0), "grad_method": "cem", "cem_population": 5, "cem_sigma": 0.4,
          "grad_gain_max": 2.5, "controller_points": 11, "cem_tie_weight": 0.05, "residual_alpha_floor": 0.2,
-         "cem_fitness": "mean_l2"}
+         "cem_fitness": "mean_l2", "train_sensor_noise": (0.0, 0.05)}
 TREE_FIELDS = {f.name for s in SECTIONS for f in leaf_fields(s)}
 
 

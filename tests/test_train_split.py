@@ -282,6 +282,7 @@ def test_the_gradient_trainers_see_the_train_splits_sensor_noise_as_the_comparis
     law on the same scenarios (``compare.protocol``: its own path, told each D, the noise wrapped there), the noise
     moves it, Adam's objective has a finite gradient under it, and a noise range without a split is refused."""
     from jaxtraffic.compare import protocol, stats
+    from jaxtraffic.control.adapter import ControllerGrid
 
     dist = ScenarioDistribution(sensor_noise_range=(0.05, 0.1))
     scen = sample(dist, "train", 4, 0, base=PLANT)
@@ -291,17 +292,25 @@ def test_the_gradient_trainers_see_the_train_splits_sensor_noise_as_the_comparis
     np.testing.assert_array_equal(np.asarray(pool.rho0), np.asarray(EpisodePool.train_split(4, PLANT).rho0))
     assert np.all((scen.noise_levels() >= 0.05) & (scen.noise_levels() <= 0.1))
 
-    grad = GradientConfig.for_policy("schedule", train_split=4, cem_population=2, train_horizon_s=10.0,
-                                     record_every=1, cem_fitness="mean_l2", train_sensor_noise=(0.05, 0.1))
     thetas = jnp.stack([jnp.tile(jnp.asarray([0.0, -1.0, -1.5]), (5, 1)), jnp.tile(jnp.asarray([0.3, -0.5, -1.0]),
                                                                                     (5, 1))])
+    fine = PLANT.replace(n_points=41)
+    for plant, points in ((PLANT, 0), (fine, 21)):  # the law on the plant's grid, and on a coarser one of its own
+        grad = GradientConfig.for_policy("schedule", train_split=4, cem_population=2, train_horizon_s=10.0,
+                                         record_every=1, cem_fitness="mean_l2", train_sensor_noise=(0.05, 0.1),
+                                         controller_points=points)
+        n_steps, every = protocol.steps_of(10.0, float(plant.dt))
+        fit, _, _ = cem.fitness(thetas, grad, plant, n_steps, EpisodePool.train_split(4, plant, (0.05, 0.1)), every)
+        laws = [protocol.LawSpec(f"p{i}", "", lambda th=th, g=grad: objective.own_controller(th, g, 21, 50.0), "delay",
+                                 ControllerGrid(21, float(plant.dt), plant.max_delay_steps) if points else None)
+                for i, th in enumerate(thetas)]
+        res = protocol.evaluate_laws(laws, sample(dist, "train", 4, 0, base=plant), plant, 10.0, log=lambda s: None,
+                                     release=False)
+        want = [-float(np.mean(stats.capped(res[f"p{i}"]["mean_rho_L2"]))) for i in range(2)]
+        np.testing.assert_allclose(np.asarray(fit), want, rtol=1e-5)
+    grad = dataclasses.replace(grad, controller_points=0)
     n_steps, every = protocol.steps_of(10.0, float(PLANT.dt))
     fit, _, _ = cem.fitness(thetas, grad, PLANT, n_steps, pool, every)
-    laws = [protocol.LawSpec(f"p{i}", "", lambda th=th: objective.own_controller(th, grad, 21, 50.0), "delay")
-            for i, th in enumerate(thetas)]
-    res = protocol.evaluate_laws(laws, scen, PLANT, 10.0, log=lambda s: None, release=False)
-    want = [-float(np.mean(stats.capped(res[f"p{i}"]["mean_rho_L2"]))) for i in range(2)]
-    np.testing.assert_allclose(np.asarray(fit), want, rtol=1e-5)
     quiet = dataclasses.replace(grad, train_sensor_noise=(0.0, 0.0))
     fit0, _, _ = cem.fitness(thetas, quiet, PLANT, n_steps, EpisodePool.train_split(4, PLANT), every)
     assert np.all(np.abs(np.asarray(fit0) - np.asarray(fit)) > 1e-6)
@@ -312,6 +321,6 @@ def test_the_gradient_trainers_see_the_train_splits_sensor_noise_as_the_comparis
                                                                                                           -0.6]))
     assert np.isfinite(float(loss)) and np.all(np.isfinite(np.asarray(g))) and float(jnp.abs(g).sum()) > 0
     with pytest.raises(ValueError, match="train_sensor_noise"):
-        objective.check_scenarios(GradientConfig(train_sensor_noise=(0.0, 0.05)), PLANT)
+        objective.training_scenarios(GradientConfig(train_sensor_noise=(0.0, 0.05)), PLANT)
     with pytest.raises(ValueError, match="train_sensor_noise"):
         GradientConfig(train_sensor_noise=(0.1, 0.05))

@@ -177,7 +177,9 @@ class EpisodePool:
     def train_split(cls, n: int, traffic: TrafficParams, sensor_noise: tuple[float, float] = (0.0, 0.0)
                     ) -> EpisodePool:
         """``n`` scenarios of the train split (``compare.scenarios.sample``, seed 0) on ``traffic``'s grid, each
-        seen with a relative sensor error drawn from U(``sensor_noise``) (the same scenarios for any range)."""
+        seen with a relative sensor error drawn from U(``sensor_noise``): the same scenarios for any range, and for
+        a given ``n`` the levels and keys ``compare.tuning`` sees on ``sample(..., "train", n, 0)`` (the draws of
+        another ``n`` are other draws, not a subset)."""
         scen = sample(ScenarioDistribution(sensor_noise_range=sensor_noise), "train", n, 0,
                       base=traffic.replace(alpha_noise=0.0))
         dtype = jnp.result_type(float)

@@ -113,7 +113,8 @@ class GradState:
 def training_scenarios(grad_config: GradientConfig, base: TrafficParams, pool: EpisodePool | None = None
                        ) -> Scenarios:
     """The scenario grid of ``grad_config`` on the grid of ``base`` (alpha noise off), or its ``train_split``
-    scenarios of the train split: ``pool`` (``train_pool``), drawn here when None (``base`` concrete)."""
+    scenarios of the train split: ``pool`` (``train_pool``), drawn here when None (``base`` concrete). Sensor
+    noise (``train_sensor_noise``) needs the split: ``ValueError`` on the grid."""
     if grad_config.train_split:
         pool = train_pool(grad_config, base) if pool is None else pool
         assert pool is not None
@@ -121,6 +122,9 @@ def training_scenarios(grad_config: GradientConfig, base: TrafficParams, pool: E
                                base.replace(alpha_noise=0.0))
         return Scenarios(params=batched.replace(delay=pool.delay, alpha=pool.alpha), rho0=pool.rho0, v0=pool.v0,
                          noise=pool.noise, keys=pool.keys)
+    if noisy(grad_config):
+        raise ValueError(f"train_sensor_noise = {grad_config.train_sensor_noise}: needs train_split > 0 (the grid of "
+                         "scenarios has no noise draws)")
     amps_m = tuple(a / VEH_PER_KM for a in grad_config.train_amplitudes)  # veh/km -> veh/m, the simulator's unit
     grid = list(itertools.product(grad_config.train_delays, grad_config.train_alphas, amps_m,
                                   grad_config.train_wavenumbers, grad_config.train_phases))
@@ -200,9 +204,6 @@ def check_scenarios(grad_config: GradientConfig, base: TrafficParams) -> None:
     without the train split, a delay beyond the buffer, an initial state outside the physical region, a sampling
     interval longer than the horizon, a road of another length (``check_road``)."""
     check_road(base)
-    if noisy(grad_config) and not grad_config.train_split:
-        raise ValueError(f"train_sensor_noise = {grad_config.train_sensor_noise}: needs train_split > 0 (the grid of "
-                         "scenarios has no noise draws)")
     cap = base.max_delay_steps
     beyond = [d for d in grad_config.train_delays if round(d / float(base.dt)) > cap]
     if beyond:

@@ -95,6 +95,7 @@ FAIR_MARK = ("<!-- headline: fair comparison (benchmarks/reproduce.py) -->", "<!
 MAP_MARK = ("<!-- headline: robustness maps (benchmarks/reproduce.py) -->", "<!-- /headline -->")
 VERDICT_MARK = ("<!-- headline: fair comparison elsewhere (benchmarks/reproduce.py) -->", "<!-- /headline -->")
 PPO_MARK = ("<!-- headline: where PPO diverges (benchmarks/reproduce.py) -->", "<!-- /headline -->")
+NOISE_MARK = ("<!-- headline: trained under noise (benchmarks/reproduce.py) -->", "<!-- /headline -->")
 # the held-out tables that test the paper grid's verdict: the other scheme, the converged plant, sensor noise
 ELSEWHERE = {"muscl": "with MUSCL", "reference": "on the reference plant",
              "paper_noise": "on the paper grid under sensor noise", "muscl_noise": "with MUSCL under sensor noise",
@@ -127,13 +128,12 @@ def fair_headline(out: Path) -> str:
             f"base, the adaptive law, holds for {sum(base)} of {len(base)} seeds")
 
 
-def elsewhere_headline(out: Path) -> str:
-    """The README's line on the verdict's robustness, from DIR/fair/split/{muscl,reference}{,_noise}.json and
-    paper_noise.json (those present): the best learned law against the best model-based law on each (the
-    frontier's ratio and interval, as ``fair_headline``)."""
+def frontiers(folder: Path, tables: dict[str, str]) -> list[str]:
+    """Per table ``folder/<name>.json`` present (``tables``: name -> where), the best learned law against the best
+    model-based law: the frontier's ratio and interval, as ``fair_headline``."""
     parts = []
-    for name, where in ELSEWHERE.items():
-        path = out / "fair" / "split" / f"{name}.json"
+    for name, where in tables.items():
+        path = folder / f"{name}.json"
         if not path.exists():
             continue
         d = json.loads(path.read_text())
@@ -143,8 +143,24 @@ def elsewhere_headline(out: Path) -> str:
         level = f", relative error U({min(noise):.2f}, {max(noise):.2f})" if max(noise) > 0 else ""
         parts.append(f"{where} ({n} scenarios{level}) {c['ratio']:.2f}x [{lo:.2f}, {hi:.2f}], frontier "
                      f"{'reached' if c['frontier'] else 'not reached'}")
+    return parts
+
+
+def elsewhere_headline(out: Path) -> str:
+    """The README's line on the verdict's robustness, from DIR/fair/split/{muscl,reference}{,_noise}.json and
+    paper_noise.json (those present)."""
     return ("the best learned law against the best model-based law elsewhere (the ratio of the medians): "
-            + "; ".join(parts))
+            + "; ".join(frontiers(out / "fair" / "split", ELSEWHERE)))
+
+
+def noise_headline(out: Path) -> str:
+    """The README's line on the gradient laws trained under sensor noise, from
+    DIR/fair/trained_under_noise/{paper,muscl,reference}_noise.json (those present): their best against the best
+    model-based law of the same rows (the baselines tuned under the noise among them)."""
+    where = {k: v.split(" under")[0] for k, v in ELSEWHERE.items() if k.endswith("_noise")}
+    return ("with the gradient laws trained and the baselines tuned under the sensor noise they are judged with, "
+            "the best learned law against the best model-based law (the ratio of the medians): "
+            + "; ".join(frontiers(out / "fair" / "trained_under_noise", where)))
 
 
 def ppo_headline(out: Path) -> str:
@@ -245,6 +261,9 @@ def main() -> int:
     if (out / "fair" / "split" / "paper.json").exists():
         results["the README's line on where PPO diverges is the results'"] = readme_claim(
             out, args.write_readme, PPO_MARK, ppo_headline)
+    if (out / "fair" / "trained_under_noise" / "paper_noise.json").exists():
+        results["the README's line on the laws trained under noise is the results'"] = readme_claim(
+            out, args.write_readme, NOISE_MARK, noise_headline)
     if (out / "reference" / "robustness.json").exists():
         results["the README's map headline is the results'"] = readme_claim(out, args.write_readme, MAP_MARK,
                                                                             map_headline)

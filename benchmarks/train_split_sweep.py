@@ -13,12 +13,13 @@ the paper's wave). Then ``fair_benchmark.py --split-runs OUT`` judges them on th
 
     python benchmarks/train_split_sweep.py --out runs-split --seeds 0 1 2      # about 45 min on 2 cores
     python benchmarks/train_split_sweep.py --out runs-ppo-matched --laws ppo --ppo-steps 12960000   # ~40 min
-    python benchmarks/train_split_sweep.py --out runs-split-noise --sensor-noise 0 0.05 --laws grad_gains \
-        grad_network grad_robust grad_residual     # each train scenario seen with U(0, 0.05) sensor noise
+    python benchmarks/train_split_sweep.py --out runs-split-noise --sensor-noise 0 0.05   # each train scenario
+                                                                  # seen with U(0, 0.05) sensor noise
 
-``--sensor-noise LO HI`` has the gradient trainers see each train scenario through the sensor noise the comparison's
-``--sensor-noise`` draws (``GradientConfig.train_sensor_noise``: the same levels and keys as ``tune_baselines.py
---sensor-noise``); PPO's environment has no sensor noise, so PPO is not trained then.
+``--sensor-noise LO HI`` has every trainer see each train scenario through the sensor noise the comparison's
+``--sensor-noise`` draws (``EnvConfig.train_sensor_noise``): the gradient trainers the same levels and keys as
+``tune_baselines.py --sensor-noise``; PPO each scenario's level, with fresh draws of the error in every episode
+(its checkpoints selected on the split seen through those levels and keys).
 """
 
 from __future__ import annotations
@@ -61,12 +62,9 @@ def main() -> None:
     ap.add_argument("--ppo-steps", type=int, default=5_000_000,
                     help=f"PPO's environment steps (0.1 s each); {MATCHED_PPO_STEPS}: the CEM classes' plant-seconds")
     ap.add_argument("--sensor-noise", type=float, nargs=2, default=None, metavar=("LO", "HI"),
-                    help="train the gradient laws seeing each scenario's relative sensor error drawn from U(LO, HI)")
+                    help="train every law seeing each scenario's relative sensor error drawn from U(LO, HI)")
     args = ap.parse_args()
     noise = ("--train-sensor-noise", *map(str, args.sensor_noise)) if args.sensor_noise else ()
-    if noise and args.sensor_noise[1] > 0 and "ppo" in args.laws:
-        print("note: PPO's environment has no sensor noise: ppo is not trained with --sensor-noise")
-        args.laws = [n for n in args.laws if n != "ppo"]
     missing = [n for n in laws.names(learned=True) if n not in PLAN]
     if missing:
         print(f"note: registered learned laws without a sweep entry (not trained here): {missing}")
@@ -75,11 +73,10 @@ def main() -> None:
             algo, recipe, extra = PLAN[name]
             if name == "ppo":
                 extra = (*extra, "--total-steps", str(args.ppo_steps))
-            else:
-                extra = (*extra, *noise)
+            extra = (*extra, *noise)
             out = args.out / name / f"seed{seed}"
-            if name != "ppo" and (out / "config.json").exists():  # a run trained with other noise is not this one
-                seen = tuple(load_config(out).grad.train_sensor_noise)
+            if (out / "config.json").exists():  # a run trained with other noise is not this one
+                seen = tuple(load_config(out).env.train_sensor_noise)
                 if seen != tuple(args.sensor_noise or (0.0, 0.0)):
                     raise SystemExit(f"{out}: trained with sensor noise {seen}, not {args.sensor_noise}: another --out")
             if finished(out):

@@ -206,6 +206,11 @@ def test_an_older_run_loads_with_its_missing_fields_at_their_defaults(tmp_path):
     assert v4.env.amp_range == (5.0, 15.0) and v4.grad.train_amplitudes == (10.0, 12.0)
     assert read_config(tmp_path / "v4.toml") == TrainConfig.make(env={"amp_range": (5.0, 15.0)}, grad={
         "train_amplitudes": (10.0, 12.0)}, run={"algo": "gradient"})
+    # version 5 held the training sensor noise in [grad]; today's is the environment's (PPO sees it too)
+    (tmp_path / "v5.toml").write_text("config_version = 5\n[env]\ntrain_split = 4\n[grad]\n"
+                                      "train_sensor_noise = [0.0, 0.05]\n[run]\nalgo = 'gradient'\n")
+    v5 = read_config(tmp_path / "v5.toml")
+    assert v5.env.train_sensor_noise == v5.grad.train_sensor_noise == (0.0, 0.05)
     (tmp_path / "v9.toml").write_text("config_version = 9\n")
     with pytest.raises(ValueError, match=f"config version 9; this jaxtraffic reads versions 3 to {CONFIG_VERSION}"):
         read_config(tmp_path / "v9.toml")

@@ -183,6 +183,8 @@ def test_action_to_gains_bounded():
     ({"horizon": 0}, "horizon"),
     ({"gain_filter": 0.0}, "gain_filter"),
     ({"gain_filter": 1.5}, "gain_filter"),
+    ({"noise_min": 0.1, "noise_max": 0.05}, "noise_min"),
+    ({"noise_max": 1.5}, "sensor noise"),
 ])
 def test_make_env_params_rejects_bad_ranges(kw, match):
     with pytest.raises(ValueError, match=match):
@@ -291,3 +293,44 @@ def test_backward_wave_cost():
     assert cost(gains) > 0.0
     with pytest.raises(ValueError, match="wave_weight"):
         _params(wave_weight=-1.0)
+
+
+def test_sensor_noise_one_draw_per_step_feeds_the_observation_and_the_law():
+    """``EnvConfig.train_sensor_noise``: the observation is the policy's features of the held measurement (the
+    factors in ``EnvState.noise``), the next step's law acts on that same measurement, a fresh one is drawn every
+    step at the episode's level, and a level of 0 reproduces the noise-free environment (the other draws unchanged)."""
+    from jaxtraffic.control.noise import held_noise, measured
+    from jaxtraffic.sim.plant import closed_loop_step, plant_alpha
+
+    quiet, zero, noisy = _params(), _params(sensor_noise=True), _params(sensor_noise=True, noise_min=0.05,
+                                                                          noise_max=0.1)
+    a = jnp.array([0.4, -0.3, 0.2])
+    (o0, s0), (oz, sz), (on, sn) = (reset_jit(jax.random.PRNGKey(3), p) for p in (quiet, zero, noisy))
+    assert s0.noise is None and sz.noise.shape == (2, N) and 0.05 <= float(sn.noise_level) <= 0.1
+    np.testing.assert_array_equal(sz.noise, 1.0)
+    np.testing.assert_allclose(oz, o0, rtol=0, atol=1e-6)
+    eq = equilibrium(TP)
+    seen = gp.policy_features(measured(sn.plant.observation(TP), sn.noise), sn.gains, TP, noisy.gain_max, eq)
+    np.testing.assert_allclose(on, seen, rtol=0, atol=1e-6)
+    assert not np.allclose(on, o0, atol=1e-3)  # the noise moves the observation
+    for st, p in ((s0, quiet), (sz, zero)):  # level 0: the noise-free step
+        k = jax.random.PRNGKey(9)
+        out = step_jit(k, st, a, p)
+        if p is quiet:
+            ref = out
+    np.testing.assert_allclose(out[0], ref[0], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(out[1].plant.rho, ref[1].plant.rho, rtol=1e-6)
+    k = jax.random.PRNGKey(9)
+    _, s1, _, _, info = step_jit(k, sn, a, noisy)
+    ctrl = gp.gain_target_controller(learn_env.action_to_gains(a, noisy), noisy.gain_filter, eq, noisy.filter_nodes)
+    k_plant = jax.random.split(k)[0]
+    alpha = plant_alpha(sn.plant_params, k_plant)
+    held = closed_loop_step(sn.plant, sn.gains, held_noise(ctrl, sn.noise), sn.plant_params, TP, alpha, k_plant, eq)
+    raw = closed_loop_step(sn.plant, sn.gains, ctrl, sn.plant_params, TP, alpha, k_plant, eq)
+    for x, y in zip(jax.tree.leaves(s1.plant), jax.tree.leaves(held[0]), strict=True):  # the law saw the held
+        np.testing.assert_allclose(x, y, rtol=1e-6)                                      # measurement
+    np.testing.assert_allclose(s1.gains, held[1], rtol=1e-6)
+    assert not np.allclose(held[2], raw[2], rtol=1e-4)
+    assert float(s1.noise_level) == float(sn.noise_level) and not np.allclose(s1.noise, sn.noise)
+    e = (np.asarray(s1.noise) - 1.0) / float(sn.noise_level)  # the fresh draw: standard normal
+    assert abs(e.mean()) < 0.5 and 0.5 < e.std() < 1.6

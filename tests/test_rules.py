@@ -27,7 +27,7 @@ GIVEN = {"grad_steps": 6, "grad_lr": 0.02, "train_delays": (1.0, 2.0), "train_al
          "scenario_clip": 0.75, "init_gains": (0.1, -0.2, 0.3),
          "schedule_knots": (0.0, 3.0), "grad_method": "cem", "cem_population": 5, "cem_sigma": 0.4,
          "grad_gain_max": 2.5, "controller_points": 11, "cem_tie_weight": 0.05, "residual_alpha_floor": 0.2,
-         "cem_fitness": "mean_l2", "train_sensor_noise": (0.0, 0.05)}
+         "cem_fitness": "mean_l2"}
 TREE_FIELDS = {f.name for s in SECTIONS for f in leaf_fields(s)}
 
 
@@ -37,12 +37,13 @@ def test_every_flag_reaches_the_algorithm_under_its_own_name():
     assert {name: getattr(cfg, name) for name in GIVEN} == GIVEN
     # the fields the algorithm has beyond the flags of its section come from the environment and the network
     tree = TrainConfig.make(run={"algo": "gradient"}, plant={"n_points": 21}, grad={"controller_points": 11},
-                            env={"gain_filter": 0.5, "filter_sigma": 10.0, "train_split": 3})
+                            env={"gain_filter": 0.5, "filter_sigma": 10.0, "train_split": 3,
+                                 "train_sensor_noise": (0.0, 0.05)})
     cfg = gradient_setup(tree)[0]
-    assert (cfg.gain_filter, cfg.filter_sigma, cfg.controller_points, cfg.hidden, cfg.train_split) == (
-        0.5, 10.0, 11, tuple(tree.ppo.hidden), 3)
+    assert (cfg.gain_filter, cfg.filter_sigma, cfg.controller_points, cfg.hidden, cfg.train_split,
+            cfg.train_sensor_noise) == (0.5, 10.0, 11, tuple(tree.ppo.hidden), 3, (0.0, 0.05))
     extra = {f.name for f in dataclasses.fields(GradientConfig)} - set(GIVEN) - {"policy"}
-    assert extra == {"hidden", "gain_filter", "filter_sigma", "max_grad_norm", "train_split"}
+    assert extra == {"hidden", "gain_filter", "filter_sigma", "max_grad_norm", "train_split", "train_sensor_noise"}
     # the policies' defaults and the objective's weights use the same names
     assert all(set(d) <= set(GIVEN) for d in POLICY_DEFAULTS.values())
     assert {f.name for f in dataclasses.fields(Weights)} <= set(GIVEN)

@@ -196,6 +196,17 @@ def test_ppo_split_runs_are_selected_on_their_train_split_by_the_comparisons_mea
     want = np.array([capped["a"].mean(), capped["b"].mean()]) / capped["ref"].mean()
     np.testing.assert_allclose(out["score"], want, rtol=1e-6)
     assert out["ratio"].shape == (2, n) and out["score"][0] != out["score"][1]
+    # trained under sensor noise (EnvConfig.train_sensor_noise): every law, the reference too, sees each scenario
+    # through its level and key, as the comparison's --sensor-noise has it
+    noisy = sample(ScenarioDistribution(sensor_noise_range=(0.05, 0.1)), "train", n, 0, base=PLANT)
+    res = evaluate_laws([LawSpec("a", "a", lambda: lyapunov(0.5)), LawSpec("ref", "ref", backstepping, "delay")],
+                        noisy, PLANT, horizon, log=lambda _: None)
+    capped = {k: np.minimum(r["mean_rho_L2"], L2_CAP) for k, r in res.items()}
+    seen = make_split_suite(PLANT, horizon, n, sensor_noise=(0.05, 0.1))
+    np.testing.assert_allclose(seen.reference["mean_rho_L2"], capped["ref"], rtol=1e-5)
+    np.testing.assert_allclose(seen(jax.tree.map(lambda x: x[:1], members), 1)["score"],
+                               capped["a"].mean() / capped["ref"].mean(), rtol=1e-5)
+    assert not np.allclose(capped["ref"], suite.reference["mean_rho_L2"], rtol=1e-4)  # the noise is seen
 
 
 def test_a_ppo_split_run_validates_without_the_paper_rule(tmp_path):

@@ -19,7 +19,7 @@ from flax import struct
 from jaxtraffic.control.base import Controller
 from jaxtraffic.platform.tracing import is_traced
 
-__all__ = ["NoisySettings", "sensor_noise"]
+__all__ = ["HeldNoise", "NoisySettings", "draw_factors", "held_noise", "measured", "sensor_noise"]
 
 
 @struct.dataclass
@@ -30,9 +30,26 @@ class NoisySettings:
     level: jax.Array
 
 
+@struct.dataclass
+class HeldNoise:
+    """The law's own ``inner`` settings and the factors (1 + level e) of this step's measurement, shape (2, n)."""
+
+    inner: Any
+    factors: jax.Array
+
+
+def draw_factors(key: jax.Array, level: jax.Array | float, shape: tuple, dtype: Any) -> jax.Array:
+    """One measurement's error as factors 1 + level e of density and speed, e ~ N(0, 1), shape (2,) + ``shape``."""
+    return 1.0 + level * jax.random.normal(key, (2,) + tuple(shape), dtype)
+
+
+def measured(obs, factors: jax.Array):
+    """The observation ``obs`` as the sensors report it: rho and v times ``factors`` (``draw_factors``)."""
+    return obs.replace(rho=obs.rho * factors[0], v=obs.v * factors[1])
+
+
 def _noisy(obs, level, key):
-    e = jax.random.normal(key, (2,) + obs.rho.shape, obs.rho.dtype)
-    return obs.replace(rho=obs.rho * (1.0 + level * e[0]), v=obs.v * (1.0 + level * e[1]))
+    return measured(obs, draw_factors(key, level, obs.rho.shape, obs.rho.dtype))
 
 
 @functools.cache
@@ -47,6 +64,26 @@ def _wrapped(act_fn: Callable, init_fn: Callable) -> tuple[Callable, Callable]:
         return init_fn(settings.inner, obs, nominal)
 
     return act, init
+
+
+@functools.cache
+def _held(act_fn: Callable, init_fn: Callable) -> tuple[Callable, Callable]:
+    def act(settings: HeldNoise, cstate, obs, nominal, key):
+        return act_fn(settings.inner, cstate, measured(obs, settings.factors), nominal, key)
+
+    def init(settings: HeldNoise, obs, nominal):
+        return init_fn(settings.inner, obs, nominal)
+
+    return act, init
+
+
+def held_noise(controller: Controller, factors: jax.Array) -> Controller:
+    """``controller`` seeing its measurements through given ``factors`` (``draw_factors``, drawn by the caller):
+    the gain environment holds one draw per step, so that the policy's features and its law see the same one, as
+    ``sensor_noise`` has a deployed policy see them."""
+    act, init = _held(controller.act_fn, controller.init_fn)
+    return Controller(settings=HeldNoise(inner=controller.settings, factors=factors), act_fn=act, init_fn=init,
+                      name=f"{controller.name} (sensor noise)")
 
 
 def sensor_noise(controller: Controller, level: float | jax.Array, batched: bool = False) -> Controller:

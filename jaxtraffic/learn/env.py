@@ -26,12 +26,15 @@ controller's target and the environment's ``gains`` (the applied, filtered gains
   phase of the cosine perturbation; plant delay (a multiple of dt) and plant alpha (uniform
   ranges); per-step alpha noise (``traffic.alpha_noise``). Metrics stay relative to the nominal
   equilibrium of ``traffic`` (docs/model.md section 12).
+* Sensor noise (``EnvConfig.train_sensor_noise``): an episode's relative error level ~ U(lo, hi) (or its pool
+  scenario's); each step's measurement is drawn once (``EnvState.noise``) and both the observation and the
+  next step's gain law read it, as a deployed policy under ``control.noise.sensor_noise`` does. Off: no draws, and
+  every other draw is what it was.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 from typing import TYPE_CHECKING, Any
 
 import chex
@@ -39,12 +42,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
-from jax.custom_batching import custom_vmap
 
 from jaxtraffic.compare.scenarios import EpisodePool
 from jaxtraffic.control import gain_policy as gp
 from jaxtraffic.control.gain_law import sigma_nodes
+from jaxtraffic.control.noise import draw_factors, held_noise, measured
 from jaxtraffic.fields import check_value, fail, range_of
+from jaxtraffic.learn.autoreset import reset_where_done
 from jaxtraffic.learn.env_config import EnvConfig
 from jaxtraffic.model.linear import LinearModel, gain_law_is_regular, gain_law_wave_speed, linearize
 from jaxtraffic.model.params import TrafficParams, equilibrium
@@ -111,6 +115,11 @@ class EnvParams:
     filter_nodes: float = struct.field(pytree_node=False, default=0.0)
     # episodes drawn from a finite set (``EnvConfig.train_split``) instead of the ranges above; None: the ranges
     pool: EpisodePool | None = None
+    # relative sensor error of an episode ~ U(noise_min, noise_max) (the pool's own levels with a pool), seen by the
+    # policy and its law alike (``EnvState.noise``); ``sensor_noise`` (static) False: none (no draws at all)
+    noise_min: float = 0.0
+    noise_max: float = 0.0
+    sensor_noise: bool = struct.field(pytree_node=False, default=False)
 
 
 @struct.dataclass
@@ -122,6 +131,10 @@ class EnvState:
     plant_params: TrafficParams  # this episode's plant (randomised delay / alpha)
     t: Array  # step within the episode
     gains: Array  # gains applied at the previous step, shape (3,) (dimensionless): the controller state
+    # with sensor noise (``EnvParams.sensor_noise``; else None): the episode's level (dimensionless) and the factors
+    # (1 + level e) of the current measurement, shape (2, n): ``observe`` and the next step's law both read them
+    noise_level: Array | None = None
+    noise: Array | None = None
 
 
 def env_params(config: EnvConfig, traffic: TrafficParams) -> EnvParams:
@@ -140,7 +153,10 @@ def env_params(config: EnvConfig, traffic: TrafficParams) -> EnvParams:
         alpha_min=a_lo, alpha_max=a_hi, gain_filter=config.gain_filter, h_rate_weight=config.h_rate_weight,
         wave_weight=config.wave_weight, wave_speed_min=config.wave_speed_min, obs_segments=config.obs_segments,
         diverge_penalty=config.diverge_penalty, filter_sigma=config.filter_sigma,
-        pool=EpisodePool.train_split(config.train_split, traffic) if config.train_split else None)
+        noise_min=config.train_sensor_noise[0], noise_max=config.train_sensor_noise[1],
+        sensor_noise=config.train_sensor_noise[1] > 0,
+        pool=EpisodePool.train_split(config.train_split, traffic, config.train_sensor_noise)
+        if config.train_split else None)
 
 
 def make_env_params(traffic: TrafficParams | None = None, filter_sigma: float = _C.filter_sigma,
@@ -158,13 +174,15 @@ def make_env_params(traffic: TrafficParams | None = None, filter_sigma: float = 
         kwargs["gain_max"] = tuple(float(g) for g in np.asarray(kwargs["gain_max"], float).reshape(gp.N_GAINS))
     ep = EnvParams(traffic=traffic, **kwargs)
     for lo, hi in (("amp_min", "amp_max"), ("wavenumber_min", "wavenumber_max"),
-                   ("delay_min", "delay_max"), ("alpha_min", "alpha_max")):
+                   ("delay_min", "delay_max"), ("alpha_min", "alpha_max"), ("noise_min", "noise_max")):
         if getattr(ep, lo) > getattr(ep, hi):
             raise ValueError(f"{lo}={getattr(ep, lo)} > {hi}={getattr(ep, hi)}")
     if ep.delay_max > traffic.max_delay_steps * traffic.dt + 1e-9:
         raise ValueError(f"delay_max={ep.delay_max} s exceeds the buffer ({traffic.max_delay_steps} steps)")
     if not (0.0 <= ep.alpha_min and ep.alpha_max <= 1.0):
         raise ValueError("alpha range must lie in [0, 1]")
+    if not (0.0 <= ep.noise_min and ep.noise_max <= 1.0):
+        raise ValueError("sensor noise range must lie in [0, 1]")
     for f in dataclasses.fields(EnvConfig):  # each field's range (EnvConfig's: gain_max, gain_filter, ...)
         if hasattr(ep, f.name):
             check_value(f.name, getattr(ep, f.name), f.metadata.get("range"))
@@ -183,7 +201,9 @@ def obs_size(params: EnvParams) -> int:
 def observe(state: EnvState, params: EnvParams, eq: tuple[Array, Array] | None = None) -> Array:
     """The policy's observation of ``state`` (``policy_features``), shape (``obs_size``,)."""
     tp = params.traffic
-    return gp.policy_features(state.plant.observation(tp), state.gains, tp, params.gain_max, eq, params.obs_segments)
+    obs = state.plant.observation(tp)
+    obs = obs if state.noise is None else measured(obs, state.noise)
+    return gp.policy_features(obs, state.gains, tp, params.gain_max, eq, params.obs_segments)
 
 
 def action_to_gains(action: Array, params: EnvParams) -> Array:
@@ -223,13 +243,19 @@ def _new_episode(key: Array, params: EnvParams, rho_bar: Array,
     delay = jax.random.randint(k_d, (), d_lo, d_hi + 1) * tp.dt
     alpha = jax.random.uniform(k_a, minval=params.alpha_min, maxval=params.alpha_max)
     rho0, v0 = paper_initial_condition(tp, amp, wn.astype(jnp.float32), phase, rho_bar=rho_bar)
-    if params.pool is not None:  # one scenario of the finite set (the ranges' draws above unused)
-        i = jax.random.randint(k_amp, (), 0, params.pool.delay.shape[0])
-        pool = params.pool
+    pool, i = params.pool, None
+    if pool is not None:  # one scenario of the finite set (the ranges' draws above unused)
+        i = jax.random.randint(k_amp, (), 0, pool.delay.shape[0])
         delay, alpha, rho0, v0 = (x[i].astype(rho0.dtype) for x in (pool.delay, pool.alpha, pool.rho0, pool.v0))
     plant_params = tp.replace(delay=delay, alpha=alpha)
+    noise = {}
+    if params.sensor_noise:  # the episode's level (with a pool: its scenario's) and its first measurement's error
+        k_level, k_e = jax.random.split(jax.random.fold_in(key, 1))  # (the draws above unchanged)
+        level = (jax.random.uniform(k_level, minval=params.noise_min, maxval=params.noise_max) if pool is None
+                 else pool.noise[i])
+        noise = {"noise_level": level, "noise": draw_factors(k_e, level, rho0.shape, rho0.dtype)}
     return EnvState(plant=initial_state(plant_params, rho0, v0, sent=sent), plant_params=plant_params,
-                    t=jnp.zeros((), jnp.int32), gains=jnp.zeros((gp.N_GAINS,), rho0.dtype))
+                    t=jnp.zeros((), jnp.int32), gains=jnp.zeros((gp.N_GAINS,), rho0.dtype), **noise)
 
 
 def reset_env(key: Array, params: EnvParams) -> tuple[Array, EnvState]:
@@ -251,6 +277,7 @@ def step_env(key: Array, state: EnvState, action: Array, params: EnvParams):
     tp = params.traffic
     eq = equilibrium(tp)  # once per step: the law, the reward target, both observations, the reset
     ctrl = gp.gain_target_controller(action_to_gains(action, params), params.gain_filter, eq, params.filter_nodes)
+    ctrl = ctrl if state.noise is None else held_noise(ctrl, state.noise)  # the measurement the policy observed
     plant, gains, h, step_info = closed_loop_step(state.plant, state.gains, ctrl, state.plant_params, tp,
                                                   plant_alpha(state.plant_params, k_plant), k_plant, eq)
     terminated = plant.diverged
@@ -260,7 +287,10 @@ def step_env(key: Array, state: EnvState, action: Array, params: EnvParams):
     t = state.t + 1
     truncated = (t >= params.horizon) & ~terminated
     done = terminated | truncated
-    stepped = EnvState(plant=plant, plant_params=state.plant_params, t=t, gains=gains)
+    noise = None if state.noise is None else draw_factors(jax.random.fold_in(key, 1), state.noise_level,
+                                                          plant.rho.shape, plant.rho.dtype)
+    stepped = EnvState(plant=plant, plant_params=state.plant_params, t=t, gains=gains,
+                       noise_level=state.noise_level, noise=noise)
     terminal_obs = observe(stepped, params, eq)
     reset_fn = auto_reset if reset_only_where_done() else _select_reset
     obs, new_state = reset_fn(done, k_reset, stepped, terminal_obs, params, eq)
@@ -281,18 +311,8 @@ def _select_reset(done: Array, key: Array, state: EnvState, obs: Array, params: 
 
     return obs, EnvState(plant=select_state(done, fresh.plant, state.plant),
                          plant_params=pick(fresh.plant_params, state.plant_params),
-                         t=pick(fresh.t, state.t), gains=pick(fresh.gains, state.gains))
-
-
-def _split_buffer(state: EnvState):
-    """(state without the delay buffer's storage, the storage): a reset never touches the storage
-    (``initial_state(..., sent=...)``), so it stays out of the branches of ``auto_reset``."""
-    sent = state.plant.sent
-    return state.replace(plant=state.plant.replace(sent=sent.replace(data=None))), sent.data
-
-
-def _with_buffer(state: EnvState, data: Array) -> EnvState:
-    return state.replace(plant=state.plant.replace(sent=state.plant.sent.replace(data=data)))
+                         t=pick(fresh.t, state.t), gains=pick(fresh.gains, state.gains),
+                         noise_level=pick(fresh.noise_level, state.noise_level), noise=pick(fresh.noise, state.noise))
 
 
 def auto_reset(done: Array, key: Array, state: EnvState, obs: Array, params: EnvParams,
@@ -305,89 +325,7 @@ def auto_reset(done: Array, key: Array, state: EnvState, obs: Array, params: Env
     are flattened into one batch and a ``lax.cond`` on any-done skips the reset at the steps where none
     finished (most steps: episodes last ``horizon``). With batched ``params`` (a ``vmap`` over scenarios)
     it falls back to the select."""
-    stripped, data = _split_buffer(state)
-    p_leaves, p_def = jax.tree.flatten(params)
-    # Python numbers stay Python numbers (static, part of the cache key): the reset's arithmetic on them
-    # (e.g. delay_min / dt in double precision) must stay what it is in a plain call
-    static = tuple((i, x) for i, x in enumerate(p_leaves) if isinstance(x, (int, float, bool)))
-    p_def = (p_def, static)
-    traced = tuple(x for x in p_leaves if not isinstance(x, (int, float, bool)))
-    s_leaves, s_def = jax.tree.flatten(stripped)  # (custom_vmap unflattens its flags into the argument trees:
-    # only plain containers may appear there, not dataclasses that check their fields, like TrafficParams)
-    obs, new = _resetters(p_def, s_def)(done, key, tuple(s_leaves), obs, traced, eq)
-    return obs, _with_buffer(jax.tree.unflatten(s_def, new), data)
-
-
-def _params_of(p_def, p_leaves) -> EnvParams:
-    """``EnvParams`` from ``auto_reset``'s (treedef, static numbers) and its array leaves."""
-    treedef, static = p_def
-    leaves, arrays, fixed = [], iter(p_leaves), dict(static)
-    for i in range(treedef.num_leaves):
-        leaves.append(fixed[i] if i in fixed else next(arrays))
-    return jax.tree.unflatten(treedef, leaves)
-
-
-def _flat_select(p_def, s_def):
-    """``_select_reset`` on flattened state and parameter leaves (returns (obs, state leaves))."""
-    def sel(done, key, s_leaves, obs, p_leaves, eq):
-        obs, new = _select_reset(done, key, jax.tree.unflatten(s_def, s_leaves), obs, _params_of(p_def, p_leaves), eq)
-        return obs, tuple(jax.tree.leaves(new))
-    return sel
-
-
-def _cond_reset(done, key, s_leaves, obs, p_leaves, eq, p_def, s_def, batched: bool):
-    sel = _flat_select(p_def, s_def)
-    fn = jax.vmap(sel, (0, 0, 0, 0, None, None)) if batched else sel
-    return jax.lax.cond(jnp.any(done), lambda: fn(done, key, s_leaves, obs, p_leaves, eq),
-                        lambda: (obs, tuple(s_leaves)))
-
-
-def _broadcast(tree, batched, size: int):
-    return jax.tree.map(lambda x, b: x if b else jnp.broadcast_to(x, (size,) + jnp.shape(x)), tree, batched)
-
-
-def _all_batched(out):
-    return out, jax.tree.map(lambda _: True, out)
-
-
-def _any_batched(tree) -> bool:
-    return any(jax.tree.leaves(tree))
-
-
-@functools.cache
-def _resetters(p_def, s_def):
-    """The per-environment and the batched reset for the parameter tree ``p_def`` (custom_vmap rules)."""
-
-    @custom_vmap
-    def many(done, key, state, obs, p_leaves, eq):  # leading axis: the environments
-        return _cond_reset(done, key, state, obs, p_leaves, eq, p_def, s_def, batched=True)
-
-    @many.def_vmap
-    def many_rule(size, in_batched, done, key, state, obs, p_leaves, eq):
-        if _any_batched(in_batched[4:]):  # batched parameters: per environment, a select
-            axes = tuple(jax.tree.map(lambda b: 0 if b else None, x) for x in in_batched[4:])
-            sel = jax.vmap(jax.vmap(_flat_select(p_def, s_def), (0, 0, 0, 0, None, None)), (0, 0, 0, 0) + axes)
-            args = _broadcast((done, key, state, obs), tuple(in_batched[:4]), size)
-            return _all_batched(sel(*args, p_leaves, eq))
-        args = _broadcast((done, key, state, obs), tuple(in_batched[:4]), size)
-        flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), args)  # (size, B, ...) -> (size B, ...)
-        out = many(*flat, p_leaves, eq)
-        return _all_batched(jax.tree.map(lambda x: x.reshape((size, -1) + x.shape[1:]), out))
-
-    @custom_vmap
-    def one(done, key, state, obs, p_leaves, eq):
-        return _cond_reset(done, key, state, obs, p_leaves, eq, p_def, s_def, batched=False)
-
-    @one.def_vmap
-    def one_rule(size, in_batched, done, key, state, obs, p_leaves, eq):
-        args = _broadcast((done, key, state, obs), tuple(in_batched[:4]), size)
-        if _any_batched(in_batched[4:]):
-            axes = tuple(jax.tree.map(lambda b: 0 if b else None, x) for x in in_batched[4:])
-            sel = jax.vmap(_flat_select(p_def, s_def), (0, 0, 0, 0) + axes)
-            return _all_batched(sel(*args, p_leaves, eq))
-        return _all_batched(many(*args, p_leaves, eq))
-
-    return one
+    return reset_where_done(_select_reset, done, key, state, obs, params, eq)
 
 
 reset = reset_env

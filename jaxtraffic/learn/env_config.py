@@ -56,3 +56,8 @@ class EnvConfig:
     # of the scenario distribution's train split (compare.scenarios, seed 0: plant D and alpha, the initial wave),
     # replacing the ranges above; the benchmark judges on the test split (docs/model.md section 20)
     train_split: int = hyper(0, lo=0, help="train on this many train-split scenarios (0: the ranges above)")
+    # > 0: each training episode's law sees its measurements with a relative error, level ~ U(lo, hi) per episode
+    # (with train_split: the split's own levels), drawn afresh each step (control.noise, as the comparison's
+    # --sensor-noise; PPO: one draw per step feeds the policy's features and its law alike)
+    train_sensor_noise: tuple[float, float] = hyper(
+        (0.0, 0.0), help="relative sensor error of the training episodes ~ U(LO, HI) (0 0: none)", pair=(0.0, 1.0))

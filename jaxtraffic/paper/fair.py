@@ -83,7 +83,7 @@ def split_runs(root: Path) -> list[LawSpec]:
         for run in sorted((root / n).glob("seed*")):
             if (run / "summary.json").exists():
                 ctrl, config = load_policy(run)
-                noise = config.grad.train_sensor_noise  # (0, 0) for PPO: its environment has no sensor noise
+                noise = config.env.train_sensor_noise
                 seen = f" (sensor noise U({noise[0]:g}, {noise[1]:g}))" if noise[1] > 0 else ""
                 out.append(LawSpec(f"{n}{SPLIT}{run.name[4:]}", f"{laws.short_label(n)}, train split{seen}, seed "
                                    f"{run.name[4:]}", _given(ctrl), "delay" if takes_delay(ctrl) else "nothing",

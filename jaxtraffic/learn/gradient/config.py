@@ -61,9 +61,8 @@ class GradientConfig:
     # > 0: the scenarios are this many of the scenario distribution's train split instead of the grid above (a run:
     # EnvConfig.train_split)
     train_split: int = hyper(0, lo=0)
-    train_sensor_noise: tuple[float, float] = hyper(
-        (0.0, 0.0), lo=0.0, hi=1.0, help="train split: each scenario's relative sensor error drawn from U(lo, hi), as "
-        "the comparison's --sensor-noise (control.noise; 0 0: none)")
+    # each train-split scenario's relative sensor error ~ U(lo, hi) (a run: EnvConfig.train_sensor_noise)
+    train_sensor_noise: tuple[float, float] = hyper((0.0, 0.0), lo=0.0, hi=1.0)
     # the controller's own grid (``control.adapter``; the plant's n_points must refine it by an integer factor)
     controller_points: int = hyper(0, lo=0, help="controller's grid points (0: the plant's)")
     schedule_knots: tuple[float, ...] = hyper((0.0, 2.0, 4.0, 6.0, 8.0), help="schedule policy: its knot delays, s")

@@ -54,10 +54,19 @@ def _v4(tables: Tables) -> Tables:
                 for k, v in table.items()} for s, table in tables.items()}
 
 
+def _v5(tables: Tables) -> Tables:
+    """Version 5 -> 6: the training sensor noise moved from [grad] to [env] (PPO's environment sees it too)."""
+    grad = dict(tables.get("grad", {}))
+    if "train_sensor_noise" not in grad:
+        return tables
+    return {**tables, "grad": grad, "env": {**tables.get("env", {}), "train_sensor_noise": grad.pop(
+        "train_sensor_noise")}}
+
+
 # version n's tables -> version n + 1's. A config file holds only what differs from the defaults, so a changed
 # default, or a field whose meaning changed, is a new version whose migration writes the old value or meaning into
 # the older files' tables (CONFIG_VERSION + 1, its function here).
-MIGRATIONS: dict[int, Callable[[Tables], Tables]] = {3: _v3, 4: _v4}
+MIGRATIONS: dict[int, Callable[[Tables], Tables]] = {3: _v3, 4: _v4, 5: _v5}
 
 
 def migrate(tables: Tables, version: Any, where: str) -> Tables:

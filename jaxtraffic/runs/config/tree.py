@@ -30,9 +30,9 @@ from jaxtraffic.learn.ppo import PPOConfig
 from jaxtraffic.model.params import TrafficParams
 from jaxtraffic.sim.metrics import REWARD_TARGET
 
-# 4: the plant section is TrafficParams, controller_points the gradient trainer's; 5: the initial amplitudes in veh/km
-# (toml.MIGRATIONS)
-CONFIG_VERSION = 5
+# 4: the plant section is TrafficParams, controller_points the gradient trainer's; 5: the initial amplitudes in veh/km;
+# 6: train_sensor_noise the environment's (both trainers') (toml.MIGRATIONS)
+CONFIG_VERSION = 6
 
 
 ALGOS = ("ppo", "gradient")
@@ -120,7 +120,8 @@ class TrainConfig:
         # the gradient trainer's filter and network are the environment's and PPO's (one value each)
         object.__setattr__(self, "grad", dataclasses.replace(
             self.grad, hidden=tuple(self.ppo.hidden), gain_filter=self.env.gain_filter,
-            filter_sigma=self.env.filter_sigma, train_split=self.env.train_split))
+            filter_sigma=self.env.filter_sigma, train_split=self.env.train_split,
+            train_sensor_noise=self.env.train_sensor_noise))
 
     @classmethod
     def make(cls, **tables: Mapping[str, Any]) -> TrainConfig:
@@ -165,7 +166,7 @@ class TrainConfig:
 SECTIONS = {"plant": TrafficParams, "env": EnvConfig, "ppo": PPOConfig, "grad": GradientConfig, "run": RunConfig}
 # GradientConfig's fields that a run sets from other sections (``TrainConfig.__post_init__``), or not at all
 # (max_grad_norm: PPO's field of that name is the flag's)
-BORROWED = ("hidden", "gain_filter", "filter_sigma", "max_grad_norm", "train_split")
+BORROWED = ("hidden", "gain_filter", "filter_sigma", "max_grad_norm", "train_split", "train_sensor_noise")
 
 
 def leaf_fields(section: str) -> list[dataclasses.Field]:

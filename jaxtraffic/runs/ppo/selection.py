@@ -46,6 +46,7 @@ from jaxtraffic.compare.scenarios import ScenarioDistribution, sample
 from jaxtraffic.control.adapter import ControllerGrid, adapt, baseline_grid
 from jaxtraffic.control.base import tell_delay
 from jaxtraffic.control.baselines import backstepping
+from jaxtraffic.control.noise import sensor_noise as seen_through
 from jaxtraffic.sim.initial import paper_initial_condition
 from jaxtraffic.sim.metrics import VEH_PER_KM
 from jaxtraffic.sim.options import Record
@@ -129,7 +130,8 @@ def make_suite(nominal, steps: int, delays, ics=DEFAULT_ICS, j_slack: float = 1.
     return out
 
 
-def make_split_suite(nominal, horizon_s: float, n_train: int, plant=None) -> Suite:
+def make_split_suite(nominal, horizon_s: float, n_train: int, plant=None,
+                     sensor_noise: tuple[float, float] = (0.0, 0.0)) -> Suite:
     """The suite of a run trained on the train split (``EnvConfig.train_split`` = ``n_train``): its own
     ``n_train`` training scenarios (``compare.scenarios.sample``, seed 0, as ``EpisodePool.train_split`` draws
     them; on ``plant``'s grid, default the nominal's) over ``horizon_s`` s, scored by the held-out comparison's
@@ -137,28 +139,38 @@ def make_split_suite(nominal, horizon_s: float, n_train: int, plant=None) -> Sui
     L2 (veh/km, ``compare.protocol.measure``; capped at ``stats.L2_CAP``, a diverged scenario at the cap), as a
     ratio to backstepping's (told each scenario's D, on the paper's grid) on the same scenarios. The
     ``mean_l2`` objective of the CEM laws and the tuned baselines, as a ratio (``score`` <= 1: as good as
-    backstepping); ``ratio`` (members, S): the per-scenario capped ratios."""
+    backstepping); ``ratio`` (members, S): the per-scenario capped ratios. ``sensor_noise`` (``EnvConfig.
+    train_sensor_noise``): every law, backstepping too, sees each scenario through its split's noise level and key
+    (``control.noise.sensor_noise``), as the comparison's ``--sensor-noise`` has it."""
     judge = nominal if plant is None else nominal.replace(n_points=plant.n_points, scheme=plant.scheme,
                                                           substeps=plant.substeps)
-    scen = sample(ScenarioDistribution(), "train", n_train, 0, base=judge.replace(alpha_noise=0.0))
+    scen = sample(ScenarioDistribution(sensor_noise_range=tuple(sensor_noise)), "train", n_train, 0,
+                  base=judge.replace(alpha_noise=0.0))
     n_steps, every = steps_of(horizon_s, float(judge.dt))
-    n_s, plants = len(scen), scen.plants
-    ref = stats.capped(measure(plants, adapt(tell_delay(backstepping(), jnp.asarray(plants.delay)),
-                                             baseline_grid(judge), judge),
-                               scen.rho0, scen.v0, judge, n_steps, every, batch_controller=True)["mean_rho_L2"])
+    n_s, plants, noisy = len(scen), scen.plants, sensor_noise[1] > 0
+    levels, keys = scen.noise_levels(), scen.keys()
+
+    def run(plants, ctrl, grid, reps: int) -> dict:  # ``reps`` copies of the scenarios, the law batched over them
+        tile = lambda x: np.tile(x, (reps,) + (1,) * (np.ndim(x) - 1))  # noqa: E731
+        if noisy:  # on the law's own grid, before the adapter (as compare.protocol)
+            ctrl = seen_through(ctrl, jnp.asarray(tile(levels), jnp.float32), batched=True)
+        return measure(jax.tree.map(tile, plants), adapt(ctrl, grid, judge), tile(scen.rho0), tile(scen.v0), judge,
+                       n_steps, every, batch_controller=True, keys=jnp.asarray(tile(keys)) if noisy else None)
+
+    ref = stats.capped(run(plants, tell_delay(backstepping(), jnp.asarray(plants.delay)), baseline_grid(judge),
+                           1)["mean_rho_L2"])
     grid = ControllerGrid.of(nominal)
 
     def suite(controller, n_members: int) -> dict:
-        ctrl = adapt(jax.tree.map(lambda x: jnp.repeat(x, n_s, axis=0), controller), grid, judge)  # member-major
-        tile = lambda x: np.tile(x, (n_members,) + (1,) * (np.ndim(x) - 1))  # noqa: E731
-        per = measure(jax.tree.map(tile, plants), ctrl, tile(scen.rho0), tile(scen.v0), judge, n_steps, every,
-                      batch_controller=True)
+        ctrl = jax.tree.map(lambda x: jnp.repeat(x, n_s, axis=0), controller)  # member-major
+        per = run(plants, ctrl, grid, n_members)
         mean = stats.capped(per["mean_rho_L2"]).reshape(n_members, n_s)
         return {"score": mean.mean(axis=1) / ref.mean(), "ratio": mean / ref, "mean_rho_L2": mean}
 
     out = cast(Suite, suite)
     out.reference = {"mean_rho_L2": ref, "law": "backstepping told each scenario's D"}
-    out.scenarios = {"train_split": n_train, "seed": 0, "horizon_s": n_steps * float(judge.dt)}
+    out.scenarios = {"train_split": n_train, "seed": 0, "horizon_s": n_steps * float(judge.dt),
+                     **({"sensor_noise": list(sensor_noise)} if noisy else {})}
     out.measure = f"the mean time-averaged density L2 over {n_train} train-split scenarios as a ratio to backstepping's"
     return out
 

@@ -179,7 +179,8 @@ class PPOTraining:
             judge = TrafficParams.reference() if run.val_plant == "reference" else None
             if self.split:
                 self.suite = selection.make_split_suite(env_params.traffic, run.val_horizon_s,
-                                                        config.env.train_split, plant=judge)
+                                                        config.env.train_split, plant=judge,
+                                                        sensor_noise=config.env.train_sensor_noise)
             else:
                 val_steps = 2 * max(1, round(run.val_horizon_s / config.plant.dt / 2))
                 self.suite = selection.make_suite(env_params.traffic, val_steps,

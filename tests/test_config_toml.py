@@ -211,6 +211,11 @@ def test_an_older_run_loads_with_its_missing_fields_at_their_defaults(tmp_path):
                                       "train_sensor_noise = [0.0, 0.05]\n[run]\nalgo = 'gradient'\n")
     v5 = read_config(tmp_path / "v5.toml")
     assert v5.env.train_sensor_noise == v5.grad.train_sensor_noise == (0.0, 0.05)
+    (tmp_path / "v5.toml").write_text("config_version = 5\n[grad]\ntrain_sensor_noise = [0.0, 0.05]\n[run]\n"
+                                      "algo = 'ppo'\n")  # PPO trained without it, whatever [grad] said
+    assert read_config(tmp_path / "v5.toml").env.train_sensor_noise == (0.0, 0.0)
+    with pytest.raises(ValueError, match="train_sensor_noise.*needs --train-split"):  # the levels are the split's
+        TrainConfig.make(env={"train_sensor_noise": (0.0, 0.05)})
     (tmp_path / "v9.toml").write_text("config_version = 9\n")
     with pytest.raises(ValueError, match=f"config version 9; this jaxtraffic reads versions 3 to {CONFIG_VERSION}"):
         read_config(tmp_path / "v9.toml")

@@ -109,3 +109,34 @@ def test_the_reset_is_chosen_by_backend_unless_set(monkeypatch):
     assert " cond[" not in step_jaxpr()
     monkeypatch.setattr(E, "RESET_ONLY_WHERE_DONE", None)
     assert " cond[" in step_jaxpr()  # (a CPU: the reset only where done)
+
+
+def test_sensor_noise_state_crosses_episode_boundaries_alike_under_both_resets(monkeypatch):
+    """With sensor noise from a train-split pool: every episode's level is its pool scenario's, a reset draws a
+    fresh level and measurement, and the reset where done gives what the select gives (horizon 2, 5 steps)."""
+    from jaxtraffic.compare.scenarios import EpisodePool
+
+    tp = TrafficParams(n_points=21, delay=0.5)  # (a buffer for the split's delays, up to 8 s)
+    pool = EpisodePool.train_split(6, tp, (0.02, 0.08))
+    ep = E.make_env_params(tp, filter_sigma=0.0, horizon=2, pool=pool, sensor_noise=True)
+    levels = np.asarray(pool.noise)
+    runs = {}
+    for where_done in (True, False):
+        monkeypatch.setattr(E, "RESET_ONLY_WHERE_DONE", where_done)
+        step = jax.jit(jax.vmap(E.step_env, (0, 0, 0, None)))  # (a new jit: the flag is read when traced)
+        _, state = jax.vmap(E.reset_env, (0, None))(jax.random.split(jax.random.PRNGKey(1), B), ep)
+        seen = [state]
+        for i in range(5):
+            _, state, _, _, _ = step(jax.random.split(jax.random.PRNGKey(20 + i), B), state, jnp.full((B, 3), 0.3), ep)
+            seen.append(state)
+        runs[where_done] = seen
+    _assert_close(runs[True], runs[False])
+    seen = runs[True]
+    for st in seen:
+        assert np.all(np.min(np.abs(np.asarray(st.noise_level)[:, None] - levels[None]), axis=1) < 1e-7)
+    assert all(np.asarray(st.t).max() <= 1 for st in seen)
+    # the second step ends every episode (horizon 2): the state after it is a fresh episode's, noise included
+    fresh = jax.vmap(E.reset_env, (0, None))(jax.vmap(lambda k: jax.random.split(k)[1])(
+        jax.random.split(jax.random.PRNGKey(21), B)), ep)[1]
+    _assert_close((seen[2].noise_level, seen[2].noise), (fresh.noise_level, fresh.noise))
+    assert not np.allclose(seen[2].noise_level, seen[1].noise_level)

@@ -170,6 +170,7 @@ def make_env_params(traffic: TrafficParams | None = None, filter_sigma: float = 
     kwargs.setdefault("delay_max", float(traffic.delay))
     kwargs.setdefault("alpha_min", float(traffic.alpha))
     kwargs.setdefault("alpha_max", float(traffic.alpha))
+    kwargs.setdefault("sensor_noise", kwargs.get("noise_max", 0.0) > 0)  # (a pool's levels: say sensor_noise=True)
     if np.ndim(kwargs.get("gain_max", 0.0)):  # one bound per gain: a tuple of floats (hashable, traced leaves)
         kwargs["gain_max"] = tuple(float(g) for g in np.asarray(kwargs["gain_max"], float).reshape(gp.N_GAINS))
     ep = EnvParams(traffic=traffic, **kwargs)
@@ -250,7 +251,8 @@ def _new_episode(key: Array, params: EnvParams, rho_bar: Array,
     plant_params = tp.replace(delay=delay, alpha=alpha)
     noise = {}
     if params.sensor_noise:  # the episode's level (with a pool: its scenario's) and its first measurement's error
-        k_level, k_e = jax.random.split(jax.random.fold_in(key, 1))  # (the draws above unchanged)
+        # a child of ``key`` the split above does not produce (fold_in(key, i) is split(key, 5)[i] for i < 5)
+        k_level, k_e = jax.random.split(jax.random.fold_in(key, 5))
         level = (jax.random.uniform(k_level, minval=params.noise_min, maxval=params.noise_max) if pool is None
                  else pool.noise[i])
         noise = {"noise_level": level, "noise": draw_factors(k_e, level, rho0.shape, rho0.dtype)}
@@ -287,8 +289,8 @@ def step_env(key: Array, state: EnvState, action: Array, params: EnvParams):
     t = state.t + 1
     truncated = (t >= params.horizon) & ~terminated
     done = terminated | truncated
-    noise = None if state.noise is None else draw_factors(jax.random.fold_in(key, 1), state.noise_level,
-                                                          plant.rho.shape, plant.rho.dtype)
+    noise = None if state.noise is None else draw_factors(  # a child of ``key`` besides k_plant and k_reset
+        jax.random.fold_in(key, 2), state.noise_level, plant.rho.shape, plant.rho.dtype)
     stepped = EnvState(plant=plant, plant_params=state.plant_params, t=t, gains=gains,
                        noise_level=state.noise_level, noise=noise)
     terminal_obs = observe(stepped, params, eq)

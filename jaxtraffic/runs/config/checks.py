@@ -168,6 +168,9 @@ def check_config(config: Any) -> None:
     if cp and cp != pl.n_points and run.algo != "gradient":
         raise fail("controller_points", cp, "PPO's controller acts on the training plant's grid; only `train.py "
                     "gradient` trains a controller on a grid of its own")
+    if en.train_sensor_noise[1] > 0 and not en.train_split:  # (the scenarios' levels and keys are the split's)
+        raise fail("train_sensor_noise", en.train_sensor_noise, "needs --train-split N > 0: the train split's "
+                   "scenarios carry the noise levels and keys the comparison sees (and selects checkpoints on)")
     if run.val_plant == "reference" and run.val_horizon_s > 0 and run.algo == "ppo":
         _check_reference_validation(pl)
     for name in ("horizon_s", "eval_horizon_s"):

@@ -55,12 +55,14 @@ def _v4(tables: Tables) -> Tables:
 
 
 def _v5(tables: Tables) -> Tables:
-    """Version 5 -> 6: the training sensor noise moved from [grad] to [env] (PPO's environment sees it too)."""
+    """Version 5 -> 6: the training sensor noise moved from [grad] to [env] (PPO's environment sees it too; a PPO
+    run of version 5 trained without it, whatever its [grad] said)."""
     grad = dict(tables.get("grad", {}))
     if "train_sensor_noise" not in grad:
         return tables
-    return {**tables, "grad": grad, "env": {**tables.get("env", {}), "train_sensor_noise": grad.pop(
-        "train_sensor_noise")}}
+    noise = grad.pop("train_sensor_noise")
+    moved = {} if tables.get("run", {}).get("algo") == "ppo" else {"train_sensor_noise": noise}
+    return {**tables, "grad": grad, "env": {**tables.get("env", {}), **moved}}
 
 
 # version n's tables -> version n + 1's. A config file holds only what differs from the defaults, so a changed

@@ -154,13 +154,23 @@ def elsewhere_headline(out: Path) -> str:
 
 
 def noise_headline(out: Path) -> str:
-    """The README's line on the gradient laws trained under sensor noise, from
+    """The README's line on the learned laws trained under sensor noise, from
     DIR/fair/trained_under_noise/{paper,muscl,reference}_noise.json (those present): their best against the best
-    model-based law of the same rows (the baselines tuned under the noise among them)."""
+    model-based law of the same rows (the baselines tuned under the noise among them), and how often PPO trained
+    so diverges (paper grid, per seed)."""
+    folder = out / "fair" / "trained_under_noise"
     where = {k: v.split(" under")[0] for k, v in ELSEWHERE.items() if k.endswith("_noise")}
-    return ("with the gradient laws trained and the baselines tuned under the sensor noise they are judged with, "
+    line = ("with the learned laws trained and the baselines tuned under the sensor noise they are judged with, "
             "the best learned law against the best model-based law (the ratio of the medians): "
-            + "; ".join(frontiers(out / "fair" / "trained_under_noise", where)))
+            + "; ".join(frontiers(folder, where)))
+    d = json.loads((folder / "paper_noise.json").read_text())
+    rows = sorted(k for k in d["laws"] if k.startswith("ppo_split_s"))
+    if rows:
+        n = d["scenarios"]["n"]
+        failed = [round(d["summary"][k]["diverged_rate"]["value"] * n) for k in rows]
+        line += (f"; PPO trained so diverges on {', '.join(map(str, failed))} of {n} (paper grid, seeds "
+                 f"{', '.join(k.rsplit('_s', 1)[1] for k in rows)})")
+    return line
 
 
 def ppo_headline(out: Path) -> str:

@@ -289,8 +289,9 @@ def step_env(key: Array, state: EnvState, action: Array, params: EnvParams):
     t = state.t + 1
     truncated = (t >= params.horizon) & ~terminated
     done = terminated | truncated
-    noise = None if state.noise is None else draw_factors(  # a child of ``key`` besides k_plant and k_reset
-        jax.random.fold_in(key, 2), state.noise_level, plant.rho.shape, plant.rho.dtype)
+    level = state.noise_level
+    noise = None if level is None else draw_factors(  # a child of ``key`` besides k_plant and k_reset
+        jax.random.fold_in(key, 2), level, plant.rho.shape, plant.rho.dtype)
     stepped = EnvState(plant=plant, plant_params=state.plant_params, t=t, gains=gains,
                        noise_level=state.noise_level, noise=noise)
     terminal_obs = observe(stepped, params, eq)

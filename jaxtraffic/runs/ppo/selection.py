@@ -144,7 +144,8 @@ def make_split_suite(nominal, horizon_s: float, n_train: int, plant=None,
     (``control.noise.sensor_noise``), as the comparison's ``--sensor-noise`` has it."""
     judge = nominal if plant is None else nominal.replace(n_points=plant.n_points, scheme=plant.scheme,
                                                           substeps=plant.substeps)
-    scen = sample(ScenarioDistribution(sensor_noise_range=tuple(sensor_noise)), "train", n_train, 0,
+    noise_range = (float(sensor_noise[0]), float(sensor_noise[1]))
+    scen = sample(ScenarioDistribution(sensor_noise_range=noise_range), "train", n_train, 0,
                   base=judge.replace(alpha_noise=0.0))
     n_steps, every = steps_of(horizon_s, float(judge.dt))
     n_s, plants, noisy = len(scen), scen.plants, sensor_noise[1] > 0
